@@ -42,10 +42,12 @@ class DecodeError(ProtocolError, ValueError):
     """The wire sent bytes that are not a valid message.
 
     Attributes:
+        reason: what was wrong, without the bytes.
         raw: the offending bytes, as received.
     """
 
     def __init__(self, message: str, raw: bytes = b"") -> None:
+        self.reason = message
         self.raw = bytes(raw)
         super().__init__(f"{message} (raw: {self.raw.hex(' ') or 'empty'})")
 
@@ -90,6 +92,7 @@ class MotionFault(MotionError):
     def __init__(
         self,
         kind: str,
+        *,
         joint: str | None = None,
         value: float | None = None,
         threshold: float | None = None,

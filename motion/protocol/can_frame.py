@@ -1,0 +1,130 @@
+"""CAN v2.3 framing: messages <-> (arbitration id, 8-byte payload).
+
+Single-motor frames use ID ``0x140 + motor id`` in both directions with the command byte in DATA[0]; the
+multi-motor torque frame uses ID 0x280 and carries four int16 currents, each of motors 1..4 answering on its own
+ID with a 0xA1-style reply. The direction of a frame cannot be told from its bytes, so there is one decoder per
+direction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from motion.errors import DecodeError
+from motion.protocol.messages import Command, Message, MultiMotorTorque
+from motion.protocol.table import (
+    CAN_ID_BASE,
+    CAN_MULTI_TORQUE_ID,
+    CAN_PAYLOAD_BYTES,
+    COMMANDS,
+    MOTOR_ID_MAX,
+    MOTOR_ID_MIN,
+    MULTI_TORQUE_LAYOUT,
+    Direction,
+    Transport,
+    check_motor_id,
+    command_of,
+    layout_for,
+    pack_fields,
+    unpack_fields,
+)
+
+
+@dataclass(frozen=True, slots=True)
+class CanFrame:
+    """A classic CAN data frame with a standard (11-bit) identifier."""
+
+    arbitration_id: int
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class CanRequest:
+    """A decoded host request: ``motor_id`` is None for the 0x280 multi-motor frame."""
+
+    motor_id: int | None
+    message: Message
+
+
+def _encode(message: Message, motor_id: int, direction: Direction) -> CanFrame:
+    layout = layout_for(message, Transport.CAN, direction)
+    data = bytearray(CAN_PAYLOAD_BYTES)
+    if isinstance(message, MultiMotorTorque):
+        pack_fields(layout, message, data)
+        return CanFrame(CAN_MULTI_TORQUE_ID, bytes(data))
+    check_motor_id(motor_id)
+    command = command_of(message)
+    assert command is not None
+    data[0] = command
+    pack_fields(layout, message, data)
+    return CanFrame(CAN_ID_BASE + motor_id, bytes(data))
+
+
+def encode_request(message: Message, motor_id: int = MOTOR_ID_MIN) -> CanFrame:
+    """Build the CAN frame of a host request.
+
+    Args:
+        message: the request; a :class:`MultiMotorTorque` goes out on ID 0x280 and ignores ``motor_id``.
+        motor_id: drive id 1..32.
+
+    Raises:
+        EncodeError: a bad motor id, a value out of range, or a message CAN cannot carry as a request.
+    """
+    return _encode(message, motor_id, Direction.REQUEST)
+
+
+def encode_reply(message: Message, motor_id: int) -> CanFrame:
+    """Build the CAN frame of a drive reply (what the emulator sends).
+
+    Raises:
+        EncodeError: a bad motor id, a value out of range, or a message CAN cannot carry as a reply.
+    """
+    return _encode(message, motor_id, Direction.REPLY)
+
+
+def _check_frame(arbitration_id: int, data: bytes) -> None:
+    if len(data) != CAN_PAYLOAD_BYTES:
+        raise DecodeError(f"CAN payload must be {CAN_PAYLOAD_BYTES} bytes, got {len(data)}", data)
+    if arbitration_id != CAN_MULTI_TORQUE_ID and not (
+        CAN_ID_BASE + MOTOR_ID_MIN <= arbitration_id <= CAN_ID_BASE + MOTOR_ID_MAX
+    ):
+        raise DecodeError(
+            f"arbitration id 0x{arbitration_id:X} is neither 0x{CAN_ID_BASE + MOTOR_ID_MIN:X}.."
+            f"0x{CAN_ID_BASE + MOTOR_ID_MAX:X} nor 0x{CAN_MULTI_TORQUE_ID:X}",
+            data,
+        )
+
+
+def _decode(data: bytes, direction: Direction) -> Message:
+    code = data[0]
+    spec = COMMANDS.get(Command(code)) if code in Command._value2member_map_ else None
+    layout = spec.layout(Transport.CAN, direction) if spec is not None else None
+    if spec is None or layout is None:
+        raise DecodeError(f"0x{code:02X} is not a CAN v2.3 {direction.value} command", data)
+    return unpack_fields(layout, data, spec.code, first=1, check_reserved=direction is Direction.REQUEST)
+
+
+def decode_request(arbitration_id: int, data: bytes) -> CanRequest:
+    """Decode a host request (what the emulator receives).
+
+    Raises:
+        DecodeError: wrong length, id outside 0x141..0x160 / 0x280, unknown command, bad field, set reserved byte.
+    """
+    data = bytes(data)
+    _check_frame(arbitration_id, data)
+    if arbitration_id == CAN_MULTI_TORQUE_ID:
+        return CanRequest(None, unpack_fields(MULTI_TORQUE_LAYOUT, data, None, first=0, check_reserved=True))
+    return CanRequest(arbitration_id - CAN_ID_BASE, _decode(data, Direction.REQUEST))
+
+
+def decode_reply(arbitration_id: int, data: bytes) -> tuple[int, Message]:
+    """Decode a drive reply into ``(motor_id, message)``.
+
+    Raises:
+        DecodeError: wrong length, id outside 0x141..0x160, unknown command or bad field.
+    """
+    data = bytes(data)
+    _check_frame(arbitration_id, data)
+    if arbitration_id == CAN_MULTI_TORQUE_ID:
+        raise DecodeError("ID 0x280 carries requests only; drives reply on 0x140 + id", data)
+    return arbitration_id - CAN_ID_BASE, _decode(data, Direction.REPLY)
