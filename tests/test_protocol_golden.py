@@ -137,8 +137,12 @@ VECTORS = [
         Status1(C.READ_STATUS_1, 45, 24.0, ErrorFlags.LOW_VOLTAGE | ErrorFlags.OVER_TEMPERATURE),
         "3E 9A 01 07 E0 2D 00 F0 00 00 00 09 26",
     ),
-    Vector("rs485", REP, 1, Status1(C.CLEAR_ERRORS, -5, 12.5, ErrorFlags.NONE), "3E 9B 01 07 E1 FB 00 7D 00 00 00 00 78"),
-    Vector("rs485", REP, 1, MotorState(C.READ_STATUS_2, 30, 1.6, -360, 16383), "3E 9C 01 07 E2 1E 64 00 98 FE FF 3F 56"),
+    Vector(
+        "rs485", REP, 1, Status1(C.CLEAR_ERRORS, -5, 12.5, ErrorFlags.NONE), "3E 9B 01 07 E1 FB 00 7D 00 00 00 00 78"
+    ),
+    Vector(
+        "rs485", REP, 1, MotorState(C.READ_STATUS_2, 30, 1.6, -360, 16383), "3E 9C 01 07 E2 1E 64 00 98 FE FF 3F 56"
+    ),
     Vector("rs485", REQ, 1, Bare(C.READ_STATUS_3), "3E 9D 01 00 DC"),
     Vector("rs485", REP, 1, PhaseCurrents(1.0, -0.5, -0.5, 33), "3E 9D 01 07 E3 21 40 00 E0 FF E0 FF 1F"),
     Vector("rs485", REQ, 1, Bare(C.MOTOR_OFF), "3E 80 01 00 BF", "doc"),

@@ -127,7 +127,7 @@ class Field:
 
     def physical(self, raw: int) -> float:
         """Physical value of a raw integer (exactly rounded: ``raw * num / den``)."""
-        return raw * self.num / self.den if self.den != 1 or self.num != 1 else raw
+        return raw * self.num / self.den if self.kind is Kind.REAL else raw
 
     def valid_range(self) -> str:
         """Human-readable valid range in physical units, with the raw range."""

@@ -1,0 +1,115 @@
+"""Project-level checks: README's commands, CI entry point, docs in sync with the code, import layering."""
+
+from __future__ import annotations
+
+import ast
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from motion.protocol.reference import markdown_table
+
+ROOT = Path(__file__).resolve().parent.parent
+
+# Lower layers first: a module may import only from its own layer or the layers listed before it.
+LAYERS = [
+    "motion.errors",
+    "motion.protocol",
+    "motion.transmission",
+    "motion.transport",
+    "motion.emulator",
+    "motion.trajectory",
+    "motion.control",
+    "motion.safety",
+    "motion.config",
+    "motion.cli",
+]
+# Third-party packages that exactly one subpackage may import.
+OWNERS = {
+    "can": "motion.transport",
+    "serial": "motion.transport",
+    "ruckig": "motion.trajectory",
+    "yaml": "motion.config",
+    "pinocchio": "kinematics",
+}
+
+
+def _readme_commands() -> list[str]:
+    text = (ROOT / "README.md").read_text()
+    return re.findall(r"```sh\n(.*?)\n```", text, flags=re.S)
+
+
+def test_readme_has_exactly_two_commands_and_ci_runs_the_second() -> None:
+    commands = _readme_commands()
+    assert len(commands) == 2
+    assert all("\n" not in c for c in commands)
+    ci = (ROOT / ".ci" / "run").read_text().strip().splitlines()
+    assert ci[-1] == commands[1]
+
+
+def test_docs_protocol_table_matches_the_code() -> None:
+    doc = (ROOT / "docs" / "protocol.md").read_text()
+    generated = doc.split("<!-- BEGIN GENERATED TABLE -->\n", 1)[1].split("<!-- END GENERATED TABLE -->", 1)[0]
+    assert generated == markdown_table(), "regenerate with: python -m motion.protocol"
+
+
+def _layer(module: str) -> int | None:
+    for index, prefix in enumerate(LAYERS):
+        if module == prefix or module.startswith(prefix + "."):
+            return index
+    return None
+
+
+def _imports(path: Path, module: str) -> list[str]:
+    tree = ast.parse(path.read_text())
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [alias.name for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = module.rsplit(".", node.level)[0]
+                found.append(f"{base}.{node.module}" if node.module else base)
+            elif node.module:
+                found.append(node.module)
+    return found
+
+
+@pytest.mark.parametrize("package", ["motion", "kinematics"])
+def test_imports_point_downward_only(package: str) -> None:
+    wrong = []
+    for path in sorted((ROOT / package).rglob("*.py")):
+        module = ".".join(path.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+        own = _layer(module)
+        for imported in _imports(path, module):
+            top = imported.split(".")[0]
+            if top in OWNERS and not (module + ".").startswith(OWNERS[top] + "."):
+                wrong.append(f"{module} imports {imported} (only {OWNERS[top]} may)")
+            if package == "motion" and top == "kinematics":
+                wrong.append(f"{module} imports {imported} (motion never imports kinematics)")
+            target = _layer(imported)
+            if own is not None and target is not None and target > own:
+                wrong.append(f"{module} (layer {LAYERS[own]}) imports {imported} (layer {LAYERS[target]})")
+    assert not wrong, "\n".join(wrong)
+
+
+def test_protocol_core_is_stdlib_only() -> None:
+    allowed = {"__future__", "collections", "dataclasses", "enum", "fractions", "math", "sys", "typing", "motion"}
+    for path in (ROOT / "motion" / "protocol").rglob("*.py"):
+        for imported in _imports(path, "motion.protocol." + path.stem):
+            assert imported.split(".")[0] in allowed, f"{path.name} imports {imported}"
+            if imported.startswith("motion."):
+                assert imported.startswith(("motion.protocol", "motion.errors")), f"{path.name} imports {imported}"
+
+
+def test_demo_command_prints_decoded_frames() -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "motion.cli", "demo"], capture_output=True, text=True, check=False, cwd=ROOT
+    )
+    assert result.returncode == 0, result.stderr
+    assert "141: a4 00 68 01 28 23 00 00" in result.stdout
+    assert "MultiTurnPositionSpeed(angle_deg=90.0, max_speed_dps=360.0)" in result.stdout
+    assert "3 frames, 4 garbage bytes dropped" in result.stdout
