@@ -1,0 +1,87 @@
+"""A raw CAN frame endpoint over any python-can interface (the package's only importer of ``can``).
+
+Used by :class:`~motion.transport.can_transport.CanTransport` on the host side and by the emulator to attach
+emulated drives to an in-process ``virtual`` bus. Frames are :class:`motion.protocol.CanFrame`.
+"""
+
+from __future__ import annotations
+
+import types
+from typing import Any
+
+import can
+
+from motion.errors import TransportError
+from motion.protocol import CanFrame
+
+
+class CanEndpoint:
+    """Send and receive classic CAN data frames on one python-can bus.
+
+    Args:
+        interface: python-can interface name (``virtual``, ``socketcan``, ``slcan``, ``pcan``, ``kvaser``, ...).
+        channel: interface channel (``can0``, ``/dev/ttyACM0``, a virtual channel name, ...).
+        bitrate: bit rate in bit/s, or None to leave the interface's setting alone.
+        **bus_kwargs: passed to :class:`can.Bus` unchanged.
+
+    Raises:
+        TransportError: the bus could not be opened (unknown interface, missing device, ...).
+    """
+
+    def __init__(self, interface: str, channel: str, bitrate: int | None = None, **bus_kwargs: Any) -> None:
+        kwargs = dict(bus_kwargs)
+        if bitrate is not None:
+            kwargs["bitrate"] = bitrate
+        try:
+            self._bus = can.Bus(interface=interface, channel=channel, **kwargs)
+        except (can.CanError, OSError, ValueError, ImportError) as exc:
+            raise TransportError(f"cannot open CAN interface {interface!r} channel {channel!r}: {exc}") from exc
+        self.interface = interface
+        self.channel = channel
+        self._closed = False
+
+    def send(self, frame: CanFrame, timeout_s: float | None = None) -> None:
+        """Send one frame.
+
+        Raises:
+            TransportError: the interface refused the frame (bus off, buffer full, port gone).
+        """
+        message = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
+        try:
+            self._bus.send(message, timeout=timeout_s)
+        except (can.CanError, OSError, ValueError) as exc:
+            raise TransportError(f"CAN send on {self.interface}:{self.channel} failed: {exc}") from exc
+
+    def recv(self, timeout_s: float | None) -> tuple[CanFrame, float] | None:
+        """Receive one data frame, or None when ``timeout_s`` passes first or a skipped frame arrived.
+
+        Remote, error and extended-id frames are skipped (RMD drives use none of them); a data frame that is not
+        8 bytes long is returned as it is, so that the caller can count it as a bad frame.
+
+        Returns:
+            ``(frame, timestamp_s)`` where the timestamp is the interface's receive time.
+
+        Raises:
+            TransportError: the interface failed (bus off, port gone).
+        """
+        try:
+            message = self._bus.recv(timeout=timeout_s)
+        except (can.CanError, OSError, ValueError) as exc:
+            raise TransportError(f"CAN receive on {self.interface}:{self.channel} failed: {exc}") from exc
+        if message is None or message.is_error_frame or message.is_remote_frame or message.is_extended_id:
+            return None
+        return CanFrame(message.arbitration_id, bytes(message.data)), float(message.timestamp)
+
+    def close(self) -> None:
+        """Release the bus; safe to call more than once."""
+        if not self._closed:
+            self._closed = True
+            self._bus.shutdown()
+
+    def __enter__(self) -> CanEndpoint:
+        return self
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: types.TracebackType | None
+    ) -> None:
+        self.close()
