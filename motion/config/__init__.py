@@ -1,0 +1,42 @@
+"""Arm configuration: YAML file -> validated frozen dataclasses (the only importer of ``yaml``)."""
+
+from __future__ import annotations
+
+from motion.config.loader import load_config, parse_config
+from motion.config.schema import (
+    ArmConfig,
+    BusConfig,
+    CanBusConfig,
+    ChainJointConfig,
+    ControlConfig,
+    ControlMode,
+    EmulationConfig,
+    HaltPolicy,
+    InertiaConfig,
+    JointConfig,
+    ModelConfig,
+    Rs485BusConfig,
+    SafetyConfig,
+    Transport,
+    Vec3,
+)
+
+__all__ = [
+    "ArmConfig",
+    "BusConfig",
+    "CanBusConfig",
+    "ChainJointConfig",
+    "ControlConfig",
+    "ControlMode",
+    "EmulationConfig",
+    "HaltPolicy",
+    "InertiaConfig",
+    "JointConfig",
+    "ModelConfig",
+    "Rs485BusConfig",
+    "SafetyConfig",
+    "Transport",
+    "Vec3",
+    "load_config",
+    "parse_config",
+]

@@ -1,0 +1,280 @@
+"""Arm configuration as frozen dataclasses.
+
+The field names are the YAML keys and the field defaults are the YAML defaults: :mod:`motion.config.loader`
+derives both from here, so a key without a default below is required in the file. Units are in the names.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from enum import StrEnum
+from pathlib import Path
+from typing import ClassVar, TypeAlias
+
+from motion.transmission import ArmTransmission, Transmission
+
+Vec3: TypeAlias = tuple[float, float, float]
+
+
+class Transport(StrEnum):
+    """Which bus the drives are on."""
+
+    #: CAN 2.0 through python-can (RMD CAN protocol v2.3).
+    CAN = "can"
+    #: RS485 through pyserial (RMD RS485 protocol v1.62).
+    RS485 = "rs485"
+
+
+class ControlMode(StrEnum):
+    """How the controller drives the motors."""
+
+    #: Stream position setpoints (0xA4) with a speed cap; the drive closes the position loop.
+    POSITION = "position"
+    #: Stream torque-current setpoints (0xA1); the controller closes a PD loop plus feed-forward.
+    TORQUE = "torque"
+
+
+class HaltPolicy(StrEnum):
+    """What every axis does when the controller halts (fault, Ctrl-C, end of program)."""
+
+    #: Motor stop command (0x81).
+    STOP = "stop"
+    #: Motor off command (0x80): torque released (an arm under gravity falls unless it has brakes).
+    OFF = "off"
+    #: Keep commanding the last measured position.
+    HOLD = "hold"
+
+
+@dataclass(frozen=True, slots=True)
+class CanBusConfig:
+    """CAN bus via python-can.
+
+    Attributes:
+        interface: python-can interface name (``virtual``, ``socketcan``, ``slcan``, ``pcan``, ``kvaser``, ...).
+        channel: interface channel (``can0``, ``/dev/ttyACM0``, ``PCAN_USBBUS1``, ...).
+        bitrate: bit rate in bit/s (500000 or 1000000, the rates the RMD drives support).
+    """
+
+    transport: ClassVar[Transport] = Transport.CAN
+    interface: str
+    channel: str
+    bitrate: int = 1_000_000
+
+
+@dataclass(frozen=True, slots=True)
+class Rs485BusConfig:
+    """RS485 serial port via pyserial.
+
+    Attributes:
+        port: serial device (``/dev/ttyUSB0``, ``COM3``).
+        baudrate: baud rate in bit/s (9600, 19200, 57600 or 115200).
+    """
+
+    transport: ClassVar[Transport] = Transport.RS485
+    port: str
+    baudrate: int = 115_200
+
+
+BusConfig: TypeAlias = CanBusConfig | Rs485BusConfig
+
+
+@dataclass(frozen=True, slots=True)
+class ControlConfig:
+    """Control loop settings.
+
+    Attributes:
+        halt_policy: what the axes do on halt (required: the safe choice depends on the arm).
+        mode: position or torque control.
+        rate_hz: control cycle rate in Hz (50..1000).
+        gravity_feedforward: add the model's gravity torque g(q).
+        inertia_feedforward: add the inertial and Coriolis torques of the planned motion (RNEA).
+    """
+
+    halt_policy: HaltPolicy
+    mode: ControlMode = ControlMode.POSITION
+    rate_hz: float = 200.0
+    gravity_feedforward: bool = False
+    inertia_feedforward: bool = False
+
+    @property
+    def period_s(self) -> float:
+        """Control cycle period in seconds."""
+        return 1.0 / self.rate_hz
+
+
+@dataclass(frozen=True, slots=True)
+class InertiaConfig:
+    """Rotational inertia about the centre of mass, in the link frame, in kg·m²."""
+
+    ixx: float
+    ixy: float
+    ixz: float
+    iyy: float
+    iyz: float
+    izz: float
+
+    def matrix(self) -> tuple[Vec3, Vec3, Vec3]:
+        """The symmetric 3x3 inertia matrix in kg·m², row by row."""
+        return (
+            (self.ixx, self.ixy, self.ixz),
+            (self.ixy, self.iyy, self.iyz),
+            (self.ixz, self.iyz, self.izz),
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class ChainJointConfig:
+    """One revolute joint of a serial chain written in YAML, and the link it moves (URDF conventions).
+
+    Attributes:
+        joint: joint name (must match a configured joint).
+        axis: rotation axis in the joint frame (normalised on load).
+        mass_kg: link mass in kg.
+        com_xyz_m: link centre of mass in the joint frame, in metres.
+        inertia_kgm2: link inertia about its centre of mass, in the joint frame axes.
+        origin_xyz_m: joint frame position in the previous joint frame (the world for the first), in metres.
+        origin_rpy_rad: joint frame orientation (roll, pitch, yaw; R = Rz(y)·Ry(p)·Rx(r)) in radians.
+        link: name of the link frame (default ``<joint>_link``).
+    """
+
+    joint: str
+    axis: Vec3
+    mass_kg: float
+    com_xyz_m: Vec3
+    inertia_kgm2: InertiaConfig
+    origin_xyz_m: Vec3 = (0.0, 0.0, 0.0)
+    origin_rpy_rad: Vec3 = (0.0, 0.0, 0.0)
+    link: str = ""
+
+    @property
+    def link_name(self) -> str:
+        """Name of the link frame: ``link``, or ``<joint>_link`` when not given."""
+        return self.link or f"{self.joint}_link"
+
+
+@dataclass(frozen=True, slots=True)
+class ModelConfig:
+    """Arm dynamic model: exactly one of ``urdf`` and ``chain``.
+
+    Attributes:
+        urdf: absolute path of the URDF file (written relative to the configuration file).
+        chain: serial chain of revolute joints, base first.
+        gravity_m_s2: gravity vector in the base frame, in m/s².
+        tip_xyz_m: with ``chain`` only: a frame named ``tip`` at this offset in the last joint frame, in metres.
+    """
+
+    urdf: Path | None = None
+    chain: tuple[ChainJointConfig, ...] = ()
+    gravity_m_s2: Vec3 = (0.0, 0.0, -9.81)
+    tip_xyz_m: Vec3 | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class EmulationConfig:
+    """Plant parameters for the emulated drive of a joint (used only by the emulator).
+
+    Attributes:
+        rotor_inertia_kgm2: motor rotor inertia, motor side, in kg·m² (reflected: gear_ratio² times this).
+        viscous_friction_nm_per_dps: joint-side viscous friction in N·m per deg/s.
+        coulomb_friction_nm: joint-side Coulomb friction in N·m.
+    """
+
+    rotor_inertia_kgm2: float = 3.0e-5
+    viscous_friction_nm_per_dps: float = 2.0e-4
+    coulomb_friction_nm: float = 0.05
+
+
+@dataclass(frozen=True, slots=True)
+class JointConfig:
+    """One joint and its drive. Angles, rates and limits are joint-side unless the name says motor.
+
+    Attributes:
+        name: joint name (as in the model).
+        motor_id: drive id on the bus (1..32).
+        gear_ratio: motor-shaft degrees per joint degree (9 for a 1:9 drive).
+        direction: +1 or -1.
+        zero_offset_deg: joint angle when the motor reads 0, in degrees.
+        torque_constant_nm_per_a: motor-side torque constant in N·m/A.
+        current_limit_a: largest torque current commanded, in A (0 < x <= 32).
+        position_min_deg: lower joint limit in degrees.
+        position_max_deg: upper joint limit in degrees.
+        velocity_limit_dps: joint speed limit in deg/s.
+        acceleration_limit_dps2: joint acceleration limit in deg/s².
+        jerk_limit_dps3: joint jerk limit in deg/s³.
+        encoder_bits: single-turn encoder resolution in bits (12..18).
+        kp_nm_per_deg: torque-mode stiffness in N·m per degree (required when control.mode is torque).
+        kd_nm_per_dps: torque-mode damping in N·m per deg/s (required when control.mode is torque).
+        temperature_limit_c: motor temperature that faults the arm, in °C.
+        emulation: emulator plant parameters.
+    """
+
+    name: str
+    motor_id: int
+    gear_ratio: float
+    direction: int
+    zero_offset_deg: float
+    torque_constant_nm_per_a: float
+    current_limit_a: float
+    position_min_deg: float
+    position_max_deg: float
+    velocity_limit_dps: float
+    acceleration_limit_dps2: float
+    jerk_limit_dps3: float
+    encoder_bits: int = 14
+    kp_nm_per_deg: float = 0.0
+    kd_nm_per_dps: float = 0.0
+    temperature_limit_c: float = 70.0
+    emulation: EmulationConfig = field(default_factory=EmulationConfig)
+
+    def transmission(self) -> Transmission:
+        """The joint <-> motor mapping of this joint."""
+        return Transmission(
+            gear_ratio=self.gear_ratio,
+            direction=self.direction,
+            zero_offset_deg=self.zero_offset_deg,
+            torque_constant_nm_per_a=self.torque_constant_nm_per_a,
+            current_limit_a=self.current_limit_a,
+        )
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyConfig:
+    """Arm-wide fault thresholds.
+
+    Attributes:
+        following_error_deg: largest |planned - measured| joint angle before a fault, in degrees.
+        min_voltage_v: supply voltage below which the arm faults, in volts.
+        reply_timeout_ms: time to wait for a drive's reply, in milliseconds.
+        max_missed_replies: consecutive missed replies of one drive tolerated before a fault.
+    """
+
+    following_error_deg: float
+    min_voltage_v: float
+    reply_timeout_ms: float = 20.0
+    max_missed_replies: int = 3
+
+
+@dataclass(frozen=True, slots=True)
+class ArmConfig:
+    """A whole arm: bus, control loop, model, joints (in controller order) and safety thresholds.
+
+    Attributes:
+        source: the file it was read from (``"<string>"`` when parsed from a mapping), for error messages.
+    """
+
+    name: str
+    bus: BusConfig
+    control: ControlConfig
+    model: ModelConfig
+    safety: SafetyConfig
+    joints: tuple[JointConfig, ...]
+    source: str = "<string>"
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Joint names in configuration order."""
+        return tuple(j.name for j in self.joints)
+
+    def transmission(self) -> ArmTransmission:
+        """Vectorised joint <-> motor mapping of all joints, in configuration order."""
+        return ArmTransmission([j.transmission() for j in self.joints], self.joint_names)
