@@ -11,6 +11,7 @@ import sys
 from collections.abc import Sequence
 
 from motion import __version__
+from motion.emulator.cli import add_emulate_arguments, run_emulate
 from motion.errors import ConfigError, MotionError, MotionFault, ProtocolError, TransportError
 from motion.protocol import (
     Bare,
@@ -85,6 +86,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"rmd-motion {__version__}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     sub.add_parser("demo", help="encode and decode one control cycle on both transports")
+    add_emulate_arguments(
+        sub.add_parser("emulate", help="run emulated RMD drives on an slcan or RS485 pseudo-terminal")
+    )
     return parser
 
 
@@ -94,6 +98,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         if args.command == "demo":
             return _demo()
+        if args.command == "emulate":
+            return run_emulate(args)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

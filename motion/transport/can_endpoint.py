@@ -6,6 +6,7 @@ emulated drives to an in-process ``virtual`` bus. Frames are :class:`motion.prot
 
 from __future__ import annotations
 
+import time
 import types
 from typing import Any
 
@@ -53,10 +54,10 @@ class CanEndpoint:
             raise TransportError(f"CAN send on {self.interface}:{self.channel} failed: {exc}") from exc
 
     def recv(self, timeout_s: float | None) -> tuple[CanFrame, float] | None:
-        """Receive one data frame, or None when ``timeout_s`` passes first or a skipped frame arrived.
+        """Receive one data frame, or None when ``timeout_s`` passes first (None: wait for ever).
 
-        Remote, error and extended-id frames are skipped (RMD drives use none of them); a data frame that is not
-        8 bytes long is returned as it is, so that the caller can count it as a bad frame.
+        Remote, error and extended-id frames are skipped (RMD drives use none of them) without ending the wait; a
+        data frame that is not 8 bytes long is returned as it is, so that the caller can count it as a bad frame.
 
         Returns:
             ``(frame, timestamp_s)`` where the timestamp is the interface's receive time.
@@ -64,13 +65,17 @@ class CanEndpoint:
         Raises:
             TransportError: the interface failed (bus off, port gone).
         """
-        try:
-            message = self._bus.recv(timeout=timeout_s)
-        except (can.CanError, OSError, ValueError) as exc:
-            raise TransportError(f"CAN receive on {self.interface}:{self.channel} failed: {exc}") from exc
-        if message is None or message.is_error_frame or message.is_remote_frame or message.is_extended_id:
-            return None
-        return CanFrame(message.arbitration_id, bytes(message.data)), float(message.timestamp)
+        end = None if timeout_s is None else time.monotonic() + timeout_s
+        while True:
+            remaining = None if end is None else max(0.0, end - time.monotonic())
+            try:
+                message = self._bus.recv(timeout=remaining)
+            except (can.CanError, OSError, ValueError) as exc:
+                raise TransportError(f"CAN receive on {self.interface}:{self.channel} failed: {exc}") from exc
+            if message is None:
+                return None
+            if not (message.is_error_frame or message.is_remote_frame or message.is_extended_id):
+                return CanFrame(message.arbitration_id, bytes(message.data)), float(message.timestamp)
 
     def close(self) -> None:
         """Release the bus; safe to call more than once."""

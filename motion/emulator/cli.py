@@ -1,0 +1,209 @@
+"""Emulated RMD drives on a virtual slcan USB-CAN adapter, an RS485 pty or a python-can virtual bus.
+
+Examples::
+
+    rmd-motion emulate --ids 1-6 --slcan-link /tmp/rmd-can          # then: can.Bus('slcan', '/tmp/rmd-can', ...)
+    rmd-motion emulate --ids 1,3,5 --rs485-link /tmp/rmd-485 --bus-time --log frames.log
+    rmd-motion emulate --ids 1-4 --virtual-channel arm --fault over_temperature:2@5-20:95 --fault delay:1@0:15
+
+It prints the path of each attachment, then runs until SIGINT or SIGTERM (exit code 0). Exit codes: 2 for usage
+errors, 3 when a pty, link or bus cannot be set up or an attachment fails. ``python -m motion.emulator`` runs the
+same command until it is wired into ``rmd-motion``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import math
+import signal
+import sys
+import threading
+import types
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
+
+from motion.emulator.attach import (
+    DEFAULT_CAN_BITRATE,
+    DEFAULT_RS485_BAUD,
+    Attachment,
+    Rs485Attachment,
+    SlcanAttachment,
+    VirtualCanAttachment,
+)
+from motion.emulator.core import Emulator
+from motion.emulator.faults import Fault, parse_fault
+from motion.emulator.framelog import FrameLog
+from motion.emulator.model import DriveModel
+from motion.emulator.timing import DEFAULT_LATENCY_S, TimingModel
+from motion.errors import ConfigError, TransportError
+from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN
+
+EXIT_OK = 0
+EXIT_USAGE = 2
+EXIT_COMMUNICATION = 3
+#: Baud rates of the RS485 document.
+RS485_BAUDS = (9600, 19200, 57600, 115200)
+N = TypeVar("N", int, float)
+#: How often the main thread checks the attachments while waiting for a signal, s.
+_WATCH_S = 0.2
+
+
+def parse_ids(text: str) -> tuple[int, ...]:
+    """Parse motor ids such as ``1-6``, ``1,3,5`` or ``1-3,8`` into a sorted tuple.
+
+    Raises:
+        ValueError: a part is not an id or a range, an id is outside 1..32, a range is reversed, or an id repeats.
+    """
+    ids: list[int] = []
+    for part in text.split(","):
+        first, dash, last = part.strip().partition("-")
+        try:
+            lo = int(first)
+            hi = int(last) if dash else lo
+        except ValueError:
+            raise ValueError(f"{part.strip()!r} is not an id or a range like 1-6") from None
+        for value in (lo, hi):
+            if not MOTOR_ID_MIN <= value <= MOTOR_ID_MAX:
+                raise ValueError(f"motor id {value} is outside {MOTOR_ID_MIN}..{MOTOR_ID_MAX}")
+        if hi < lo:
+            raise ValueError(f"range {part.strip()!r} goes backwards")
+        ids += range(lo, hi + 1)
+    repeated = sorted({i for i in ids if ids.count(i) > 1})
+    if repeated:
+        raise ValueError(f"motor id {repeated[0]} is given twice")
+    return tuple(sorted(ids))
+
+
+def _ids_arg(text: str) -> tuple[int, ...]:
+    try:
+        return parse_ids(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _fault_arg(text: str) -> Fault:
+    try:
+        return parse_fault(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _number_arg(convert: Callable[[str], N], valid: Callable[[N], bool], what: str) -> Callable[[str], N]:
+    """An argparse ``type`` that converts a number and checks it, naming ``what`` it must be."""
+
+    def parse(text: str) -> N:
+        try:
+            value = convert(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}") from None
+        if not valid(value):
+            raise argparse.ArgumentTypeError(f"{text!r} is not {what}")
+        return value
+
+    return parse
+
+
+_latency_arg = _number_arg(float, lambda v: 0 <= v < math.inf, "a latency >= 0 ms")
+_bitrate_arg = _number_arg(int, lambda v: v > 0, "a bit rate > 0 bit/s")
+_gear_arg = _number_arg(float, lambda v: 0 < v < math.inf, "a gear ratio > 0")
+
+
+def add_emulate_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add the options of ``rmd-motion emulate`` to ``parser``."""
+    parser.add_argument("--ids", required=True, type=_ids_arg, metavar="IDS",
+                        help="motor ids of the emulated drives: 1-6, 1,3,5 or 1-3,8 (each 1..32)")
+    where = parser.add_argument_group("attachments (at least one)")
+    where.add_argument("--slcan-link", metavar="PATH",
+                       help="virtual slcan USB-CAN adapter on a pty, with a symlink at PATH")
+    where.add_argument("--rs485-link", metavar="PATH", help="RS485 line on a pty, with a symlink at PATH")
+    where.add_argument("--virtual-channel", metavar="NAME",
+                       help="python-can virtual bus channel (in-process: for a host running in this process)")
+    timing = parser.add_argument_group("timing")
+    timing.add_argument("--latency-ms", type=_latency_arg, default=DEFAULT_LATENCY_S * 1000, metavar="MS",
+                        help="drive reply latency in ms (default %(default)g)")
+    timing.add_argument("--bus-time", action="store_true",
+                        help="also model bus occupation: CAN bits at the bit rate, RS485 10 bits/byte at the baud")
+    timing.add_argument("--bitrate", type=_bitrate_arg, default=DEFAULT_CAN_BITRATE, metavar="BIT_S",
+                        help="bit rate of the virtual CAN bus for --bus-time (slcan uses the host's Sn command)")
+    timing.add_argument("--baud", type=int, default=DEFAULT_RS485_BAUD, choices=RS485_BAUDS,
+                        help="RS485 baud rate for --bus-time (default %(default)d)")
+    parser.add_argument("--fault", action="append", default=[], type=_fault_arg,
+                        metavar="KIND:MOTOR@START[-END][:PARAM]",
+                        help="inject a fault at simulation time START s (until END s): over_temperature[:degC], "
+                        "under_voltage[:V], silent, delay[:ms], corrupt[:payload|id|length], drop[:probability]; "
+                        "repeatable")
+    parser.add_argument("--encoder-bits", type=int, choices=range(12, 19), default=14, metavar="12..18",
+                        help="encoder resolution of every drive (default %(default)d)")
+    parser.add_argument("--gear-ratio", type=_gear_arg, default=1.0, metavar="RATIO",
+                        help="motor degrees per joint degree of every drive (default %(default)g)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the drop faults' random draws")
+    parser.add_argument("--log", metavar="FILE", help="write every frame in and out to FILE, one line each")
+
+
+def run_emulate(args: argparse.Namespace) -> int:
+    """Run the emulator until SIGINT or SIGTERM; returns the exit code."""
+    if not (args.slcan_link or args.rs485_link or args.virtual_channel):
+        print("error: give at least one of --slcan-link, --rs485-link, --virtual-channel", file=sys.stderr)
+        return EXIT_USAGE
+    if not logging.getLogger().handlers:
+        logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        model = DriveModel(encoder_bits=args.encoder_bits, gear_ratio=args.gear_ratio)
+        emulator = Emulator(args.ids, model=model, faults=args.fault, seed=args.seed)
+        timing = TimingModel(args.latency_ms / 1000.0, args.bus_time)
+    except (ValueError, ConfigError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: types.FrameType | None) -> None:
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    attachments: list[Attachment[Any, Any]] = []
+    failed = False
+    try:
+        with contextlib.ExitStack() as stack:
+            try:
+                frame_log = stack.enter_context(FrameLog(args.log)) if args.log else None
+                if args.virtual_channel:
+                    attachments.append(stack.enter_context(VirtualCanAttachment(
+                        emulator, args.virtual_channel, bitrate=args.bitrate, timing=timing, frame_log=frame_log)))
+                if args.slcan_link:
+                    attachments.append(stack.enter_context(
+                        SlcanAttachment(emulator, args.slcan_link, timing=timing, frame_log=frame_log)))
+                if args.rs485_link:
+                    attachments.append(stack.enter_context(Rs485Attachment(
+                        emulator, args.rs485_link, baud=args.baud, timing=timing, frame_log=frame_log)))
+            except (TransportError, OSError) as exc:
+                print(f"communication error: {exc}", file=sys.stderr)
+                return EXIT_COMMUNICATION
+            for attachment in attachments:
+                device = getattr(attachment, "device_path", None)
+                print(f"{attachment.channel}: {attachment.path}" + (f" (pty {device})" if device else ""), flush=True)
+            faults = ", ".join(f.describe() for f in emulator.faults) or "none"
+            print(f"emulating motors {','.join(map(str, emulator.ids))}; faults: {faults}; "
+                  "stop with Ctrl-C or SIGTERM", flush=True)
+            while not stop.wait(_WATCH_S):
+                if any(a.failure is not None for a in attachments):
+                    break
+    except RuntimeError as exc:  # an attachment's thread failed; close() re-raised it
+        print(f"communication error: {exc}", file=sys.stderr)
+        failed = True
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    for attachment in attachments:
+        s = attachment.stats
+        print(f"{attachment.channel}: {s.requests} requests, {s.replies} replies, {s.decode_errors} protocol errors, "
+              f"{s.unanswered} unanswered, {s.corrupted} corrupted, {s.undelivered} undelivered", file=sys.stderr)
+    return EXIT_COMMUNICATION if failed else EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m motion.emulator``: the emulate command on its own."""
+    parser = argparse.ArgumentParser(prog="python -m motion.emulator", description=(__doc__ or "").splitlines()[0])
+    add_emulate_arguments(parser)
+    return run_emulate(parser.parse_args(argv))

@@ -1,0 +1,361 @@
+"""The emulator: drives on one bus, the plant they turn, simulation time and the fault schedule.
+
+Simulation time advances in fixed steps (:data:`DEFAULT_STEP_S`), either by hand (:meth:`Emulator.advance`, for
+deterministic tests) or following the monotonic clock (:meth:`Emulator.sync`, which the bus attachments call). Each
+step applies the faults that begin or end, lets every drive turn the plant's state into a torque, and integrates the
+plant. Requests are decoded with the protocol codec, executed by the addressed drive and answered with replies
+encoded by the same codec, after the link faults (silent, drop, delay, corrupt) had their say.
+
+Thread safety: every public method takes the emulator's lock, so attachments on several threads can share it.
+"""
+
+from __future__ import annotations
+
+import heapq
+import logging
+import math
+import random
+import threading
+import time
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass
+from typing import Final, Generic, TypeVar
+
+import numpy as np
+
+from motion.emulator.drive import EmulatedDrive
+from motion.emulator.faults import Corruption, Fault, FaultKind, corrupt_can, corrupt_rs485
+from motion.emulator.model import DriveModel, LoadModel
+from motion.emulator.plant import IndependentLoads, Plant
+from motion.errors import ConfigError
+from motion.protocol import CanFrame, Message, MultiMotorTorque, Rs485Frame, TorqueControl, can_frame, rs485_frame
+from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, Direction, Transport, check_motor_id
+
+logger = logging.getLogger("motion.emulator")
+
+#: Integration step, s (2 kHz: well above the drives' speed-loop bandwidth and any host control rate).
+DEFAULT_STEP_S: Final = 0.0005
+#: Largest stretch of simulation :meth:`Emulator.sync` catches up in one call, s; beyond it simulation time slips
+#: behind the wall clock (counted in ``overruns``) rather than stalling the replies.
+MAX_CATCH_UP_S: Final = 0.25
+#: Default fault parameters relative to the drive's thresholds, and of the link faults.
+_OVER_TEMPERATURE_MARGIN_C: Final = 10.0
+_UNDER_VOLTAGE_MARGIN_V: Final = 6.0
+_DEFAULT_DELAY_MS: Final = 10.0
+_LINK_KINDS: Final = (FaultKind.SILENT, FaultKind.DROP, FaultKind.DELAY, FaultKind.CORRUPT)
+
+W = TypeVar("W")
+
+
+@dataclass(frozen=True, slots=True)
+class Outgoing(Generic[W]):
+    """One reply on its way to the host.
+
+    Attributes:
+        motor_id: the drive that answers.
+        wire: the encoded reply (a :class:`CanFrame` or RS485 bytes), damaged if ``corruption`` is set.
+        message: the reply as the drive built it.
+        delay_s: extra delay from a ``delay`` fault, s.
+        corruption: how a ``corrupt`` fault damaged ``wire``, or None.
+    """
+
+    motor_id: int
+    wire: W
+    message: Message
+    delay_s: float = 0.0
+    corruption: Corruption | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Exchange(Generic[W]):
+    """What one request did.
+
+    Attributes:
+        motor_id: the addressed drive (None for the CAN 0x280 multi-motor frame).
+        request: the decoded request.
+        replies: replies in the order the drives send them (ascending id for 0x280).
+        notes: why an addressed drive did not answer (absent, silent, dropped).
+    """
+
+    motor_id: int | None
+    request: Message
+    replies: tuple[Outgoing[W], ...]
+    notes: tuple[str, ...]
+
+
+class Emulator:
+    """Emulated RMD drives on one bus, turning a plant.
+
+    Args:
+        ids: motor ids of the drives, 1..32.
+        model: the drives' parameters, one for all or one per id.
+        load: each drive's load, one for all or one per id. Always used to scale the drives' speed loops (unless
+            the model says ``tuned_inertia_kgm2``), and to build the default plant.
+        plant: the mechanics (joint side, drives in ascending id order); default :class:`IndependentLoads` of
+            ``load`` with each rotor as armature.
+        faults: faults to schedule (see :mod:`motion.emulator.faults`).
+        step_s: integration step, s.
+        seed: seed of the random draws of ``drop`` faults.
+
+    Raises:
+        ValueError: an id outside 1..32 or given twice, a fault on a drive that is not emulated, a bad step, or a
+            plant of the wrong size.
+    """
+
+    def __init__(
+        self,
+        ids: Iterable[int],
+        *,
+        model: DriveModel | Mapping[int, DriveModel] | None = None,
+        load: LoadModel | Mapping[int, LoadModel] | None = None,
+        plant: Plant | None = None,
+        faults: Iterable[Fault] = (),
+        step_s: float = DEFAULT_STEP_S,
+        seed: int = 0,
+    ) -> None:
+        id_list = [check_motor_id(i) for i in ids]
+        if len(set(id_list)) != len(id_list) or not id_list:
+            raise ValueError(f"motor ids must be distinct and at least one, got {id_list}")
+        if not (math.isfinite(step_s) and step_s > 0):
+            raise ValueError(f"integration step must be > 0 s, got {step_s!r}")
+        self.ids: tuple[int, ...] = tuple(sorted(id_list))
+        self.step_s = step_s
+        models = [_pick(model, i, DriveModel) for i in self.ids]
+        loads = [_pick(load, i, LoadModel) for i in self.ids]
+        self.plant: Plant = plant or IndependentLoads(loads, [m.rotor_inertia_kgm2 * m.gear_ratio**2 for m in models])
+        if self.plant.size != len(self.ids):
+            raise ValueError(f"plant has {self.plant.size} joints for {len(self.ids)} drives")
+        self.drives: dict[int, EmulatedDrive] = {
+            i: EmulatedDrive(i, m, m.rotor_inertia_kgm2 + ld.inertia_kgm2 / m.gear_ratio**2)
+            for i, m, ld in zip(self.ids, models, loads, strict=True)
+        }
+        self._order = [self.drives[i] for i in self.ids]
+        self._index = {i: n for n, i in enumerate(self.ids)}
+        self._torques = np.zeros(len(self.ids))
+        self._positions, self._velocities = self.plant.state()
+        self._observe_all()
+        self._lock = threading.RLock()
+        self._rng = random.Random(seed)
+        self._steps = 0
+        self._target_s = 0.0
+        self._epoch_s: float | None = None
+        #: Times sync() gave up catching up and let simulation time slip behind the wall clock.
+        self.overruns = 0
+        self._faults: list[Fault] = []
+        self._events: list[tuple[float, int]] = []  # (sim time, motor id) where a physical fault begins or ends
+        for fault in faults:
+            self.add_fault(fault)
+
+    # --- time -----------------------------------------------------------------------------------------------------
+
+    @property
+    def time_s(self) -> float:
+        """Simulation time, s (a whole number of steps)."""
+        return self._steps * self.step_s
+
+    def advance(self, dt_s: float) -> None:
+        """Advance simulation time by ``dt_s`` seconds (whole steps; the remainder carries over).
+
+        Raises:
+            ValueError: a negative or non-finite ``dt_s``.
+        """
+        if not (math.isfinite(dt_s) and dt_s >= 0):
+            raise ValueError(f"cannot advance by {dt_s!r} s")
+        with self._lock:
+            self._target_s += dt_s
+            # The epsilon keeps float noise from dropping a step that is due (0.1 / 0.0005 = 199.99999...).
+            due = math.floor(self._target_s / self.step_s + 1e-9)
+            for _ in range(due - self._steps):
+                self._step()
+
+    def sync(self, now_s: float | None = None) -> None:
+        """Advance simulation time to the monotonic clock (``now_s``, default ``time.monotonic()``).
+
+        The first call ties the current simulation time to ``now_s``; calls from several threads are harmless.
+        """
+        now = time.monotonic() if now_s is None else now_s
+        with self._lock:
+            if self._epoch_s is None:
+                self._epoch_s = now - self._target_s
+            behind = now - self._epoch_s - self._target_s
+            if behind > MAX_CATCH_UP_S:
+                self._epoch_s += behind - MAX_CATCH_UP_S
+                behind = MAX_CATCH_UP_S
+                self.overruns += 1
+                logger.warning("emulator fell behind real time; simulation time slips (overrun %d)", self.overruns)
+            if behind > 0:
+                self.advance(behind)
+
+    def _apply_fault_events(self) -> None:
+        """Let the physical faults that began or ended by now take effect."""
+        now = self.time_s
+        while self._events and self._events[0][0] <= now:
+            _, motor_id = heapq.heappop(self._events)
+            self._refresh_physical_faults(motor_id)
+
+    def _step(self) -> None:
+        self._apply_fault_events()
+        positions, velocities, torques, dt = self._positions, self._velocities, self._torques, self.step_s
+        for n, drive in enumerate(self._order):
+            torques[n] = drive.control(dt, float(positions[n]), float(velocities[n]))
+        self._positions, self._velocities = self.plant.step(dt, torques)
+        self._steps += 1
+
+    def _observe_all(self) -> None:
+        for n, drive in enumerate(self._order):
+            drive.observe(float(self._positions[n]), float(self._velocities[n]))
+
+    def power_cycle(self, motor_id: int | None = None) -> None:
+        """Switch one drive (or all) off and on: RAM settings are lost, ROM settings take effect."""
+        with self._lock:
+            self._observe_all()
+            for drive in self._order if motor_id is None else [self.drives[motor_id]]:
+                drive.power_cycle()
+
+    # --- faults ---------------------------------------------------------------------------------------------------
+
+    def add_fault(self, fault: Fault) -> None:
+        """Schedule a fault.
+
+        Raises:
+            ValueError: the fault's drive is not emulated.
+        """
+        if fault.motor_id not in self.drives:
+            raise ValueError(f"fault {fault.describe()}: motor {fault.motor_id} is not emulated (ids {self.ids})")
+        with self._lock:
+            self._faults.append(fault)
+            if fault.kind not in _LINK_KINDS:
+                heapq.heappush(self._events, (fault.start_s, fault.motor_id))
+                if fault.end_s is not None:
+                    heapq.heappush(self._events, (fault.end_s, fault.motor_id))
+
+    @property
+    def faults(self) -> tuple[Fault, ...]:
+        """Every scheduled fault."""
+        return tuple(self._faults)
+
+    def _refresh_physical_faults(self, motor_id: int) -> None:
+        drive, now = self.drives[motor_id], self.time_s
+        volts, floors = [], []
+        for f in self._faults:
+            if f.motor_id != motor_id or not f.active(now):
+                continue
+            if f.kind is FaultKind.UNDER_VOLTAGE:
+                volts.append(f.value if f.value is not None else drive.model.low_voltage_v - _UNDER_VOLTAGE_MARGIN_V)
+            elif f.kind is FaultKind.OVER_TEMPERATURE:
+                default_c = drive.model.over_temperature_c + _OVER_TEMPERATURE_MARGIN_C
+                floors.append(f.value if f.value is not None else default_c)
+        drive.voltage_override_v = max(0.0, min(volts)) if volts else None
+        drive.temperature_floor_c = max(floors) if floors else None
+        if floors:
+            drive.temperature_c = max(drive.temperature_c, *floors)
+
+    def _link(self, motor_id: int) -> tuple[str | None, float, Corruption | None]:
+        """``(why the request is lost or None, extra reply delay in s, corruption)`` for a request now."""
+        lost, delay_s, corruption, now = None, 0.0, None, self.time_s
+        for f in self._faults:
+            if f.motor_id != motor_id or f.kind not in _LINK_KINDS or not f.active(now):
+                continue
+            if f.kind is FaultKind.SILENT:
+                lost = f"silent ({f.describe()})"
+            elif f.kind is FaultKind.DROP:
+                if self._rng.random() < (1.0 if f.value is None else f.value):
+                    lost = f"request dropped ({f.describe()})"
+            elif f.kind is FaultKind.DELAY:
+                delay_s += (_DEFAULT_DELAY_MS if f.value is None else f.value) / 1000.0
+            else:
+                corruption = f.corruption
+        return lost, delay_s, corruption
+
+    # --- requests -------------------------------------------------------------------------------------------------
+
+    def handle_can(self, frame: CanFrame) -> Exchange[CanFrame]:
+        """Execute a CAN request frame.
+
+        Raises:
+            DecodeError: the frame breaks the CAN protocol (id, length, command, field, reserved byte).
+        """
+        request = can_frame.decode_request(frame.arbitration_id, frame.data)
+        message = request.message
+        if isinstance(message, MultiMotorTorque):
+            currents = (message.iq1_a, message.iq2_a, message.iq3_a, message.iq4_a)
+            targets: list[tuple[int, Message]] = [
+                (i, TorqueControl(iq)) for i, iq in zip(MULTI_TORQUE_MOTOR_IDS, currents, strict=True)
+            ]
+            return self._dispatch(None, message, targets, Transport.CAN, _encode_can)
+        assert request.motor_id is not None  # every other CAN request addresses one drive
+        return self._dispatch(request.motor_id, message, [(request.motor_id, message)], Transport.CAN, _encode_can)
+
+    def handle_rs485(self, frame: Rs485Frame) -> Exchange[bytes]:
+        """Execute an RS485 request frame (checksums already verified by the parser).
+
+        Raises:
+            DecodeError: the frame breaks the RS485 protocol (command, data length, field, reserved byte).
+        """
+        message = rs485_frame.decode_frame(frame, Direction.REQUEST)
+        return self._dispatch(frame.motor_id, message, [(frame.motor_id, message)], Transport.RS485, _encode_rs485)
+
+    def _dispatch(
+        self,
+        motor_id: int | None,
+        request: Message,
+        targets: list[tuple[int, Message]],
+        transport: Transport,
+        encode: Callable[[Message, int, Corruption | None], W],
+    ) -> Exchange[W]:
+        replies: list[Outgoing[W]] = []
+        notes: list[str] = []
+        with self._lock:
+            self._apply_fault_events()  # a request may come before the first step after a fault's start
+            for target_id, message in targets:
+                drive = self.drives.get(target_id)
+                if drive is None:
+                    notes.append(f"motor {target_id} is not on the bus")
+                    continue
+                lost, delay_s, corruption = self._link(target_id)
+                if lost is not None:
+                    notes.append(f"motor {target_id}: {lost}")
+                    continue
+                n = self._index[target_id]
+                drive.observe(float(self._positions[n]), float(self._velocities[n]))
+                reply = drive.handle(message, transport)
+                replies.append(Outgoing(target_id, encode(reply, target_id, corruption), reply, delay_s, corruption))
+        return Exchange(motor_id, request, tuple(replies), tuple(notes))
+
+    def request(
+        self, motor_id: int, message: Message, transport: Transport = Transport.CAN
+    ) -> list[tuple[int, Message]]:
+        """Send one request through the codec and return the decoded replies as ``(motor_id, message)``.
+
+        A convenience for tests and scripts: no bus, no latency. A :class:`MultiMotorTorque` ignores ``motor_id``.
+
+        Raises:
+            EncodeError: the request cannot be encoded.
+            DecodeError: a reply was corrupted by a fault.
+        """
+        if transport is Transport.CAN:
+            exchange_can = self.handle_can(can_frame.encode_request(message, motor_id))
+            return [can_frame.decode_reply(o.wire.arbitration_id, o.wire.data) for o in exchange_can.replies]
+        raw = rs485_frame.encode_request(message, motor_id)
+        exchange = self.handle_rs485(rs485_frame.split_frame(raw))
+        return [rs485_frame.decode_reply(o.wire) for o in exchange.replies]
+
+
+def _pick(value: W | Mapping[int, W] | None, motor_id: int, default: Callable[[], W]) -> W:
+    if value is None:
+        return default()
+    if isinstance(value, Mapping):
+        if motor_id not in value:
+            raise ConfigError("<Emulator>", f"[{motor_id}]", "no parameters for this motor id")
+        return value[motor_id]
+    return value
+
+
+def _encode_can(reply: Message, motor_id: int, corruption: Corruption | None) -> CanFrame:
+    frame = can_frame.encode_reply(reply, motor_id)
+    return frame if corruption is None else corrupt_can(frame, corruption, motor_id)
+
+
+def _encode_rs485(reply: Message, motor_id: int, corruption: Corruption | None) -> bytes:
+    raw = rs485_frame.encode_reply(reply, motor_id)
+    return raw if corruption is None else corrupt_rs485(raw, corruption)

@@ -1,0 +1,92 @@
+"""The CAN transport over any python-can interface, built on :class:`~motion.transport.can_endpoint.CanEndpoint`.
+
+A cycle drains the receive queue (whatever is there is a previous cycle's and counts as stale), sends every
+request back to back (the bus arbitrates, drives answer in parallel), then receives until every expected reply
+is matched or the deadline passes. Replies are matched by arbitration id (``0x140 + motor id``) and DATA[0]
+(the command byte the drive echoes); see :mod:`motion.transport.base` for the matching and stale rule.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from motion.errors import DecodeError
+from motion.protocol import CanFrame, can_frame
+from motion.protocol.table import CAN_ID_BASE, MOTOR_ID_MAX, MOTOR_ID_MIN
+from motion.transport.base import Request, Transport
+from motion.transport.can_endpoint import CanEndpoint
+
+
+class CanTransport(Transport):
+    """RMD drives on one CAN bus.
+
+    Args:
+        interface: python-can interface name (``socketcan``, ``slcan``, ``pcan``, ``virtual``, ...).
+        channel: interface channel (``can0``, ``/dev/ttyACM0``, a virtual channel name, ...).
+        bitrate: bit rate in bit/s (RMD drives use 1 Mbit/s), or None to leave the interface's setting alone.
+        clock: time source of the deadlines (see :class:`~motion.transport.base.Transport`).
+        **bus_kwargs: passed to :class:`can.Bus` unchanged.
+
+    Raises:
+        TransportError: the bus could not be opened.
+    """
+
+    def __init__(
+        self,
+        interface: str,
+        channel: str,
+        bitrate: int | None = None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        **bus_kwargs: Any,
+    ) -> None:
+        super().__init__(clock=clock)
+        self._endpoint = CanEndpoint(interface, channel, bitrate, **bus_kwargs)
+        self._frames: list[CanFrame] = []
+
+    def describe(self) -> str:
+        """``"can INTERFACE:CHANNEL"``."""
+        return f"can {self._endpoint.interface}:{self._endpoint.channel}"
+
+    def _prepare(self, requests: Sequence[Request]) -> None:
+        frames = self._frames
+        frames.clear()
+        for request in requests:
+            frames.append(can_frame.encode_request(request.message, request.motor_id))
+
+    def _exchange(self, deadline_s: float) -> None:
+        endpoint, clock = self._endpoint, self.clock
+        # Anything already queued was sent before this cycle's requests: take it in as stale now, so that it
+        # cannot be matched to them.
+        while (received := endpoint.recv(0.0)) is not None:
+            self._receive(received[0])
+        # A send that cannot complete by the deadline means a full transmit queue (bus off, no ACK): an error.
+        send_timeout_s = max(deadline_s - clock(), 0.0)
+        for index, frame in enumerate(self._frames):
+            endpoint.send(frame, send_timeout_s)
+            self._sent(index)
+        while self._open_slots:
+            remaining_s = deadline_s - clock()
+            if remaining_s <= 0.0:
+                break
+            received = endpoint.recv(remaining_s)
+            if received is not None:
+                self._receive(received[0])
+
+    def _receive(self, frame: CanFrame) -> None:
+        motor_id = frame.arbitration_id - CAN_ID_BASE
+        if not MOTOR_ID_MIN <= motor_id <= MOTOR_ID_MAX:
+            # Other devices may share the bus; their frames are not drive replies, nor are 0x280 frames.
+            self.bus_counters.unknown_id_frames += 1
+            return
+        try:
+            _, message = can_frame.decode_reply(frame.arbitration_id, frame.data)
+        except DecodeError:
+            self.motor_counters(motor_id).bad_frames += 1
+            return
+        self._offer(motor_id, message)
+
+    def _close(self) -> None:
+        self._endpoint.close()

@@ -1,0 +1,192 @@
+"""The RS485 transport over pyserial (the package's only importer of ``serial``).
+
+RS485 is half duplex: one request, its reply, then the next request. For each request the transport
+
+1. drains the input: frames already received are stale (counted per motor), corrupt bytes count on the bus
+   (``BusCounters.bad_frames`` / ``dropped_bytes``), and the parser is emptied;
+2. writes the request;
+3. waits for the reply until the request's window ends, taking in every frame the parser finds (a frame from
+   another motor or with another command is stale, never matched to this request); at the end of the window an
+   incomplete frame is given up on (``next_frame(flush=True)``) and the request expires.
+
+Per-request timeout rule: request *i* of *n* gets an equal share of the time left until the deadline,
+``window_end = now + (deadline_s - now) / (n - i)``, measured just before it is sent. Time a prompt reply leaves
+unused goes to the requests after it, so one silent drive costs at most its share and the call never returns
+after the deadline. A request whose turn comes after the deadline is not sent at all (its reply would collide
+with the next request on the shared pair): it is reported as no reply and counted in
+``BusCounters.skipped_requests``.
+
+Corrupt bytes seen while waiting for motor *m* (bad checksums, bad lengths, truncated frames, line noise) count
+as ``bad_frames`` of *m*: on a half-duplex bus only the addressed drive may talk. Each corrupt frame candidate the
+parser rejects counts once; noise that never looked like a frame counts once per window.
+
+Waiting uses ``select`` on the port's file descriptor, so this backend needs a POSIX system.
+"""
+
+from __future__ import annotations
+
+import select
+import time
+from collections.abc import Callable, Sequence
+from typing import Final
+
+import serial
+
+from motion.errors import DecodeError, EncodeError, TransportError
+from motion.protocol import MultiMotorTorque, Rs485Parser, rs485_frame
+from motion.protocol.table import Direction
+from motion.transport.base import Request, Transport
+
+#: Baud rates RMD RS485 drives support (v1.62: 115200 is the factory default).
+BAUDRATES: Final = (9600, 19200, 57600, 115200)
+#: Bytes asked of the port per read; larger than any frame (65 bytes) so one read usually takes a whole reply.
+READ_CHUNK_BYTES: Final = 256
+
+
+class Rs485Transport(Transport):
+    """RMD drives on one RS485 line (8N1, half duplex).
+
+    Args:
+        port: serial device (``/dev/ttyUSB0``, a pseudo-terminal, ...).
+        baudrate: 9600, 19200, 57600 or 115200 bit/s.
+        clock: time source of the deadlines (see :class:`~motion.transport.base.Transport`).
+        exclusive: lock the port against other processes (``flock``), so that two programs cannot share a line.
+        write_timeout_s: how long a write may block before the port counts as failed.
+
+    Raises:
+        EncodeError: the baud rate is not one RMD drives support (checked before the port is touched).
+        TransportError: the port could not be opened (missing, busy, locked by another process).
+    """
+
+    def __init__(
+        self,
+        port: str,
+        baudrate: int = 115_200,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        exclusive: bool = True,
+        write_timeout_s: float = 0.1,
+    ) -> None:
+        if baudrate not in BAUDRATES:
+            raise EncodeError("baudrate", ", ".join(map(str, BAUDRATES)), baudrate, "RMD RS485 v1.62 baud rates")
+        super().__init__(clock=clock)
+        self.port = port
+        self.baudrate = baudrate
+        try:
+            # timeout=0: reads return what is there; waiting is done with select until a window's end instead,
+            # because changing pyserial's timeout reconfigures the port on every call.
+            self._serial = serial.Serial(
+                port=port,
+                baudrate=baudrate,
+                bytesize=serial.EIGHTBITS,
+                parity=serial.PARITY_NONE,
+                stopbits=serial.STOPBITS_ONE,
+                timeout=0,
+                write_timeout=write_timeout_s,
+                exclusive=exclusive,
+            )
+            self._fds: list[int] = [self._serial.fileno()]
+        except (serial.SerialException, OSError, ValueError) as exc:
+            raise TransportError(f"cannot open RS485 port {port!r} at {baudrate} baud: {exc}") from exc
+        self._parser = Rs485Parser()
+        self._frames: list[bytes] = []
+        self._motors: list[int] = []
+        self._seen_candidates = 0
+        self._seen_dropped = 0
+
+    def describe(self) -> str:
+        """``"rs485 PORT"``."""
+        return f"rs485 {self.port}"
+
+    def _prepare(self, requests: Sequence[Request]) -> None:
+        frames, motors = self._frames, self._motors
+        frames.clear()
+        motors.clear()
+        for request in requests:
+            if isinstance(request.message, MultiMotorTorque):
+                raise EncodeError(
+                    "message", "a single-motor request (RS485 has no broadcast)", "MultiMotorTorque (CAN ID 0x280)"
+                )
+            frames.append(rs485_frame.encode_request(request.message, request.motor_id))
+            motors.append(request.motor_id)
+
+    def _exchange(self, deadline_s: float) -> None:
+        clock, count = self.clock, len(self._frames)
+        for index in range(count):
+            now = clock()
+            if now >= deadline_s:
+                break
+            window_end_s = now + (deadline_s - now) / (count - index)
+            self._drain()
+            self._write(self._frames[index])
+            self._sent(index)
+            self._wait(index, window_end_s)
+            self.motor_counters(self._motors[index]).bad_frames += self._corrupt_since_last_check()
+
+    def _drain(self) -> None:
+        """Take in everything received before the next request as stale, then empty the parser."""
+        while True:
+            chunk = self._read()
+            self._parser.feed(chunk)
+            if len(chunk) < READ_CHUNK_BYTES:
+                break
+        self._take_frames(flush=True)
+        self._parser.discard()
+        self.bus_counters.bad_frames += self._corrupt_since_last_check()
+
+    def _wait(self, index: int, window_end_s: float) -> None:
+        """Read until request ``index`` is answered or its window ends."""
+        clock, parser = self.clock, self._parser
+        while not self._answered(index):
+            remaining_s = window_end_s - clock()
+            if remaining_s <= 0.0:
+                self._take_frames(flush=True)
+                self._expire(index)
+                return
+            try:
+                ready = select.select(self._fds, (), (), remaining_s)[0]
+            except (OSError, ValueError) as exc:
+                raise TransportError(f"waiting on {self.describe()} failed: {exc}") from exc
+            if ready:
+                parser.feed(self._read())
+                self._take_frames(flush=False)
+
+    def _take_frames(self, *, flush: bool) -> None:
+        parser = self._parser
+        while (frame := parser.next_frame(flush=flush)) is not None:
+            try:
+                message = rs485_frame.decode_frame(frame, Direction.REPLY)
+            except DecodeError:
+                self.motor_counters(frame.motor_id).bad_frames += 1
+                continue
+            self._offer(frame.motor_id, message)
+
+    def _corrupt_since_last_check(self) -> int:
+        """Corrupt frames the parser rejected since the last call; noise without any frame candidate counts one."""
+        parser = self._parser
+        candidates = parser.bad_header_checksums + parser.bad_data_checksums + parser.bad_lengths + parser.truncated
+        bad = candidates - self._seen_candidates
+        if bad == 0 and parser.dropped_bytes > self._seen_dropped:
+            bad = 1
+        self._seen_candidates = candidates
+        self._seen_dropped = self.bus_counters.dropped_bytes = parser.dropped_bytes
+        return bad
+
+    def _read(self) -> bytes:
+        try:
+            chunk: bytes = self._serial.read(READ_CHUNK_BYTES)
+        except (serial.SerialException, OSError) as exc:
+            raise TransportError(f"read from {self.describe()} failed: {exc}") from exc
+        return chunk
+
+    def _write(self, frame: bytes) -> None:
+        try:
+            self._serial.write(frame)
+        except (serial.SerialException, OSError) as exc:
+            raise TransportError(f"write to {self.describe()} failed: {exc}") from exc
+
+    def _close(self) -> None:
+        try:
+            self._serial.close()
+        except (serial.SerialException, OSError) as exc:
+            raise TransportError(f"closing {self.describe()} failed: {exc}") from exc

@@ -1,0 +1,46 @@
+"""Bus-time model: CAN bit counting with stuffing, RS485 byte times, serialisation on one medium."""
+
+from __future__ import annotations
+
+import random
+
+import pytest
+
+from motion.emulator.timing import BusClock, TimingModel, can_frame_bits, can_frame_time_s, rs485_frame_time_s
+from motion.protocol import Bare, Command, MotorState, can_frame
+
+
+def test_an_all_zero_frame_has_one_stuff_bit_per_five_zeros() -> None:
+    # SOF + id + RTR + IDE + r0 + DLC = 19 zero bits, CRC-15 of zeros is zero: 34 zeros, 6 stuff bits,
+    # plus the 13 fixed tail bits.
+    assert can_frame_bits(0x000, b"") == 34 + 6 + 13
+
+
+def test_eight_byte_frames_take_111_to_135_bits() -> None:
+    rng = random.Random(1)
+    counts = {can_frame_bits(rng.randrange(0x800), rng.randbytes(8)) for _ in range(500)}
+    assert min(counts) >= 111 and max(counts) <= 135
+    assert len(counts) > 5  # stuffing depends on the content
+    assert can_frame_bits(0x141, bytes(8)) > can_frame_bits(0x155, b"\x55" * 8)
+
+
+def test_frame_and_byte_times() -> None:
+    frame = can_frame.encode_reply(MotorState(Command.READ_STATUS_2, 30, 1.0, 10, 100), 1)
+    assert 111e-6 <= can_frame_time_s(frame.arbitration_id, frame.data, 1_000_000) <= 135e-6
+    assert can_frame_time_s(frame.arbitration_id, frame.data, 500_000) == pytest.approx(
+        2 * can_frame_time_s(frame.arbitration_id, frame.data, 1_000_000)
+    )
+    assert rs485_frame_time_s(13, 115_200) == pytest.approx(13 * 10 / 115_200)
+    assert can_frame_bits(0x141, can_frame.encode_request(Bare(Command.READ_STATUS_2), 1).data) >= 111
+
+
+def test_bus_clock_serialises_frames() -> None:
+    bus = BusClock()
+    assert bus.occupy(1.0, 0.1) == pytest.approx(1.1)
+    assert bus.occupy(1.0, 0.1) == pytest.approx(1.2)  # waits for the first
+    assert bus.occupy(2.0, 0.1) == pytest.approx(2.1)  # bus idle meanwhile
+
+
+def test_timing_model_refuses_negative_latency() -> None:
+    with pytest.raises(ValueError, match="latency"):
+        TimingModel(latency_s=-0.001)
