@@ -157,8 +157,15 @@ class ArmTransmission:
     float64, may be the input itself) so that a control cycle can run them without allocating.
     """
 
-    __slots__ = ("_joint_per_motor", "_motor_per_joint", "_nm_per_a", "_offset_deg", "_raw_limit", "names",
-                 "transmissions")
+    __slots__ = (
+        "_joint_per_motor",
+        "_motor_per_joint",
+        "_nm_per_a",
+        "_offset_deg",
+        "_raw_limit",
+        "names",
+        "transmissions",
+    )
 
     def __init__(self, transmissions: Sequence[Transmission], names: Sequence[str] = ()) -> None:
         """Precompute the conversion factors.

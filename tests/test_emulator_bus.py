@@ -128,9 +128,10 @@ def check_can_bus(host: CanEndpoint, attachment: VirtualCanAttachment | SlcanAtt
 def test_virtual_can_bus(tmp_path: Path, frame_log: FrameLog) -> None:
     channel = f"emu-{uuid.uuid4().hex}"
     emulator = Emulator([1, 2, 3, 4])
-    with VirtualCanAttachment(emulator, channel, frame_log=frame_log) as attachment, CanEndpoint(
-        "virtual", channel
-    ) as host:
+    with (
+        VirtualCanAttachment(emulator, channel, frame_log=frame_log) as attachment,
+        CanEndpoint("virtual", channel) as host,
+    ):
         check_can_bus(host, attachment, tmp_path)
 
 
@@ -150,9 +151,10 @@ def test_slcan_pty_opened_by_python_can(tmp_path: Path, frame_log: FrameLog) -> 
 def test_rs485_pty_opened_by_pyserial(tmp_path: Path, frame_log: FrameLog) -> None:
     link = tmp_path / "rmd-485"
     emulator = Emulator([1, 5])
-    with Rs485Attachment(emulator, link, frame_log=frame_log) as attachment, serial.Serial(
-        str(link), 115200, timeout=0.01
-    ) as port:
+    with (
+        Rs485Attachment(emulator, link, frame_log=frame_log) as attachment,
+        serial.Serial(str(link), 115200, timeout=0.01) as port,
+    ):
         requests = requests_for(Transport.RS485)
         for message in requests:
             reply = rs485_exchange(port, rs485_frame.encode_request(message, 5))
@@ -189,9 +191,10 @@ def test_latency_delay_fault_and_bus_time_are_lower_bounds_on_reply_time() -> No
     channel = f"emu-{uuid.uuid4().hex}"
     emulator = Emulator(range(1, 7), faults=[parse_fault("delay:6@0:40")])
     timing = TimingModel(latency_s=0.005, bus_time=True)
-    with VirtualCanAttachment(emulator, channel, bitrate=10_000, timing=timing), CanEndpoint(
-        "virtual", channel
-    ) as host:
+    with (
+        VirtualCanAttachment(emulator, channel, bitrate=10_000, timing=timing),
+        CanEndpoint("virtual", channel) as host,
+    ):
         start = time.monotonic()
         replies = can_exchange(host, can_frame.encode_request(Bare(Command.READ_STATUS_2), 1))
         assert replies and time.monotonic() - start >= 0.005 + 2 * 111 / 10_000
@@ -209,9 +212,10 @@ def test_latency_delay_fault_and_bus_time_are_lower_bounds_on_reply_time() -> No
 def test_rs485_bus_time_counts_bytes_at_the_baud_rate(tmp_path: Path) -> None:
     emulator = Emulator([1])
     timing = TimingModel(latency_s=0.0, bus_time=True)
-    with Rs485Attachment(emulator, tmp_path / "line", baud=9600, timing=timing) as attachment, serial.Serial(
-        attachment.path, 9600, timeout=0.01
-    ) as port:
+    with (
+        Rs485Attachment(emulator, tmp_path / "line", baud=9600, timing=timing) as attachment,
+        serial.Serial(attachment.path, 9600, timeout=0.01) as port,
+    ):
         start = time.monotonic()
         assert rs485_exchange(port, rs485_frame.encode_request(Bare(Command.READ_STATUS_2), 1)) is not None
         assert time.monotonic() - start >= (5 + 13) * 10 / 9600
@@ -219,9 +223,10 @@ def test_rs485_bus_time_counts_bytes_at_the_baud_rate(tmp_path: Path) -> None:
 
 def test_link_faults_on_the_bus(tmp_path: Path) -> None:
     emulator = Emulator([1, 2], faults=[parse_fault("corrupt:1@0"), parse_fault("silent:2@0")])
-    with Rs485Attachment(emulator, tmp_path / "line") as attachment, serial.Serial(
-        attachment.path, 115200, timeout=0.01
-    ) as port:
+    with (
+        Rs485Attachment(emulator, tmp_path / "line") as attachment,
+        serial.Serial(attachment.path, 115200, timeout=0.01) as port,
+    ):
         port.write(rs485_frame.encode_request(Bare(Command.READ_STATUS_1), 1))
         assert wait_for(lambda: port.in_waiting >= 13)
         with pytest.raises(DecodeError, match="checksum"):

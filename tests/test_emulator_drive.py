@@ -213,8 +213,11 @@ def test_single_turn_position_goes_the_commanded_way(direction: SpinDirection, t
 
 def test_single_turn_position_with_max_speed() -> None:
     emulator = Emulator([1])
-    ask(emulator, 1, SingleTurnPositionSpeed(direction=SpinDirection.COUNTERCLOCKWISE, angle_deg=270.0,
-                                             max_speed_dps=200.0))
+    ask(
+        emulator,
+        1,
+        SingleTurnPositionSpeed(direction=SpinDirection.COUNTERCLOCKWISE, angle_deg=270.0, max_speed_dps=200.0),
+    )
     speeds = run(emulator, 1.2)
     assert min(speeds) >= -200.0 * 1.05
     assert emulator.drives[1].angle_deg == pytest.approx(-90.0, abs=0.05)

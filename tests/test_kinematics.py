@@ -111,9 +111,7 @@ def test_arm6_gravity_is_not_trivial() -> None:
 
 
 @given(joint_values(6), joint_values(6), joint_values(6))
-def test_arm6_aba_inverts_rnea(
-    q_deg: Vector, qd_dps: Vector, qdd_dps2: Vector
-) -> None:
+def test_arm6_aba_inverts_rnea(q_deg: Vector, qd_dps: Vector, qdd_dps2: Vector) -> None:
     tau = kin.rnea(ARM6, q_deg, qd_dps, qdd_dps2)
     np.testing.assert_allclose(kin.aba(ARM6, q_deg, qd_dps, tau), qdd_dps2, rtol=1e-6, atol=1e-6)
 
@@ -126,9 +124,7 @@ def test_mass_matrix_is_symmetric_positive_definite() -> None:
 
 @given(joint_values(6), joint_values(6), joint_values(6))
 @settings(max_examples=30)
-def test_configuration_order_differs_from_urdf_order(
-    q_deg: Vector, qd_dps: Vector, qdd_dps2: Vector
-) -> None:
+def test_configuration_order_differs_from_urdf_order(q_deg: Vector, qd_dps: Vector, qdd_dps2: Vector) -> None:
     arm, s = ARM6_SHUFFLED, SHUFFLE
     q, qd, qdd = q_deg[s], qd_dps[s], qdd_dps2[s]
     assert arm.joint_names == tuple(ARM6.joint_names[i] for i in s)
@@ -145,18 +141,30 @@ def test_configuration_order_differs_from_urdf_order(
 
 CHAIN: list[dict[str, Any]] = [
     {
-        "joint": "j1", "origin_xyz_m": [0.01, 0.02, 0.1], "origin_rpy_rad": [0.1, -0.2, 0.3], "axis": [0, 0, 1],
-        "mass_kg": 1.2, "com_xyz_m": [0.02, -0.01, 0.05],
+        "joint": "j1",
+        "origin_xyz_m": [0.01, 0.02, 0.1],
+        "origin_rpy_rad": [0.1, -0.2, 0.3],
+        "axis": [0, 0, 1],
+        "mass_kg": 1.2,
+        "com_xyz_m": [0.02, -0.01, 0.05],
         "inertia_kgm2": {"ixx": 0.004, "ixy": 0.0002, "ixz": -0.0001, "iyy": 0.005, "iyz": 0.0003, "izz": 0.003},
     },
     {
-        "joint": "j2", "origin_xyz_m": [0.0, 0.05, 0.12], "origin_rpy_rad": [1.2, 0.0, -0.4], "axis": [0, 1, 0],
-        "mass_kg": 0.9, "com_xyz_m": [0.1, 0.0, 0.01],
+        "joint": "j2",
+        "origin_xyz_m": [0.0, 0.05, 0.12],
+        "origin_rpy_rad": [1.2, 0.0, -0.4],
+        "axis": [0, 1, 0],
+        "mass_kg": 0.9,
+        "com_xyz_m": [0.1, 0.0, 0.01],
         "inertia_kgm2": {"ixx": 0.001, "ixy": 0.0, "ixz": 0.0001, "iyy": 0.006, "iyz": 0.0, "izz": 0.0062},
     },
     {
-        "joint": "j3", "origin_xyz_m": [0.2, 0.0, 0.0], "origin_rpy_rad": [0.0, 0.7, 0.0], "axis": [0.6, 0.8, 0],
-        "mass_kg": 0.4, "com_xyz_m": [0.05, 0.02, -0.03],
+        "joint": "j3",
+        "origin_xyz_m": [0.2, 0.0, 0.0],
+        "origin_rpy_rad": [0.0, 0.7, 0.0],
+        "axis": [0.6, 0.8, 0],
+        "mass_kg": 0.4,
+        "com_xyz_m": [0.05, 0.02, -0.03],
         "inertia_kgm2": {"ixx": 0.0004, "ixy": -0.00005, "ixz": 0.0, "iyy": 0.0005, "iyz": 0.00002, "izz": 0.0006},
     },
 ]

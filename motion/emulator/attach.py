@@ -172,8 +172,9 @@ class Attachment(ABC, Generic[W, R]):
     def _bad(self, wire: str, error: DecodeError | str) -> None:
         """Count and log input that breaks the protocol; it gets no answer."""
         self.stats.decode_errors += 1
-        logger.warning("%s: protocol-breaking input not answered (%d so far): %s", self.channel,
-                       self.stats.decode_errors, error)
+        logger.warning(
+            "%s: protocol-breaking input not answered (%d so far): %s", self.channel, self.stats.decode_errors, error
+        )
         self._log("BAD", wire, f"{type(error).__name__}: {error}" if isinstance(error, DecodeError) else error)
 
     def _accept(self, exchange: Exchange[W], wire: str, request_time_s: float, arrival_s: float) -> None:
@@ -453,8 +454,11 @@ class Rs485Attachment(_OnPty, Attachment[bytes, Rs485Frame]):
         bad = self._rejected() - rejected or int(self.parser.dropped_bytes > dropped)
         self.stats.requests += bad
         for _ in range(bad):
-            self._bad(data.hex(" ") or "(line silent)", "RS485 input dropped by the parser (checksum, length, "
-                      f"id or truncated frame); parser: {self.parser.dropped_bytes} bytes dropped so far")
+            self._bad(
+                data.hex(" ") or "(line silent)",
+                "RS485 input dropped by the parser (checksum, length, "
+                f"id or truncated frame); parser: {self.parser.dropped_bytes} bytes dropped so far",
+            )
         return frames
 
     def _on_input(self, item: Rs485Frame, now_s: float) -> None:

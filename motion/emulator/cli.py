@@ -112,32 +112,75 @@ _gear_arg = _number_arg(float, lambda v: 0 < v < math.inf, "a gear ratio > 0")
 
 def add_emulate_arguments(parser: argparse.ArgumentParser) -> None:
     """Add the options of ``rmd-motion emulate`` to ``parser``."""
-    parser.add_argument("--ids", required=True, type=_ids_arg, metavar="IDS",
-                        help="motor ids of the emulated drives: 1-6, 1,3,5 or 1-3,8 (each 1..32)")
+    parser.add_argument(
+        "--ids",
+        required=True,
+        type=_ids_arg,
+        metavar="IDS",
+        help="motor ids of the emulated drives: 1-6, 1,3,5 or 1-3,8 (each 1..32)",
+    )
     where = parser.add_argument_group("attachments (at least one)")
-    where.add_argument("--slcan-link", metavar="PATH",
-                       help="virtual slcan USB-CAN adapter on a pty, with a symlink at PATH")
+    where.add_argument(
+        "--slcan-link", metavar="PATH", help="virtual slcan USB-CAN adapter on a pty, with a symlink at PATH"
+    )
     where.add_argument("--rs485-link", metavar="PATH", help="RS485 line on a pty, with a symlink at PATH")
-    where.add_argument("--virtual-channel", metavar="NAME",
-                       help="python-can virtual bus channel (in-process: for a host running in this process)")
+    where.add_argument(
+        "--virtual-channel",
+        metavar="NAME",
+        help="python-can virtual bus channel (in-process: for a host running in this process)",
+    )
     timing = parser.add_argument_group("timing")
-    timing.add_argument("--latency-ms", type=_latency_arg, default=DEFAULT_LATENCY_S * 1000, metavar="MS",
-                        help="drive reply latency in ms (default %(default)g)")
-    timing.add_argument("--bus-time", action="store_true",
-                        help="also model bus occupation: CAN bits at the bit rate, RS485 10 bits/byte at the baud")
-    timing.add_argument("--bitrate", type=_bitrate_arg, default=DEFAULT_CAN_BITRATE, metavar="BIT_S",
-                        help="bit rate of the virtual CAN bus for --bus-time (slcan uses the host's Sn command)")
-    timing.add_argument("--baud", type=int, default=DEFAULT_RS485_BAUD, choices=RS485_BAUDS,
-                        help="RS485 baud rate for --bus-time (default %(default)d)")
-    parser.add_argument("--fault", action="append", default=[], type=_fault_arg,
-                        metavar="KIND:MOTOR@START[-END][:PARAM]",
-                        help="inject a fault at simulation time START s (until END s): over_temperature[:degC], "
-                        "under_voltage[:V], silent, delay[:ms], corrupt[:payload|id|length], drop[:probability]; "
-                        "repeatable")
-    parser.add_argument("--encoder-bits", type=int, choices=range(12, 19), default=14, metavar="12..18",
-                        help="encoder resolution of every drive (default %(default)d)")
-    parser.add_argument("--gear-ratio", type=_gear_arg, default=1.0, metavar="RATIO",
-                        help="motor degrees per joint degree of every drive (default %(default)g)")
+    timing.add_argument(
+        "--latency-ms",
+        type=_latency_arg,
+        default=DEFAULT_LATENCY_S * 1000,
+        metavar="MS",
+        help="drive reply latency in ms (default %(default)g)",
+    )
+    timing.add_argument(
+        "--bus-time",
+        action="store_true",
+        help="also model bus occupation: CAN bits at the bit rate, RS485 10 bits/byte at the baud",
+    )
+    timing.add_argument(
+        "--bitrate",
+        type=_bitrate_arg,
+        default=DEFAULT_CAN_BITRATE,
+        metavar="BIT_S",
+        help="bit rate of the virtual CAN bus for --bus-time (slcan uses the host's Sn command)",
+    )
+    timing.add_argument(
+        "--baud",
+        type=int,
+        default=DEFAULT_RS485_BAUD,
+        choices=RS485_BAUDS,
+        help="RS485 baud rate for --bus-time (default %(default)d)",
+    )
+    parser.add_argument(
+        "--fault",
+        action="append",
+        default=[],
+        type=_fault_arg,
+        metavar="KIND:MOTOR@START[-END][:PARAM]",
+        help="inject a fault at simulation time START s (until END s): over_temperature[:degC], "
+        "under_voltage[:V], silent, delay[:ms], corrupt[:payload|id|length], drop[:probability]; "
+        "repeatable",
+    )
+    parser.add_argument(
+        "--encoder-bits",
+        type=int,
+        choices=range(12, 19),
+        default=14,
+        metavar="12..18",
+        help="encoder resolution of every drive (default %(default)d)",
+    )
+    parser.add_argument(
+        "--gear-ratio",
+        type=_gear_arg,
+        default=1.0,
+        metavar="RATIO",
+        help="motor degrees per joint degree of every drive (default %(default)g)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the drop faults' random draws")
     parser.add_argument("--log", metavar="FILE", help="write every frame in and out to FILE, one line each")
 
@@ -169,14 +212,27 @@ def run_emulate(args: argparse.Namespace) -> int:
             try:
                 frame_log = stack.enter_context(FrameLog(args.log)) if args.log else None
                 if args.virtual_channel:
-                    attachments.append(stack.enter_context(VirtualCanAttachment(
-                        emulator, args.virtual_channel, bitrate=args.bitrate, timing=timing, frame_log=frame_log)))
+                    attachments.append(
+                        stack.enter_context(
+                            VirtualCanAttachment(
+                                emulator, args.virtual_channel, bitrate=args.bitrate, timing=timing, frame_log=frame_log
+                            )
+                        )
+                    )
                 if args.slcan_link:
-                    attachments.append(stack.enter_context(
-                        SlcanAttachment(emulator, args.slcan_link, timing=timing, frame_log=frame_log)))
+                    attachments.append(
+                        stack.enter_context(
+                            SlcanAttachment(emulator, args.slcan_link, timing=timing, frame_log=frame_log)
+                        )
+                    )
                 if args.rs485_link:
-                    attachments.append(stack.enter_context(Rs485Attachment(
-                        emulator, args.rs485_link, baud=args.baud, timing=timing, frame_log=frame_log)))
+                    attachments.append(
+                        stack.enter_context(
+                            Rs485Attachment(
+                                emulator, args.rs485_link, baud=args.baud, timing=timing, frame_log=frame_log
+                            )
+                        )
+                    )
             except (TransportError, OSError) as exc:
                 print(f"communication error: {exc}", file=sys.stderr)
                 return EXIT_COMMUNICATION
@@ -184,8 +240,10 @@ def run_emulate(args: argparse.Namespace) -> int:
                 device = getattr(attachment, "device_path", None)
                 print(f"{attachment.channel}: {attachment.path}" + (f" (pty {device})" if device else ""), flush=True)
             faults = ", ".join(f.describe() for f in emulator.faults) or "none"
-            print(f"emulating motors {','.join(map(str, emulator.ids))}; faults: {faults}; "
-                  "stop with Ctrl-C or SIGTERM", flush=True)
+            print(
+                f"emulating motors {','.join(map(str, emulator.ids))}; faults: {faults}; stop with Ctrl-C or SIGTERM",
+                flush=True,
+            )
             while not stop.wait(_WATCH_S):
                 if any(a.failure is not None for a in attachments):
                     break
@@ -197,8 +255,11 @@ def run_emulate(args: argparse.Namespace) -> int:
             signal.signal(signum, handler)
     for attachment in attachments:
         s = attachment.stats
-        print(f"{attachment.channel}: {s.requests} requests, {s.replies} replies, {s.decode_errors} protocol errors, "
-              f"{s.unanswered} unanswered, {s.corrupted} corrupted, {s.undelivered} undelivered", file=sys.stderr)
+        print(
+            f"{attachment.channel}: {s.requests} requests, {s.replies} replies, {s.decode_errors} protocol errors, "
+            f"{s.unanswered} unanswered, {s.corrupted} corrupted, {s.undelivered} undelivered",
+            file=sys.stderr,
+        )
     return EXIT_COMMUNICATION if failed else EXIT_OK
 
 

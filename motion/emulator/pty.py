@@ -25,8 +25,14 @@ def set_raw(fd: int) -> None:
     attrs = termios.tcgetattr(fd)
     iflag, oflag, cflag, lflag = 0, 1, 2, 3
     attrs[iflag] &= ~(
-        termios.IGNBRK | termios.BRKINT | termios.PARMRK | termios.ISTRIP | termios.INLCR | termios.IGNCR
-        | termios.ICRNL | termios.IXON
+        termios.IGNBRK
+        | termios.BRKINT
+        | termios.PARMRK
+        | termios.ISTRIP
+        | termios.INLCR
+        | termios.IGNCR
+        | termios.ICRNL
+        | termios.IXON
     )
     attrs[oflag] &= ~termios.OPOST
     attrs[lflag] &= ~(termios.ECHO | termios.ECHONL | termios.ICANON | termios.ISIG | termios.IEXTEN)

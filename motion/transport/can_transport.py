@@ -18,6 +18,9 @@ from motion.protocol.table import CAN_ID_BASE, MOTOR_ID_MAX, MOTOR_ID_MIN
 from motion.transport.base import Request, Transport
 from motion.transport.can_endpoint import CanEndpoint
 
+#: Shortest time a frame may take to enter the interface's transmit queue before the bus counts as failed, s.
+SEND_TIMEOUT_MIN_S = 0.1
+
 
 class CanTransport(Transport):
     """RMD drives on one CAN bus.
@@ -62,8 +65,10 @@ class CanTransport(Transport):
         # cannot be matched to them.
         while (received := endpoint.recv(0.0)) is not None:
             self._receive(received[0])
-        # A send that cannot complete by the deadline means a full transmit queue (bus off, no ACK): an error.
-        send_timeout_s = max(deadline_s - clock(), 0.0)
+        # A send that cannot complete means a full transmit queue (bus off, no ACK): an error. It gets at least
+        # SEND_TIMEOUT_MIN_S, not just what is left of the cycle: pyserial (slcan) raises a write timeout once the
+        # timeout has passed even when every byte was written, which a descheduled thread hits on a loaded machine.
+        send_timeout_s = max(deadline_s - clock(), SEND_TIMEOUT_MIN_S)
         for index, frame in enumerate(self._frames):
             endpoint.send(frame, send_timeout_s)
             self._sent(index)

@@ -1,0 +1,94 @@
+"""The arm as the emulator's plant: Pinocchio forward dynamics with gravity couples the emulated drives.
+
+Implements :class:`motion.emulator.Plant`. The emulator's plant coordinate of a drive is its joint-side angle
+``p = motor angle / gear_ratio`` in radians, drives in ascending motor-id order; the configuration's joint angle is
+``q = direction · p + zero_offset`` (DESIGN.md's transmission), and the drive's torque on ``p`` acts on ``q`` with
+the sign of ``direction``. Rotor inertias enter as armature (``gear_ratio² × rotor inertia``); viscous and Coulomb
+friction act on each joint (Coulomb smoothed over ±``COULOMB_SMOOTHING_DPS`` so that the explicit integration
+does not chatter at rest).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pinocchio as pin
+from numpy.typing import NDArray
+
+from kinematics.model import ArmModel
+from motion.config import ArmConfig
+
+FloatArray = NDArray[np.float64]
+
+#: Joint speed over which Coulomb friction ramps up to its full value, deg/s.
+COULOMB_SMOOTHING_DPS = 0.5
+
+
+class ArmPlant:
+    """Rigid-body arm dynamics for the emulator (joint side, radians, drives in ascending motor-id order).
+
+    Args:
+        arm: the Pinocchio model of ``config`` (this plant sets its armature and uses its ``data``: build one model
+            for the plant and another for the controller's feed-forward).
+        config: the arm configuration (transmission, friction and rotor inertia per joint).
+        initial_deg: configuration joint angles at start, degrees (default: all zero, clamped into the limits).
+    """
+
+    def __init__(self, arm: ArmModel, config: ArmConfig, initial_deg: FloatArray | None = None) -> None:
+        joints = config.joints
+        n = len(joints)
+        order = sorted(range(n), key=lambda i: joints[i].motor_id)  # emulator index -> configuration index
+        self._order = np.array(order, dtype=np.intp)
+        self._model, self._data = arm.model, arm.data
+        self._to_model = arm.to_model  # model coordinate -> configuration index
+        # everything below is in model coordinate order
+        cfg = [joints[i] for i in self._to_model]
+        emu_of_cfg = np.argsort(self._order)  # configuration index -> emulator index
+        self._emu_index = emu_of_cfg[self._to_model]
+        self._sign = np.array([float(j.direction) for j in cfg])
+        self._offset_rad = np.radians([j.zero_offset_deg for j in cfg])
+        per_rad_s = 180.0 / math.pi
+        self._viscous = np.array([j.emulation.viscous_friction_nm_per_dps * per_rad_s for j in cfg])
+        self._coulomb = np.array([j.emulation.coulomb_friction_nm for j in cfg])
+        self._smoothing = math.radians(COULOMB_SMOOTHING_DPS)
+        self._model.armature = np.array([j.gear_ratio**2 * j.emulation.rotor_inertia_kgm2 for j in cfg])
+        start_cfg = np.zeros(n) if initial_deg is None else np.asarray(initial_deg, dtype=np.float64)
+        self._q = np.radians(start_cfg[self._to_model])
+        self._v = np.zeros(n)
+        self._tau = np.zeros(n)
+        self._p = np.zeros(n)
+        self._pd = np.zeros(n)
+        self._export()
+
+    @property
+    def size(self) -> int:
+        """Number of joints."""
+        return len(self._q)
+
+    def _export(self) -> None:
+        # p (emulator order) = direction * (q - offset)
+        self._p[self._emu_index] = self._sign * (self._q - self._offset_rad)
+        self._pd[self._emu_index] = self._sign * self._v
+
+    def state(self) -> tuple[FloatArray, FloatArray]:
+        """Current ``(positions_rad, velocities_rad_s)`` in the emulator's coordinates."""
+        return self._p, self._pd
+
+    def joint_positions_deg(self) -> FloatArray:
+        """Configuration joint angles, degrees, in configuration order (for tests and reports)."""
+        out = np.empty(self.size)
+        out[self._to_model] = np.degrees(self._q)
+        return out
+
+    def step(self, dt_s: float, torques_nm: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Apply the drives' torques (emulator order, N·m on ``p``) for ``dt_s``; semi-implicit Euler."""
+        tau = self._tau
+        np.multiply(torques_nm[self._emu_index], self._sign, out=tau)
+        tau -= self._viscous * self._v
+        tau -= self._coulomb * np.tanh(self._v / self._smoothing)
+        acceleration = pin.aba(self._model, self._data, self._q, self._v, tau)
+        self._v += acceleration * dt_s
+        self._q += self._v * dt_s
+        self._export()
+        return self._p, self._pd

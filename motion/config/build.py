@@ -1,0 +1,125 @@
+"""Build the running parts of an arm from its configuration: bus, controller, and matching emulated drives.
+
+The same :class:`~motion.config.ArmConfig` describes the real arm and its emulation: :func:`emulator_for` gives
+every configured joint an emulated drive with the joint's motor id, gear ratio, torque constant, encoder, current
+limit and rotor inertia, so a program tested on the emulator talks to the same ids with the same units.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, JointConfig
+from motion.control.axes import AxisSpec
+from motion.control.clock import Clock
+from motion.control.controller import Controller, ControllerOptions, Feedforward
+from motion.control.controller import ControlMode as LoopMode
+from motion.emulator import DriveModel, Emulator, Fault, LoadModel, Plant
+from motion.protocol import Transport as Wire
+from motion.trajectory import JointLimits
+from motion.transport import Transport, open_transport
+
+# The emulated drive's own speed cap (0xA3/0xA5/0xA7 and holding) is this many times the joint limit, motor side.
+_DRIVE_SPEED_MARGIN = 2.0
+# Joint-side load inertia assumed for emulated independent loads when no plant is given, kg·m².
+DEFAULT_LOAD_INERTIA_KGM2 = 0.01
+
+
+def joint_limits(config: ArmConfig) -> JointLimits:
+    """Planning limits of every joint (joint side)."""
+    j = config.joints
+    return JointLimits(
+        names=config.joint_names,
+        position_min_deg=tuple(x.position_min_deg for x in j),
+        position_max_deg=tuple(x.position_max_deg for x in j),
+        velocity_dps=tuple(x.velocity_limit_dps for x in j),
+        acceleration_dps2=tuple(x.acceleration_limit_dps2 for x in j),
+        jerk_dps3=tuple(x.jerk_limit_dps3 for x in j),
+    )
+
+
+def axis_specs(config: ArmConfig) -> tuple[AxisSpec, ...]:
+    """The controller's view of every joint."""
+    return tuple(AxisSpec(j.name, j.motor_id, j.encoder_bits, j.kp_nm_per_deg, j.kd_nm_per_dps) for j in config.joints)
+
+
+def wire_protocol(config: ArmConfig) -> Wire:
+    """The protocol spoken on the configured bus."""
+    return Wire.CAN if isinstance(config.bus, CanBusConfig) else Wire.RS485
+
+
+def controller_options(config: ArmConfig) -> ControllerOptions:
+    """Loop settings from ``control:``."""
+    mode = LoopMode.TORQUE if config.control.mode is ControlMode.TORQUE else LoopMode.POSITION
+    return ControllerOptions(mode=mode, rate_hz=config.control.rate_hz, protocol=wire_protocol(config))
+
+
+def open_bus(config: ArmConfig, **overrides: object) -> Transport:
+    """Open the configured bus; ``overrides`` replace configured values (e.g. ``channel=`` of an emulator).
+
+    Raises:
+        TransportError: the bus or port could not be opened.
+    """
+    bus = config.bus
+    if isinstance(bus, CanBusConfig):
+        settings: dict[str, object] = {"interface": bus.interface, "channel": bus.channel, "bitrate": bus.bitrate}
+        return open_transport("can", **(settings | overrides))
+    return open_transport("rs485", **({"port": bus.port, "baudrate": bus.baudrate} | overrides))
+
+
+def build_controller(
+    config: ArmConfig, bus: Transport, *, feedforward: Feedforward | None = None, clock: Clock | None = None
+) -> Controller:
+    """A controller for ``config`` on ``bus`` (call ``read_positions()`` before moving)."""
+    return Controller(
+        axis_specs(config),
+        config.transmission(),
+        joint_limits(config),
+        bus,
+        options=controller_options(config),
+        feedforward=feedforward,
+        clock=clock,
+    )
+
+
+def drive_model(joint: JointConfig) -> DriveModel:
+    """The emulated drive of one joint."""
+    return DriveModel(
+        gear_ratio=joint.gear_ratio,
+        torque_constant_nm_per_a=joint.torque_constant_nm_per_a,
+        rotor_inertia_kgm2=joint.emulation.rotor_inertia_kgm2,
+        encoder_bits=joint.encoder_bits,
+        current_limit_a=joint.current_limit_a,
+        max_speed_dps=joint.velocity_limit_dps * joint.gear_ratio * _DRIVE_SPEED_MARGIN,
+        motor_name=f"EMU-{joint.name}"[:20],
+    )
+
+
+def emulator_for(
+    config: ArmConfig,
+    *,
+    plant: Plant | None = None,
+    load_inertia_kgm2: Mapping[str, float] | None = None,
+    faults: Iterable[Fault] = (),
+) -> Emulator:
+    """Emulated drives matching ``config``.
+
+    Args:
+        config: the arm.
+        plant: the mechanics (e.g. ``kinematics.plant.ArmPlant`` for gravity-coupled joints); default independent
+            loads with the configured friction.
+        load_inertia_kgm2: joint-side load inertia per joint name, used to tune each drive's speed loop (and as the
+            independent loads' inertia); default :data:`DEFAULT_LOAD_INERTIA_KGM2`.
+        faults: faults to schedule.
+    """
+    inertia = dict(load_inertia_kgm2 or {})
+    models = {j.motor_id: drive_model(j) for j in config.joints}
+    loads = {
+        j.motor_id: LoadModel(
+            inertia_kgm2=inertia.get(j.name, DEFAULT_LOAD_INERTIA_KGM2),
+            viscous_friction_nm_per_dps=j.emulation.viscous_friction_nm_per_dps,
+            coulomb_friction_nm=j.emulation.coulomb_friction_nm,
+        )
+        for j in config.joints
+    }
+    return Emulator(models.keys(), model=models, load=loads, plant=plant, faults=faults)

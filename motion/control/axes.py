@@ -1,0 +1,93 @@
+"""Measured state of all axes, updated from drive replies (joint side, arrays in joint order).
+
+The multi-turn position is read once with 0x92 at start; after that it is tracked by unwrapping the encoder of
+every reply: a change of the encoder by more than half a revolution between two replies is taken as a wrap. This
+holds while the rotor turns less than half a revolution between two replies of the same motor (at 200 Hz and one
+missed reply: 18 000 deg/s rotor speed, above any RMD drive's rated speed).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from motion.protocol import MotorState
+from motion.transmission import ArmTransmission, FloatArray
+
+
+@dataclass(frozen=True, slots=True)
+class AxisSpec:
+    """What the controller needs to know of one joint.
+
+    Attributes:
+        name: joint name.
+        motor_id: drive id 1..32.
+        encoder_bits: encoder resolution (counts per rotor revolution = 2**bits).
+        kp_nm_per_deg: torque-mode position gain, N·m per degree of joint error.
+        kd_nm_per_dps: torque-mode velocity gain, N·m per deg/s of joint velocity error.
+    """
+
+    name: str
+    motor_id: int
+    encoder_bits: int = 14
+    kp_nm_per_deg: float = 0.0
+    kd_nm_per_dps: float = 0.0
+
+
+class AxisStates:
+    """Measured joint positions, velocities, currents and temperatures, refreshed from replies.
+
+    Args:
+        specs: the axes, in joint order.
+        transmission: the joint <-> motor mapping, same order.
+    """
+
+    def __init__(self, specs: Sequence[AxisSpec], transmission: ArmTransmission) -> None:
+        n = len(specs)
+        self.specs = tuple(specs)
+        self.transmission = transmission
+        self.index = {spec.motor_id: i for i, spec in enumerate(specs)}
+        self.counts_per_rev = np.array([float(1 << s.encoder_bits) for s in specs])
+        self.motor_deg = np.zeros(n)  # unwrapped multi-turn rotor angle
+        self.motor_speed_dps = np.zeros(n)
+        self.encoder = np.zeros(n, dtype=np.int64)
+        self.q_deg = np.zeros(n)
+        self.qd_dps = np.zeros(n)
+        self.iq_a = np.zeros(n)
+        self.temperature_c = np.zeros(n)
+        self.last_reply_s = np.full(n, -np.inf)
+        self.fresh = np.zeros(n, dtype=bool)  # got a state reply in the latest cycle
+
+    def initialise(self, i: int, multi_turn_deg: float, encoder: int) -> None:
+        """Anchor axis ``i``: the 0x92 angle and an encoder reading taken at (nearly) the same moment."""
+        self.motor_deg[i] = multi_turn_deg
+        self.encoder[i] = encoder
+        self._refresh_joint(i)
+
+    def update(self, i: int, state: MotorState, received_s: float) -> None:
+        """Take one 0x9C / 0xA1..0xA8 reply of axis ``i``."""
+        half = self.counts_per_rev[i] / 2
+        delta = state.encoder - int(self.encoder[i])
+        if delta > half:
+            delta -= int(self.counts_per_rev[i])
+        elif delta < -half:
+            delta += int(self.counts_per_rev[i])
+        self.encoder[i] = state.encoder
+        self.motor_deg[i] += delta * 360.0 / self.counts_per_rev[i]
+        self.motor_speed_dps[i] = state.speed_dps
+        self.iq_a[i] = state.iq_a
+        self.temperature_c[i] = state.temperature_c
+        self.last_reply_s[i] = received_s
+        self.fresh[i] = True
+        self._refresh_joint(i)
+
+    def _refresh_joint(self, i: int) -> None:
+        t = self.transmission.transmissions[i]
+        self.q_deg[i] = t.joint_deg(float(self.motor_deg[i]))
+        self.qd_dps[i] = t.joint_rate(float(self.motor_speed_dps[i]))
+
+    def positions(self) -> FloatArray:
+        """A copy of the joint positions, degrees."""
+        return self.q_deg.copy()

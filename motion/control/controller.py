@@ -1,0 +1,322 @@
+"""The controller: one cycle = take the replies -> update state -> plan the next set-point -> build the batch ->
+one ``transact`` by the deadline.
+
+Position mode streams 0xA4 (multi-turn angle + max speed) per joint. Torque mode computes, per joint,
+``tau = feedforward(q, qd_ref, qdd_ref) + Kp (q_ref - q) + Kd (qd_ref - qd)``, converts it to torque current
+(limited per joint; the limiting is recorded) and sends it in one 0x280 frame for motor ids 1..4 (CAN) and 0xA1
+frames for the others (and for every joint on RS485).
+
+Motion commands (:meth:`Controller.move_to`, :meth:`Controller.follow`, :meth:`Controller.stop_motion`) may come from
+any thread: they are queued and planned in the control thread at the start of the next cycle, from the reference at
+that instant, so a new target never steps the reference's velocity or acceleration.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from motion.control.axes import AxisSpec, AxisStates
+from motion.control.clock import Clock, MonotonicClock
+from motion.control.scheduler import FixedRateLoop, LoopStatistics
+from motion.errors import MotionError, TransportError
+from motion.protocol import (
+    Bare,
+    Command,
+    Message,
+    MotorState,
+    MultiMotorTorque,
+    MultiTurnAngle,
+    MultiTurnPositionSpeed,
+    TorqueControl,
+    Transport,
+)
+from motion.protocol.scales import iq_amps
+from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS
+from motion.trajectory import Follower, JointLimits, Path, Planner, State
+from motion.transmission import ArmTransmission, FloatArray
+from motion.transport.base import Reply, Request
+from motion.transport.base import Transport as Bus
+
+#: ``feedforward(q_deg, qd_dps, qdd_dps2) -> tau_nm``, arrays in joint order (gravity, optionally inertia).
+Feedforward = Callable[[FloatArray, FloatArray, FloatArray], FloatArray]
+
+# CAN 0xA4 carries max speed in whole dps (uint16); RS485 in 0.01 dps (uint32).
+_MAX_SPEED_DPS = {Transport.CAN: 65535.0, Transport.RS485: 42949672.95}
+
+
+class ControlMode(Enum):
+    """How set-points reach the drives."""
+
+    POSITION = "position"  #: stream 0xA4 multi-turn position + max speed
+    TORQUE = "torque"  #: feed-forward + PD torque through 0x280 / 0xA1
+
+
+@dataclass(frozen=True, slots=True)
+class ControllerOptions:
+    """Settings of the control loop.
+
+    Attributes:
+        mode: position or torque streaming.
+        rate_hz: control rate, Hz.
+        protocol: the wire protocol of the bus (decides 0xA4 layout and the use of 0x280).
+        speed_headroom: 0xA4 max speed = planned motor speed × headroom + floor, so that the drive's own position
+            loop (which lags the stream by speed / its gain) can catch up during the move.
+        speed_floor_share: the floor as a share of the joint's velocity limit (motor side), so that the last
+            set-points of a move, where the planned speed goes to zero, are still reached promptly.
+        reply_budget: share of the period given to ``transact`` (the rest is for computing the next cycle).
+        multi_motor_frame: use the 0x280 frame for motor ids 1..4 in torque mode on CAN (only when all four are
+            joints of the arm).
+    """
+
+    mode: ControlMode = ControlMode.POSITION
+    rate_hz: float = 200.0
+    protocol: Transport = Transport.CAN
+    speed_headroom: float = 1.5
+    speed_floor_share: float = 0.1
+    reply_budget: float = 0.8
+    multi_motor_frame: bool = True
+
+
+@dataclass(frozen=True, slots=True)
+class _Pending:
+    kind: str  # "move" | "path" | "stop"
+    target: FloatArray | None
+    waypoints: FloatArray | None
+    speed_scale: float
+
+
+class Controller:
+    """Coordinated motion of several RMD joints on one bus.
+
+    Args:
+        specs: the axes, in joint order.
+        transmission: joint <-> motor mapping, same order.
+        limits: joint limits for planning.
+        bus: the transport (its ``transact`` is called once per cycle).
+        options: loop settings.
+        feedforward: torque feed-forward for torque mode (None = zero).
+        clock: time source (a ManualClock makes runs deterministic).
+    """
+
+    def __init__(
+        self,
+        specs: Sequence[AxisSpec],
+        transmission: ArmTransmission,
+        limits: JointLimits,
+        bus: Bus,
+        *,
+        options: ControllerOptions,
+        feedforward: Feedforward | None = None,
+        clock: Clock | None = None,
+    ) -> None:
+        self.specs = tuple(specs)
+        self.options = options
+        self.bus = bus
+        self.transmission = transmission
+        self.planner = Planner(limits)
+        self.axes = AxisStates(self.specs, transmission)
+        self.feedforward = feedforward
+        self.clock: Clock = clock if clock is not None else MonotonicClock()
+        self.loop = FixedRateLoop(options.rate_hz, self.cycle, clock=self.clock)
+        self.follower: Follower | None = None
+        self.reference = State.at_rest(np.zeros(len(self.specs)))
+        self.kp = np.array([s.kp_nm_per_deg for s in self.specs])
+        self.kd = np.array([s.kd_nm_per_dps for s in self.specs])
+        self.ids = tuple(s.motor_id for s in self.specs)
+        self._pending: _Pending | None = None
+        self._lock = threading.Lock()
+        self._idle = threading.Event()
+        self._idle.set()
+        self._stop_loop = False
+        self.last_command: list[Message] = []
+        self.torque_nm = np.zeros(len(self.specs))
+        self.limited = np.zeros(len(self.specs), dtype=bool)
+        self.cycle_hooks: list[Callable[[Controller, float, list[Reply]], None]] = []
+        # The 0x280 frame commands motors 1..4 whether they belong to the arm or not, so it is used only when all
+        # four are joints of this arm: a foreign drive on the bus is never switched into torque mode.
+        in_multi = [i for i, s in enumerate(self.specs) if s.motor_id in MULTI_TORQUE_MOTOR_IDS]
+        self._multi = (
+            in_multi
+            if options.mode is ControlMode.TORQUE
+            and options.protocol is Transport.CAN
+            and options.multi_motor_frame
+            and len(in_multi) == len(MULTI_TORQUE_MOTOR_IDS)
+            else []
+        )
+        self._single = [i for i in range(len(self.specs)) if i not in self._multi]
+        self._iq_raw = np.zeros(len(self.specs), dtype=np.int64)
+        velocity_limit = np.abs(transmission.motor_rate(np.array(limits.velocity_dps)))
+        self._speed_floor_dps = velocity_limit * options.speed_floor_share
+
+    # ------------------------------------------------------------------------------------------------ start-up
+
+    def read_positions(self, timeout_s: float = 0.2) -> FloatArray:
+        """Read every axis' multi-turn angle (0x92) and encoder (0x9C) and anchor the position tracking.
+
+        Returns:
+            The joint positions, degrees.
+
+        Raises:
+            TransportError: a drive did not answer both requests by ``timeout_s``.
+        """
+        requests = [
+            Request(mid, m)
+            for mid in self.ids
+            for m in (Bare(Command.READ_MULTI_TURN_ANGLE), Bare(Command.READ_STATUS_2))
+        ]
+        replies = self.bus.transact(requests, self.clock.now() + timeout_s)
+        angles: dict[int, float] = {}
+        encoders: dict[int, MotorState] = {}
+        for reply in replies:
+            if isinstance(reply.message, MultiTurnAngle):
+                angles[reply.motor_id] = reply.message.angle_deg
+            elif isinstance(reply.message, MotorState):
+                encoders[reply.motor_id] = reply.message
+        missing = [s.name for s in self.specs if s.motor_id not in angles or s.motor_id not in encoders]
+        if missing:
+            raise TransportError(f"no reply to the start-up reads from joint(s) {', '.join(missing)}")
+        now = self.clock.now()
+        for i, spec in enumerate(self.specs):
+            self.axes.initialise(i, angles[spec.motor_id], encoders[spec.motor_id].encoder)
+            self.axes.update(i, encoders[spec.motor_id], now)
+        q = self.axes.positions()
+        self.follower = Follower(self.planner, q)
+        self.reference = State.at_rest(q)
+        return q
+
+    # ------------------------------------------------------------------------------------------------ commands
+
+    def _queue(self, pending: _Pending) -> None:
+        if self.follower is None:
+            raise MotionError("read_positions() must run before motion commands")
+        with self._lock:
+            self._pending = pending
+            self._idle.clear()
+
+    def move_to(self, target_deg: Sequence[float] | FloatArray, speed_scale: float = 1.0) -> None:
+        """Queue a coordinated move to ``target_deg`` (re-targets a running move). Checked before it is queued.
+
+        Raises:
+            PlanningError: the target or the scale is invalid (nothing is queued).
+        """
+        target = np.asarray(target_deg, dtype=np.float64)
+        self.planner.move(State.at_rest(target), target, speed_scale=speed_scale)  # validates vector and limits
+        self._queue(_Pending("move", target, None, speed_scale))
+
+    def follow(self, waypoints_deg: Sequence[Sequence[float]] | FloatArray, speed_scale: float = 1.0) -> None:
+        """Queue a waypoint path from the current reference."""
+        points = np.asarray(waypoints_deg, dtype=np.float64)
+        for i, point in enumerate(points):
+            self.planner.check_positions(f"waypoints[{i}]", point)
+        self._queue(_Pending("path", None, points, speed_scale))
+
+    def stop_motion(self) -> None:
+        """Queue a jerk-limited stop; the arm then holds where the stop ends."""
+        self._queue(_Pending("stop", None, None, 1.0))
+
+    def wait_idle(self, timeout_s: float | None = None) -> bool:
+        """Wait until the queued motion has ended; returns False on timeout."""
+        return self._idle.wait(timeout_s)
+
+    # ------------------------------------------------------------------------------------------------ the cycle
+
+    def _apply_pending(self, t_s: float) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, None
+        if pending is None or self.follower is None:
+            return
+        if pending.kind == "move" and pending.target is not None:
+            self.follower.move_to(t_s, pending.target, speed_scale=pending.speed_scale)
+        elif pending.kind == "path" and pending.waypoints is not None:
+            self.follower.follow(t_s, pending.waypoints, speed_scale=pending.speed_scale)
+        else:
+            self.follower.stop(t_s)
+
+    def build_requests(self, reference: State) -> list[Request]:
+        """The cycle's batch for a reference state (pure apart from recording the torque and limiting)."""
+        if self.options.mode is ControlMode.POSITION:
+            return self._position_requests(reference)
+        return self._torque_requests(reference)
+
+    def _position_requests(self, ref: State) -> list[Request]:
+        motor_deg = self.transmission.motor_deg(ref.position)
+        speed = np.abs(self.transmission.motor_rate(ref.velocity))
+        speed = speed * self.options.speed_headroom + self._speed_floor_dps
+        ceiling = _MAX_SPEED_DPS[self.options.protocol]
+        return [
+            Request(mid, MultiTurnPositionSpeed(float(motor_deg[i]), float(min(speed[i], ceiling))))
+            for i, mid in enumerate(self.ids)
+        ]
+
+    def _torque_requests(self, ref: State) -> list[Request]:
+        axes = self.axes
+        tau = self.kp * (ref.position - axes.q_deg) + self.kd * (ref.velocity - axes.qd_dps)
+        if self.feedforward is not None:
+            tau += self.feedforward(axes.q_deg, ref.velocity, ref.acceleration)
+        self.torque_nm = tau
+        raw, self.limited = self.transmission.iq_raw_limited(tau)
+        self._iq_raw = raw
+        requests = [Request(self.ids[i], TorqueControl(iq_amps(int(raw[i])))) for i in self._single]
+        if self._multi:
+            currents = [0.0, 0.0, 0.0, 0.0]
+            for i in self._multi:
+                currents[MULTI_TORQUE_MOTOR_IDS.index(self.ids[i])] = iq_amps(int(raw[i]))
+            requests.append(Request(MULTI_TORQUE_MOTOR_IDS[0], MultiMotorTorque(*currents)))
+        return requests
+
+    def absorb(self, replies: Sequence[Reply]) -> None:
+        """Update the axis states from a cycle's replies."""
+        axes = self.axes
+        axes.fresh[:] = False
+        index = axes.index
+        for reply in replies:
+            message = reply.message
+            i = index.get(reply.motor_id)
+            if i is not None and isinstance(message, MotorState) and reply.received_s is not None:
+                axes.update(i, message, reply.received_s)
+
+    def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
+        """One control cycle (the scheduler calls it at ``start_s``; the set-point is for ``deadline_s``)."""
+        follower = self.follower
+        if follower is None:
+            raise MotionError("read_positions() must run before the loop starts")
+        if self._pending is not None:
+            self._apply_pending(start_s)
+        self.reference = ref = follower.sample(deadline_s)
+        requests = self.build_requests(ref)
+        replies = self.bus.transact(requests, start_s + self.options.reply_budget * (deadline_s - start_s))
+        self.absorb(replies)
+        self.last_command = [r.message for r in requests]
+        for hook in self.cycle_hooks:
+            hook(self, start_s, replies)
+        if not follower.moving and self._pending is None:
+            self._idle.set()
+        return not self._stop_loop
+
+    # ------------------------------------------------------------------------------------------------ loop
+
+    def start(self) -> None:
+        """Run the loop in its own thread (after :meth:`read_positions`)."""
+        self._stop_loop = False
+        self.loop.start()
+
+    def shutdown(self, timeout_s: float = 2.0) -> LoopStatistics:
+        """End the loop after the current cycle and wait for it; returns the loop statistics."""
+        self._stop_loop = True
+        self.loop.stop()
+        self.loop.join(timeout_s)
+        return self.loop.statistics()
+
+    @property
+    def error(self) -> BaseException | None:
+        """The exception that ended the loop, if any."""
+        return self.loop.error
+
+    def reference_path(self) -> Path | None:
+        """The path being played, if any."""
+        return self.follower.path if self.follower is not None else None

@@ -1,0 +1,115 @@
+"""An emulated arm on a real bus for motion tests: config -> Pinocchio-coupled emulator -> attachment -> transport ->
+controller, plus the reconstruction of the commanded stream from the emulator's frame log."""
+
+from __future__ import annotations
+
+import dataclasses
+import uuid
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from kinematics import build_arm, feedforward
+from kinematics.emulation import arm_emulator
+from kinematics.plant import ArmPlant
+from motion.config import ArmConfig, load_config
+from motion.config.build import build_controller, open_bus
+from motion.config.schema import ControlMode
+from motion.control.controller import Controller
+from motion.emulator import Emulator, FrameLog, Rs485Attachment, SlcanAttachment, VirtualCanAttachment
+from motion.protocol import MultiTurnPositionSpeed, can_frame, rs485_frame
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+@dataclass
+class Rig:
+    config: ArmConfig
+    controller: Controller
+    plant: ArmPlant
+    emulator: Emulator
+    frame_log: Path
+    cycle_starts: list[float]
+
+
+def arm_config(name: str, *, mode: ControlMode | None = None, rate_hz: float | None = None) -> ArmConfig:
+    config = load_config(CONFIGS / name)
+    control = config.control
+    if mode is not None:
+        control = dataclasses.replace(control, mode=mode)
+    if rate_hz is not None:
+        control = dataclasses.replace(control, rate_hz=rate_hz)
+    return dataclasses.replace(config, control=control)
+
+
+@contextmanager
+def emulated_arm(config: ArmConfig, attachment: str, tmp_path: Path, *, use_feedforward: bool = True) -> Iterator[Rig]:
+    """Run ``config`` on emulated drives over ``attachment`` (virtual | slcan | rs485); the controller is started."""
+    emulator, plant = arm_emulator(config)
+    log_path = tmp_path / f"frames-{uuid.uuid4().hex[:8]}.log"
+    with ExitStack() as stack:
+        log = stack.enter_context(FrameLog(log_path))
+        if attachment == "virtual":
+            channel = uuid.uuid4().hex
+            stack.enter_context(VirtualCanAttachment(emulator, channel, frame_log=log))
+            bus = stack.enter_context(open_bus(config, interface="virtual", channel=channel, bitrate=None))
+        elif attachment == "slcan":
+            link = tmp_path / f"slcan-{uuid.uuid4().hex[:8]}"
+            stack.enter_context(SlcanAttachment(emulator, link, frame_log=log))
+            bus = stack.enter_context(open_bus(config, interface="slcan", channel=str(link), bitrate=1_000_000))
+        else:
+            link = tmp_path / f"rs485-{uuid.uuid4().hex[:8]}"
+            stack.enter_context(Rs485Attachment(emulator, link, frame_log=log))
+            bus = stack.enter_context(open_bus(config, port=str(link)))
+        ff = None
+        if use_feedforward and config.control.gravity_feedforward:
+            ff = feedforward(build_arm(config), gravity=True, inertia=config.control.inertia_feedforward)
+        controller = build_controller(config, bus, feedforward=ff)
+        controller.read_positions()
+        starts: list[float] = []
+        controller.cycle_hooks.append(lambda _controller, start_s, _replies: starts.append(start_s))
+        controller.start()
+        try:
+            yield Rig(config, controller, plant, emulator, log_path, starts)
+        finally:
+            controller.shutdown()
+            assert controller.error is None, controller.error
+
+
+def commanded_positions(rig: Rig) -> np.ndarray:
+    """The 0xA4 stream as the drives received it, as joint angles on the cycle grid (rows: cycles, cols: joints).
+
+    Every cycle sends exactly one 0xA4 per joint, so the n-th 0xA4 that the frame log shows a motor receiving belongs
+    to the controller's n-th cycle, whose scheduled start the rig recorded: the content comes from the bus, the time
+    grid from the scheduler (a skipped cycle leaves a NaN row instead of squeezing the stream).
+    """
+    config = rig.config
+    period = 1.0 / config.control.rate_hz
+    column = {j.motor_id: i for i, j in enumerate(config.joints)}
+    transmissions = [j.transmission() for j in config.joints]
+    per_joint: list[list[float]] = [[] for _ in config.joints]
+    for line in rig.frame_log.read_text().splitlines():
+        fields = line.split(maxsplit=3)
+        if len(fields) < 4 or fields[1] != "IN":
+            continue
+        wire = fields[3].split(" | ")[0]
+        if ":" in wire:
+            ident, data = wire.split(":")
+            request = can_frame.decode_request(int(ident, 16), bytes.fromhex(data))
+            motor_id, message = request.motor_id, request.message
+        else:
+            motor_id, message = rs485_frame.decode_request(bytes.fromhex(wire))
+        if isinstance(message, MultiTurnPositionSpeed) and motor_id in column:
+            i = column[motor_id]
+            per_joint[i].append(transmissions[i].joint_deg(message.angle_deg))
+    count = min(len(values) for values in per_joint)
+    assert count > 0, "no 0xA4 frames in the log"
+    starts = np.array(rig.cycle_starts[:count])
+    grid = np.rint((starts - starts[0]) / period).astype(int)
+    stream = np.full((int(grid[-1]) + 1, len(config.joints)), np.nan)
+    for i, values in enumerate(per_joint):
+        stream[grid, i] = values[:count]
+    return stream
