@@ -28,6 +28,8 @@ FloatArray = npt.NDArray[np.float64]
 _OK = (Result.Working, Result.Finished)
 # Position-limit checks tolerate round-off of the extrema computation.
 _LIMIT_TOLERANCE_DEG = 1e-6
+# Velocities and accelerations below this are round-off, deg/s or deg/s².
+_RESIDUE = 1e-9
 # Pass-through speeds keep this share of the velocity limit as headroom for synchronisation.
 _PASS_VELOCITY_SHARE = 0.9
 
@@ -200,8 +202,9 @@ class Planner:
     def _input(self, start: State, speed_scale: float) -> InputParameter:
         inp = InputParameter(self.limits.dofs)
         inp.current_position = start.position.tolist()
-        inp.current_velocity = start.velocity.tolist()
-        inp.current_acceleration = start.acceleration.tolist()
+        # Round-off residues (1e-15 deg/s after a segment that ends at rest) make Ruckig's profile search fail.
+        inp.current_velocity = np.where(np.abs(start.velocity) < _RESIDUE, 0.0, start.velocity).tolist()
+        inp.current_acceleration = np.where(np.abs(start.acceleration) < _RESIDUE, 0.0, start.acceleration).tolist()
         inp.max_velocity = (self._v * speed_scale).tolist()
         inp.max_acceleration = (self._a * speed_scale**2).tolist()
         inp.max_jerk = (self._j * speed_scale**3).tolist()
@@ -309,16 +312,20 @@ class Planner:
         segments: list[Segment] = []
         state = start
         for k in range(1, len(points)):
-            segment = self._segment_with_fallback(state, points[k], velocities[k], scale)
+            segment, velocity = self._segment_with_fallback(state, points[k], velocities[k], scale)
             segments.append(segment)
-            state = segment.end
+            # Ruckig ends exactly on its target state: start the next segment there, not on a sampled copy.
+            state = State(points[k], velocity, np.zeros_like(velocity))
         return Path(segments)
 
-    def _segment_with_fallback(self, start: State, target: FloatArray, velocity: FloatArray, scale: float) -> Segment:
+    def _segment_with_fallback(
+        self, start: State, target: FloatArray, velocity: FloatArray, scale: float
+    ) -> tuple[Segment, FloatArray]:
         error: PlanningError | None = None
         for factor in (1.0, 0.5, 0.0):
             try:
-                return self.move(start, target, speed_scale=scale, target_velocity_dps=velocity * factor)
+                used = velocity * factor
+                return self.move(start, target, speed_scale=scale, target_velocity_dps=used), used
             except PlanningError as exc:
                 error = exc
         assert error is not None
