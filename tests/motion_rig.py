@@ -16,11 +16,12 @@ from kinematics import build_arm, feedforward
 from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
 from motion.config import ArmConfig, load_config
-from motion.config.build import build_controller, open_bus
+from motion.config.build import build_controller, open_bus, safety_settings
 from motion.config.schema import ControlMode
 from motion.control.controller import Controller
 from motion.emulator import Emulator, FrameLog, Rs485Attachment, SlcanAttachment, VirtualCanAttachment
-from motion.protocol import MultiTurnPositionSpeed, can_frame, rs485_frame
+from motion.protocol import Message, MultiTurnPositionSpeed, can_frame, rs485_frame
+from motion.safety import Supervisor
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
@@ -33,6 +34,8 @@ class Rig:
     emulator: Emulator
     frame_log: Path
     cycle_starts: list[float]
+    supervisor: Supervisor | None = None
+    log_start_s: float = 0.0
 
 
 def arm_config(name: str, *, mode: ControlMode | None = None, rate_hz: float | None = None) -> ArmConfig:
@@ -46,8 +49,11 @@ def arm_config(name: str, *, mode: ControlMode | None = None, rate_hz: float | N
 
 
 @contextmanager
-def emulated_arm(config: ArmConfig, attachment: str, tmp_path: Path, *, use_feedforward: bool = True) -> Iterator[Rig]:
-    """Run ``config`` on emulated drives over ``attachment`` (virtual | slcan | rs485); the controller is started."""
+def emulated_arm(
+    config: ArmConfig, attachment: str, tmp_path: Path, *, use_feedforward: bool = True, supervised: bool = False
+) -> Iterator[Rig]:
+    """Run ``config`` on emulated drives over ``attachment`` (virtual | slcan | rs485); the controller is started,
+    under a safety :class:`Supervisor` if ``supervised``."""
     emulator, plant = arm_emulator(config)
     log_path = tmp_path / f"frames-{uuid.uuid4().hex[:8]}.log"
     with ExitStack() as stack:
@@ -71,12 +77,43 @@ def emulated_arm(config: ArmConfig, attachment: str, tmp_path: Path, *, use_feed
         controller.read_positions()
         starts: list[float] = []
         controller.cycle_hooks.append(lambda _controller, start_s, _replies: starts.append(start_s))
-        controller.start()
+        supervisor = Supervisor(controller, safety_settings(config)) if supervised else None
+        if supervisor is not None:
+            supervisor.start()
+        else:
+            controller.start()
         try:
-            yield Rig(config, controller, plant, emulator, log_path, starts)
+            yield Rig(config, controller, plant, emulator, log_path, starts, supervisor, log.start_s)
         finally:
+            if supervisor is not None:
+                supervisor.close()
             controller.shutdown()
             assert controller.error is None, controller.error
+
+
+def logged_requests(rig: Rig) -> Iterator[tuple[float, int | None, Message]]:
+    """Every request the emulated drives received: (monotonic time, motor id or None for 0x280, message)."""
+    for line in rig.frame_log.read_text().splitlines():
+        fields = line.split(maxsplit=3)
+        if len(fields) < 4 or fields[1] != "IN":
+            continue
+        wire = fields[3].split(" | ")[0]
+        if ":" in wire:
+            ident, data = wire.split(":")
+            request = can_frame.decode_request(int(ident, 16), bytes.fromhex(data))
+            yield rig.log_start_s + float(fields[0]), request.motor_id, request.message
+        else:
+            motor_id, message = rs485_frame.decode_request(bytes.fromhex(wire))
+            yield rig.log_start_s + float(fields[0]), motor_id, message
+
+
+def received(rig: Rig, command: int) -> dict[int, list[float]]:
+    """Monotonic times at which each motor received a request with ``command``."""
+    out: dict[int, list[float]] = {}
+    for t, motor_id, message in logged_requests(rig):
+        if motor_id is not None and getattr(message, "command", None) == command:
+            out.setdefault(motor_id, []).append(t)
+    return out
 
 
 def commanded_positions(rig: Rig) -> np.ndarray:
@@ -91,17 +128,7 @@ def commanded_positions(rig: Rig) -> np.ndarray:
     column = {j.motor_id: i for i, j in enumerate(config.joints)}
     transmissions = [j.transmission() for j in config.joints]
     per_joint: list[list[float]] = [[] for _ in config.joints]
-    for line in rig.frame_log.read_text().splitlines():
-        fields = line.split(maxsplit=3)
-        if len(fields) < 4 or fields[1] != "IN":
-            continue
-        wire = fields[3].split(" | ")[0]
-        if ":" in wire:
-            ident, data = wire.split(":")
-            request = can_frame.decode_request(int(ident, 16), bytes.fromhex(data))
-            motor_id, message = request.motor_id, request.message
-        else:
-            motor_id, message = rs485_frame.decode_request(bytes.fromhex(wire))
+    for _, motor_id, message in logged_requests(rig):
         if isinstance(message, MultiTurnPositionSpeed) and motor_id in column:
             i = column[motor_id]
             per_joint[i].append(transmissions[i].joint_deg(message.angle_deg))

@@ -9,13 +9,15 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
 
-from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, JointConfig
+from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, HaltPolicy, JointConfig
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
 from motion.control.controller import ControlMode as LoopMode
 from motion.emulator import DriveModel, Emulator, Fault, LoadModel, Plant
 from motion.protocol import Transport as Wire
+from motion.safety import HaltPolicy as Halt
+from motion.safety import SafetySettings
 from motion.trajectory import JointLimits
 from motion.transport import Transport, open_transport
 
@@ -123,3 +125,21 @@ def emulator_for(
         for j in config.joints
     }
     return Emulator(models.keys(), model=models, load=loads, plant=plant, faults=faults)
+
+
+def safety_settings(config: ArmConfig) -> SafetySettings:
+    """Fault thresholds and halt policy from ``safety:``, ``control.halt_policy`` and the joints.
+
+    A drive counts as lost when it misses more than ``max_missed_replies`` consecutive cycles, or when nothing good
+    came from it for ``reply_timeout_ms`` plus ``max_missed_replies + 1`` control periods.
+    """
+    safety = config.safety
+    period = config.control.period_s
+    return SafetySettings(
+        halt_policy=Halt(HaltPolicy(config.control.halt_policy).value),
+        temperature_limit_c=tuple(j.temperature_limit_c for j in config.joints),
+        min_voltage_v=safety.min_voltage_v,
+        following_error_deg=safety.following_error_deg,
+        reply_timeout_s=safety.reply_timeout_ms / 1000.0 + (safety.max_missed_replies + 1) * period,
+        max_missed_replies=safety.max_missed_replies,
+    )

@@ -22,7 +22,7 @@ import numpy as np
 
 from motion.control.axes import AxisSpec, AxisStates
 from motion.control.clock import Clock, MonotonicClock
-from motion.control.scheduler import FixedRateLoop, LoopStatistics
+from motion.control.scheduler import CycleFn, FixedRateLoop, LoopStatistics
 from motion.errors import MotionError, TransportError
 from motion.protocol import (
     Bare,
@@ -84,10 +84,11 @@ class ControllerOptions:
 
 @dataclass(frozen=True, slots=True)
 class _Pending:
-    kind: str  # "move" | "path" | "stop"
+    kind: str  # "move" | "path" | "play" | "stop"
     target: FloatArray | None
     waypoints: FloatArray | None
     speed_scale: float
+    path: Path | None = None
 
 
 class Controller:
@@ -123,6 +124,7 @@ class Controller:
         self.feedforward = feedforward
         self.clock: Clock = clock if clock is not None else MonotonicClock()
         self.loop = FixedRateLoop(options.rate_hz, self.cycle, clock=self.clock)
+        self.period_s = self.loop.period_s
         self.follower: Follower | None = None
         self.reference = State.at_rest(np.zeros(len(self.specs)))
         self.kp = np.array([s.kp_nm_per_deg for s in self.specs])
@@ -215,6 +217,10 @@ class Controller:
             self.planner.check_positions(f"waypoints[{i}]", point)
         self._queue(_Pending("path", None, points, speed_scale))
 
+    def play(self, path: Path) -> None:
+        """Queue a path planned elsewhere; it must start at the reference of the cycle that applies it."""
+        self._queue(_Pending("play", None, None, 1.0, path))
+
     def stop_motion(self) -> None:
         """Queue a jerk-limited stop; the arm then holds where the stop ends."""
         self._queue(_Pending("stop", None, None, 1.0))
@@ -234,6 +240,8 @@ class Controller:
             self.follower.move_to(t_s, pending.target, speed_scale=pending.speed_scale)
         elif pending.kind == "path" and pending.waypoints is not None:
             self.follower.follow(t_s, pending.waypoints, speed_scale=pending.speed_scale)
+        elif pending.kind == "play" and pending.path is not None:
+            self.follower.play(pending.path, t_s)
         else:
             self.follower.stop(t_s)
 
@@ -280,15 +288,38 @@ class Controller:
             if i is not None and isinstance(message, MotorState) and reply.received_s is not None:
                 axes.update(i, message, reply.received_s)
 
-    def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
-        """One control cycle (the scheduler calls it at ``start_s``; the set-point is for ``deadline_s``)."""
+    def step(
+        self,
+        start_s: float,
+        deadline_s: float,
+        *,
+        extra: Sequence[Request] = (),
+        check: Callable[[State], None] | None = None,
+        command: bool = True,
+    ) -> list[Reply]:
+        """The work of one cycle: apply a queued command, sample the reference for ``deadline_s``, build the batch
+        (plus ``extra`` requests), exchange it, absorb the replies.
+
+        Args:
+            start_s: the cycle's scheduled start.
+            deadline_s: the next cycle's start (the set-point is for this instant).
+            extra: requests appended to the batch (status reads).
+            check: called with the reference before anything is sent; raising stops the cycle before the send.
+            command: False sends only ``extra`` (no motion set-points), e.g. while halted.
+
+        Returns:
+            The cycle's replies.
+        """
         follower = self.follower
         if follower is None:
             raise MotionError("read_positions() must run before the loop starts")
         if self._pending is not None:
             self._apply_pending(start_s)
         self.reference = ref = follower.sample(deadline_s)
-        requests = self.build_requests(ref)
+        if check is not None:
+            check(ref)
+        requests = self.build_requests(ref) if command else []
+        requests.extend(extra)
         replies = self.bus.transact(requests, start_s + self.options.reply_budget * (deadline_s - start_s))
         self.absorb(replies)
         self.last_command = [r.message for r in requests]
@@ -296,14 +327,31 @@ class Controller:
             hook(self, start_s, replies)
         if not follower.moving and self._pending is None:
             self._idle.set()
+        return replies
+
+    def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
+        """One unguarded control cycle (the scheduler calls it at ``start_s``); see :mod:`motion.safety` for the
+        guarded one."""
+        self.step(start_s, deadline_s)
         return not self._stop_loop
 
     # ------------------------------------------------------------------------------------------------ loop
 
-    def start(self) -> None:
-        """Run the loop in its own thread (after :meth:`read_positions`)."""
+    def start(self, cycle: CycleFn | None = None) -> None:
+        """Run the loop in its own thread (after :meth:`read_positions`).
+
+        Args:
+            cycle: the cycle function to run instead of :meth:`cycle` (a safety supervisor's guarded cycle).
+        """
         self._stop_loop = False
+        if cycle is not None:
+            self.loop = FixedRateLoop(self.options.rate_hz, cycle, clock=self.clock)
         self.loop.start()
+
+    @property
+    def stopping(self) -> bool:
+        """True once :meth:`shutdown` asked the loop to end."""
+        return self._stop_loop
 
     def shutdown(self, timeout_s: float = 2.0) -> LoopStatistics:
         """End the loop after the current cycle and wait for it; returns the loop statistics."""

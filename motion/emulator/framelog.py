@@ -32,6 +32,8 @@ class FrameLog:
         self._file: TextIO = open(path, "w", encoding="utf-8", buffering=1)  # noqa: SIM115 - closed by close()
         self._lock = threading.Lock()
         self._t0 = time.monotonic()
+        #: Monotonic time of the log's zero, s (line times are relative to it).
+        self.start_s = self._t0
 
     def write(self, direction: str, channel: str, wire: str, decoded: str) -> None:
         """Append one line (see the module docstring)."""

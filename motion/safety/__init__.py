@@ -1,0 +1,19 @@
+"""Safety: per-cycle fault monitors, the arm state machine and the guarded cycle that halts every axis on a fault."""
+
+from __future__ import annotations
+
+from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
+from motion.safety.supervisor import HaltRecord, Supervisor
+from motion.safety.watchdog import HaltPolicy, SafetySettings, Watchdog
+
+__all__ = [
+    "ArmEvent",
+    "ArmState",
+    "HaltPolicy",
+    "HaltRecord",
+    "InvalidTransition",
+    "SafetySettings",
+    "StateMachine",
+    "Supervisor",
+    "Watchdog",
+]

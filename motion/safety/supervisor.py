@@ -1,0 +1,322 @@
+"""The guarded control cycle: a fault anywhere halts every axis in the cycle it is detected.
+
+Reaction (:class:`~motion.safety.watchdog.HaltPolicy`): ``stop`` sends 0x81 and ``off`` 0x80 to every axis at once
+(in the same cycle, before any other command), re-sent to the drives that did not acknowledge until they do or
+``halt_retry_s`` passes; ``hold`` replaces the reference with a jerk-limited stop and keeps streaming (position or
+torque) to hold where it ends — only while communication is healthy: faults of the bus, of a drive, or of our own
+code fall back to 0x81. Then the arm is FAULTED: motion commands raise the fault until :meth:`Supervisor.clear`
+(0x9B to every drive) finds every drive answering with clean flags and no cause left.
+
+No path leaves a motor moving under our last command: exceptions in the cycle are faults; E-stop requests
+(:meth:`Supervisor.estop`, the CLI's Ctrl-C / SIGTERM) are faults; :meth:`Supervisor.close`, garbage collection and
+process exit send 0x81 to every axis before the bus is released.
+"""
+
+from __future__ import annotations
+
+import atexit
+import logging
+import threading
+import weakref
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+from motion.control.controller import Controller
+from motion.errors import MotionError, MotionFault, TransportError
+from motion.protocol import Bare, Command, MotorState, Status1
+from motion.safety.states import ArmEvent, ArmState, StateMachine
+from motion.safety.watchdog import HaltPolicy, SafetySettings, Watchdog
+from motion.trajectory import State
+from motion.transmission import FloatArray
+from motion.transport import Reply, Request
+
+logger = logging.getLogger("motion.safety")
+
+# Fault kinds after which streaming a stop (hold) is still trusted; every other kind falls back to 0x81.
+HOLDABLE = frozenset(
+    {"following_error", "position_limit", "setpoint_limit", "temperature", "low_voltage", "overrun", "estop"}
+)
+# Shortest window given to the halt frames' acknowledgements in the detection cycle, s.
+_HALT_WINDOW_S = 0.002
+
+
+@dataclass(frozen=True, slots=True)
+class HaltRecord:
+    """When a fault was detected and when its halt went out (controller clock, seconds; cycle index)."""
+
+    fault: MotionFault
+    cycle: int
+    detected_s: float
+    halt_sent_s: float
+    policy: str
+
+
+class Supervisor:
+    """Runs a :class:`Controller`'s loop with every fault source watched and halts on any.
+
+    Args:
+        controller: the controller (after ``read_positions()``).
+        settings: thresholds and halt policy.
+    """
+
+    def __init__(self, controller: Controller, settings: SafetySettings) -> None:
+        self.controller = controller
+        self.settings = settings
+        self.watchdog = Watchdog(controller, settings)
+        self.machine = StateMachine(ArmState.READY)
+        self.ids = tuple(s.motor_id for s in controller.specs)
+        self.fault: MotionFault | None = None
+        self.faults: list[MotionFault] = []
+        self.halts: list[HaltRecord] = []
+        self.unacknowledged: set[int] = set()
+        self._holding = False
+        self._halt_code = Command.MOTOR_STOP
+        self._halt_until_s = 0.0
+        self._estop: str | None = None
+        self._clear_request = threading.Event()
+        self._clear_done = threading.Event()
+        self._clear_result: MotionFault | None = None
+        self._faulted = threading.Event()
+        self._status_reads = [Request(i, Bare(Command.READ_STATUS_1)) for i in self.ids]
+        self._state_reads = [Request(i, Bare(Command.READ_STATUS_2)) for i in self.ids]
+        self._finalizer = weakref.finalize(self, _emergency_stop, controller, self.ids)
+        atexit.register(self._finalizer)
+
+    # ------------------------------------------------------------------------------------------------ API
+
+    @property
+    def state(self) -> ArmState:
+        """The arm's state."""
+        return self.machine.state
+
+    def start(self) -> None:
+        """Start the guarded loop."""
+        self.watchdog.start(self.controller.clock.now())
+        self.controller.start(self.cycle)
+
+    def _refuse_if_faulted(self) -> None:
+        if self.machine.state is ArmState.FAULTED:
+            fault = self.fault or MotionFault("faulted")
+            raise MotionFault(
+                fault.kind,
+                joint=fault.joint,
+                value=fault.value,
+                threshold=fault.threshold,
+                time_s=fault.time_s,
+                detail="motion refused until clear()",
+            )
+        if self.machine.state is ArmState.CLOSED:
+            raise MotionError("the arm is closed")
+
+    def move_to(self, target_deg: Sequence[float] | FloatArray, speed_scale: float = 1.0) -> None:
+        """Queue a coordinated move (see :meth:`Controller.move_to`).
+
+        Raises:
+            MotionFault: the arm is faulted.
+            PlanningError: an invalid target (nothing moves).
+        """
+        self._refuse_if_faulted()
+        self.controller.move_to(target_deg, speed_scale)
+        self.machine.fire(ArmEvent.MOVE)
+
+    def follow(self, waypoints_deg: Sequence[Sequence[float]] | FloatArray, speed_scale: float = 1.0) -> None:
+        """Queue a waypoint path (see :meth:`Controller.follow`)."""
+        self._refuse_if_faulted()
+        self.controller.follow(waypoints_deg, speed_scale)
+        self.machine.fire(ArmEvent.MOVE)
+
+    def stop_motion(self) -> None:
+        """Queue a jerk-limited stop (not a fault)."""
+        self._refuse_if_faulted()
+        self.controller.stop_motion()
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Wait for the motion to end; returns False on timeout.
+
+        Raises:
+            MotionFault: a fault halted the arm (before or during the wait).
+        """
+        step = 0.005
+        waited = 0.0
+        while not self.controller.wait_idle(step):
+            if self._faulted.is_set():
+                break
+            waited += step
+            if timeout_s is not None and waited >= timeout_s:
+                return False
+        if self._faulted.is_set() and self.fault is not None:
+            raise self.fault
+        return True
+
+    def estop(self, reason: str = "estop", timeout_s: float = 1.0) -> bool:
+        """Halt every axis now (in the next cycle); returns True once the halt went out."""
+        self._estop = reason
+        return self._faulted.wait(timeout_s)
+
+    def clear(self, timeout_s: float = 1.0) -> None:
+        """Send 0x9B to every drive; succeed only if every drive answers with clean flags and no cause remains.
+
+        Raises:
+            MotionFault: kind ``clear_failed`` naming what is still wrong (the arm stays FAULTED).
+            MotionError: the arm is not faulted, or the loop did not answer in time.
+        """
+        if self.machine.state is not ArmState.FAULTED:
+            raise MotionError(f"clear() needs a faulted arm; it is {self.machine.state.value}")
+        self._clear_done.clear()
+        self._clear_request.set()
+        if not self._clear_done.wait(timeout_s):
+            raise MotionError("the control loop did not process clear() in time")
+        if self._clear_result is not None:
+            raise self._clear_result
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Halt every axis with 0x81, end the loop (the bus stays open for its owner to close)."""
+        if self.machine.state is ArmState.CLOSED:
+            return
+        if self.controller.loop.running and self.machine.state is not ArmState.FAULTED:
+            self.estop("close", timeout_s)
+        self.controller.shutdown(timeout_s)
+        self._finalizer()
+        self.machine.fire(ArmEvent.CLOSE)
+
+    # ------------------------------------------------------------------------------------------------ the cycle
+
+    def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
+        """The guarded cycle: run by the scheduler; never raises (every failure is a fault that halts)."""
+        controller = self.controller
+        try:
+            if self.machine.state is ArmState.FAULTED:
+                self._faulted_cycle(start_s, deadline_s)
+            else:
+                if self._estop is not None:
+                    reason, self._estop = self._estop, None
+                    raise MotionFault(reason, time_s=controller.clock.now(), detail="E-stop requested")
+                extra = (self._status_reads[k % len(self.ids)],)
+                replies = controller.step(start_s, deadline_s, extra=extra, check=self.watchdog.check_setpoint)
+                self.watchdog.evaluate(replies, controller.clock.now())
+                if self.machine.state is ArmState.MOVING and controller.wait_idle(0):
+                    self.machine.fire(ArmEvent.DONE)
+        except MotionFault as fault:
+            self._halt(fault, k, start_s, deadline_s)
+        except TransportError as exc:
+            self._halt(MotionFault("transport", time_s=controller.clock.now(), detail=str(exc)), k, start_s, deadline_s)
+        except Exception as exc:
+            detail = f"{type(exc).__name__}: {exc}"
+            self._halt(MotionFault("exception", time_s=controller.clock.now(), detail=detail), k, start_s, deadline_s)
+        return not controller.stopping
+
+    def _halt(self, fault: MotionFault, k: int, start_s: float, deadline_s: float) -> None:
+        controller = self.controller
+        detected = controller.clock.now()
+        self.fault = fault
+        self.faults.append(fault)
+        first = self.machine.state is not ArmState.FAULTED
+        self.machine.fire(ArmEvent.FAULT)
+        policy = self.settings.halt_policy
+        holdable = policy is HaltPolicy.HOLD and fault.kind in HOLDABLE and not self._holding
+        logger.error("motion fault, halting every axis (%s): %s", "hold" if holdable else policy.value, fault)
+        try:
+            if holdable and first:
+                self._holding = True
+                follower = controller.follower
+                assert follower is not None
+                follower.stop(start_s)
+                sent = controller.clock.now()
+                controller.step(sent, max(deadline_s, sent + _HALT_WINDOW_S))
+            else:
+                self._holding = False
+                self._halt_code = Command.MOTOR_OFF if policy is HaltPolicy.OFF else Command.MOTOR_STOP
+                self.unacknowledged = set(self.ids)
+                self._halt_until_s = detected + self.settings.halt_retry_s
+                sent = controller.clock.now()
+                self._send_halt(sent, max(deadline_s, sent + _HALT_WINDOW_S))
+        except Exception as exc:  # the bus itself may be what failed: keep the fault, log the failed halt
+            sent = controller.clock.now()
+            logger.error("halt could not be sent: %s: %s", type(exc).__name__, exc)
+        self.halts.append(HaltRecord(fault, k, detected, sent, "hold" if self._holding else self._halt_code.name))
+        self._faulted.set()
+
+    def _send_halt(self, now_s: float, deadline_s: float) -> None:
+        requests = [Request(i, Bare(self._halt_code)) for i in sorted(self.unacknowledged)]
+        replies = self.controller.bus.transact(requests, deadline_s)
+        for reply in replies:
+            if isinstance(reply.message, Bare) and reply.message.command == self._halt_code:
+                self.unacknowledged.discard(reply.motor_id)
+
+    def _faulted_cycle(self, start_s: float, deadline_s: float) -> None:
+        controller = self.controller
+        now = controller.clock.now()
+        if self._clear_request.is_set():
+            self._clear_request.clear()
+            self._do_clear(start_s, deadline_s)
+            self._clear_done.set()
+            return
+        if self._holding:
+            try:
+                replies = controller.step(start_s, deadline_s)
+                self.watchdog.evaluate(replies, controller.clock.now())
+            except MotionFault as fault:
+                if fault.kind not in HOLDABLE:  # communication broke while holding: fall back to 0x81
+                    self._holding = False
+                    self._halt(fault, -1, start_s, deadline_s)
+            return
+        if self.unacknowledged and now < self._halt_until_s:
+            self._send_halt(now, start_s + controller.options.reply_budget * (deadline_s - start_s))
+            return
+        if self.unacknowledged:
+            logger.error("drives %s did not acknowledge the halt", sorted(self.unacknowledged))
+            self.unacknowledged.clear()
+        # Halted: keep reading the drives (reads do not move them) so that positions and flags stay current.
+        controller.step(start_s, deadline_s, extra=self._state_reads, command=False)
+
+    def _do_clear(self, start_s: float, deadline_s: float) -> None:
+        controller = self.controller
+        requests = [Request(i, Bare(Command.CLEAR_ERRORS)) for i in self.ids] + self._state_reads
+        replies: list[Reply] = controller.bus.transact(requests, max(deadline_s, controller.clock.now() + 0.005))
+        controller.absorb(replies)
+        problems = self._clear_problems(replies)
+        if problems:
+            self._clear_result = MotionFault("clear_failed", time_s=controller.clock.now(), detail="; ".join(problems))
+            return
+        q = controller.axes.positions()
+        assert controller.follower is not None
+        controller.follower.hold_at(q)
+        controller.reference = State.at_rest(q)
+        self._holding = False
+        self.fault = None
+        self._faulted.clear()
+        self._clear_result = None
+        self.watchdog.start(controller.clock.now())
+        self.machine.fire(ArmEvent.CLEARED)
+
+    def _clear_problems(self, replies: list[Reply]) -> list[str]:
+        names = {s.motor_id: s.name for s in self.controller.specs}
+        settings = self.settings
+        limits = dict(zip(self.ids, settings.temperature_limit_c, strict=True))
+        problems = []
+        status = {r.motor_id: r.message for r in replies if isinstance(r.message, Status1)}
+        state = {r.motor_id: r.message for r in replies if isinstance(r.message, MotorState)}
+        for motor_id in self.ids:
+            s, m = status.get(motor_id), state.get(motor_id)
+            name = names[motor_id]
+            if s is None or m is None:
+                problems.append(f"{name}: no reply")
+                continue
+            if s.errors:
+                problems.append(f"{name}: error flags {s.errors!r} still set")
+            if s.voltage_v < settings.min_voltage_v:
+                problems.append(f"{name}: supply {s.voltage_v:.1f} V below {settings.min_voltage_v:g} V")
+            if max(s.temperature_c, m.temperature_c) >= limits[motor_id]:
+                problems.append(f"{name}: temperature {s.temperature_c} °C at or above {limits[motor_id]:g} °C")
+        return problems
+
+
+def _emergency_stop(controller: Controller, ids: tuple[int, ...]) -> None:
+    """Garbage collection / process exit: end the loop, then 0x81 to every axis (best effort, never raises)."""
+    try:
+        controller.shutdown(1.0)
+        if not controller.bus.closed:
+            requests = [Request(i, Bare(Command.MOTOR_STOP)) for i in ids]
+            controller.bus.transact(requests, controller.clock.now() + 0.02)
+    except Exception as exc:  # at exit there is nobody to raise to; leave a trace
+        logger.error("emergency stop failed: %s: %s", type(exc).__name__, exc)

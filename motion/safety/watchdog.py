@@ -1,0 +1,227 @@
+"""Per-cycle fault monitors: every reply is watched, and the first violated limit becomes a :class:`MotionFault`.
+
+Sources, in the order they are checked: drive error flags (0x9A, read round-robin so every drive's flags are at
+most ``n_axes`` cycles old, and every 0x9B reply), motor temperature in every reply, supply voltage, missing replies
+(consecutive misses and time since the last good reply), corrupt frames, measured position beyond the joint limits,
+following error, and scheduler overrun streaks. The planned set-point is checked before it is sent.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from motion.control.controller import Controller
+from motion.errors import MotionFault
+from motion.protocol import ErrorFlags, MotorState, Status1
+from motion.trajectory import State
+from motion.transmission import FloatArray
+from motion.transport import Reply
+
+# Measured positions may pass a joint limit by this much (encoder resolution, drive overshoot), deg.
+POSITION_LIMIT_TOLERANCE_DEG = 0.1
+# Window of the corrupt-frame count, s.
+CORRUPT_WINDOW_S = 1.0
+
+
+class HaltPolicy(Enum):
+    """What every axis does on a fault."""
+
+    STOP = "stop"  #: 0x81: the drives brake and hold (keeping their mode)
+    OFF = "off"  #: 0x80: torque off (an arm under gravity falls unless braked)
+    HOLD = "hold"  #: jerk-limited stop of the reference, then hold; only while communication is healthy
+
+
+@dataclass(frozen=True, slots=True)
+class SafetySettings:
+    """Thresholds of the monitors and the reaction.
+
+    Attributes:
+        halt_policy: the reaction to a fault.
+        temperature_limit_c: per joint, °C.
+        min_voltage_v: supply voltage below which the arm faults, V.
+        following_error_deg: largest |reference - measured| joint angle, deg.
+        reply_timeout_s: longest time without a good reply from a drive, s (on top of the missed-reply count).
+        max_missed_replies: consecutive cycles with a missing reply tolerated per drive.
+        max_corrupt_frames: corrupt frames per drive tolerated within one second.
+        max_overrun_streak: consecutive overrunning cycles tolerated.
+        halt_retry_s: how long unacknowledged halt frames are re-sent, s.
+    """
+
+    halt_policy: HaltPolicy
+    temperature_limit_c: tuple[float, ...]
+    min_voltage_v: float
+    following_error_deg: float
+    reply_timeout_s: float
+    max_missed_replies: int
+    max_corrupt_frames: int = 3
+    max_overrun_streak: int = 3
+    halt_retry_s: float = 0.2
+
+
+class Watchdog:
+    """Evaluates the monitors once per cycle (called from the control thread only)."""
+
+    def __init__(self, controller: Controller, settings: SafetySettings) -> None:
+        self.controller = controller
+        self.settings = settings
+        specs = controller.specs
+        n = len(specs)
+        self.names = tuple(s.name for s in specs)
+        self.ids = tuple(s.motor_id for s in specs)
+        self.index = {s.motor_id: i for i, s in enumerate(specs)}
+        limits = controller.planner.limits
+        self.lower = np.array(limits.position_min_deg) - POSITION_LIMIT_TOLERANCE_DEG
+        self.upper = np.array(limits.position_max_deg) + POSITION_LIMIT_TOLERANCE_DEG
+        self.temperature_limit = np.array(settings.temperature_limit_c)
+        self.misses = np.zeros(n, dtype=np.int64)
+        self.last_good_s = np.full(n, np.nan)
+        self._missing = np.zeros(n, dtype=bool)
+        self._answered = np.zeros(n, dtype=bool)
+        self._bad_seen = np.zeros(n, dtype=np.int64)
+        self._corrupt: list[collections.deque[float]] = [collections.deque() for _ in range(n)]
+        self._overruns_seen = 0
+        self._overrun_streak = 0
+        self.previous_reference: FloatArray | None = None
+
+    def start(self, now_s: float) -> None:
+        """Reset the reply clocks (at loop start or after a clear)."""
+        self.last_good_s[:] = now_s
+        self.misses[:] = 0
+        counters = self.controller.bus.counters
+        for i, motor_id in enumerate(self.ids):
+            self._bad_seen[i] = counters[motor_id].bad_frames if motor_id in counters else 0
+            self._corrupt[i].clear()
+        self._overruns_seen = self.controller.loop.overruns
+        self._overrun_streak = 0
+        self.previous_reference = None
+
+    def check_setpoint(self, reference: State) -> None:
+        """Refuse to send a planned set-point outside the joint limits.
+
+        Raises:
+            MotionFault: kind ``setpoint_limit``.
+        """
+        q = reference.position
+        outside = (q < self.lower) | (q > self.upper)
+        if outside.any():
+            i = int(np.argmax(outside))
+            bound = self.lower[i] if q[i] < self.lower[i] else self.upper[i]
+            raise self._fault("setpoint_limit", i, float(q[i]), float(bound), "planned set-point outside the limits")
+
+    def _fault(
+        self, kind: str, i: int | None, value: float | None, threshold: float | None, detail: str
+    ) -> MotionFault:
+        return MotionFault(
+            kind,
+            joint=self.names[i] if i is not None else None,
+            value=value,
+            threshold=threshold,
+            time_s=self.controller.clock.now(),
+            detail=detail,
+        )
+
+    def evaluate(self, replies: list[Reply], now_s: float) -> None:
+        """Check one cycle's replies and the controller's state.
+
+        Raises:
+            MotionFault: the first violated limit.
+        """
+        settings = self.settings
+        self._missing[:] = False
+        self._answered[:] = False
+        for reply in replies:
+            i = self.index.get(reply.motor_id)
+            if i is None:
+                continue
+            message = reply.message
+            if message is None:
+                self._missing[i] = True
+                continue
+            self._answered[i] = True
+            if isinstance(message, Status1):
+                self._check_status(i, message)
+            elif isinstance(message, MotorState) and message.temperature_c >= self.temperature_limit[i]:
+                raise self._fault(
+                    "temperature", i, message.temperature_c, float(self.temperature_limit[i]), "motor temperature"
+                )
+        self._check_replies(now_s)
+        self._check_corrupt(now_s)
+        axes = self.controller.axes
+        q = axes.q_deg
+        outside = (q < self.lower) | (q > self.upper)
+        if outside.any():
+            i = int(np.argmax(outside))
+            bound = self.lower[i] if q[i] < self.lower[i] else self.upper[i]
+            raise self._fault("position_limit", i, float(q[i]), float(bound), "measured position beyond the limit")
+        previous = self.previous_reference
+        if previous is not None:
+            error = np.abs(previous - q)
+            worst = int(np.argmax(error))
+            if error[worst] > settings.following_error_deg:
+                raise self._fault(
+                    "following_error", worst, float(error[worst]), settings.following_error_deg, "|reference - q|"
+                )
+        self.previous_reference = self.controller.reference.position
+        overruns = self.controller.loop.overruns
+        self._overrun_streak = self._overrun_streak + 1 if overruns > self._overruns_seen else 0
+        self._overruns_seen = overruns
+        if self._overrun_streak > settings.max_overrun_streak:
+            raise self._fault(
+                "overrun", None, float(self._overrun_streak), float(settings.max_overrun_streak), "consecutive overruns"
+            )
+
+    def _check_status(self, i: int, status: Status1) -> None:
+        if status.errors & ErrorFlags.OVER_TEMPERATURE:
+            raise self._fault("drive_over_temperature", i, status.temperature_c, None, "drive error flag bit 3")
+        if status.errors & ErrorFlags.LOW_VOLTAGE:
+            raise self._fault("drive_low_voltage", i, status.voltage_v, None, "drive error flag bit 0")
+        if status.errors:
+            raise self._fault("drive_error", i, float(status.errors), None, f"drive error flags {status.errors!r}")
+        if status.voltage_v < self.settings.min_voltage_v:
+            raise self._fault("low_voltage", i, status.voltage_v, self.settings.min_voltage_v, "supply voltage")
+        if status.temperature_c >= self.temperature_limit[i]:
+            raise self._fault(
+                "temperature", i, status.temperature_c, float(self.temperature_limit[i]), "motor temperature"
+            )
+
+    def _check_replies(self, now_s: float) -> None:
+        settings = self.settings
+        missed = self._missing
+        self.misses[missed] += 1
+        self.misses[~missed & self._answered] = 0
+        self.last_good_s[self._answered & ~missed] = now_s
+        worst = int(np.argmax(self.misses))
+        if self.misses[worst] > settings.max_missed_replies:
+            raise self._fault(
+                "no_reply", worst, float(self.misses[worst]), float(settings.max_missed_replies), "consecutive misses"
+            )
+        silent = now_s - self.last_good_s
+        worst = int(np.argmax(silent))
+        if silent[worst] > settings.reply_timeout_s:
+            raise self._fault(
+                "no_reply", worst, float(silent[worst]), settings.reply_timeout_s, "seconds since the last good reply"
+            )
+
+    def _check_corrupt(self, now_s: float) -> None:
+        counters = self.controller.bus.counters
+        for i, motor_id in enumerate(self.ids):
+            counter = counters.get(motor_id)
+            if counter is None or counter.bad_frames == self._bad_seen[i]:
+                continue
+            window = self._corrupt[i]
+            window.extend([now_s] * (counter.bad_frames - int(self._bad_seen[i])))
+            self._bad_seen[i] = counter.bad_frames
+            while window and window[0] < now_s - CORRUPT_WINDOW_S:
+                window.popleft()
+            if len(window) > self.settings.max_corrupt_frames:
+                raise self._fault(
+                    "corrupt_frames",
+                    i,
+                    float(len(window)),
+                    float(self.settings.max_corrupt_frames),
+                    f"corrupt frames within {CORRUPT_WINDOW_S:g} s",
+                )

@@ -1,0 +1,301 @@
+"""Safety (issue 6): one test per fault source, injected mid-move on emulated drives.
+
+For each: every axis receives its halt command in the cycle of the detection (checked on the emulator's frame
+log), every emulated motor comes to rest, motion is refused until clear(), and clear() fails while the cause
+persists (where the cause can persist).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from motion.config import ArmConfig
+from motion.config.schema import ControlMode, HaltPolicy
+from motion.control.controller import Controller
+from motion.emulator import Fault, FaultKind
+from motion.errors import MotionError, MotionFault
+from motion.protocol import Command, MultiTurnPositionSpeed
+from motion.safety import ArmEvent, ArmState, InvalidTransition, StateMachine
+from motion.trajectory import JointLimits, Planner, State
+from motion.trajectory import Path as TrajectoryPath
+from motion.transport import Reply
+from tests.motion_rig import Rig, arm_config, emulated_arm, logged_requests, received
+
+# Slack for the emulator thread to log a frame after the control thread sent it, s.
+LOG_SLACK_S = 0.05
+
+
+def _config(policy: HaltPolicy = HaltPolicy.STOP, mode: ControlMode = ControlMode.POSITION, **safety: Any) -> ArmConfig:
+    """arm2 in a horizontal plane (gravity along the joint axes: a halted or released arm stays where it is)."""
+    config = arm_config("arm2.yaml", mode=mode, rate_hz=200)
+    model = dataclasses.replace(config.model, gravity_m_s2=(0.0, 0.0, -9.81))
+    control = dataclasses.replace(config.control, halt_policy=policy)
+    return dataclasses.replace(
+        config, model=model, control=control, safety=dataclasses.replace(config.safety, **safety)
+    )
+
+
+def _move_and_catch(
+    rig: Rig, inject: Callable[[], object], target: tuple[float, float] = (80.0, -100.0)
+) -> MotionFault:
+    supervisor = rig.supervisor
+    assert supervisor is not None
+    supervisor.move_to(target, speed_scale=0.4)
+    time.sleep(0.4)
+    assert supervisor.state is ArmState.MOVING
+    inject()
+    with pytest.raises(MotionFault) as info:
+        supervisor.wait(5.0)
+    return info.value
+
+
+def _assert_halted_in_detection_cycle(rig: Rig, command: int = Command.MOTOR_STOP) -> None:
+    supervisor = rig.supervisor
+    assert supervisor is not None and supervisor.halts
+    halt = supervisor.halts[0]
+    period = rig.controller.period_s
+    assert halt.halt_sent_s - halt.detected_s < period  # sent in the cycle of the detection
+    times = received(rig, command)
+    for joint in rig.config.joints:
+        first = min(times.get(joint.motor_id, [np.inf]))
+        assert halt.detected_s <= first <= halt.detected_s + period + LOG_SLACK_S, (joint.name, first - halt.detected_s)
+
+
+def _assert_comes_to_rest(rig: Rig, within_s: float = 3.0) -> None:
+    """Every joint slower than 1 deg/s within ``within_s`` (a drive that turned itself off coasts to rest)."""
+    deadline = time.monotonic() + within_s
+    while True:
+        _, velocity = rig.plant.state()
+        if np.abs(velocity).max() < np.radians(1.0) or time.monotonic() > deadline:
+            break
+        time.sleep(0.05)
+    assert np.abs(velocity).max() < np.radians(1.0), velocity
+
+
+def _assert_refused_until_clear(rig: Rig, fault: MotionFault, *, persists: bool) -> None:
+    supervisor = rig.supervisor
+    assert supervisor is not None
+    with pytest.raises(MotionFault, match=fault.kind):
+        supervisor.move_to([0.0, 0.0])
+    if persists:
+        with pytest.raises(MotionFault, match="clear_failed"):
+            supervisor.clear()
+        assert supervisor.state is ArmState.FAULTED
+
+
+def _inject(rig: Rig, kind: FaultKind, motor_id: int, value: float | None = None, duration_s: float = 0.5) -> None:
+    now = rig.emulator.time_s
+    rig.emulator.add_fault(Fault(kind, motor_id, start_s=now, end_s=now + duration_s, value=value))
+
+
+def test_drive_over_temperature_flag(tmp_path: Path) -> None:
+    config = _config()
+    # our own temperature limit above the drive's protection (80 degC): the 0x9A flag is what trips
+    joints = tuple(dataclasses.replace(j, temperature_limit_c=100.0) for j in config.joints)
+    with emulated_arm(dataclasses.replace(config, joints=joints), "virtual", tmp_path, supervised=True) as rig:
+        fault = _move_and_catch(rig, lambda: _inject(rig, FaultKind.OVER_TEMPERATURE, 2, 90.0, duration_s=60.0))
+        assert fault.kind == "drive_over_temperature" and fault.joint == "elbow"
+        _assert_halted_in_detection_cycle(rig)
+        _assert_comes_to_rest(rig)
+        _assert_refused_until_clear(rig, fault, persists=True)
+
+
+def test_drive_low_voltage_flag_then_clear_after_the_cause_is_gone(tmp_path: Path) -> None:
+    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+        fault = _move_and_catch(rig, lambda: _inject(rig, FaultKind.UNDER_VOLTAGE, 1, 12.0, duration_s=1.0))
+        assert fault.kind == "drive_low_voltage" and fault.joint == "shoulder"
+        _assert_halted_in_detection_cycle(rig)
+        _assert_comes_to_rest(rig)
+        _assert_refused_until_clear(rig, fault, persists=True)
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        time.sleep(1.0)  # the under-voltage ends
+        supervisor.clear()
+        assert supervisor.state is ArmState.READY
+        supervisor.move_to([10.0, -10.0])
+        assert supervisor.wait(5.0)
+
+
+@pytest.mark.parametrize(
+    ("kind", "value", "expected"),
+    [(FaultKind.OVER_TEMPERATURE, 75.0, "temperature"), (FaultKind.UNDER_VOLTAGE, 19.0, "low_voltage")],
+)
+def test_measured_temperature_and_voltage_against_configured_limits(
+    kind: FaultKind, value: float, expected: str, tmp_path: Path
+) -> None:
+    # 75 degC is above the joint's 70 degC limit but below the drive's own 80; 19 V above the drive's 18 V
+    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+        fault = _move_and_catch(rig, lambda: _inject(rig, kind, 2, value, duration_s=60.0))
+        assert fault.kind == expected and fault.joint == "elbow"
+        assert fault.threshold is not None and fault.value is not None
+        _assert_halted_in_detection_cycle(rig)
+        _assert_comes_to_rest(rig)
+        _assert_refused_until_clear(rig, fault, persists=True)
+
+
+@pytest.mark.parametrize(
+    ("kind", "expected"),
+    [(FaultKind.SILENT, "no_reply"), (FaultKind.DROP, "no_reply"), (FaultKind.CORRUPT, "corrupt_frames")],
+)
+def test_missing_and_corrupt_replies(kind: FaultKind, expected: str, tmp_path: Path) -> None:
+    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+        fault = _move_and_catch(rig, lambda: _inject(rig, kind, 1, duration_s=60.0))
+        assert fault.kind == expected and fault.joint == "shoulder"
+        _assert_halted_in_detection_cycle(rig)
+        _assert_comes_to_rest(rig)  # the silent drive received its 0x81 too (it only stopped replying)
+        _assert_refused_until_clear(rig, fault, persists=True)
+
+
+def test_following_error_with_hold_policy(tmp_path: Path) -> None:
+    # position mode: the drive's own loop lags the stream; a tight threshold makes a fast move fault
+    config = _config(HaltPolicy.HOLD, following_error_deg=0.5)
+    with emulated_arm(config, "virtual", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        supervisor.move_to([80.0, -100.0])
+        with pytest.raises(MotionFault) as info:
+            supervisor.wait(5.0)
+        assert info.value.kind == "following_error"
+        assert info.value.value is not None and info.value.value > 0.5
+        halt = supervisor.halts[0]
+        assert halt.policy == "hold" and halt.halt_sent_s - halt.detected_s < rig.controller.period_s
+        assert not received(rig, Command.MOTOR_STOP)  # hold streams a stop ramp instead of 0x81
+        _assert_comes_to_rest(rig)
+        held = rig.plant.joint_positions_deg()
+        time.sleep(0.3)
+        assert np.abs(rig.plant.joint_positions_deg() - held).max() < 0.05  # holding
+        _assert_refused_until_clear(rig, info.value, persists=False)
+        supervisor.clear()
+        supervisor.move_to([0.0, 0.0], speed_scale=0.2)
+
+
+def test_measured_position_beyond_joint_limit_off_policy(tmp_path: Path) -> None:
+    # torque mode without feed-forward in a vertical plane: the arm sags past a tight lower limit of the shoulder
+    config = arm_config("arm2.yaml", mode=ControlMode.TORQUE, rate_hz=200)
+    joints = (dataclasses.replace(config.joints[0], position_min_deg=-3.0), config.joints[1])
+    control = dataclasses.replace(config.control, halt_policy=HaltPolicy.OFF)
+    config = dataclasses.replace(
+        config, joints=joints, control=control, safety=dataclasses.replace(config.safety, following_error_deg=45.0)
+    )
+    with emulated_arm(config, "virtual", tmp_path, supervised=True, use_feedforward=False) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        deadline = time.monotonic() + 3.0
+        while supervisor.state is not ArmState.FAULTED and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert supervisor.fault is not None and supervisor.fault.kind == "position_limit"
+        assert supervisor.fault.joint == "shoulder" and supervisor.fault.value is not None
+        assert supervisor.fault.value < -3.0
+        _assert_halted_in_detection_cycle(rig, Command.MOTOR_OFF)
+        assert all(drive.state.value == "off" for drive in rig.emulator.drives.values())
+
+
+def test_planned_setpoint_outside_limits_is_never_sent(tmp_path: Path) -> None:
+    with emulated_arm(_config(following_error_deg=45.0), "virtual", tmp_path, supervised=True) as rig:
+        controller = rig.controller
+        supervisor = rig.supervisor
+        assert supervisor is not None and controller.follower is not None
+        # a path planned with wider limits than the arm's (a planner bug, as far as the arm can tell)
+        wide = controller.planner.limits
+        loose = Planner(
+            JointLimits(
+                wide.names, (-360.0, -360.0), (360.0, 360.0), wide.velocity_dps, wide.acceleration_dps2, wide.jerk_dps3
+            )
+        )
+        path = TrajectoryPath([loose.move(State.at_rest(controller.axes.positions()), [120.0, 0.0])])
+        supervisor.machine.fire(ArmEvent.MOVE)
+        controller.play(path)
+        with pytest.raises(MotionFault, match="setpoint_limit"):
+            supervisor.wait(5.0)
+        shoulder = rig.config.joints[0]
+        sent = [
+            shoulder.transmission().joint_deg(message.angle_deg)
+            for _, motor_id, message in logged_requests(rig)
+            if motor_id == 1 and isinstance(message, MultiTurnPositionSpeed)
+        ]
+        assert max(sent) <= shoulder.position_max_deg + 0.1, max(sent)  # the offending set-point never went out
+        _assert_halted_in_detection_cycle(rig)
+
+
+def test_transport_error_faults_and_the_halt_failure_is_reported(tmp_path: Path) -> None:
+    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+        fault = _move_and_catch(rig, rig.controller.bus.close)  # the port goes away under the running loop
+        assert fault.kind == "transport"
+        supervisor = rig.supervisor
+        assert supervisor is not None and supervisor.state is ArmState.FAULTED
+
+
+def test_overrun_streak(tmp_path: Path) -> None:
+    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+        slow = {"on": False}
+
+        def hook(controller: Controller, start_s: float, replies: list[Reply]) -> None:
+            if slow["on"]:
+                time.sleep(controller.period_s * 1.5)
+
+        rig.controller.cycle_hooks.append(hook)
+        fault = _move_and_catch(rig, lambda: slow.update(on=True))
+        slow["on"] = False
+        assert fault.kind == "overrun"
+        _assert_halted_in_detection_cycle(rig)
+        _assert_comes_to_rest(rig)
+
+
+def test_exception_in_cycle(tmp_path: Path) -> None:
+    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+        broken = {"on": False}
+
+        def hook(controller: Controller, start_s: float, replies: list[Reply]) -> None:
+            if broken["on"]:
+                raise ZeroDivisionError("bug in a cycle hook")
+
+        rig.controller.cycle_hooks.append(hook)
+        fault = _move_and_catch(rig, lambda: broken.update(on=True))
+        broken["on"] = False
+        assert fault.kind == "exception" and "ZeroDivisionError" in str(fault)
+        _assert_halted_in_detection_cycle(rig)
+        _assert_comes_to_rest(rig)
+
+
+def test_estop_api(tmp_path: Path) -> None:
+    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        fault = _move_and_catch(rig, supervisor.estop)
+        assert fault.kind == "estop"
+        _assert_halted_in_detection_cycle(rig)
+        _assert_comes_to_rest(rig)
+        _assert_refused_until_clear(rig, fault, persists=False)
+        supervisor.clear()
+        assert supervisor.state is ArmState.READY
+
+
+def test_close_halts_every_axis(tmp_path: Path) -> None:
+    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        supervisor.move_to([80.0, -100.0], speed_scale=0.4)
+        time.sleep(0.3)
+        supervisor.close()
+        assert supervisor.state is ArmState.CLOSED
+        times = received(rig, Command.MOTOR_STOP)
+        assert set(times) == {1, 2}
+        _assert_comes_to_rest(rig)
+        with pytest.raises(MotionError):
+            supervisor.move_to([0.0, 0.0])
+
+
+def test_state_machine_unknown_event_goes_to_safe_state() -> None:
+    machine = StateMachine(ArmState.READY)
+    assert machine.fire(ArmEvent.MOVE) is ArmState.MOVING
+    with pytest.raises(InvalidTransition, match="cleared"):
+        machine.fire(ArmEvent.CLEARED)
+    assert machine.state is ArmState.FAULTED
+    assert machine.fire(ArmEvent.CLEARED) is ArmState.READY
