@@ -23,6 +23,9 @@ from motion.transport import Transport, open_transport
 
 # The emulated drive's own speed cap (0xA3/0xA5/0xA7 and holding) is this many times the joint limit, motor side.
 _DRIVE_SPEED_MARGIN = 2.0
+# Emulated supply voltage, V, at least this share above the configured minimum.
+_EMULATED_SUPPLY_V = 24.0
+_SUPPLY_MARGIN = 1.2
 # Joint-side load inertia assumed for emulated independent loads when no plant is given, kg·m².
 DEFAULT_LOAD_INERTIA_KGM2 = 0.01
 
@@ -84,9 +87,10 @@ def build_controller(
     )
 
 
-def drive_model(joint: JointConfig) -> DriveModel:
-    """The emulated drive of one joint."""
+def drive_model(joint: JointConfig, supply_voltage_v: float = 24.0) -> DriveModel:
+    """The emulated drive of one joint, on a supply of ``supply_voltage_v``."""
     return DriveModel(
+        supply_voltage_v=supply_voltage_v,
         gear_ratio=joint.gear_ratio,
         torque_constant_nm_per_a=joint.torque_constant_nm_per_a,
         rotor_inertia_kgm2=joint.emulation.rotor_inertia_kgm2,
@@ -115,7 +119,9 @@ def emulator_for(
         faults: faults to schedule.
     """
     inertia = dict(load_inertia_kgm2 or {})
-    models = {j.motor_id: drive_model(j) for j in config.joints}
+    # The emulated supply sits comfortably above the configured minimum (a 48 V arm gets 48 V, not 24 V).
+    supply = max(_EMULATED_SUPPLY_V, config.safety.min_voltage_v * _SUPPLY_MARGIN)
+    models = {j.motor_id: drive_model(j, supply) for j in config.joints}
     loads = {
         j.motor_id: LoadModel(
             inertia_kgm2=inertia.get(j.name, DEFAULT_LOAD_INERTIA_KGM2),

@@ -20,7 +20,7 @@ from motion.errors import ConfigError
 from motion.protocol.messages import Command, PidGains
 
 #: Position loop: proportional gain in 1/s per unit of ``angle_kp`` (speed reference = gain × angle error).
-ANGLE_KP_PER_S: Final = 0.25
+ANGLE_KP_PER_S: Final = 0.5
 #: Position loop: integral gain in 1/s² per unit of ``angle_ki``.
 ANGLE_KI_PER_S2: Final = 0.02
 #: Speed loop: closed-loop bandwidth in rad/s per unit of ``speed_kp`` (at the tuned inertia).

@@ -214,7 +214,9 @@ class Supervisor:
         self.machine.fire(ArmEvent.FAULT)
         policy = self.settings.halt_policy
         holdable = policy is HaltPolicy.HOLD and fault.kind in HOLDABLE and not self._holding
-        logger.error("motion fault, halting every axis (%s): %s", "hold" if holdable else policy.value, fault)
+        action = "stop ramp and hold" if holdable else ("0x80 off" if policy is HaltPolicy.OFF else "0x81 stop")
+        level = logging.INFO if fault.kind == "close" else logging.ERROR
+        logger.log(level, "halting every axis (%s): %s", action, fault)
         try:
             if holdable and first:
                 self._holding = True

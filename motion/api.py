@@ -1,0 +1,309 @@
+"""The Python API: one :class:`Arm` from one configuration file.
+
+::
+
+    from motion import Arm
+    with Arm.from_config("configs/arm6.yaml", emulate=True) as arm:   # connect, read state, enable
+        arm.move_to({"shoulder_pitch": 30.0, "elbow_pitch": -45.0}, speed_scale=0.5)  # degrees; blocks
+        handle = arm.follow([{"base_yaw": 20.0}, {"base_yaw": -20.0}], wait=False)
+        handle.wait()
+        print(arm.status())
+    # leaving the block halts every axis (0x81) and releases the bus
+
+This module is the composition root: it is the one place in :mod:`motion` (with the CLI) that builds the
+Pinocchio model (:mod:`kinematics`) and hands the controller its feed-forward callable and the emulator its plant.
+"""
+
+from __future__ import annotations
+
+import os
+import types
+import uuid
+from collections.abc import Mapping, Sequence
+from contextlib import ExitStack
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from motion.config import ArmConfig, load_config
+from motion.config.build import build_controller, open_bus, safety_settings
+from motion.config.schema import CanBusConfig
+from motion.control.controller import Controller
+from motion.control.scheduler import LoopStatistics
+from motion.emulator import Rs485Attachment, VirtualCanAttachment
+from motion.errors import MotionError, MotionFault, PlanningError
+from motion.safety import ArmState, Supervisor
+from motion.transmission import FloatArray
+from motion.transport import Transport
+
+
+@dataclass(frozen=True, slots=True)
+class JointStatus:
+    """One joint's measured and reference state (joint side)."""
+
+    name: str
+    motor_id: int
+    position_deg: float
+    velocity_dps: float
+    reference_deg: float
+    iq_a: float
+    temperature_c: float
+
+
+@dataclass(frozen=True, slots=True)
+class ArmStatus:
+    """The arm at one instant."""
+
+    name: str
+    state: str
+    fault: str | None
+    joints: tuple[JointStatus, ...]
+    loop: LoopStatistics
+
+    def as_dict(self) -> dict[str, Any]:
+        """Plain data for ``--json``."""
+        return {
+            "name": self.name,
+            "state": self.state,
+            "fault": self.fault,
+            "joints": [
+                {
+                    "name": j.name,
+                    "motor_id": j.motor_id,
+                    "position_deg": round(j.position_deg, 4),
+                    "velocity_dps": round(j.velocity_dps, 3),
+                    "reference_deg": round(j.reference_deg, 4),
+                    "iq_a": round(j.iq_a, 3),
+                    "temperature_c": j.temperature_c,
+                }
+                for j in self.joints
+            ],
+            "loop": {
+                "cycles": self.loop.cycles,
+                "rate_hz": round(self.loop.achieved_rate_hz, 2),
+                "jitter_p99_us": round(self.loop.jitter_p99_s * 1e6, 1),
+                "overruns": self.loop.overruns,
+            },
+        }
+
+
+class MotionHandle:
+    """A queued motion; :meth:`wait` blocks until it ends and raises the fault that halted it."""
+
+    def __init__(self, supervisor: Supervisor) -> None:
+        self._supervisor = supervisor
+
+    def wait(self, timeout_s: float | None = None) -> bool:
+        """Wait for the end of the motion; False on timeout.
+
+        Raises:
+            MotionFault: a fault halted every axis.
+        """
+        return self._supervisor.wait(timeout_s)
+
+    @property
+    def done(self) -> bool:
+        """True when the motion ended (or was halted)."""
+        return self._supervisor.controller.wait_idle(0) or self._supervisor.state is ArmState.FAULTED
+
+
+class Arm:
+    """An arm of RMD joints, built from a configuration (see :meth:`from_config`).
+
+    Args:
+        config: the validated configuration.
+        emulate: run on emulated drives (in-process bus for CAN, a pseudo-terminal for RS485) instead of hardware.
+        bus_overrides: replace configured bus settings (``channel=...``, ``port=...``).
+        initial_deg: emulated joint angles at start (emulation only).
+    """
+
+    def __init__(
+        self,
+        config: ArmConfig,
+        *,
+        emulate: bool = False,
+        bus_overrides: Mapping[str, object] | None = None,
+        initial_deg: Sequence[float] | None = None,
+    ) -> None:
+        self.config = config
+        self.emulate = emulate
+        self._overrides = dict(bus_overrides or {})
+        self._initial = initial_deg
+        self._stack = ExitStack()
+        self.bus: Transport | None = None
+        self.controller: Controller | None = None
+        self.supervisor: Supervisor | None = None
+        self.emulator: Any = None
+        self.plant: Any = None
+        self.names = config.joint_names
+        self._index = {name: i for i, name in enumerate(self.names)}
+
+    @classmethod
+    def from_config(cls, path: str | os.PathLike[str], *, emulate: bool = False, **kwargs: Any) -> Arm:
+        """Load and validate ``path`` (the arm is connected by ``with`` or :meth:`connect`).
+
+        Raises:
+            ConfigError: the file is missing or invalid.
+        """
+        return cls(load_config(path), emulate=emulate, **kwargs)
+
+    # ------------------------------------------------------------------------------------------------ lifecycle
+
+    def connect(self) -> Arm:
+        """Open the bus (and the emulator), read every joint's position, start the guarded loop holding it.
+
+        Raises:
+            TransportError: the bus cannot be opened or a drive does not answer.
+        """
+        from kinematics import build_arm, feedforward  # noqa: PLC0415 - Pinocchio is loaded only when an arm connects
+
+        try:
+            if self.emulate:
+                self._start_emulation()
+            self.bus = self._stack.enter_context(open_bus(self.config, **self._overrides))
+            control = self.config.control
+            ff = None
+            if control.mode.value == "torque" and (control.gravity_feedforward or control.inertia_feedforward):
+                ff = feedforward(
+                    build_arm(self.config), gravity=control.gravity_feedforward, inertia=control.inertia_feedforward
+                )
+            self.controller = build_controller(self.config, self.bus, feedforward=ff)
+            self.controller.read_positions()
+            self.supervisor = Supervisor(self.controller, safety_settings(self.config))
+            self.supervisor.start()
+        except BaseException:
+            self._stack.close()
+            raise
+        return self
+
+    def _start_emulation(self) -> None:
+        from kinematics.emulation import arm_emulator  # noqa: PLC0415 - as above
+
+        self.emulator, self.plant = arm_emulator(self.config, initial_deg=self._initial)
+        if isinstance(self.config.bus, CanBusConfig):
+            channel = f"rmd-emulated-{uuid.uuid4().hex[:8]}"
+            self._stack.enter_context(VirtualCanAttachment(self.emulator, channel))
+            self._overrides = {"interface": "virtual", "channel": channel, "bitrate": None} | self._overrides
+        else:
+            link = Path(os.environ.get("TMPDIR", "/tmp")) / f"rmd-emulated-{uuid.uuid4().hex[:8]}"
+            attachment = self._stack.enter_context(Rs485Attachment(self.emulator, link))
+            self._overrides = {"port": attachment.path} | self._overrides
+
+    def close(self) -> None:
+        """Halt every axis (0x81), end the loop and release the bus; safe to call twice."""
+        try:
+            if self.supervisor is not None:
+                self.supervisor.close()
+        finally:
+            self._stack.close()
+
+    def __enter__(self) -> Arm:
+        return self.connect()
+
+    def __exit__(
+        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: types.TracebackType | None
+    ) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------------------------------------ motion
+
+    def _guard(self) -> Supervisor:
+        if self.supervisor is None:
+            raise MotionError("the arm is not connected: use `with Arm.from_config(...) as arm` or arm.connect()")
+        return self.supervisor
+
+    def _target(self, targets: Mapping[str, float], base: FloatArray) -> FloatArray:
+        q = base.copy()
+        for name, value in targets.items():
+            if name not in self._index:
+                raise PlanningError(f"unknown joint {name!r}; joints: {', '.join(self.names)}")
+            q[self._index[name]] = float(value)
+        return q
+
+    def positions(self) -> dict[str, float]:
+        """Measured joint angles, degrees."""
+        supervisor = self._guard()
+        q = supervisor.controller.axes.positions()
+        return {name: float(q[i]) for i, name in enumerate(self.names)}
+
+    def move_to(
+        self, targets: Mapping[str, float], *, speed_scale: float = 1.0, wait: bool = True
+    ) -> MotionHandle:
+        """Move the named joints to their targets (degrees); the others keep their reference.
+
+        Raises:
+            PlanningError: an unknown joint, a target outside the joint limits, a bad speed scale (nothing moves).
+            MotionFault: the arm is faulted, or a fault halted it during the move (with ``wait``).
+        """
+        supervisor = self._guard()
+        q = self._target(targets, supervisor.controller.reference.position)
+        supervisor.move_to(q, speed_scale)
+        handle = MotionHandle(supervisor)
+        if wait:
+            handle.wait()
+        return handle
+
+    def follow(
+        self,
+        waypoints: Sequence[Mapping[str, float] | Sequence[float]],
+        *,
+        speed_scale: float = 1.0,
+        wait: bool = True,
+    ) -> MotionHandle:
+        """Pass through every waypoint without stopping where the motion continues; stop at the last.
+
+        A waypoint is a mapping of joint names (unnamed joints keep the previous waypoint's value) or a full list
+        of angles in joint order, degrees.
+        """
+        supervisor = self._guard()
+        previous = supervisor.controller.reference.position
+        rows = []
+        for point in waypoints:
+            row = self._target(point, previous) if isinstance(point, Mapping) else np.asarray(point, dtype=float)
+            rows.append(row)
+            previous = row
+        supervisor.follow(np.array(rows, dtype=np.float64), speed_scale)
+        handle = MotionHandle(supervisor)
+        if wait:
+            handle.wait()
+        return handle
+
+    def hold(self) -> None:
+        """Jerk-limited stop of the current motion; the arm holds where it ends (not a fault)."""
+        self._guard().stop_motion()
+
+    def stop(self) -> None:
+        """Halt every axis now with the configured halt policy (an E-stop: clear() before moving again)."""
+        self._guard().estop("stop")
+
+    def clear(self) -> None:
+        """Clear a fault (0x9B); raises MotionFault ``clear_failed`` while a cause persists."""
+        self._guard().clear()
+
+    @property
+    def fault(self) -> MotionFault | None:
+        """The fault that halted the arm, if any."""
+        return self._guard().fault
+
+    def status(self) -> ArmStatus:
+        """Measured and reference state of every joint, the arm state and the loop statistics."""
+        supervisor = self._guard()
+        controller = supervisor.controller
+        axes = controller.axes
+        ref = controller.reference.position
+        joints = tuple(
+            JointStatus(
+                name=spec.name,
+                motor_id=spec.motor_id,
+                position_deg=float(axes.q_deg[i]),
+                velocity_dps=float(axes.qd_dps[i]),
+                reference_deg=float(ref[i]),
+                iq_a=float(axes.iq_a[i]),
+                temperature_c=float(axes.temperature_c[i]),
+            )
+            for i, spec in enumerate(controller.specs)
+        )
+        fault = str(supervisor.fault) if supervisor.fault is not None else None
+        return ArmStatus(self.config.name, supervisor.state.value, fault, joints, controller.loop.statistics())
