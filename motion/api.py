@@ -32,7 +32,7 @@ from motion.config.build import build_controller, open_bus, safety_settings
 from motion.config.schema import CanBusConfig
 from motion.control.controller import Controller
 from motion.control.scheduler import LoopStatistics
-from motion.emulator import Rs485Attachment, VirtualCanAttachment
+from motion.emulator import FrameLog, Rs485Attachment, VirtualCanAttachment
 from motion.errors import MotionError, MotionFault, PlanningError
 from motion.safety import ArmState, Supervisor
 from motion.transmission import FloatArray
@@ -117,6 +117,7 @@ class Arm:
         emulate: run on emulated drives (in-process bus for CAN, a pseudo-terminal for RS485) instead of hardware.
         bus_overrides: replace configured bus settings (``channel=...``, ``port=...``).
         initial_deg: emulated joint angles at start (emulation only).
+        emulator_log: write every frame the emulated drives receive and send to this file (emulation only).
     """
 
     def __init__(
@@ -126,17 +127,20 @@ class Arm:
         emulate: bool = False,
         bus_overrides: Mapping[str, object] | None = None,
         initial_deg: Sequence[float] | None = None,
+        emulator_log: str | os.PathLike[str] | None = None,
     ) -> None:
         self.config = config
         self.emulate = emulate
         self._overrides = dict(bus_overrides or {})
         self._initial = initial_deg
+        self._emulator_log = emulator_log
         self._stack = ExitStack()
         self.bus: Transport | None = None
         self.controller: Controller | None = None
         self.supervisor: Supervisor | None = None
         self.emulator: Any = None
         self.plant: Any = None
+        self.frame_log: FrameLog | None = None
         self.names = config.joint_names
         self._index = {name: i for i, name in enumerate(self.names)}
 
@@ -182,13 +186,15 @@ class Arm:
         from kinematics.emulation import arm_emulator  # noqa: PLC0415 - as above
 
         self.emulator, self.plant = arm_emulator(self.config, initial_deg=self._initial)
+        log = self._stack.enter_context(FrameLog(self._emulator_log)) if self._emulator_log is not None else None
+        self.frame_log = log
         if isinstance(self.config.bus, CanBusConfig):
             channel = f"rmd-emulated-{uuid.uuid4().hex[:8]}"
-            self._stack.enter_context(VirtualCanAttachment(self.emulator, channel))
+            self._stack.enter_context(VirtualCanAttachment(self.emulator, channel, frame_log=log))
             self._overrides = {"interface": "virtual", "channel": channel, "bitrate": None} | self._overrides
         else:
             link = Path(os.environ.get("TMPDIR", "/tmp")) / f"rmd-emulated-{uuid.uuid4().hex[:8]}"
-            attachment = self._stack.enter_context(Rs485Attachment(self.emulator, link))
+            attachment = self._stack.enter_context(Rs485Attachment(self.emulator, link, frame_log=log))
             self._overrides = {"port": attachment.path} | self._overrides
 
     def close(self) -> None:
