@@ -16,6 +16,9 @@ import numpy as np
 from motion.protocol import MotorState
 from motion.transmission import ArmTransmission, FloatArray
 
+#: Width of the encoder fields of the replies, bits.
+ENCODER_FIELD_BITS = 16
+
 
 @dataclass(frozen=True, slots=True)
 class AxisSpec:
@@ -49,7 +52,8 @@ class AxisStates:
         self.specs = tuple(specs)
         self.transmission = transmission
         self.index = {spec.motor_id: i for i, spec in enumerate(specs)}
-        self.counts_per_rev = np.array([float(1 << s.encoder_bits) for s in specs])
+        # The encoder fields are uint16: wider encoders report their top 16 bits (docs/protocol.md).
+        self.counts_per_rev = np.array([float(1 << min(s.encoder_bits, ENCODER_FIELD_BITS)) for s in specs])
         self.motor_deg = np.zeros(n)  # unwrapped multi-turn rotor angle
         self.motor_speed_dps = np.zeros(n)
         self.encoder = np.zeros(n, dtype=np.int64)
