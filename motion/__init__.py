@@ -11,7 +11,8 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from motion.api import Arm, ArmStatus, JointStatus, MotionHandle
+from typing import TYPE_CHECKING, Any
+
 from motion.errors import (
     ConfigError,
     DecodeError,
@@ -23,6 +24,22 @@ from motion.errors import (
     TransportError,
     TransportTimeout,
 )
+
+if TYPE_CHECKING:
+    from motion.api import Arm, ArmStatus, JointStatus, MotionHandle
+
+_API = {"Arm", "ArmStatus", "JointStatus", "MotionHandle"}
+
+
+def __getattr__(name: str) -> Any:
+    # The API pulls in python-can, pyserial, Ruckig and NumPy: load it on first use, so that `import motion.protocol`
+    # stays light and backends are imported only when used.
+    if name in _API:
+        from motion import api  # noqa: PLC0415
+
+        return getattr(api, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "Arm",

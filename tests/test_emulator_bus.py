@@ -26,6 +26,7 @@ from motion.emulator import (
     parse_fault,
 )
 from motion.emulator.cli import parse_ids
+from motion.emulator.pty import PseudoTerminal
 from motion.errors import DecodeError
 from motion.protocol import (
     Bare,
@@ -146,6 +147,54 @@ def test_slcan_pty_opened_by_python_can(tmp_path: Path, frame_log: FrameLog) -> 
         assert wait_for(lambda: not attachment.device.is_open)  # python-can closed the channel with C
         assert attachment.stats.adapter_errors == 2  # its C before O, and its second O: BELL on a real adapter too
     assert not os.path.lexists(link)
+
+
+def test_slcan_receive_honours_short_timeouts(tmp_path: Path) -> None:
+    # python-can's slcan blocks for its serial read timeout (1 ms) whatever timeout recv() gets; the endpoint waits
+    # on the port itself, so a poll of an idle bus returns at once and a short wait ends on time. The fastest of
+    # several tries is compared (noise only makes a try slower); before the fix every try took >= 1 ms.
+    link = tmp_path / "rmd-can"
+    with (
+        SlcanAttachment(Emulator([1]), link),
+        CanEndpoint("slcan", str(link), bitrate=1_000_000, sleep_after_open=0) as host,
+    ):
+        polls, waits = [], []
+        for _ in range(10):
+            start = time.perf_counter()
+            assert host.recv(0.0) is None
+            polls.append(time.perf_counter() - start)
+            start = time.perf_counter()
+            assert host.recv(0.0002) is None
+            waits.append(time.perf_counter() - start)
+        assert min(polls) < 0.0005 and min(waits) < 0.0008, (min(polls), min(waits))
+        replies = can_exchange(host, can_frame.encode_request(Bare(Command.READ_STATUS_1), 1))
+        assert replies[0][0] == 1  # frames still come through the descriptor wait
+
+
+def test_full_pty_drops_whole_writes_never_the_end_of_one() -> None:
+    # A client that falls behind must see whole frames or none: a cut line garbles slcan (python-can then raises).
+    line = b"t1418A41F2A000000E803\r"
+    with PseudoTerminal() as pty:
+        client = os.open(pty.slave_path, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+        try:
+            delivered = 0
+            while pty.write(line) == 0:  # nobody reads: fill the pty
+                delivered += 1
+                assert delivered < 1_000_000, "the pty never filled"
+            assert pty.write(line) == len(line)  # dropped whole while the rest of the last one waits
+            received = b""
+            for _ in range(1000):
+                pty.read(0.0)  # sends what is left of the last accepted write
+                try:
+                    chunk = os.read(client, 65536)
+                except BlockingIOError:
+                    chunk = b""
+                received += chunk
+                if len(received) >= len(line) * delivered and not chunk:
+                    break
+        finally:
+            os.close(client)
+    assert received == line * delivered
 
 
 def test_rs485_pty_opened_by_pyserial(tmp_path: Path, frame_log: FrameLog) -> None:

@@ -109,14 +109,15 @@ def test_drive_over_temperature_flag(tmp_path: Path) -> None:
 
 def test_drive_low_voltage_flag_then_clear_after_the_cause_is_gone(tmp_path: Path) -> None:
     with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
-        fault = _move_and_catch(rig, lambda: _inject(rig, FaultKind.UNDER_VOLTAGE, 1, 12.0, duration_s=1.0))
+        fault = _move_and_catch(rig, lambda: _inject(rig, FaultKind.UNDER_VOLTAGE, 1, 12.0, duration_s=2.0))
+        fault_end_s = time.monotonic() + 2.0
         assert fault.kind == "drive_low_voltage" and fault.joint == "shoulder"
         _assert_halted_in_detection_cycle(rig)
-        _assert_comes_to_rest(rig)
         _assert_refused_until_clear(rig, fault, persists=True)
+        _assert_comes_to_rest(rig)
         supervisor = rig.supervisor
         assert supervisor is not None
-        time.sleep(1.0)  # the under-voltage ends
+        time.sleep(max(0.0, fault_end_s - time.monotonic()) + 0.2)  # the under-voltage ends
         supervisor.clear()
         assert supervisor.state is ArmState.READY
         supervisor.move_to([10.0, -10.0])

@@ -70,6 +70,9 @@ class PseudoTerminal:
             self._close_fds()
             raise TransportError(f"cannot set up the pseudo-terminal {self.slave_path}: {exc}") from exc
         self._closed = False
+        # The part of an accepted write that did not fit yet: sent before anything else, so that a full pty drops
+        # whole writes (frames) and never the end of one, which would garble the client's stream.
+        self._unsent = b""
 
     def _make_link(self, link: Path) -> None:
         if os.path.lexists(link) and not link.is_symlink():
@@ -87,7 +90,8 @@ class PseudoTerminal:
         return str(self.link) if self.link is not None else self.slave_path
 
     def read(self, timeout_s: float) -> bytes:
-        """Bytes the client wrote, waiting at most ``timeout_s``; empty if none."""
+        """Bytes the client wrote, waiting at most ``timeout_s``; empty if none. Sends what is left of a write first."""
+        self._send_unsent()
         ready, _, _ = select.select([self._master], [], [], max(0.0, timeout_s))
         if not ready:
             return b""
@@ -97,15 +101,28 @@ class PseudoTerminal:
             return b""
 
     def write(self, data: bytes) -> int:
-        """Write to the client without blocking; returns the bytes that did not fit (dropped: no client reads)."""
-        view = memoryview(data)
+        """Write to the client without blocking; returns the bytes dropped because the client does not read.
+
+        A write is dropped whole or delivered whole: when only its beginning fits, the rest is kept and sent before
+        anything else (by the next read or write); a write that finds such a rest still waiting is dropped.
+        """
+        if not self._send_unsent():
+            return len(data)
+        self._unsent = data
+        self._send_unsent()
+        return 0
+
+    def _send_unsent(self) -> bool:
+        """Send what is left of the last write; True when nothing is left."""
+        view = memoryview(self._unsent)
         while view:
             try:
                 written = os.write(self._master, view)
             except BlockingIOError:
-                return len(view)
+                break
             view = view[written:]
-        return 0
+        self._unsent = bytes(view)
+        return not self._unsent
 
     def _close_fds(self) -> None:
         for fd in (self._slave, self._master):

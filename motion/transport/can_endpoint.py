@@ -6,6 +6,9 @@ emulated drives to an in-process ``virtual`` bus. Frames are :class:`motion.prot
 
 from __future__ import annotations
 
+import io
+import os
+import select
 import time
 import types
 from typing import Any
@@ -14,6 +17,10 @@ import can
 
 from motion.errors import TransportError
 from motion.protocol import CanFrame
+
+#: Reads without a frame that one recv call takes in before it gives up (bounds the call when the descriptor keeps
+#: signalling input that never completes a frame).
+_MAX_SKIPPED_READS = 256
 
 
 class CanEndpoint:
@@ -40,6 +47,15 @@ class CanEndpoint:
         self.interface = interface
         self.channel = channel
         self._closed = False
+        # Where the bus has a descriptor, recv waits on it and then takes the input without blocking: python-can's
+        # slcan blocks for its serial read timeout (1 ms) whatever timeout it is given, so a poll cost every control
+        # cycle 1 ms and a wait could end up to 1 ms after the cycle's deadline.
+        self._fd: int | None = None
+        if os.name == "posix":
+            try:
+                self._fd = self._bus.fileno()
+            except (NotImplementedError, io.UnsupportedOperation, OSError, ValueError):
+                self._fd = None
 
     def send(self, frame: CanFrame, timeout_s: float | None = None) -> None:
         """Send one frame.
@@ -66,13 +82,23 @@ class CanEndpoint:
             TransportError: the interface failed (bus off, port gone).
         """
         end = None if timeout_s is None else time.monotonic() + timeout_s
+        skipped = 0
         while True:
             remaining = None if end is None else max(0.0, end - time.monotonic())
             try:
+                if self._fd is not None:
+                    if not select.select([self._fd], [], [], remaining)[0]:
+                        return None
+                    remaining = 0.0
                 message = self._bus.recv(timeout=remaining)
             except (can.CanError, OSError, ValueError) as exc:
                 raise TransportError(f"CAN receive on {self.interface}:{self.channel} failed: {exc}") from exc
             if message is None:
+                # The input was no frame (an adapter's acknowledgement) or only part of one: wait on, or at the end
+                # of the time take in what else is there, so that a poll still drains every frame already received.
+                skipped += 1
+                if self._fd is not None and skipped < _MAX_SKIPPED_READS:
+                    continue
                 return None
             if not (message.is_error_frame or message.is_remote_frame or message.is_extended_id):
                 return CanFrame(message.arbitration_id, bytes(message.data)), float(message.timestamp)
