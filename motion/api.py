@@ -35,6 +35,7 @@ from motion.control.scheduler import LoopStatistics
 from motion.emulator import FrameLog, Rs485Attachment, VirtualCanAttachment
 from motion.errors import MotionError, MotionFault, PlanningError
 from motion.safety import ArmState, Supervisor
+from motion.telemetry import TelemetryOptions, TelemetrySession
 from motion.transmission import FloatArray
 from motion.transport import Transport
 
@@ -118,6 +119,8 @@ class Arm:
         bus_overrides: replace configured bus settings (``channel=...``, ``port=...``).
         initial_deg: emulated joint angles at start (emulation only).
         emulator_log: write every frame the emulated drives receive and send to this file (emulation only).
+        telemetry: record the run: a per-cycle log and/or a bus trace, written when the arm closes (see
+            :mod:`motion.telemetry`); the files are created at :meth:`connect`, before anything moves.
     """
 
     def __init__(
@@ -128,12 +131,16 @@ class Arm:
         bus_overrides: Mapping[str, object] | None = None,
         initial_deg: Sequence[float] | None = None,
         emulator_log: str | os.PathLike[str] | None = None,
+        telemetry: TelemetryOptions | None = None,
     ) -> None:
         self.config = config
         self.emulate = emulate
         self._overrides = dict(bus_overrides or {})
         self._initial = initial_deg
         self._emulator_log = emulator_log
+        self._telemetry_options = telemetry
+        #: The recording of the current run (with ``telemetry=``); its ``result`` is the log once the arm closed.
+        self.telemetry: TelemetrySession | None = None
         self._stack = ExitStack()
         self.bus: Transport | None = None
         self.controller: Controller | None = None
@@ -164,9 +171,16 @@ class Arm:
         from kinematics import build_arm, feedforward  # noqa: PLC0415 - Pinocchio is loaded only when an arm connects
 
         try:
+            if self._telemetry_options is not None:
+                # Entered first, so closed last: the files are written once the loop and the bus have ended.
+                self.telemetry = self._stack.enter_context(
+                    TelemetrySession(self._telemetry_options, self.config, emulated=self.emulate)
+                )
             if self.emulate:
                 self._start_emulation()
             self.bus = self._stack.enter_context(open_bus(self.config, **self._overrides))
+            if self.telemetry is not None:
+                self.telemetry.tap(self.bus)
             control = self.config.control
             ff = None
             if control.mode.value == "torque" and (control.gravity_feedforward or control.inertia_feedforward):
@@ -176,6 +190,8 @@ class Arm:
             self.controller = build_controller(self.config, self.bus, feedforward=ff)
             self.controller.read_positions()
             self.supervisor = Supervisor(self.controller, safety_settings(self.config))
+            if self.telemetry is not None:
+                self.telemetry.attach(self.controller, self.supervisor)
             self.supervisor.start()
         except BaseException:
             self._stack.close()
@@ -198,7 +214,7 @@ class Arm:
             self._overrides = {"port": attachment.path} | self._overrides
 
     def close(self) -> None:
-        """Halt every axis (0x81), end the loop and release the bus; safe to call twice."""
+        """Halt every axis (0x81), end the loop, release the bus and write the telemetry; safe to call twice."""
         try:
             if self.supervisor is not None:
                 self.supervisor.close()

@@ -25,11 +25,14 @@ LAYERS = [
     "motion.control",
     "motion.safety",
     "motion.config",
+    "motion.telemetry",
+    "motion.plot",
     "motion.api",
+    "motion.demo",
     "motion.cli",
 ]
 # The composition roots: the only modules of motion that may build the Pinocchio model (kinematics).
-COMPOSITION_ROOTS = ("motion.api", "motion.cli")
+COMPOSITION_ROOTS = ("motion.api", "motion.demo", "motion.cli")
 # Third-party packages that exactly one subpackage may import.
 OWNERS = {
     "can": "motion.transport",
@@ -37,6 +40,7 @@ OWNERS = {
     "ruckig": "motion.trajectory",
     "yaml": "motion.config",
     "pinocchio": "kinematics",
+    "matplotlib": "motion.plot",
 }
 
 
@@ -108,9 +112,13 @@ def test_protocol_core_is_stdlib_only() -> None:
                 assert imported.startswith(("motion.protocol", "motion.errors")), f"{path.name} imports {imported}"
 
 
-def test_demo_command_prints_decoded_frames() -> None:
+def test_protocol_demo_prints_decoded_frames(tmp_path: Path) -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "motion.cli", "demo"], capture_output=True, text=True, check=False, cwd=ROOT
+        [sys.executable, "-m", "motion.cli", "demo", "--protocol"],
+        capture_output=True,
+        text=True,
+        check=False,
+        cwd=tmp_path,
     )
     assert result.returncode == 0, result.stderr
     assert "141: a4 00 68 01 28 23 00 00" in result.stdout

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from motion.config.loader import load_config, parse_config
+from motion.config.loader import load_config, parse_config, read_yaml
 from motion.config.schema import (
     ArmConfig,
     BusConfig,
@@ -39,4 +39,5 @@ __all__ = [
     "Vec3",
     "load_config",
     "parse_config",
+    "read_yaml",
 ]

@@ -468,12 +468,11 @@ class _Loader(yaml.SafeLoader):
         return super().construct_mapping(node, deep)
 
 
-def load_config(path: str | os.PathLike[str]) -> schema.ArmConfig:
-    """Read, parse and validate an arm configuration file; a relative URDF path is relative to the file.
+def read_yaml(path: str | os.PathLike[str]) -> Any:
+    """Read a YAML file as plain data (mappings, lists, scalars); a key given twice in a mapping is an error.
 
     Raises:
-        ConfigError: the file is missing or unreadable, is not valid YAML (the key path gives line and column),
-            or does not validate.
+        ConfigError: the file is missing or unreadable, or is not valid YAML (the key path gives line and column).
     """
     file = Path(path)
     source = str(file)
@@ -484,11 +483,21 @@ def load_config(path: str | os.PathLike[str]) -> schema.ArmConfig:
     except (OSError, UnicodeDecodeError) as exc:
         raise ConfigError(source, "<file>", f"cannot read the file: {exc}") from None
     try:
-        data = yaml.load(text, Loader=_Loader)  # a SafeLoader subclass: plain data only
+        return yaml.load(text, Loader=_Loader)  # a SafeLoader subclass: plain data only
     except yaml.MarkedYAMLError as exc:
         mark = exc.problem_mark or exc.context_mark
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark is not None else "<file>"
         raise ConfigError(source, where, f"invalid YAML: {exc.problem or exc}") from None
     except yaml.YAMLError as exc:
         raise ConfigError(source, "<file>", f"invalid YAML: {exc}") from None
-    return parse_config(data, source=source, base_dir=file.parent)
+
+
+def load_config(path: str | os.PathLike[str]) -> schema.ArmConfig:
+    """Read, parse and validate an arm configuration file; a relative URDF path is relative to the file.
+
+    Raises:
+        ConfigError: the file is missing or unreadable, is not valid YAML (the key path gives line and column),
+            or does not validate.
+    """
+    file = Path(path)
+    return parse_config(read_yaml(file), source=str(file), base_dir=file.parent)

@@ -134,6 +134,16 @@ class FixedRateLoop:
         return not self._thread.is_alive()
 
     @property
+    def wake_jitter_s(self) -> float:
+        """Wake-up jitter of the cycle in progress, s (read from inside the cycle function, e.g. a cycle hook)."""
+        return float(self._jitter[self.cycles % len(self._jitter)])
+
+    @property
+    def last_busy_s(self) -> float:
+        """Wake-up to return of the last completed cycle, s (0.0 before the first one)."""
+        return float(self._busy[(self.cycles - 1) % len(self._busy)]) if self.cycles else 0.0
+
+    @property
     def running(self) -> bool:
         """True while the loop thread is alive."""
         return self._thread is not None and self._thread.is_alive()

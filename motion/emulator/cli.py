@@ -5,10 +5,13 @@ Examples::
     rmd-motion emulate --ids 1-6 --slcan-link /tmp/rmd-can          # then: can.Bus('slcan', '/tmp/rmd-can', ...)
     rmd-motion emulate --ids 1,3,5 --rs485-link /tmp/rmd-485 --bus-time --log frames.log
     rmd-motion emulate --ids 1-4 --virtual-channel arm --fault over_temperature:2@5-20:95 --fault delay:1@0:15
+    rmd-motion emulate --config configs/arm2.yaml --slcan-link /tmp/rmd-can    # the arm's own drives and dynamics
 
 It prints the path of each attachment, then runs until SIGINT or SIGTERM (exit code 0). Exit codes: 2 for usage
 errors, 3 when a pty, link or bus cannot be set up or an attachment fails. ``python -m motion.emulator`` runs the
-same command until it is wired into ``rmd-motion``.
+same command without ``--config``: building drives from an arm configuration (and its dynamic model) is the job of
+the composition root, ``rmd-motion emulate`` (:mod:`motion.cli`), which hands :func:`run_emulate` an
+:data:`EmulatorFactory`.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ from motion.emulator.faults import Fault, parse_fault
 from motion.emulator.framelog import FrameLog
 from motion.emulator.model import DriveModel
 from motion.emulator.timing import DEFAULT_LATENCY_S, TimingModel
-from motion.errors import ConfigError, TransportError
+from motion.errors import TransportError
 from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN
 
 EXIT_OK = 0
@@ -46,6 +49,13 @@ EXIT_COMMUNICATION = 3
 #: Baud rates of the RS485 document.
 RS485_BAUDS = (9600, 19200, 57600, 115200)
 N = TypeVar("N", int, float)
+#: Builds the emulated drives from the faults to schedule (``rmd-motion emulate --config``: the arm's drives).
+EmulatorFactory = Callable[[Sequence[Fault]], Emulator]
+#: Options that describe the drives themselves; a configuration gives them per joint instead.
+_DRIVE_OPTIONS = {"encoder_bits": "--encoder-bits", "gear_ratio": "--gear-ratio", "seed": "--seed"}
+_DEFAULT_ENCODER_BITS = 14
+_DEFAULT_GEAR_RATIO = 1.0
+_DEFAULT_SEED = 0
 #: How often the main thread checks the attachments while waiting for a signal, s.
 _WATCH_S = 0.2
 
@@ -110,15 +120,29 @@ _bitrate_arg = _number_arg(int, lambda v: v > 0, "a bit rate > 0 bit/s")
 _gear_arg = _number_arg(float, lambda v: 0 < v < math.inf, "a gear ratio > 0")
 
 
-def add_emulate_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add the options of ``rmd-motion emulate`` to ``parser``."""
-    parser.add_argument(
+def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = False) -> None:
+    """Add the options of ``rmd-motion emulate`` to ``parser``.
+
+    Args:
+        parser: the parser of the command.
+        config: also offer ``--config FILE`` as the alternative to ``--ids`` (only where the caller passes
+            :func:`run_emulate` a factory that builds the drives from the configuration).
+    """
+    drives = parser.add_mutually_exclusive_group(required=True)
+    drives.add_argument(
         "--ids",
-        required=True,
         type=_ids_arg,
         metavar="IDS",
         help="motor ids of the emulated drives: 1-6, 1,3,5 or 1-3,8 (each 1..32)",
     )
+    if config:
+        drives.add_argument(
+            "--config",
+            metavar="FILE",
+            help="arm configuration: one drive per joint with its motor id, gear ratio, encoder and current limit, "
+            "coupled through the arm's rigid-body dynamics (gravity loads the motors); the drives start holding "
+            "the start pose (every joint at 0 deg, or at the limit nearest to it) as if braked",
+        )
     where = parser.add_argument_group("attachments (at least one)")
     where.add_argument(
         "--slcan-link", metavar="PATH", help="virtual slcan USB-CAN adapter on a pty, with a symlink at PATH"
@@ -170,33 +194,58 @@ def add_emulate_arguments(parser: argparse.ArgumentParser) -> None:
         "--encoder-bits",
         type=int,
         choices=range(12, 19),
-        default=14,
         metavar="12..18",
-        help="encoder resolution of every drive (default %(default)d)",
+        help=f"encoder resolution of every drive (with --ids; default {_DEFAULT_ENCODER_BITS})",
     )
     parser.add_argument(
         "--gear-ratio",
         type=_gear_arg,
-        default=1.0,
         metavar="RATIO",
-        help="motor degrees per joint degree of every drive (default %(default)g)",
+        help=f"motor degrees per joint degree of every drive (with --ids; default {_DEFAULT_GEAR_RATIO:g})",
     )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the drop faults' random draws")
+    parser.add_argument(
+        "--seed", type=int, help=f"seed of the drop faults' random draws (with --ids; default {_DEFAULT_SEED})"
+    )
     parser.add_argument("--log", metavar="FILE", help="write every frame in and out to FILE, one line each")
 
 
-def run_emulate(args: argparse.Namespace) -> int:
-    """Run the emulator until SIGINT or SIGTERM; returns the exit code."""
+def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -> Emulator:
+    """The drives of ``--ids`` (with the drive options), or of ``--config`` through ``factory``.
+
+    Raises:
+        ValueError: conflicting options, or drives or faults the emulator rejects (ConfigError is one).
+    """
+    if getattr(args, "config", None) is None:
+        model = DriveModel(
+            encoder_bits=_DEFAULT_ENCODER_BITS if args.encoder_bits is None else args.encoder_bits,
+            gear_ratio=_DEFAULT_GEAR_RATIO if args.gear_ratio is None else args.gear_ratio,
+        )
+        seed = _DEFAULT_SEED if args.seed is None else args.seed
+        return Emulator(args.ids, model=model, faults=args.fault, seed=seed)
+    given = [option for name, option in _DRIVE_OPTIONS.items() if getattr(args, name) is not None]
+    if given:
+        raise ValueError(f"{', '.join(given)} apply to --ids only: with --config each joint's drive is configured")
+    if factory is None:
+        raise ValueError("--config needs the arm's model: run it as `rmd-motion emulate --config FILE`")
+    return factory(tuple(args.fault))
+
+
+def run_emulate(args: argparse.Namespace, factory: EmulatorFactory | None = None) -> int:
+    """Run the emulator until SIGINT or SIGTERM; returns the exit code.
+
+    Args:
+        args: the parsed options of :func:`add_emulate_arguments`.
+        factory: builds the drives when ``args.config`` is given (see :data:`EmulatorFactory`).
+    """
     if not (args.slcan_link or args.rs485_link or args.virtual_channel):
         print("error: give at least one of --slcan-link, --rs485-link, --virtual-channel", file=sys.stderr)
         return EXIT_USAGE
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        model = DriveModel(encoder_bits=args.encoder_bits, gear_ratio=args.gear_ratio)
-        emulator = Emulator(args.ids, model=model, faults=args.fault, seed=args.seed)
+        emulator = _build_emulator(args, factory)
         timing = TimingModel(args.latency_ms / 1000.0, args.bus_time)
-    except (ValueError, ConfigError) as exc:
+    except ValueError as exc:  # ConfigError is a ValueError
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     stop = threading.Event()

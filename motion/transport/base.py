@@ -52,6 +52,12 @@ from motion.errors import TransportError
 from motion.protocol import Command, Message, MultiMotorTorque
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, command_of
 
+#: ``tap(time_s, received, arbitration_id, data)``: called with every frame a backend sends (``received`` False) or
+#: takes in (True), at the transport clock's time; ``arbitration_id`` is None on RS485, where ``data`` is the bytes as
+#: written to or read from the port (a read may hold part of a frame, or several). It runs on the control path: it
+#: must be quick and must not raise.
+FrameTap = Callable[[float, bool, int | None, bytes], None]
+
 #: Slot states.
 _NOT_SENT: Final = 0
 _OPEN: Final = 1
@@ -147,6 +153,8 @@ class Transport(ABC):
     def __init__(self, *, clock: Callable[[], float] = time.monotonic) -> None:
         self.clock = clock
         self.bus_counters = BusCounters()
+        #: Optional observer of every frame (a bus trace); see :data:`FrameTap`.
+        self.frame_tap: FrameTap | None = None
         self._counters: dict[int, MotorCounters] = {}
         self._counters_view: Mapping[int, MotorCounters] = types.MappingProxyType(self._counters)
         self._closed = False

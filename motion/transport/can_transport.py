@@ -69,9 +69,12 @@ class CanTransport(Transport):
         # SEND_TIMEOUT_MIN_S, not just what is left of the cycle: pyserial (slcan) raises a write timeout once the
         # timeout has passed even when every byte was written, which a descheduled thread hits on a loaded machine.
         send_timeout_s = max(deadline_s - clock(), SEND_TIMEOUT_MIN_S)
+        tap = self.frame_tap
         for index, frame in enumerate(self._frames):
             endpoint.send(frame, send_timeout_s)
             self._sent(index)
+            if tap is not None:
+                tap(clock(), False, frame.arbitration_id, frame.data)
         while self._open_slots:
             remaining_s = deadline_s - clock()
             if remaining_s <= 0.0:
@@ -81,6 +84,8 @@ class CanTransport(Transport):
                 self._receive(received[0])
 
     def _receive(self, frame: CanFrame) -> None:
+        if self.frame_tap is not None:
+            self.frame_tap(self.clock(), True, frame.arbitration_id, frame.data)
         motor_id = frame.arbitration_id - CAN_ID_BASE
         if not MOTOR_ID_MIN <= motor_id <= MOTOR_ID_MAX:
             # Other devices may share the bus; their frames are not drive replies, nor are 0x280 frames.

@@ -177,6 +177,8 @@ class Rs485Transport(Transport):
             chunk: bytes = self._serial.read(READ_CHUNK_BYTES)
         except (serial.SerialException, OSError) as exc:
             raise TransportError(f"read from {self.describe()} failed: {exc}") from exc
+        if chunk and self.frame_tap is not None:
+            self.frame_tap(self.clock(), True, None, chunk)
         return chunk
 
     def _write(self, frame: bytes) -> None:
@@ -184,6 +186,8 @@ class Rs485Transport(Transport):
             self._serial.write(frame)
         except (serial.SerialException, OSError) as exc:
             raise TransportError(f"write to {self.describe()} failed: {exc}") from exc
+        if self.frame_tap is not None:
+            self.frame_tap(self.clock(), False, None, frame)
 
     def _close(self) -> None:
         try:

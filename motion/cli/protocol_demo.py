@@ -1,18 +1,7 @@
-"""The ``rmd-motion`` command.
-
-Exit codes: 0 done, 1 motion fault (axes halted), 2 usage or configuration error, 3 communication error,
-130 interrupted by Ctrl-C.
-"""
+"""``rmd-motion demo --protocol``: one control cycle's frames encoded and decoded on both transports."""
 
 from __future__ import annotations
 
-import argparse
-import sys
-from collections.abc import Sequence
-
-from motion import __version__
-from motion.emulator.cli import add_emulate_arguments, run_emulate
-from motion.errors import ConfigError, MotionError, MotionFault, ProtocolError, TransportError
 from motion.protocol import (
     Bare,
     Command,
@@ -27,19 +16,13 @@ from motion.protocol import (
     rs485_frame,
 )
 
-EXIT_OK = 0
-EXIT_FAULT = 1
-EXIT_USAGE = 2
-EXIT_COMMUNICATION = 3
-EXIT_INTERRUPTED = 130
-
 
 def _show(label: str, wire: str, motor_id: int | None, message: Message) -> None:
     target = f"motor {motor_id}" if motor_id is not None else "motors 1-4"
     print(f"  {label:<6} {wire:<58} -> {target}: {message}")
 
 
-def _demo() -> int:
+def protocol_demo() -> int:
     """Encode one control cycle's frames on both transports and print them decoded again."""
     requests: list[tuple[int, Message]] = [
         (1, MultiTurnPositionSpeed(angle_deg=90.0, max_speed_dps=360.0)),
@@ -77,46 +60,4 @@ def _demo() -> int:
         rid, reply = rs485_frame.decode_reply(raw)
         _show("drive", raw.hex(" "), rid, reply)
     print(f"parser: {parser.frames} frames, {parser.dropped_bytes} garbage bytes dropped")
-    return EXIT_OK
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """The argument parser of ``rmd-motion``."""
-    parser = argparse.ArgumentParser(prog="rmd-motion", description=__doc__.splitlines()[0] if __doc__ else None)
-    parser.add_argument("--version", action="version", version=f"rmd-motion {__version__}")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    sub.add_parser("demo", help="encode and decode one control cycle on both transports")
-    add_emulate_arguments(
-        sub.add_parser("emulate", help="run emulated RMD drives on an slcan or RS485 pseudo-terminal")
-    )
-    return parser
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``rmd-motion``; returns the exit code."""
-    args = build_parser().parse_args(argv)
-    try:
-        if args.command == "demo":
-            return _demo()
-        if args.command == "emulate":
-            return run_emulate(args)
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return EXIT_INTERRUPTED
-    except MotionFault as exc:
-        print(f"motion fault, all axes halted: {exc}", file=sys.stderr)
-        return EXIT_FAULT
-    except (ConfigError, ProtocolError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    except TransportError as exc:
-        print(f"communication error: {exc}", file=sys.stderr)
-        return EXIT_COMMUNICATION
-    except MotionError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return EXIT_USAGE
-    return EXIT_USAGE
-
-
-if __name__ == "__main__":
-    sys.exit(main())
+    return 0

@@ -1,0 +1,258 @@
+"""The parser and the entry point of ``rmd-motion``, and the mapping of errors to exit codes."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Final
+
+from motion import __version__
+from motion.cli import drives, moves
+from motion.cli.common import (
+    EXIT_COMMUNICATION,
+    EXIT_FAULT,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    Command,
+    Interrupts,
+    UsageError,
+    add_bus_arguments,
+    load_arm_config,
+    speed_scale_arg,
+)
+from motion.cli.protocol_demo import protocol_demo
+from motion.config import ArmConfig
+from motion.emulator import Emulator, Fault
+from motion.emulator.cli import EmulatorFactory, add_emulate_arguments, parse_ids, run_emulate
+from motion.errors import (
+    ConfigError,
+    DecodeError,
+    EncodeError,
+    MotionError,
+    MotionFault,
+    PlanningError,
+    TransportError,
+)
+from motion.protocol import MultiTurnPositionSpeed
+from motion.protocol import Transport as Wire
+
+DESCRIPTION: Final = "Multi-axis motion control of MyActuator RMD drives over CAN or RS485."
+EPILOG: Final = """\
+exit codes: 0 done, 1 motion fault (every axis halted), 2 usage or configuration error (nothing was sent),
+3 communication error (bus or port failed, a drive did not answer), 130 interrupted by Ctrl-C or SIGTERM (after
+every axis was halted).
+
+Every command that talks to the bus takes --config FILE (validated before any port is opened) and the bus
+overrides --interface/--channel (CAN) or --port (RS485), e.g. to use an emulator's pty:
+  rmd-motion emulate --config configs/arm2.yaml --slcan-link /tmp/rmd-can &
+  rmd-motion move --config configs/arm2.yaml --interface slcan --channel /tmp/rmd-can shoulder=20 elbow=-30"""
+#: Share of each joint's velocity limit the drives of ``emulate --config`` hold their start pose with (motor side).
+EMULATED_HOLD_SPEED_SHARE: Final = 0.1
+
+
+# ---------------------------------------------------------------------------------------------------- emulate
+
+
+def arm_emulator_factory(config: ArmConfig) -> EmulatorFactory:
+    """Drives of ``config`` coupled through its Pinocchio model, holding the start pose (as if braked).
+
+    Without the hold, the emulated arm would fall under gravity from the moment the emulator starts until a host
+    takes control; a real arm rests on its brakes or its stops instead.
+    """
+
+    def build(faults: Sequence[Fault]) -> Emulator:
+        from kinematics.emulation import arm_emulator  # noqa: PLC0415 - Pinocchio only when emulating an arm
+
+        start = [min(max(0.0, j.position_min_deg), j.position_max_deg) for j in config.joints]
+        emulator, _plant = arm_emulator(config, initial_deg=start, faults=faults)
+        for joint in config.joints:
+            drive = emulator.drives[joint.motor_id]
+            speed = joint.velocity_limit_dps * joint.gear_ratio * EMULATED_HOLD_SPEED_SHARE
+            drive.handle(MultiTurnPositionSpeed(drive.angle_deg, speed), Wire.CAN)  # no link faults at power-on
+        return emulator
+
+    return build
+
+
+def emulate(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``emulate``: drives of ``--ids`` or of the arm of ``--config``."""
+    interrupts.restore()  # run_emulate handles SIGINT and SIGTERM itself (a clean shutdown, exit 0)
+    factory = arm_emulator_factory(load_arm_config(args.config)) if args.config else None
+    return run_emulate(args, factory)
+
+
+# ---------------------------------------------------------------------------------------------------- demo, plot
+
+
+def demo(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``demo``: the example arm on emulated drives (:mod:`motion.demo`), or ``--protocol`` the frame demo."""
+    if args.protocol:
+        return protocol_demo()
+    from motion.demo import run_demo  # noqa: PLC0415 - Pinocchio and matplotlib load only for the demo
+
+    return run_demo(args.out, quiet=args.quiet)
+
+
+def plot(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``plot LOG -o OUT.png`` (:mod:`motion.plot`)."""
+    from motion.plot import plot_log  # noqa: PLC0415 - matplotlib loads only for plotting
+
+    try:
+        plot_log(args.log, args.output)
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"cannot plot {args.log}: {exc}") from exc
+    print(f"wrote {args.output}")
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------------------- parser
+
+
+def _ids_arg(text: str) -> tuple[int, ...]:
+    try:
+        return parse_ids(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _command(
+    sub: argparse._SubParsersAction[argparse.ArgumentParser], name: str, run: Command, text: str, *, bus: bool = True
+) -> argparse.ArgumentParser:
+    parser = sub.add_parser(name, help=text, description=text)
+    if bus:
+        add_bus_arguments(parser)
+    parser.set_defaults(run=run)
+    return parser
+
+
+def _json(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--json", action="store_true", help="print one JSON document on stdout (for scripts)")
+
+
+def _motion_options(parser: argparse.ArgumentParser, speed_scale: str) -> None:
+    parser.add_argument("--speed-scale", type=speed_scale_arg, default=1.0, metavar="S", help=speed_scale)
+    parser.add_argument("--log", metavar="FILE.npz", help="record every control cycle (see `rmd-motion plot`)")
+    parser.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
+    _json(parser)
+
+
+def _actions(
+    sub: argparse._SubParsersAction[argparse.ArgumentParser], name: str, run: Command, text: str
+) -> tuple[argparse.ArgumentParser, argparse.ArgumentParser]:
+    """A ``get`` / ``set`` pair of actions; ``get`` takes joint names (default all) and ``--json``."""
+    parser = _command(sub, name, run, text, bus=False)
+    actions = parser.add_subparsers(dest="action", required=True, metavar="ACTION")
+    get = actions.add_parser("get", help="read the values of the joints (default: all)")
+    add_bus_arguments(get)
+    get.add_argument("joints", nargs="*", metavar="JOINT")
+    _json(get)
+    put = actions.add_parser("set", help="write one joint's value")
+    add_bus_arguments(put)
+    put.add_argument("joint", metavar="JOINT")
+    return get, put
+
+
+def _settings_commands(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    _, put = _actions(sub, "pid", drives.pid, "read or write the drives' PI gains (0x30, 0x31 RAM, 0x32 ROM)")
+    put.description = "write the six PI gains of one joint (- keeps the present gain)"
+    where = put.add_mutually_exclusive_group()
+    where.add_argument("--ram", action="store_true", help="RAM: lost at the next power cycle (default)")
+    where.add_argument("--rom", action="store_true", help="ROM: kept at power-off; wears the flash (needs --yes)")
+    put.add_argument("--yes", action="store_true", help="confirm a ROM write")
+    names = tuple(f.upper() for f in drives.PID_FIELDS)
+    put.add_argument("gains", nargs=len(names), type=drives.pid_value_arg, metavar=names)
+
+    _, put = _actions(sub, "accel", drives.accel, "read or write the drives' acceleration limit (0x33, 0x34 RAM)")
+    put.description = "write one joint's acceleration limit to RAM, motor-shaft deg/s² (0: no limit)"
+    put.add_argument("dps2", type=drives.accel_value_arg, metavar="DPS2")
+
+    zero = _command(sub, "zero", drives.zero, "write a joint's present position to ROM as its zero (0x19)")
+    zero.add_argument("joint", metavar="JOINT")
+    zero.add_argument("--yes", action="store_true", help="confirm the ROM write (flash wear; needs a power cycle)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``rmd-motion``."""
+    parser = argparse.ArgumentParser(
+        prog="rmd-motion", description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--version", action="version", version=f"rmd-motion {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    scan = _command(sub, "scan", drives.scan, "list the motor ids that answer on the bus (0x9A; RS485 also 0x12)")
+    scan.add_argument("--ids", type=_ids_arg, metavar="IDS", help="ids to try: 1-6, 1,3,5 (default 1-32)")
+    _json(scan)
+    _json(_command(sub, "status", drives.status, "read every joint's state without moving anything"))
+
+    move = _command(sub, "move", moves.move, "move joints to targets (degrees); the others keep their position")
+    move.add_argument("targets", nargs="+", metavar="JOINT=DEG")
+    _motion_options(move, "scale of the velocity limits, (0, 1] (default 1)")
+    run = _command(sub, "run", moves.run, "run a program of move / path / wait steps (validated before moving)")
+    run.add_argument("program", metavar="PROGRAM.yaml")
+    _motion_options(run, "multiplies every step's speed scale, (0, 1] (default 1)")
+
+    _command(sub, "hold", drives.hold, "make every drive hold its present position (0xA4 in the drive's loop)")
+    _command(sub, "stop", drives.stop, "stop every drive (0x81): it stops and holds")
+    _command(sub, "off", drives.off, "turn every drive off (0x80): torque released, the arm may fall")
+    _command(sub, "clear", drives.clear, "clear the drives' error flags (0x9B); exit 1 while a cause persists")
+    _settings_commands(sub)
+
+    emulator = _command(
+        sub, "emulate", emulate, "run emulated RMD drives on an slcan or RS485 pseudo-terminal", bus=False
+    )
+    add_emulate_arguments(emulator, config=True)
+    demo_parser = _command(
+        sub, "demo", demo, "the 6-DOF example arm on emulated drives: logs, traces and plots", bus=False
+    )
+    demo_parser.add_argument(
+        "--out", type=Path, metavar="DIR", help="where the logs, traces and plots go (default ./rmd-motion-demo)"
+    )
+    demo_parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    demo_parser.add_argument(
+        "--protocol", action="store_true", help="instead: one control cycle encoded and decoded on both transports"
+    )
+    plot_parser = _command(sub, "plot", plot, "plot a telemetry log (.npz of a motion) into a PNG", bus=False)
+    plot_parser.add_argument("log", metavar="LOG")
+    plot_parser.add_argument("-o", "--output", required=True, metavar="OUT.png")
+    return parser
+
+
+# ---------------------------------------------------------------------------------------------------- main
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``rmd-motion``; returns the exit code (argparse exits with 2 on a usage error)."""
+    args = build_parser().parse_args(argv)
+    interrupts = Interrupts()
+    interrupts.install()
+    try:
+        code: int = args.run(args, interrupts)
+        return code
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:
+        # The reader of stdout went away (`| head`); the command itself is done (an arm is closed by then).
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
+    except MotionFault as exc:
+        print(f"motion fault, every axis halted: {exc}", file=sys.stderr)
+        return EXIT_FAULT
+    except (UsageError, ConfigError, PlanningError, EncodeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except (TransportError, DecodeError) as exc:
+        print(f"communication error: {exc}", file=sys.stderr)
+        return EXIT_COMMUNICATION
+    except OSError as exc:  # a file of ours, such as --log (the transports raise TransportError for the bus)
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except MotionError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    finally:
+        interrupts.restore()

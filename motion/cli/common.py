@@ -1,0 +1,321 @@
+"""What the commands of ``rmd-motion`` share: exit codes, the session (configuration + bus overrides), signal
+handling, joint targets and output."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import os
+import signal
+import sys
+import types
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Final
+
+from motion.config import ArmConfig, CanBusConfig, JointConfig, load_config
+from motion.config.build import open_bus
+from motion.errors import ConfigError, TransportError
+from motion.protocol import ErrorFlags, Message
+from motion.transport import Request, Transport
+
+EXIT_OK: Final = 0
+EXIT_FAULT: Final = 1
+EXIT_USAGE: Final = 2
+EXIT_COMMUNICATION: Final = 3
+EXIT_INTERRUPTED: Final = 130
+
+#: Time the drives get to answer a one-off batch of requests (not a control cycle), s.
+REPLY_TIMEOUT_S: Final = 0.2
+#: The bus override options and the bus kind each applies to.
+_CAN_OVERRIDES: Final = ("interface", "channel")
+_RS485_OVERRIDES: Final = ("port",)
+#: The example configurations, beside the package.
+EXAMPLE_CONFIGS: Final = Path(__file__).resolve().parents[2] / "configs"
+#: Where pseudo-terminal devices live.
+_PTY_PREFIX: Final = "/dev/pts/"
+
+
+class UsageError(Exception):
+    """The command line asks for something invalid (exit code 2); nothing was sent."""
+
+
+# ---------------------------------------------------------------------------------------------------- signals
+
+
+class Interrupts:
+    """SIGINT and SIGTERM raise KeyboardInterrupt in the main thread, except inside :meth:`deferred` sections
+    (a signal there is raised when the outermost section ends) or after :meth:`ignore`."""
+
+    def __init__(self) -> None:
+        self._depth = 0
+        self._pending = False
+        self._ignored = False
+        self._previous: dict[int, Any] = {}
+
+    def install(self) -> None:
+        """Take over SIGINT and SIGTERM (:meth:`restore` gives them back)."""
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            self._previous[signum] = signal.signal(signum, self._handle)
+
+    def restore(self) -> None:
+        """Give SIGINT and SIGTERM back to their previous handlers."""
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+    def _handle(self, signum: int, frame: types.FrameType | None) -> None:
+        if self._ignored:
+            return
+        if self._depth:
+            self._pending = True
+            return
+        raise KeyboardInterrupt
+
+    @contextlib.contextmanager
+    def deferred(self) -> Iterator[None]:
+        """A section that a signal must not cut short (connecting, halting, releasing the bus)."""
+        self._depth += 1
+        try:
+            yield
+        finally:
+            self._depth -= 1
+        if self._pending and not self._depth and not self._ignored:
+            self._pending = False
+            raise KeyboardInterrupt
+
+    def ignore(self) -> None:
+        """Ignore further signals (the halt after the first one must run to its end)."""
+        self._ignored = True
+
+
+# ---------------------------------------------------------------------------------------------------- session
+
+
+@dataclass(frozen=True, slots=True)
+class Session:
+    """The validated configuration of a command and the bus settings the command line overrides.
+
+    Attributes:
+        config: the arm.
+        overrides: replacements for configured bus settings (``interface``/``channel`` or ``port``).
+    """
+
+    config: ArmConfig
+    overrides: Mapping[str, object]
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> Session:
+        """Load ``--config`` and check the bus overrides against its bus (no port is opened).
+
+        Raises:
+            ConfigError: the file is missing or invalid.
+            UsageError: an override for the other kind of bus.
+        """
+        config = load_arm_config(args.config)
+        can = isinstance(config.bus, CanBusConfig)
+        given = {name: value for name in (*_CAN_OVERRIDES, *_RS485_OVERRIDES) if (value := getattr(args, name, None))}
+        wrong = [f"--{name}" for name in given if name not in (_CAN_OVERRIDES if can else _RS485_OVERRIDES)]
+        if wrong:
+            valid = " and ".join(f"--{n}" for n in (_CAN_OVERRIDES if can else _RS485_OVERRIDES))
+            raise UsageError(
+                f"{', '.join(wrong)}: {config.source} has a {config.bus.transport.value} bus; its overrides are {valid}"
+            )
+        overrides: dict[str, object] = dict(given)
+        bus = config.bus
+        # python-can waits 2 s for a real slcan adapter to boot; a pseudo-terminal (an emulator) has none.
+        if (
+            isinstance(bus, CanBusConfig)
+            and given.get("interface", bus.interface) == "slcan"
+            and _is_pty(str(given.get("channel", bus.channel)))
+        ):
+            overrides["sleep_after_open"] = 0
+        return cls(config, overrides)
+
+    def open_bus(self) -> Transport:
+        """Open the configured bus with the overrides.
+
+        Raises:
+            TransportError: the bus or port could not be opened.
+        """
+        return open_bus(self.config, **self.overrides)
+
+    @property
+    def names(self) -> dict[int, str]:
+        """Joint name by motor id."""
+        return {j.motor_id: j.name for j in self.config.joints}
+
+    def joint(self, name: str) -> JointConfig:
+        """The configured joint ``name``.
+
+        Raises:
+            UsageError: no such joint (the message lists the joints).
+        """
+        for joint in self.config.joints:
+            if joint.name == name:
+                return joint
+        raise UsageError(unknown_joint(self.config, name))
+
+    def joints(self, names: Sequence[str]) -> tuple[JointConfig, ...]:
+        """The joints named (every joint when ``names`` is empty), in the order given."""
+        return tuple(self.joint(n) for n in names) if names else self.config.joints
+
+
+def load_arm_config(text: str) -> ArmConfig:
+    """Load ``--config``: a path, or the name of an example configuration (``arm2.yaml``, ``configs/arm2.yaml``)
+    when no such file is in the working directory; examples are found beside the installed package, so that the
+    commands work from any directory.
+
+    Raises:
+        ConfigError: the file is missing (the message names both places) or invalid.
+    """
+    path = Path(text)
+    example = EXAMPLE_CONFIGS / path.name
+    by_name = not path.is_absolute() and path.parent in (Path(), Path(EXAMPLE_CONFIGS.name))
+    if not path.exists() and by_name and example.is_file():
+        return load_config(example)
+    try:
+        return load_config(path)
+    except ConfigError as exc:
+        if by_name and not path.exists():
+            raise ConfigError(exc.file, exc.key_path, f"file not found (nor {example})") from None
+        raise
+
+
+def _is_pty(path: str) -> bool:
+    """Whether ``path`` leads to a pseudo-terminal (such as the emulator's)."""
+    return os.path.realpath(path).startswith(_PTY_PREFIX)
+
+
+def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--config`` and the bus overrides."""
+    parser.add_argument(
+        "--config", required=True, metavar="FILE", help="arm configuration (YAML; or an example's name: arm2.yaml)"
+    )
+    bus = parser.add_argument_group("bus overrides (replace the configured bus settings)")
+    bus.add_argument("--interface", metavar="NAME", help="CAN: python-can interface (socketcan, slcan, pcan, ...)")
+    bus.add_argument("--channel", metavar="CHANNEL", help="CAN: interface channel (can0, /dev/ttyACM0, a pty, ...)")
+    bus.add_argument("--port", metavar="DEVICE", help="RS485: serial device (/dev/ttyUSB0, a pty, ...)")
+
+
+# ---------------------------------------------------------------------------------------------------- joints
+
+
+def unknown_joint(config: ArmConfig, name: str) -> str:
+    """The message for a joint name that the configuration does not have."""
+    return f"unknown joint {name!r}; the joints of {config.name} are {', '.join(config.joint_names)}"
+
+
+def target_problem(config: ArmConfig, name: str, angle_deg: float) -> str | None:
+    """Why ``name = angle_deg`` is not a valid target (unknown joint, outside its range), or None."""
+    joint = next((j for j in config.joints if j.name == name), None)
+    if joint is None:
+        return unknown_joint(config, name)
+    if not math.isfinite(angle_deg):
+        return f"{name}: {angle_deg} is not a finite angle"
+    if not joint.position_min_deg <= angle_deg <= joint.position_max_deg:
+        return (
+            f"{name} = {angle_deg:g} deg is outside its range "
+            f"[{joint.position_min_deg:g}, {joint.position_max_deg:g}] deg"
+        )
+    return None
+
+
+def parse_targets(config: ArmConfig, items: Sequence[str]) -> dict[str, float]:
+    """``JOINT=DEG`` arguments -> ``{joint: deg}``, every one checked against the configuration.
+
+    Raises:
+        UsageError: a malformed item, a joint given twice, an unknown joint or a target outside the joint's range.
+    """
+    targets: dict[str, float] = {}
+    for item in items:
+        name, equals, value = item.partition("=")
+        name = name.strip()
+        try:
+            angle = float(value) if equals and name else math.nan
+        except ValueError:
+            angle = math.nan
+        if math.isnan(angle):
+            raise UsageError(f"{item!r}: expected JOINT=DEG, e.g. {config.joint_names[0]}=30")
+        if name in targets:
+            raise UsageError(f"{name} is given twice")
+        problem = target_problem(config, name, angle)
+        if problem is not None:
+            raise UsageError(problem)
+        targets[name] = angle
+    return targets
+
+
+def speed_scale_arg(text: str) -> float:
+    """argparse type of ``--speed-scale``: a number in (0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not 0.0 < value <= 1.0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a speed scale in (0, 1]")
+    return value
+
+
+# ---------------------------------------------------------------------------------------------------- bus
+
+
+def exchange(
+    bus: Transport, requests: Sequence[Request], names: Mapping[int, str], expect: type[Message]
+) -> dict[int, Any]:
+    """One batch of one-off requests (one per motor); every motor must answer with an ``expect`` message.
+
+    Returns:
+        The replies by motor id.
+
+    Raises:
+        TransportError: a drive did not answer in time, or answered with something else.
+    """
+    replies = bus.transact(requests, bus.clock() + REPLY_TIMEOUT_S)
+    got = {r.motor_id: r.message for r in replies if isinstance(r.message, expect)}
+    missing = [f"{names.get(r.motor_id, '?')} (motor {r.motor_id})" for r in replies if r.motor_id not in got]
+    if missing:
+        raise TransportError(
+            f"no {expect.__name__} reply from {', '.join(missing)} on {bus.describe()} "
+            f"within {REPLY_TIMEOUT_S * 1000:g} ms: is the drive powered, on this bus and at this id?"
+        )
+    return got
+
+
+def flag_names(flags: ErrorFlags) -> list[str]:
+    """The names of the set error bits (unknown bits as hex)."""
+    names = [f.name.lower() for f in ErrorFlags if f and f in flags and f.name]
+    known = 0
+    for f in ErrorFlags:
+        known |= f.value
+    if flags.value & ~known:
+        names.append(f"0x{flags.value & ~known:02x}")
+    return names
+
+
+# ---------------------------------------------------------------------------------------------------- output
+
+
+def print_json(data: object) -> None:
+    """One JSON document on stdout."""
+    print(json.dumps(data, indent=2))
+
+
+def print_table(headers: Sequence[str], rows: Sequence[Sequence[object]]) -> None:
+    """Left-aligned columns on stdout."""
+    text = [[str(c) for c in headers], *([str(c) for c in row] for row in rows)]
+    widths = [max(len(row[i]) for row in text) for i in range(len(headers))]
+    for row in text:
+        print("  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True)).rstrip())
+
+
+def warn(message: str) -> None:
+    """A note on stderr."""
+    print(message, file=sys.stderr)
+
+
+#: A command: the parsed arguments and the signal handling -> exit code.
+Command = Callable[[argparse.Namespace, Interrupts], int]

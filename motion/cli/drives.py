@@ -1,0 +1,352 @@
+"""Commands that talk to the drives one request at a time, without the control loop: ``scan``, ``status``,
+``hold``, ``stop``, ``off``, ``clear``, ``pid``, ``accel`` and ``zero``.
+
+None of them moves a joint except ``hold`` (which commands every drive to hold where it is) and ``off`` (which
+releases the torque: an arm under gravity falls unless it has brakes).
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Sequence
+from dataclasses import asdict, replace
+from typing import Any, Final
+
+from motion.cli.common import (
+    EXIT_COMMUNICATION,
+    EXIT_OK,
+    Interrupts,
+    Session,
+    UsageError,
+    exchange,
+    flag_names,
+    print_json,
+    print_table,
+    warn,
+)
+from motion.config import CanBusConfig, JointConfig
+from motion.config.build import build_controller
+from motion.errors import MotionFault
+from motion.protocol import (
+    Acceleration,
+    Bare,
+    Command,
+    EncoderOffset,
+    Message,
+    MotorState,
+    MultiTurnAngle,
+    MultiTurnPositionSpeed,
+    PidGains,
+    ProductInfo,
+    Status1,
+)
+from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN
+from motion.transport import Request, Transport
+
+#: Scan: the reply window of the whole CAN batch (the drives answer in parallel), s.
+SCAN_CAN_S: Final = 0.1
+#: Scan: the reply window of each RS485 request (one drive after the other), s.
+SCAN_RS485_PER_ID_S: Final = 0.03
+#: ``hold``: the drive's speed cap while holding, as a share of the joint's velocity limit.
+HOLD_SPEED_SHARE: Final = 0.1
+#: The PI gains in the order ``pid set`` takes them.
+PID_FIELDS: Final = ("angle_kp", "angle_ki", "speed_kp", "speed_ki", "iq_kp", "iq_ki")
+#: The largest acceleration limit the protocol carries (int32), motor deg/s².
+ACCELERATION_MAX_DPS2: Final = (1 << 31) - 1
+#: Why ROM writes need ``--yes``.
+FLASH_WARNING: Final = (
+    "it writes the drive's flash (ROM), which wears with every write (a limited number of write cycles)"
+)
+
+
+def _requests(joints: Sequence[JointConfig], message: Message) -> list[Request]:
+    return [Request(j.motor_id, message) for j in joints]
+
+
+def _ask(
+    bus: Transport, session: Session, joints: Sequence[JointConfig], message: Message, expect: type[Message]
+) -> dict[int, Any]:
+    """``message`` to every joint of ``joints`` on an open bus; each must answer with an ``expect`` (by motor id)."""
+    return exchange(bus, _requests(joints, message), session.names, expect)
+
+
+def _ask_once(
+    session: Session, joints: Sequence[JointConfig], message: Message, expect: type[Message]
+) -> dict[int, Any]:
+    """Open the bus, :func:`_ask`, release the bus."""
+    with session.open_bus() as bus:
+        return _ask(bus, session, joints, message, expect)
+
+
+def _check_echo(joint: JointConfig, echo: Message, sent: Message) -> None:
+    if echo != sent:
+        raise MotionFault("write_failed", joint=joint.name, detail=f"the drive echoed {echo}, not {sent}")
+
+
+def _label(joint: JointConfig) -> str:
+    return f"{joint.name} (motor {joint.motor_id})"
+
+
+# ---------------------------------------------------------------------------------------------------- scan
+
+
+def _model_text(info: ProductInfo | None) -> str:
+    if info is None:
+        return "-"
+    return f"{info.driver_name} / {info.motor_name} hw {info.hardware_version:g} fw {info.firmware_version:g}"
+
+
+def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """Which motor ids answer 0x9A (and, on RS485, 0x12 for the model)."""
+    session = Session.from_args(args)
+    ids: tuple[int, ...] = args.ids or tuple(range(MOTOR_ID_MIN, MOTOR_ID_MAX + 1))
+    rs485 = not isinstance(session.config.bus, CanBusConfig)
+    with session.open_bus() as bus:
+        window = SCAN_RS485_PER_ID_S * len(ids) if rs485 else SCAN_CAN_S
+        replies = bus.transact([Request(i, Bare(Command.READ_STATUS_1)) for i in ids], bus.clock() + window)
+        found = {r.motor_id: r.message for r in replies if isinstance(r.message, Status1)}
+        models: dict[int, ProductInfo] = {}
+        if rs485 and found:
+            requests = [Request(i, Bare(Command.READ_MODEL)) for i in sorted(found)]
+            replies = bus.transact(requests, bus.clock() + SCAN_RS485_PER_ID_S * len(requests))
+            models = {r.motor_id: r.message for r in replies if isinstance(r.message, ProductInfo)}
+        where = bus.describe()
+    names = session.names
+    drives = [
+        {
+            "motor_id": motor_id,
+            "joint": names.get(motor_id),
+            "voltage_v": status.voltage_v,
+            "temperature_c": status.temperature_c,
+            "errors": flag_names(status.errors),
+            "model": asdict(models[motor_id]) if motor_id in models else None,
+        }
+        for motor_id, status in sorted(found.items())
+    ]
+    missing = [_label(j) for j in session.config.joints if j.motor_id not in found]
+    if args.json:
+        print_json({"bus": where, "drives": drives, "missing": missing})
+    else:
+        print(f"{where}: {len(drives)} of {len(ids)} ids answered")
+        rows = [
+            (
+                motor_id,
+                names.get(motor_id, "-"),
+                f"{status.voltage_v:.1f} V",
+                f"{status.temperature_c} °C",
+                ",".join(flag_names(status.errors)) or "ok",
+                _model_text(models.get(motor_id)),
+            )
+            for motor_id, status in sorted(found.items())
+        ]
+        print_table(("id", "joint", "voltage", "temp", "flags", "model"), rows)
+    if missing:
+        warn(f"communication error: configured joint(s) not answering: {', '.join(missing)}")
+        return EXIT_COMMUNICATION
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------------------- status
+
+
+def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """Every joint's position, speed, current, temperature, voltage and flags, read without moving anything."""
+    session = Session.from_args(args)
+    config = session.config
+    with session.open_bus() as bus:
+        # The controller's start-up reads (0x92 + 0x9C) give the joint angles exactly as a motion command sees them;
+        # its loop is never started.
+        controller = build_controller(config, bus)
+        controller.read_positions()
+        status1: dict[int, Status1] = _ask(bus, session, config.joints, Bare(Command.READ_STATUS_1), Status1)
+        where = bus.describe()
+    axes = controller.axes
+    joints: list[dict[str, object]] = []
+    rows: list[tuple[object, ...]] = []
+    for i, joint in enumerate(config.joints):
+        s = status1[joint.motor_id]
+        q, qd, iq = float(axes.q_deg[i]), float(axes.qd_dps[i]), float(axes.iq_a[i])
+        inside = joint.position_min_deg <= q <= joint.position_max_deg
+        flags = flag_names(s.errors)
+        joints.append(
+            {
+                "name": joint.name,
+                "motor_id": joint.motor_id,
+                "position_deg": round(q, 4),
+                "velocity_dps": round(qd, 3),
+                "iq_a": round(iq, 3),
+                "temperature_c": s.temperature_c,
+                "voltage_v": s.voltage_v,
+                "errors": flags,
+                "within_limits": inside,
+            }
+        )
+        rows.append(
+            (
+                joint.name,
+                joint.motor_id,
+                f"{q:9.3f} deg" + ("" if inside else " (outside limits)"),
+                f"{qd:8.2f} deg/s",
+                f"{iq:6.2f} A",
+                f"{s.temperature_c} °C",
+                f"{s.voltage_v:.1f} V",
+                ",".join(flags) or "ok",
+            )
+        )
+    if args.json:
+        print_json({"name": config.name, "bus": where, "joints": joints})
+        return EXIT_OK
+    print(f"{config.name} on {where}")
+    print_table(("joint", "motor", "position", "velocity", "iq", "temp", "voltage", "flags"), rows)
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------------------- halt & hold
+
+
+def _halt(args: argparse.Namespace, code: Command) -> int:
+    session = Session.from_args(args)
+    joints = session.config.joints
+    _ask_once(session, joints, Bare(code), Bare)
+    print(f"{code.name.lower().replace('_', ' ')} (0x{code:02X}) acknowledged by {', '.join(map(_label, joints))}")
+    return EXIT_OK
+
+
+def stop(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """0x81 to every joint: the drives stop and hold where they stop."""
+    return _halt(args, Command.MOTOR_STOP)
+
+
+def off(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """0x80 to every joint: torque released."""
+    warn("motor off: the drives release their torque; an arm under gravity falls unless it has brakes")
+    return _halt(args, Command.MOTOR_OFF)
+
+
+def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """Every drive holds its present angle in its own position loop (0xA4), also after the command ends."""
+    session = Session.from_args(args)
+    joints = session.config.joints
+    with session.open_bus() as bus:
+        angles: dict[int, MultiTurnAngle] = _ask(
+            bus, session, joints, Bare(Command.READ_MULTI_TURN_ANGLE), MultiTurnAngle
+        )
+        requests = [
+            Request(
+                j.motor_id,
+                MultiTurnPositionSpeed(
+                    angles[j.motor_id].angle_deg, j.velocity_limit_dps * j.gear_ratio * HOLD_SPEED_SHARE
+                ),
+            )
+            for j in joints
+        ]
+        exchange(bus, requests, session.names, MotorState)
+    held = ", ".join(f"{j.name} at {j.transmission().joint_deg(angles[j.motor_id].angle_deg):.2f} deg" for j in joints)
+    print(f"holding (drive position loop, 0xA4): {held}")
+    return EXIT_OK
+
+
+def clear(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """0x9B to every joint; a flag whose cause persists stays set (exit 1)."""
+    session = Session.from_args(args)
+    joints = session.config.joints
+    replies: dict[int, Status1] = _ask_once(session, joints, Bare(Command.CLEAR_ERRORS), Status1)
+    left = {j.name: flag_names(replies[j.motor_id].errors) for j in joints if replies[j.motor_id].errors}
+    for joint in joints:
+        print(f"{_label(joint)}: {', '.join(left.get(joint.name, [])) or 'clear'}")
+    if left:
+        detail = "; ".join(f"{name}: {', '.join(flags)} still set (its cause persists)" for name, flags in left.items())
+        raise MotionFault("clear_failed", joint=next(iter(left)), detail=detail)
+    return EXIT_OK
+
+
+# ---------------------------------------------------------------------------------------------------- settings
+
+
+def pid_value_arg(text: str) -> int | None:
+    """argparse type of a PI gain: 0..255, or ``-`` to keep the drive's value."""
+    if text == "-":
+        return None
+    if not text.isdigit() or int(text) > 0xFF:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a gain 0..255 (or - to keep the present one)")
+    return int(text)
+
+
+def _gains_row(joint: JointConfig, gains: PidGains) -> tuple[object, ...]:
+    return (joint.name, joint.motor_id, *(getattr(gains, f) for f in PID_FIELDS))
+
+
+def pid(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``pid get [JOINT...]`` / ``pid set [--ram|--rom] JOINT ANGLE_KP ANGLE_KI SPEED_KP SPEED_KI IQ_KP IQ_KI``."""
+    session = Session.from_args(args)
+    if args.action == "get":
+        joints = session.joints(args.joints)
+        gains: dict[int, PidGains] = _ask_once(session, joints, Bare(Command.READ_PID), PidGains)
+        if args.json:
+            print_json({j.name: {f: getattr(gains[j.motor_id], f) for f in PID_FIELDS} for j in joints})
+        else:
+            print_table(("joint", "motor", *PID_FIELDS), [_gains_row(j, gains[j.motor_id]) for j in joints])
+        return EXIT_OK
+    joint = session.joint(args.joint)
+    if args.rom and not args.yes:
+        raise UsageError(
+            f"pid set --rom refused without --yes: {FLASH_WARNING}, and the drive loads the gains at every power-on "
+            "(undoing them takes another ROM write). Try them with --ram first (lost at the next power cycle), "
+            "then write them once with --rom --yes"
+        )
+    code = Command.WRITE_PID_ROM if args.rom else Command.WRITE_PID_RAM
+    with session.open_bus() as bus:
+        old: PidGains = _ask(bus, session, [joint], Bare(Command.READ_PID), PidGains)[joint.motor_id]
+        values = {f: v for f, v in zip(PID_FIELDS, args.gains, strict=True) if v is not None}
+        new = replace(old, command=code, **values)
+        _check_echo(joint, _ask(bus, session, [joint], new, PidGains)[joint.motor_id], new)
+    target = "ROM (kept at power-off)" if args.rom else "RAM (lost at the next power cycle)"
+    print(f"{_label(joint)}: PI gains written to {target}")
+    print_table(("", *PID_FIELDS), [("before", *_gains_row(joint, old)[2:]), ("after", *_gains_row(joint, new)[2:])])
+    return EXIT_OK
+
+
+def accel_value_arg(text: str) -> int:
+    """argparse type of an acceleration limit: a whole number of motor deg/s² >= 0 (0: no limit)."""
+    if not text.isdigit() or int(text) > ACCELERATION_MAX_DPS2:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an acceleration 0..{ACCELERATION_MAX_DPS2} deg/s²")
+    return int(text)
+
+
+def accel(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``accel get [JOINT...]`` / ``accel set JOINT DPS2`` (motor shaft, RAM: lost at the next power cycle)."""
+    session = Session.from_args(args)
+    if args.action == "get":
+        joints = session.joints(args.joints)
+        limits: dict[int, Acceleration] = _ask_once(session, joints, Bare(Command.READ_ACCELERATION), Acceleration)
+        values = {j.name: limits[j.motor_id].acceleration_dps2 for j in joints}
+        if args.json:
+            print_json({n: {"motor_dps2": v, "joint_dps2": v / session.joint(n).gear_ratio} for n, v in values.items()})
+        else:
+            rows = [(j.name, j.motor_id, values[j.name], f"{values[j.name] / j.gear_ratio:g}") for j in joints]
+            print_table(("joint", "motor", "motor deg/s²", "joint deg/s²"), rows)
+        return EXIT_OK
+    joint = session.joint(args.joint)
+    request = Acceleration(Command.WRITE_ACCELERATION_RAM, args.dps2)
+    _check_echo(joint, _ask_once(session, [joint], request, Acceleration)[joint.motor_id], request)
+    print(
+        f"{_label(joint)}: acceleration limit {args.dps2} motor deg/s² ({args.dps2 / joint.gear_ratio:g} joint "
+        "deg/s²) in RAM (lost at the next power cycle)"
+    )
+    return EXIT_OK
+
+
+def zero(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """0x19: the joint's present motor position becomes its encoder zero, in ROM, after the next power cycle."""
+    session = Session.from_args(args)
+    joint = session.joint(args.joint)
+    consequence = (
+        "and the new zero takes effect only after the drive is power cycled, when every angle this joint reports "
+        "shifts by its present motor angle (review the joint's zero_offset_deg in the configuration)"
+    )
+    if not args.yes:
+        raise UsageError(f"zero refused without --yes: {FLASH_WARNING}, {consequence}")
+    message = _ask_once(session, [joint], Bare(Command.WRITE_ZERO_ROM), Message)[joint.motor_id]
+    offset = f" (encoder offset {message.encoder_offset})" if isinstance(message, EncoderOffset) else ""
+    print(f"{_label(joint)}: present position written to ROM as zero{offset}; power-cycle the drive to apply it")
+    return EXIT_OK

@@ -1,0 +1,194 @@
+"""Commands that run the guarded control loop: ``move`` and ``run``.
+
+The arm connects (reads every joint, starts the loop holding where it is), moves, and closes: closing halts every
+axis with 0x81 and releases the bus. Ctrl-C or SIGTERM during any of it is an E-stop: every axis is halted in the
+next cycle, the bus is released, and the command exits with 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Callable, Mapping
+from typing import Final, TextIO
+
+from motion.api import Arm, MotionHandle
+from motion.cli.common import EXIT_OK, Interrupts, Session, parse_targets, print_json, warn
+from motion.cli.program import MoveStep, PathStep, Program, WaitStep, load_program
+from motion.errors import MotionError, MotionFault
+from motion.telemetry import TelemetryOptions
+
+#: How often the progress display is refreshed (and the wait for a motion polled), s.
+POLL_S: Final = 0.1
+#: Width of the terminal progress bar, characters.
+BAR_WIDTH: Final = 30
+
+
+class Progress:
+    """A motion's progress on ``stream``: a bar redrawn in place on a terminal, otherwise two plain lines.
+
+    Args:
+        label: what moves (``move``, ``step 2/5 path``).
+        stream: where to write (stderr: stdout stays for results).
+    """
+
+    def __init__(self, label: str, stream: TextIO) -> None:
+        self.label = label
+        self.stream = stream
+        self.tty = stream.isatty()
+        self._drawn = False
+        self._announced = False
+
+    def update(self, elapsed_s: float, total_s: float) -> None:
+        """The motion is ``elapsed_s`` into its planned ``total_s``."""
+        if self.tty:
+            shown_s = min(max(elapsed_s, 0.0), total_s)
+            filled = round(BAR_WIDTH * shown_s / total_s) if total_s > 0 else BAR_WIDTH
+            bar = "#" * filled + "-" * (BAR_WIDTH - filled)
+            self.stream.write(f"\r{self.label} [{bar}] {shown_s:5.1f}/{total_s:.1f} s")
+            self.stream.flush()
+            self._drawn = True
+        elif not self._announced:
+            print(f"{self.label}: {total_s:.2f} s planned", file=self.stream, flush=True)
+            self._announced = True
+
+    def close(self, outcome: str) -> None:
+        """End the display with ``outcome`` (``done in 1.23 s``, ``halted``)."""
+        if self._drawn:
+            self.stream.write("\n")
+        print(f"{self.label}: {outcome}", file=self.stream, flush=True)
+
+
+def wait_with_progress(arm: Arm, handle: MotionHandle, label: str) -> float:
+    """Wait for a motion while showing its progress on stderr; returns the wall time it took, s.
+
+    Raises:
+        MotionFault: a fault halted every axis.
+    """
+    controller = arm.controller
+    assert controller is not None  # connected
+    progress = Progress(label, sys.stderr)
+    start = time.monotonic()
+    outcome = "ended"
+    try:
+        while not handle.wait(POLL_S):
+            path, follower = controller.reference_path(), controller.follower
+            if path is not None and follower is not None:
+                total = path.duration_s
+                progress.update(controller.clock.now() - (follower.end_time() - total), total)
+        outcome = f"done in {time.monotonic() - start:.2f} s"
+    except KeyboardInterrupt:
+        outcome = "interrupted"
+        raise
+    except MotionFault:
+        outcome = "halted by a fault"
+        raise
+    finally:
+        progress.close(outcome)
+    return time.monotonic() - start
+
+
+def hold_for(arm: Arm, seconds: float) -> None:
+    """Hold for ``seconds`` (the loop keeps the arm where it is).
+
+    Raises:
+        MotionFault: a fault halted every axis meanwhile.
+    """
+    end = time.monotonic() + seconds
+    while (remaining := end - time.monotonic()) > 0:
+        time.sleep(min(POLL_S, remaining))
+        fault = arm.fault
+        if fault is not None:
+            raise fault
+
+
+def with_arm(args: argparse.Namespace, session: Session, interrupts: Interrupts, body: Callable[[Arm], int]) -> int:
+    """Connect the arm (recording ``--log`` / ``--trace``), run ``body``, close the arm; an interrupt halts every
+    axis first.
+
+    Raises:
+        KeyboardInterrupt: after the E-stop and the close (the caller exits with 130).
+        OSError: a telemetry file cannot be created (before anything moves) or written.
+    """
+    telemetry = TelemetryOptions(args.log, args.trace) if args.log or args.trace else None
+    arm = Arm(session.config, bus_overrides=session.overrides, telemetry=telemetry)
+    try:
+        with interrupts.deferred():  # a signal while connecting is raised once the loop runs (or connect failed)
+            arm.connect()
+        return body(arm)
+    except KeyboardInterrupt:
+        interrupts.ignore()
+        if arm.supervisor is not None:
+            try:
+                arm.stop()  # E-stop: every axis halted in the next cycle
+            except MotionError as exc:  # already closed: closing halted the axes
+                warn(f"E-stop: {exc}")
+            warn("interrupted: E-stop sent to every axis")
+        raise
+    finally:
+        with interrupts.deferred():
+            arm.close()  # halts every axis (0x81) unless halted already, releases the bus
+
+
+def _summary(command: str, arm: Arm, wall_s: float, extra: Mapping[str, object]) -> dict[str, object]:
+    return {"command": command, **extra, "duration_s": round(wall_s, 3), "status": arm.status().as_dict()}
+
+
+def _print_positions(arm: Arm, wall_s: float) -> None:
+    reached = " ".join(f"{name}={deg:.2f}" for name, deg in arm.positions().items())
+    print(f"at {reached} deg after {wall_s:.2f} s")
+
+
+def move(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``move JOINT=DEG ...``: every target is checked before the bus is opened."""
+    session = Session.from_args(args)
+    targets = parse_targets(session.config, args.targets)
+
+    def body(arm: Arm) -> int:
+        handle = arm.move_to(targets, speed_scale=args.speed_scale, wait=False)
+        wall = wait_with_progress(arm, handle, "move")
+        if args.json:
+            print_json(_summary("move", arm, wall, {"targets": targets, "speed_scale": args.speed_scale}))
+        else:
+            _print_positions(arm, wall)
+        return EXIT_OK
+
+    return with_arm(args, session, interrupts, body)
+
+
+def run_program(arm: Arm, program: Program, speed_scale: float) -> None:
+    """Run every step of ``program``, each step's speed scale times ``speed_scale``."""
+    count = len(program.steps)
+    for index, step in enumerate(program.steps):
+        if isinstance(step, WaitStep):
+            print(f"step {index + 1}/{count} wait: {step.seconds:g} s", file=sys.stderr, flush=True)
+            hold_for(arm, step.seconds)
+            continue
+        scale = step.speed_scale * speed_scale
+        if isinstance(step, MoveStep):
+            handle = arm.move_to(step.targets, speed_scale=scale, wait=False)
+            label = f"step {index + 1}/{count} move"
+        else:
+            assert isinstance(step, PathStep)
+            handle = arm.follow(list(step.waypoints), speed_scale=scale, wait=False)
+            label = f"step {index + 1}/{count} path ({len(step.waypoints)} waypoints)"
+        wait_with_progress(arm, handle, label)
+
+
+def run(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``run PROGRAM.yaml``: the whole program is validated before the bus is opened."""
+    session = Session.from_args(args)
+    program = load_program(args.program, session.config)
+
+    def body(arm: Arm) -> int:
+        start = time.monotonic()
+        run_program(arm, program, args.speed_scale)
+        wall = time.monotonic() - start
+        if args.json:
+            print_json(_summary("run", arm, wall, {"program": program.source, "steps": len(program.steps)}))
+        else:
+            _print_positions(arm, wall)
+        return EXIT_OK
+
+    return with_arm(args, session, interrupts, body)

@@ -1,0 +1,138 @@
+"""Plots of a telemetry log (:mod:`motion.telemetry`): one PNG with a row per joint and a row of loop timing.
+
+Per joint, four panels on a shared time axis: position (reference and measured), velocity (reference and
+measured), torque current (measured, with the cycles where the current limit clipped the command marked) and the
+following error (:meth:`~motion.telemetry.TelemetryLog.following_error_deg`, with the configured limit). The last
+row shows every cycle's wake-up jitter and busy time against the period. Faults are vertical lines on every panel
+(the ``close`` halt at the end of a run is not a fault and is left out).
+
+The figure is drawn on matplotlib's Agg canvas directly: no pyplot, no global backend switch, no display needed.
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from motion.telemetry import TelemetryLog, load_log
+
+#: Panel columns of a joint row: (title, unit).
+PANELS = (("position", "deg"), ("velocity", "deg/s"), ("torque current", "A"), ("following error", "deg"))
+_REFERENCE: dict[str, Any] = {"color": "0.45", "linestyle": "--", "linewidth": 1.0, "label": "reference"}
+_MEASURED: dict[str, Any] = {"color": "tab:blue", "linewidth": 1.0, "label": "measured"}
+_FAULT: dict[str, Any] = {"color": "tab:red", "linewidth": 1.0, "alpha": 0.8}
+_DPI = 90
+
+
+def figure(log: TelemetryLog) -> Figure:
+    """Draw ``log`` (see the module docstring); the figure is not attached to any window or pyplot state.
+
+    Data lines come first in each panel, in this order: position and velocity panels ``[reference, measured]``,
+    current ``[measured]``, following error ``[error]``, timing ``[jitter, busy]`` (µs); limit and fault lines
+    follow them.
+    """
+    names = log.joint_names
+    rows = len(names) + 1
+    fig = Figure(figsize=(16.0, 2.0 * rows + 0.9), dpi=_DPI, layout="constrained")
+    FigureCanvasAgg(fig)
+    grid = fig.add_gridspec(rows, len(PANELS))
+    t = log["t_s"]
+    t_ref = t + log.period_s
+    error = log.following_error_deg()
+    faults = [(float(when), str(kind)) for when, kind in zip(log["fault_t_s"], log["fault_kind"], strict=True)]
+    faults = [(when, kind) for when, kind in faults if kind != "close"]
+    limit = log.meta.get("following_error_limit_deg")
+    first: Axes | None = None
+    for j, name in enumerate(names):
+        axes = [fig.add_subplot(grid[j, c], sharex=first) for c in range(len(PANELS))]
+        first = first or axes[0]
+        position, velocity, current, following = axes
+        position.plot(t_ref, log["q_ref_deg"][:, j], **_REFERENCE)
+        position.plot(t, log["q_deg"][:, j], **_MEASURED)
+        velocity.plot(t_ref, log["qd_ref_dps"][:, j], **_REFERENCE)
+        velocity.plot(t, log["qd_dps"][:, j], **_MEASURED)
+        current.plot(t, log["iq_a"][:, j], **_MEASURED)
+        clipped = log["limited"][:, j]
+        if clipped.any():
+            current.scatter(t[clipped], log["iq_a"][clipped, j], s=6, color="tab:orange", label="current limited")
+        following.plot(t, error[:, j], color="tab:purple", linewidth=1.0, label="reference - measured")
+        if limit is not None:
+            for sign in (1.0, -1.0):
+                following.axhline(sign * float(limit), color="0.6", linestyle=":", linewidth=1.0)
+        position.set_ylabel(f"{name}\n{PANELS[0][1]}")
+        for c, panel in enumerate(axes):
+            if j == 0:
+                panel.set_title(f"{PANELS[c][0]} ({PANELS[c][1]})", fontsize=10)
+            panel.grid(True, alpha=0.3)
+            panel.tick_params(labelsize=8, labelbottom=j == len(names) - 1)
+            _mark_faults(panel, faults)
+        if j == 0:
+            position.legend(fontsize=7, loc="best")
+    timing = fig.add_subplot(grid[rows - 1, :], sharex=first)
+    _draw_timing(timing, log, faults)
+    fig.suptitle(_title(log), fontsize=12)
+    return fig
+
+
+def _draw_timing(axes: Axes, log: TelemetryLog, faults: list[tuple[float, str]]) -> None:
+    t = log["t_s"]
+    axes.plot(t, log["jitter_s"] * 1e6, color="tab:blue", linewidth=0.8, label="wake-up jitter")
+    axes.plot(t, log["busy_s"] * 1e6, color="tab:green", linewidth=0.8, alpha=0.7, label="busy (wake-up to end)")
+    axes.axhline(log.period_s * 1e6, color="tab:red", linestyle="--", linewidth=1.0, label="period")
+    axes.set_yscale("symlog", linthresh=10.0)
+    axes.set_ylim(bottom=0.0)
+    axes.set_ylabel("cycle timing\nµs")
+    axes.set_xlabel("time since start of recording, s")
+    axes.grid(True, alpha=0.3)
+    axes.tick_params(labelsize=8)
+    axes.legend(fontsize=7, loc="upper right", ncols=3)
+    for when, kind in faults:
+        axes.axvline(when, **_FAULT)
+        axes.annotate(kind, (when, 1.0), xycoords=("data", "axes fraction"), fontsize=7, color="tab:red")
+    stats = log.meta.get("loop")
+    if stats:
+        axes.set_title(
+            f"{stats['cycles']} cycles at {stats['achieved_rate_hz']:.1f} Hz (target {stats['rate_hz']:g} Hz); jitter "
+            f"p50 {stats['jitter_p50_s'] * 1e6:.0f} µs, p99 {stats['jitter_p99_s'] * 1e6:.0f} µs, max "
+            f"{stats['jitter_max_s'] * 1e6:.0f} µs; busy p99 {stats['busy_p99_s'] * 1e6:.0f} µs; "
+            f"{stats['overruns']} overruns",
+            fontsize=9,
+        )
+    if not len(t):
+        axes.text(0.5, 0.5, "no cycles recorded", transform=axes.transAxes, ha="center")
+
+
+def _mark_faults(axes: Axes, faults: list[tuple[float, str]]) -> None:
+    for when, _ in faults:
+        axes.axvline(when, **_FAULT)
+
+
+def _title(log: TelemetryLog) -> str:
+    meta = log.meta
+    emulated = ", emulated" if meta.get("emulated") else ""
+    error = log.following_error_deg()[log.active_rows()]
+    worst = f", max following error {np.nanmax(np.abs(error)):.3f} deg" if error.size else ""
+    return (
+        f"{meta.get('config', '?')}: {meta['mode']} mode over {meta.get('transport', '?')}{emulated}, "
+        f"{log.cycles} cycles in {log.duration_s:.2f} s{worst}"
+    )
+
+
+def plot_log(log: str | os.PathLike[str] | TelemetryLog, out_png: str | os.PathLike[str]) -> None:
+    """Draw a telemetry log into a PNG file.
+
+    Args:
+        log: a log file (``.npz`` written by :class:`~motion.telemetry.TelemetrySession`) or a loaded log.
+        out_png: the image to write (PNG whatever the suffix).
+
+    Raises:
+        OSError: the log cannot be read or the image cannot be written.
+        ValueError: the file is not a telemetry log.
+    """
+    loaded = log if isinstance(log, TelemetryLog) else load_log(log)
+    figure(loaded).savefig(out_png, format="png", dpi=_DPI)

@@ -1,0 +1,489 @@
+"""``rmd-motion`` end to end: every command runs as a subprocess against ``rmd-motion emulate`` in another process.
+
+The emulator runs the arm of ``configs/arm2.yaml`` (CAN, on a slcan pty) or ``configs/arm2_rs485.yaml`` (on an RS485
+pty) with the Pinocchio-coupled plant, and writes every frame to its ``--log``. Refused commands must leave that log
+untouched: nothing was sent. Timeouts are generous; nothing here depends on timing except the interrupt test, which
+waits for the motion to be under way before it sends SIGINT.
+
+The commands that move use a copy of ``arm2.yaml`` whose control loop runs at 200 Hz instead of 500 Hz: a 500 Hz
+torque loop over a slcan pseudo-terminal to another Python process misses replies often enough on a loaded 2-vCPU
+machine (now and then four in a row, a ``no_reply`` fault) that it cannot be a test's premise. Same arm, same drives,
+same bus.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from motion.cli.common import Interrupts
+from motion.cli.moves import Progress
+from motion.cli.program import MoveStep, PathStep, WaitStep, parse_program
+from motion.config import load_config
+from motion.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parent.parent
+ARM2 = ROOT / "configs" / "arm2.yaml"
+ARM2_RS485 = ROOT / "configs" / "arm2_rs485.yaml"
+#: Generous bound of one CLI run, s.
+RUN_TIMEOUT_S = 30.0
+#: A move that takes several seconds (the interrupt test stops it early).
+SLOW_MOVE = ("shoulder=60", "elbow=-90", "--speed-scale", "0.1")
+#: Default PI gains of an emulated drive (motion.emulator.model.DEFAULT_PID).
+DEFAULT_GAINS = {"angle_kp": 100, "angle_ki": 50, "speed_kp": 50, "speed_ki": 40, "iq_kp": 50, "iq_ki": 50}
+
+pytestmark = pytest.mark.skipif(os.name != "posix", reason="the emulator's links are pseudo-terminals")
+
+
+@dataclass
+class Emulated:
+    """A running ``rmd-motion emulate`` and how to reach it."""
+
+    process: subprocess.Popen[str]
+    log: Path
+    bus_args: list[str]
+
+    def log_size(self) -> int:
+        return self.log.stat().st_size
+
+
+def cli(*args: str | Path, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "motion.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=RUN_TIMEOUT_S,
+        check=False,
+        cwd=cwd,
+    )
+
+
+def start_emulator(tmp: Path, config: Path, link_option: str) -> Emulated:
+    link, log = tmp / "link", tmp / "frames.log"
+    process = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "motion.cli",
+            "emulate",
+            "--config",
+            str(config),
+            link_option,
+            str(link),
+            "--log",
+            str(log),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    assert process.stdout is not None
+    lines: list[str] = []
+    # The emulator prints its link, then "emulating motors ..." (flushed); EOF means it exited.
+    while not lines or not lines[-1].startswith("emulating motors"):
+        line = process.stdout.readline()
+        if not line:
+            stop_emulator(process)
+            pytest.fail(f"the emulator did not start: {lines} {process.stderr.read() if process.stderr else ''}")
+        lines.append(line)
+    assert lines[0].startswith(f"{link_option.removeprefix('--').split('-')[0]}: {link}"), lines
+    assert "emulating motors 1,2" in lines[-1]
+    if link_option == "--slcan-link":
+        bus_args = ["--interface", "slcan", "--channel", str(link)]
+    else:
+        bus_args = ["--port", str(link)]
+    return Emulated(process, log, bus_args)
+
+
+def stop_emulator(process: subprocess.Popen[str]) -> None:
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+    try:
+        process.communicate(timeout=10)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.communicate()
+
+
+@contextlib.contextmanager
+def running_emulator(tmp: Path, config: Path, link_option: str) -> Iterator[Emulated]:
+    emulated = start_emulator(tmp, config, link_option)
+    try:
+        yield emulated
+    finally:
+        stop_emulator(emulated.process)
+    assert emulated.process.returncode == 0
+
+
+@pytest.fixture(scope="module")
+def can_arm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Emulated]:
+    with running_emulator(tmp_path_factory.mktemp("can"), ARM2, "--slcan-link") as emulated:
+        yield emulated
+
+
+@pytest.fixture(scope="module")
+def rs485_arm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Emulated]:
+    with running_emulator(tmp_path_factory.mktemp("rs485"), ARM2_RS485, "--rs485-link") as emulated:
+        yield emulated
+
+
+@pytest.fixture(scope="module")
+def arm2_200hz(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """arm2.yaml with a 200 Hz control loop (see the module docstring)."""
+    text = ARM2.read_text()
+    assert "rate_hz: 500" in text
+    path = tmp_path_factory.mktemp("config") / "arm2_200hz.yaml"
+    path.write_text(text.replace("rate_hz: 500", "rate_hz: 200"))
+    return path
+
+
+def status_json(config: Path, emulated: Emulated) -> dict[str, dict[str, Any]]:
+    result = cli("status", "--config", config, *emulated.bus_args, "--json")
+    assert result.returncode == 0, result.stderr
+    data = json.loads(result.stdout)
+    return {joint["name"]: joint for joint in data["joints"]}
+
+
+def positions(config: Path, emulated: Emulated) -> dict[str, float]:
+    return {name: float(joint["position_deg"]) for name, joint in status_json(config, emulated).items()}
+
+
+# ---------------------------------------------------------------------------------------------------- CAN
+
+
+def test_scan_finds_both_drives(can_arm: Emulated) -> None:
+    result = cli("scan", "--config", ARM2, *can_arm.bus_args, "--json")
+    assert result.returncode == 0, result.stderr
+    data = json.loads(result.stdout)
+    assert [d["motor_id"] for d in data["drives"]] == [1, 2]
+    assert [d["joint"] for d in data["drives"]] == ["shoulder", "elbow"]
+    assert all(d["voltage_v"] >= 20.0 and d["errors"] == [] and d["model"] is None for d in data["drives"])
+    assert data["missing"] == []
+    text = cli("scan", "--config", ARM2, *can_arm.bus_args, "--ids", "1-3")
+    assert text.returncode == 0, text.stderr
+    assert "2 of 3 ids answered" in text.stdout and "shoulder" in text.stdout and "elbow" in text.stdout
+
+
+def test_status_json(can_arm: Emulated) -> None:
+    joints = status_json(ARM2, can_arm)
+    assert list(joints) == ["shoulder", "elbow"]
+    keys = {"motor_id", "position_deg", "velocity_dps", "iq_a", "temperature_c", "voltage_v", "errors"}
+    for joint in joints.values():
+        assert keys <= set(joint)
+        assert joint["within_limits"] is True
+
+
+def test_example_configs_are_found_from_any_directory(can_arm: Emulated, tmp_path: Path) -> None:
+    result = cli("status", "--config", "configs/arm2.yaml", *can_arm.bus_args, cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("arm2 on can slcan:")
+    missing = cli("status", "--config", "configs/arm9.yaml", *can_arm.bus_args, cwd=tmp_path)
+    assert missing.returncode == 2
+    assert f"configs/arm9.yaml: <file>: file not found (nor {ROOT / 'configs' / 'arm9.yaml'})" in missing.stderr
+
+
+def test_move_then_status_shows_the_joints_there(can_arm: Emulated, arm2_200hz: Path, tmp_path: Path) -> None:
+    log, trace, png = tmp_path / "move.npz", tmp_path / "move.candump", tmp_path / "move.png"
+    result = cli(
+        "move", "--config", arm2_200hz, *can_arm.bus_args, "shoulder=20", "elbow=-30", "--json",
+        "--log", log, "--trace", trace,
+    )  # fmt: skip
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["command"] == "move" and summary["targets"] == {"shoulder": 20.0, "elbow": -30.0}
+    assert [j["name"] for j in summary["status"]["joints"]] == ["shoulder", "elbow"]
+    assert "move: done in" in result.stderr  # plain progress lines: stderr is no terminal here
+    reached = positions(ARM2, can_arm)
+    assert reached["shoulder"] == pytest.approx(20.0, abs=0.5)
+    assert reached["elbow"] == pytest.approx(-30.0, abs=0.5)
+
+    assert " 141#A1" in trace.read_text()  # torque commands to the shoulder, as sent
+    plotted = cli("plot", log, "-o", png)
+    assert plotted.returncode == 0, plotted.stderr
+    assert png.read_bytes().startswith(b"\x89PNG")
+    not_a_log = cli("plot", trace, "-o", png)
+    assert not_a_log.returncode == 2
+    assert f"cannot plot {trace}" in not_a_log.stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["move", "--config", ARM2, "shoulder=10", "wrist=5"], "unknown joint 'wrist'; the joints of arm2 are"),
+        (["move", "--config", ARM2, "shoulder=95"], "shoulder = 95 deg is outside its range [-90, 90] deg"),
+        (["move", "--config", ARM2, "elbow=-135.5"], "elbow = -135.5 deg is outside its range [-135, 135] deg"),
+        (["move", "--config", ARM2, "shoulder"], "expected JOINT=DEG"),
+        (["move", "--config", ROOT / "configs" / "nope.yaml", "shoulder=10"], "nope.yaml: <file>: file not found"),
+        (["move", "--config", ARM2_RS485, "shoulder=10"], None),  # --interface/--channel given for an RS485 bus
+        (["move", "--config", ARM2, "shoulder=10", "--speed-scale", "1.5"], "not a speed scale in (0, 1]"),
+        (["move", "--config", ARM2], "the following arguments are required: JOINT=DEG"),
+        (["zero", "--config", ARM2, "shoulder"], "flash"),
+        (["pid", "set", "--rom", "--config", ARM2, "elbow", "1", "2", "3", "4", "5", "6"], "without --yes"),
+        (["pid", "set", "--config", ARM2, "elbow", "1", "2", "3", "4", "5", "256"], "not a gain 0..255"),
+        (["accel", "get", "--config", ARM2, "wrist"], "unknown joint 'wrist'"),
+    ],
+)
+def test_refused_commands_exit_2_and_send_nothing(
+    can_arm: Emulated, args: list[str | Path], message: str | None
+) -> None:
+    before = can_arm.log_size()
+    result = cli(*args, *can_arm.bus_args)
+    assert result.returncode == 2, result.stderr
+    if message is not None:
+        assert message in result.stderr
+    else:
+        assert (
+            "--interface, --channel: " in result.stderr and "has a rs485 bus; its overrides are --port" in result.stderr
+        )
+    time.sleep(0.05)
+    assert can_arm.log_size() == before, "a refused command sent frames"
+
+
+def test_rom_writes_explain_flash_wear_and_power_cycle(can_arm: Emulated) -> None:
+    refused = cli("zero", "--config", ARM2, *can_arm.bus_args, "elbow")
+    assert refused.returncode == 2
+    assert "without --yes" in refused.stderr and "wears" in refused.stderr and "power cycled" in refused.stderr
+    done = cli("zero", "--config", ARM2, *can_arm.bus_args, "elbow", "--yes")
+    assert done.returncode == 0, done.stderr
+    assert "written to ROM as zero (encoder offset" in done.stdout and "power-cycle" in done.stdout
+
+
+def test_pid_and_accel_get_and_set(can_arm: Emulated) -> None:
+    result = cli("pid", "get", "--config", ARM2, *can_arm.bus_args, "--json")
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout) == {"shoulder": DEFAULT_GAINS, "elbow": DEFAULT_GAINS}
+    changed = cli("pid", "set", "--ram", "--config", ARM2, *can_arm.bus_args, "elbow", "-", "45", "-", "-", "-", "-")
+    assert changed.returncode == 0, changed.stderr
+    assert "RAM (lost at the next power cycle)" in changed.stdout
+    result = cli("pid", "get", "--config", ARM2, *can_arm.bus_args, "elbow", "--json")
+    assert json.loads(result.stdout) == {"elbow": DEFAULT_GAINS | {"angle_ki": 45}}
+    restored = cli("pid", "set", "--config", ARM2, *can_arm.bus_args, "elbow", *map(str, DEFAULT_GAINS.values()))
+    assert restored.returncode == 0, restored.stderr
+
+    result = cli("accel", "get", "--config", ARM2, *can_arm.bus_args, "--json")
+    assert result.returncode == 0, result.stderr
+    limits = json.loads(result.stdout)
+    assert set(limits) == {"shoulder", "elbow"}
+    original = limits["shoulder"]["motor_dps2"]
+    assert limits["shoulder"]["joint_dps2"] == pytest.approx(original / 9)
+    assert cli("accel", "set", "--config", ARM2, *can_arm.bus_args, "shoulder", "12345").returncode == 0
+    result = cli("accel", "get", "--config", ARM2, *can_arm.bus_args, "shoulder", "--json")
+    assert json.loads(result.stdout)["shoulder"]["motor_dps2"] == 12345
+    assert cli("accel", "set", "--config", ARM2, *can_arm.bus_args, "shoulder", str(original)).returncode == 0
+
+
+def test_run_program(can_arm: Emulated, arm2_200hz: Path, tmp_path: Path) -> None:
+    program = tmp_path / "program.yaml"
+    program.write_text(
+        "steps:\n"
+        "  - move: {shoulder: 10, elbow: 15}\n"
+        "    speed_scale: 0.8\n"
+        "  - wait: 0.2\n"
+        "  - path: [{shoulder: 0}, {shoulder: -10, elbow: 5}]\n"
+    )
+    result = cli("run", "--config", arm2_200hz, *can_arm.bus_args, program, "--json")
+    assert result.returncode == 0, result.stderr
+    summary = json.loads(result.stdout)
+    assert summary["command"] == "run" and summary["steps"] == 3
+    for label in ("step 1/3 move: done", "step 2/3 wait: 0.2 s", "step 3/3 path (2 waypoints): done"):
+        assert label in result.stderr
+    reached = positions(ARM2, can_arm)
+    assert reached["shoulder"] == pytest.approx(-10.0, abs=0.5)
+    assert reached["elbow"] == pytest.approx(5.0, abs=0.5)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("- move: {shoulder: 10}\n- path: [{shoulder: 0}, {elbow: 200}]\n", "steps[1].path[1].elbow: elbow = 200 deg"),
+        ("steps:\n  - move: {shoulder: 10}\n    wait: 1\n", "steps[0]: a step has exactly one of move, path, wait"),
+        ("steps:\n  - wait: 0.1\n  - move: {wrist: 3}\n", "steps[1].move.wrist: unknown joint 'wrist'"),
+        ("steps:\n  - move: {shoulder: 10}\n    speed_scale: 0\n", "steps[0].speed_scale: 0 is outside (0, 1]"),
+        ("steps:\n  - wait: -1\n", "steps[0].wait: -1 s: a wait cannot be negative"),
+        ("steps:\n  - move: {shoulder: 10}\n    speed: 1\n", "steps[0].speed: unknown key for a move step"),
+        ("steps:\n  - move: {shoulder: 10\n", "line 3, column 1: invalid YAML"),
+        ("steps: []\n", "steps: expected a non-empty list of steps"),
+    ],
+)
+def test_run_validates_the_whole_program_first(can_arm: Emulated, tmp_path: Path, text: str, message: str) -> None:
+    program = tmp_path / "program.yaml"
+    program.write_text(text)
+    before = can_arm.log_size()
+    result = cli("run", "--config", ARM2, *can_arm.bus_args, program)
+    assert result.returncode == 2, result.stderr
+    assert f"{program}: {message}" in result.stderr
+    time.sleep(0.05)
+    assert can_arm.log_size() == before
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_ctrl_c_during_a_move_halts_every_axis(can_arm: Emulated, arm2_200hz: Path, signum: signal.Signals) -> None:
+    process = subprocess.Popen(
+        [sys.executable, "-m", "motion.cli", "move", "--config", str(arm2_200hz), *can_arm.bus_args, *SLOW_MOVE],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    assert process.stderr is not None
+    try:
+        planned = process.stderr.readline()  # "move: N s planned": the motion is under way
+        assert "planned" in planned, planned + process.stderr.read()
+        assert float(planned.split()[1]) > 3.0
+        time.sleep(0.3)
+        with can_arm.log.open() as log:
+            interrupted_at = len(log.readlines())
+        process.send_signal(signum)
+        _, stderr = process.communicate(timeout=RUN_TIMEOUT_S)
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    assert process.returncode == 130, stderr
+    assert "interrupted" in stderr and "E-stop" in stderr
+    time.sleep(0.1)
+    after = can_arm.log.read_text().splitlines()[interrupted_at:]
+    halted = {line.split("| motor ")[1].split(":")[0] for line in after if " IN " in line and "MOTOR_STOP" in line}
+    assert halted == {"1", "2"}, after[-20:]
+    reached = positions(ARM2, can_arm)
+    assert abs(reached["shoulder"] - 60.0) > 5.0, "the move went on after the interrupt"
+
+
+def test_hold_stop_clear(can_arm: Emulated) -> None:
+    for command, expected in [
+        ("stop", "motor stop (0x81) acknowledged by shoulder (motor 1), elbow (motor 2)"),
+        ("clear", "shoulder (motor 1): clear"),
+        ("hold", "holding (drive position loop, 0xA4): shoulder at"),
+    ]:
+        result = cli(command, "--config", ARM2, *can_arm.bus_args)
+        assert result.returncode == 0, result.stderr
+        assert expected in result.stdout
+
+
+def test_a_drive_that_does_not_answer_is_a_communication_error(tmp_path: Path) -> None:
+    config = tmp_path / "arm2_missing.yaml"
+    config.write_text(ARM2.read_text().replace("motor_id: 2", "motor_id: 7"))
+    with running_emulator(tmp_path, ARM2, "--slcan-link") as emulated:
+        result = cli("status", "--config", config, *emulated.bus_args)
+        assert result.returncode == 3, result.stderr
+        assert "communication error" in result.stderr and "elbow" in result.stderr
+        scan = cli("scan", "--config", config, *emulated.bus_args, "--ids", "1-8")
+        assert scan.returncode == 3
+        assert "not answering: elbow (motor 7)" in scan.stderr
+
+
+# ---------------------------------------------------------------------------------------------------- RS485
+
+
+def test_rs485_scan_move_status(rs485_arm: Emulated) -> None:
+    result = cli("scan", "--config", ARM2_RS485, *rs485_arm.bus_args, "--json")
+    assert result.returncode == 0, result.stderr
+    drives = json.loads(result.stdout)["drives"]
+    assert [d["motor_id"] for d in drives] == [1, 2]
+    assert [d["model"]["motor_name"] for d in drives] == ["EMU-shoulder", "EMU-elbow"]  # from 0x12
+    moved = cli("move", "--config", ARM2_RS485, *rs485_arm.bus_args, "shoulder=-15", "elbow=25")
+    assert moved.returncode == 0, moved.stderr
+    reached = positions(ARM2_RS485, rs485_arm)
+    assert reached["shoulder"] == pytest.approx(-15.0, abs=0.5)
+    assert reached["elbow"] == pytest.approx(25.0, abs=0.5)
+
+
+# ---------------------------------------------------------------------------------------------------- no bus
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["emulate", "--config", ARM2, "--gear-ratio", "9", "--slcan-link", "x"], "--gear-ratio apply to --ids only"),
+        (["emulate", "--config", ROOT / "nope.yaml", "--slcan-link", "x"], "file not found"),
+        (["emulate", "--config", ARM2, "--ids", "1-2", "--slcan-link", "x"], "not allowed with argument"),
+        (["plot"], "the following arguments are required"),
+    ],
+)
+def test_usage_errors_without_a_bus(args: list[str | Path], message: str) -> None:
+    result = cli(*args)
+    assert result.returncode == 2, result.stderr
+    assert message in result.stderr
+
+
+def test_protocol_demo() -> None:
+    result = cli("demo", "--protocol")
+    assert result.returncode == 0, result.stderr
+    assert "141: a4 00 68 01 28 23 00 00" in result.stdout
+
+
+# ---------------------------------------------------------------------------------------------------- in process
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def test_progress_bar_on_a_terminal_and_plain_lines_otherwise() -> None:
+    terminal = _Terminal()
+    bar = Progress("move", terminal)
+    bar.update(-0.1, 2.0)
+    bar.update(1.0, 2.0)
+    bar.update(2.5, 2.0)
+    bar.close("done in 2.01 s")
+    assert terminal.getvalue() == (
+        f"\rmove [{'-' * 30}]   0.0/2.0 s"
+        f"\rmove [{'#' * 15}{'-' * 15}]   1.0/2.0 s"
+        f"\rmove [{'#' * 30}]   2.0/2.0 s"
+        "\nmove: done in 2.01 s\n"
+    )
+    plain = io.StringIO()
+    lines = Progress("step 1/2 move", plain)
+    for elapsed in (0.0, 0.5, 1.0):
+        lines.update(elapsed, 1.0)
+    lines.close("interrupted")
+    assert plain.getvalue() == "step 1/2 move: 1.00 s planned\nstep 1/2 move: interrupted\n"
+
+
+def test_interrupts_are_deferred_through_critical_sections() -> None:
+    interrupts = Interrupts()
+    interrupts.install()
+    try:
+        with pytest.raises(KeyboardInterrupt), interrupts.deferred():
+            signal.raise_signal(signal.SIGTERM)
+            finished = True  # the section ran to its end before the interrupt
+        assert finished
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)
+        interrupts.ignore()
+        signal.raise_signal(signal.SIGINT)  # ignored while halting
+    finally:
+        interrupts.restore()
+
+
+def test_program_forms_and_scales() -> None:
+    config = load_config(ARM2)
+    steps = [{"move": {"shoulder": 10}}, {"wait": 1}, {"path": [{"elbow": 5}, {"shoulder": -5, "elbow": 0}]}]
+    as_list = parse_program(steps, "p.yaml", config)
+    assert as_list == parse_program({"name": "demo", "steps": steps}, "p.yaml", config)
+    move, wait, path = as_list.steps
+    assert move == MoveStep({"shoulder": 10.0}, 1.0) and wait == WaitStep(1.0)
+    assert path == PathStep(({"elbow": 5.0}, {"shoulder": -5.0, "elbow": 0.0}), 1.0)
+    for data, message in [
+        ({"steps": steps, "loop": True}, "p.yaml: loop: unknown key"),
+        ([{"move": {"shoulder": True}}], "steps[0].move.shoulder: expected a number; found True"),
+        ([{"path": []}], "steps[0].path: expected a non-empty list of waypoints"),
+        (["move"], "steps[0]: expected a step mapping"),
+    ]:
+        with pytest.raises(ConfigError, match=re.escape(message)):
+            parse_program(data, "p.yaml", config)
