@@ -105,12 +105,14 @@ class Watchdog:
         Raises:
             MotionFault: kind ``setpoint_limit``.
         """
-        q = reference.position
+        self._check_limits(reference.position, "setpoint_limit", "planned set-point outside the limits")
+
+    def _check_limits(self, q: FloatArray, kind: str, detail: str) -> None:
         outside = (q < self.lower) | (q > self.upper)
         if outside.any():
             i = int(np.argmax(outside))
             bound = self.lower[i] if q[i] < self.lower[i] else self.upper[i]
-            raise self._fault("setpoint_limit", i, float(q[i]), float(bound), "planned set-point outside the limits")
+            raise self._fault(kind, i, float(q[i]), float(bound), detail)
 
     def _fault(
         self, kind: str, i: int | None, value: float | None, threshold: float | None, detail: str
@@ -150,13 +152,8 @@ class Watchdog:
                 )
         self._check_replies(now_s)
         self._check_corrupt(now_s)
-        axes = self.controller.axes
-        q = axes.q_deg
-        outside = (q < self.lower) | (q > self.upper)
-        if outside.any():
-            i = int(np.argmax(outside))
-            bound = self.lower[i] if q[i] < self.lower[i] else self.upper[i]
-            raise self._fault("position_limit", i, float(q[i]), float(bound), "measured position beyond the limit")
+        q = self.controller.axes.q_deg
+        self._check_limits(q, "position_limit", "measured position beyond the limit")
         previous = self.previous_reference
         if previous is not None:
             error = np.abs(previous - q)
