@@ -297,7 +297,10 @@ class Arm:
         self._guard().stop_motion()
 
     def stop(self) -> None:
-        """Halt every axis now with the configured halt policy (an E-stop: clear() before moving again)."""
+        """E-stop: halt every axis now with 0x81 (0x80 under ``halt_policy: off``); clear() before moving again.
+
+        Unlike a fault under ``halt_policy: hold``, an explicit stop never streams a ramp: the drives stop themselves.
+        """
         self._guard().estop("stop")
 
     def clear(self) -> None:

@@ -20,7 +20,7 @@ from motion.config import ArmConfig
 from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller
 from motion.emulator import Fault, FaultKind
-from motion.errors import MotionError, MotionFault
+from motion.errors import MotionError, MotionFault, PlanningError
 from motion.protocol import Command, MultiTurnPositionSpeed
 from motion.safety import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.trajectory import JointLimits, Planner, State
@@ -29,7 +29,7 @@ from motion.transport import Reply
 from tests.motion_rig import Rig, arm_config, emulated_arm, logged_requests, received
 
 # Slack for the emulator thread to log a frame after the control thread sent it, s.
-LOG_SLACK_S = 0.05
+LOG_SLACK_S = 0.01
 
 
 def _config(policy: HaltPolicy = HaltPolicy.STOP, mode: ControlMode = ControlMode.POSITION, **safety: Any) -> ArmConfig:
@@ -173,8 +173,16 @@ def test_following_error_with_hold_policy(tmp_path: Path) -> None:
         time.sleep(0.3)
         assert np.abs(rig.plant.joint_positions_deg() - held).max() < 0.05  # holding
         _assert_refused_until_clear(rig, info.value, persists=False)
+        assert not received(rig, Command.MOTOR_STOP)
+        supervisor.estop()  # an E-stop while holding escalates to the drives' own stop
+        time.sleep(0.1)
+        assert set(received(rig, Command.MOTOR_STOP)) == {1, 2}
+        assert supervisor.faults[-1].kind == "estop"
         supervisor.clear()
+        time.sleep(0.1)
+        assert supervisor.state is ArmState.READY  # the E-stop does not fire again after clear()
         supervisor.move_to([0.0, 0.0], speed_scale=0.2)
+        assert supervisor.wait(10.0)
 
 
 def test_measured_position_beyond_joint_limit_off_policy(tmp_path: Path) -> None:
@@ -196,10 +204,14 @@ def test_measured_position_beyond_joint_limit_off_policy(tmp_path: Path) -> None
         assert supervisor.fault.value < -3.0
         _assert_halted_in_detection_cycle(rig, Command.MOTOR_OFF)
         assert all(drive.state.value == "off" for drive in rig.emulator.drives.values())
+        with pytest.raises(MotionFault, match="outside its limits"):  # clear() fails while the cause persists
+            supervisor.clear()
 
 
 def test_planned_setpoint_outside_limits_is_never_sent(tmp_path: Path) -> None:
-    with emulated_arm(_config(following_error_deg=45.0), "virtual", tmp_path, supervised=True) as rig:
+    # with the hold policy: a stop ramp from beyond a limit would go further past it, so 0x81 it is
+    config = _config(HaltPolicy.HOLD, following_error_deg=45.0)
+    with emulated_arm(config, "virtual", tmp_path, supervised=True) as rig:
         controller = rig.controller
         supervisor = rig.supervisor
         assert supervisor is not None and controller.follower is not None
@@ -225,12 +237,27 @@ def test_planned_setpoint_outside_limits_is_never_sent(tmp_path: Path) -> None:
         _assert_halted_in_detection_cycle(rig)
 
 
-def test_transport_error_faults_and_the_halt_failure_is_reported(tmp_path: Path) -> None:
+def test_closing_the_bus_under_the_running_loop_halts_every_axis_first(tmp_path: Path) -> None:
     with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
-        fault = _move_and_catch(rig, rig.controller.bus.close)  # the port goes away under the running loop
-        assert fault.kind == "transport"
+        fault = _move_and_catch(rig, rig.controller.bus.close)  # the port is closed under the running loop
+        assert fault.kind == "bus_closing"
         supervisor = rig.supervisor
         assert supervisor is not None and supervisor.state is ArmState.FAULTED
+        assert rig.controller.bus.closed and not rig.controller.loop.running
+        _assert_halted_in_detection_cycle(rig)
+        _assert_comes_to_rest(rig)
+
+
+def test_bus_failure_faults_once_and_ends_the_loop(tmp_path: Path) -> None:
+    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        rig.controller.bus.close_hooks.clear()  # a port that disappears without warning (USB adapter unplugged)
+        fault = _move_and_catch(rig, rig.controller.bus.close)
+        assert fault.kind == "transport"
+        time.sleep(0.2)
+        assert not rig.controller.loop.running  # nothing can be sent: the loop ends instead of re-faulting
+        assert len(supervisor.faults) == 1
 
 
 def test_overrun_streak(tmp_path: Path) -> None:
@@ -300,3 +327,18 @@ def test_state_machine_unknown_event_goes_to_safe_state() -> None:
         machine.fire(ArmEvent.CLEARED)
     assert machine.state is ArmState.FAULTED
     assert machine.fire(ArmEvent.CLEARED) is ArmState.READY
+
+
+def test_a_retarget_that_cannot_be_planned_is_refused_and_the_move_goes_on(tmp_path: Path) -> None:
+    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        supervisor.move_to([80.0, -100.0])
+        time.sleep(0.25)
+        # at a hundredth of the acceleration the fast-moving arm cannot stop before the 90 deg limit
+        supervisor.move_to([85.0, -100.0], speed_scale=0.1)
+        with pytest.raises(PlanningError, match="move"):
+            supervisor.wait(5.0)
+        assert supervisor.state is not ArmState.FAULTED and not supervisor.faults
+        assert supervisor.wait(5.0)  # the first move went on to its target
+        assert np.abs(rig.plant.joint_positions_deg() - [80.0, -100.0]).max() < 1.0

@@ -23,7 +23,7 @@ import numpy as np
 from motion.control.axes import AxisSpec, AxisStates
 from motion.control.clock import Clock, MonotonicClock
 from motion.control.scheduler import CycleFn, FixedRateLoop, LoopStatistics
-from motion.errors import MotionError, TransportError
+from motion.errors import MotionError, PlanningError, TransportError
 from motion.protocol import (
     Bare,
     Command,
@@ -131,6 +131,7 @@ class Controller:
         self.kd = np.array([s.kd_nm_per_dps for s in self.specs])
         self.ids = tuple(s.motor_id for s in self.specs)
         self._pending: _Pending | None = None
+        self.rejected: PlanningError | None = None
         self._lock = threading.Lock()
         self._idle = threading.Event()
         self._idle.set()
@@ -152,6 +153,8 @@ class Controller:
         )
         self._single = [i for i in range(len(self.specs)) if i not in self._multi]
         self._iq_raw = np.zeros(len(self.specs), dtype=np.int64)
+        self._speed_ceiling_dps = _MAX_SPEED_DPS[options.protocol]
+        self._multi_slot = {i: MULTI_TORQUE_MOTOR_IDS.index(self.ids[i]) for i in self._multi}
         velocity_limit = np.abs(transmission.motor_rate(np.array(limits.velocity_dps)))
         self._speed_floor_dps = velocity_limit * options.speed_floor_share
 
@@ -231,11 +234,34 @@ class Controller:
 
     # ------------------------------------------------------------------------------------------------ the cycle
 
+    def discard_pending(self) -> None:
+        """Drop a queued motion command (a halt must not be overridden by a move queued in the same cycle)."""
+        with self._lock:
+            self._pending = None
+
+    def take_rejection(self) -> PlanningError | None:
+        """The PlanningError of the last queued command that could not be planned from the live reference, once."""
+        with self._lock:
+            error, self.rejected = self.rejected, None
+        return error
+
     def _apply_pending(self, t_s: float) -> None:
         with self._lock:
             pending, self._pending = self._pending, None
         if pending is None or self.follower is None:
             return
+        try:
+            self._plan_pending(pending, t_s)
+        except PlanningError as exc:
+            # Not plannable from the live reference (e.g. a re-target whose stop would overshoot a limit): the
+            # current motion goes on and the caller hears of it through take_rejection().
+            with self._lock:
+                self.rejected = exc
+            if not self.follower.moving:
+                self._idle.set()
+
+    def _plan_pending(self, pending: _Pending, t_s: float) -> None:
+        assert self.follower is not None
         if pending.kind == "move" and pending.target is not None:
             self.follower.move_to(t_s, pending.target, speed_scale=pending.speed_scale)
         elif pending.kind == "path" and pending.waypoints is not None:
@@ -255,7 +281,7 @@ class Controller:
         motor_deg = self.transmission.motor_deg(ref.position)
         speed = np.abs(self.transmission.motor_rate(ref.velocity))
         speed = speed * self.options.speed_headroom + self._speed_floor_dps
-        ceiling = _MAX_SPEED_DPS[self.options.protocol]
+        ceiling = self._speed_ceiling_dps
         return [
             Request(mid, MultiTurnPositionSpeed(float(motor_deg[i]), float(min(speed[i], ceiling))))
             for i, mid in enumerate(self.ids)
@@ -272,8 +298,8 @@ class Controller:
         requests = [Request(self.ids[i], TorqueControl(iq_amps(int(raw[i])))) for i in self._single]
         if self._multi:
             currents = [0.0, 0.0, 0.0, 0.0]
-            for i in self._multi:
-                currents[MULTI_TORQUE_MOTOR_IDS.index(self.ids[i])] = iq_amps(int(raw[i]))
+            for i, slot in self._multi_slot.items():
+                currents[slot] = iq_amps(int(raw[i]))
             requests.append(Request(MULTI_TORQUE_MOTOR_IDS[0], MultiMotorTorque(*currents)))
         return requests
 
@@ -296,6 +322,7 @@ class Controller:
         extra: Sequence[Request] = (),
         check: Callable[[State], None] | None = None,
         command: bool = True,
+        apply_pending: bool = True,
     ) -> list[Reply]:
         """The work of one cycle: apply a queued command, sample the reference for ``deadline_s``, build the batch
         (plus ``extra`` requests), exchange it, absorb the replies.
@@ -306,6 +333,7 @@ class Controller:
             extra: requests appended to the batch (status reads).
             check: called with the reference before anything is sent; raising stops the cycle before the send.
             command: False sends only ``extra`` (no motion set-points), e.g. while halted.
+            apply_pending: False leaves a queued motion command queued (while halted nothing new may start).
 
         Returns:
             The cycle's replies.
@@ -313,7 +341,7 @@ class Controller:
         follower = self.follower
         if follower is None:
             raise MotionError("read_positions() must run before the loop starts")
-        if self._pending is not None:
+        if apply_pending and self._pending is not None:
             self._apply_pending(start_s)
         self.reference = ref = follower.sample(deadline_s)
         if check is not None:

@@ -33,9 +33,8 @@ from motion.transport import Reply, Request
 logger = logging.getLogger("motion.safety")
 
 # Fault kinds after which streaming a stop (hold) is still trusted; every other kind falls back to 0x81.
-HOLDABLE = frozenset(
-    {"following_error", "position_limit", "setpoint_limit", "temperature", "low_voltage", "overrun", "estop"}
-)
+# Not the limit faults: a stop ramp from a reference at or beyond a limit would carry the arm further past it.
+HOLDABLE = frozenset({"following_error", "temperature", "low_voltage", "overrun", "estop"})
 # Shortest window given to the halt frames' acknowledgements in the detection cycle, s.
 _HALT_WINDOW_S = 0.002
 
@@ -78,6 +77,8 @@ class Supervisor:
         self._clear_result: MotionFault | None = None
         self._faulted = threading.Event()
         self._status_reads = [Request(i, Bare(Command.READ_STATUS_1)) for i in self.ids]
+        self._round_robin = 0  # a counter of its own: the cycle index k jumps over skipped cycles
+        self._bus_lost = False
         self._state_reads = [Request(i, Bare(Command.READ_STATUS_2)) for i in self.ids]
         self._finalizer = weakref.finalize(self, _emergency_stop, controller, self.ids)
         atexit.register(self._finalizer)
@@ -90,9 +91,16 @@ class Supervisor:
         return self.machine.state
 
     def start(self) -> None:
-        """Start the guarded loop."""
+        """Start the guarded loop (closing the bus first halts every axis and ends the loop)."""
         self.watchdog.start(self.controller.clock.now())
+        self.controller.bus.close_hooks.append(self._before_bus_close)
         self.controller.start(self.cycle)
+
+    def _before_bus_close(self) -> None:
+        if self.controller.loop.running:
+            if self.machine.state is not ArmState.FAULTED:
+                self.estop("bus_closing")
+            self.controller.shutdown()
 
     def _refuse_if_faulted(self) -> None:
         if self.machine.state is ArmState.FAULTED:
@@ -146,6 +154,9 @@ class Supervisor:
                 return False
         if self._faulted.is_set() and self.fault is not None:
             raise self.fault
+        rejected = self.controller.take_rejection()
+        if rejected is not None:
+            raise rejected
         return True
 
     def estop(self, reason: str = "estop", timeout_s: float = 1.0) -> bool:
@@ -162,6 +173,7 @@ class Supervisor:
         """
         if self.machine.state is not ArmState.FAULTED:
             raise MotionError(f"clear() needs a faulted arm; it is {self.machine.state.value}")
+        self._estop = None
         self._clear_done.clear()
         self._clear_request.set()
         if not self._clear_done.wait(timeout_s):
@@ -184,6 +196,8 @@ class Supervisor:
     def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
         """The guarded cycle: run by the scheduler; never raises (every failure is a fault that halts)."""
         controller = self.controller
+        if self._bus_lost:
+            return False
         try:
             if self.machine.state is ArmState.FAULTED:
                 self._faulted_cycle(start_s, deadline_s)
@@ -191,7 +205,7 @@ class Supervisor:
                 if self._estop is not None:
                     reason, self._estop = self._estop, None
                     raise MotionFault(reason, time_s=controller.clock.now(), detail="E-stop requested")
-                extra = (self._status_reads[k % len(self.ids)],)
+                extra = (self._next_status_read(),)
                 replies = controller.step(start_s, deadline_s, extra=extra, check=self.watchdog.check_setpoint)
                 self.watchdog.evaluate(replies, controller.clock.now())
                 if self.machine.state is ArmState.MOVING and controller.wait_idle(0):
@@ -203,28 +217,33 @@ class Supervisor:
         except Exception as exc:
             detail = f"{type(exc).__name__}: {exc}"
             self._halt(MotionFault("exception", time_s=controller.clock.now(), detail=detail), k, start_s, deadline_s)
-        return not controller.stopping
+        return not controller.stopping and not self._bus_lost
 
-    def _halt(self, fault: MotionFault, k: int, start_s: float, deadline_s: float) -> None:
+    def _next_status_read(self) -> Request:
+        """0x9A for the next drive in turn: every drive's flags are at most ``n_axes`` cycles old."""
+        self._round_robin = (self._round_robin + 1) % len(self.ids)
+        return self._status_reads[self._round_robin]
+
+    def _halt(self, fault: MotionFault, k: int, start_s: float, deadline_s: float, *, allow_hold: bool = True) -> None:
         controller = self.controller
         detected = controller.clock.now()
+        controller.discard_pending()  # a move queued during this cycle must not replace the halt
         self.fault = fault
         self.faults.append(fault)
-        first = self.machine.state is not ArmState.FAULTED
         self.machine.fire(ArmEvent.FAULT)
         policy = self.settings.halt_policy
-        holdable = policy is HaltPolicy.HOLD and fault.kind in HOLDABLE and not self._holding
+        holdable = allow_hold and policy is HaltPolicy.HOLD and fault.kind in HOLDABLE and not self._holding
         action = "stop ramp and hold" if holdable else ("0x80 off" if policy is HaltPolicy.OFF else "0x81 stop")
         level = logging.INFO if fault.kind == "close" else logging.ERROR
         logger.log(level, "halting every axis (%s): %s", action, fault)
         try:
-            if holdable and first:
+            if holdable:
                 self._holding = True
                 follower = controller.follower
                 assert follower is not None
                 follower.stop(start_s)
                 sent = controller.clock.now()
-                controller.step(sent, max(deadline_s, sent + _HALT_WINDOW_S))
+                controller.step(sent, max(deadline_s, sent + _HALT_WINDOW_S), apply_pending=False)
             else:
                 self._holding = False
                 self._halt_code = Command.MOTOR_OFF if policy is HaltPolicy.OFF else Command.MOTOR_STOP
@@ -232,11 +251,19 @@ class Supervisor:
                 self._halt_until_s = detected + self.settings.halt_retry_s
                 sent = controller.clock.now()
                 self._send_halt(sent, max(deadline_s, sent + _HALT_WINDOW_S))
-        except Exception as exc:  # the bus itself may be what failed: keep the fault, log the failed halt
+        except TransportError as exc:  # the bus itself is what failed: nothing more can be sent
+            sent = controller.clock.now()
+            self._lose_bus(exc)
+        except Exception as exc:
             sent = controller.clock.now()
             logger.error("halt could not be sent: %s: %s", type(exc).__name__, exc)
         self.halts.append(HaltRecord(fault, k, detected, sent, "hold" if self._holding else self._halt_code.name))
         self._faulted.set()
+
+    def _lose_bus(self, exc: BaseException) -> None:
+        if not self._bus_lost:
+            self._bus_lost = True
+            logger.critical("the bus is gone (%s): the halt could not be sent; the control loop ends", exc)
 
     def _send_halt(self, now_s: float, deadline_s: float) -> None:
         requests = [Request(i, Bare(self._halt_code)) for i in sorted(self.unacknowledged)]
@@ -250,17 +277,27 @@ class Supervisor:
         now = controller.clock.now()
         if self._clear_request.is_set():
             self._clear_request.clear()
-            self._do_clear(start_s, deadline_s)
-            self._clear_done.set()
-            return
-        if self._holding:
             try:
-                replies = controller.step(start_s, deadline_s)
+                self._do_clear(start_s, deadline_s)
+            finally:
+                self._clear_done.set()
+            return
+        estop, self._estop = self._estop, None
+        try:
+            if self._holding:
+                if estop is not None:  # an E-stop during a hold escalates to the drives' own stop
+                    raise MotionFault(estop, time_s=now, detail="E-stop requested while holding")
+                extra = (self._next_status_read(),)
+                check = self.watchdog.check_setpoint  # the stop ramp must not pass a limit either
+                replies = controller.step(start_s, deadline_s, extra=extra, check=check, apply_pending=False)
                 self.watchdog.evaluate(replies, controller.clock.now())
-            except MotionFault as fault:
-                if fault.kind not in HOLDABLE:  # communication broke while holding: fall back to 0x81
-                    self._holding = False
-                    self._halt(fault, -1, start_s, deadline_s)
+                return
+        except MotionFault as fault:
+            if fault.kind in HOLDABLE and fault.kind != estop:
+                return  # the kind of fault the hold is for (e.g. the following error it started with)
+            # communication, a drive, a limit or an E-stop: fall back to the drives' own stop (0x81 / 0x80)
+            self._holding = False
+            self._halt(fault, -1, start_s, deadline_s, allow_hold=False)
             return
         if self.unacknowledged and now < self._halt_until_s:
             self._send_halt(now, start_s + controller.options.reply_budget * (deadline_s - start_s))
@@ -269,7 +306,7 @@ class Supervisor:
             logger.error("drives %s did not acknowledge the halt", sorted(self.unacknowledged))
             self.unacknowledged.clear()
         # Halted: keep reading the drives (reads do not move them) so that positions and flags stay current.
-        controller.step(start_s, deadline_s, extra=self._state_reads, command=False)
+        controller.step(start_s, deadline_s, extra=self._state_reads, command=False, apply_pending=False)
 
     def _do_clear(self, start_s: float, deadline_s: float) -> None:
         controller = self.controller
@@ -310,6 +347,14 @@ class Supervisor:
                 problems.append(f"{name}: supply {s.voltage_v:.1f} V below {settings.min_voltage_v:g} V")
             if max(s.temperature_c, m.temperature_c) >= limits[motor_id]:
                 problems.append(f"{name}: temperature {s.temperature_c} °C at or above {limits[motor_id]:g} °C")
+        q = self.controller.axes.q_deg
+        lower, upper = self.watchdog.lower, self.watchdog.upper
+        for i, spec in enumerate(self.controller.specs):
+            if not lower[i] <= q[i] <= upper[i]:
+                problems.append(
+                    f"{spec.name}: at {q[i]:.2f} deg, outside its limits {lower[i]:g}..{upper[i]:g} deg "
+                    "(move it back by hand with the drives off: rmd-motion off)"
+                )
         return problems
 
 

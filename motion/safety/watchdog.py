@@ -135,22 +135,26 @@ class Watchdog:
         settings = self.settings
         self._missing[:] = False
         self._answered[:] = False
+        index = self.index
+        for reply in replies:  # first the reply bookkeeping, so that a drive fault never hides a lost drive
+            i = index.get(reply.motor_id)
+            if i is not None:
+                if reply.message is None:
+                    self._missing[i] = True
+                else:
+                    self._answered[i] = True
+        self._check_replies(now_s)
         for reply in replies:
-            i = self.index.get(reply.motor_id)
-            if i is None:
-                continue
+            i = index.get(reply.motor_id)
             message = reply.message
-            if message is None:
-                self._missing[i] = True
+            if i is None or message is None:
                 continue
-            self._answered[i] = True
             if isinstance(message, Status1):
                 self._check_status(i, message)
             elif isinstance(message, MotorState) and message.temperature_c >= self.temperature_limit[i]:
                 raise self._fault(
                     "temperature", i, message.temperature_c, float(self.temperature_limit[i]), "motor temperature"
                 )
-        self._check_replies(now_s)
         self._check_corrupt(now_s)
         q = self.controller.axes.q_deg
         self._check_limits(q, "position_limit", "measured position beyond the limit")

@@ -155,6 +155,9 @@ class Transport(ABC):
         self.bus_counters = BusCounters()
         #: Optional observer of every frame (a bus trace); see :data:`FrameTap`.
         self.frame_tap: FrameTap | None = None
+        #: Called (in order, from the closing thread) before the port is released: a control loop that owns the bus
+        #: halts its axes and ends there, so that closing the port never leaves a motor running.
+        self.close_hooks: list[Callable[[], None]] = []
         self._counters: dict[int, MotorCounters] = {}
         self._counters_view: Mapping[int, MotorCounters] = types.MappingProxyType(self._counters)
         self._closed = False
@@ -209,10 +212,14 @@ class Transport(ABC):
         return self._finish()
 
     def close(self) -> None:
-        """Release the bus or port; safe to call more than once."""
+        """Run the close hooks, then release the bus or port; safe to call more than once."""
         if not self._closed:
-            self._closed = True
-            self._close()
+            try:
+                for hook in list(self.close_hooks):
+                    hook()
+            finally:
+                self._closed = True
+                self._close()
 
     def __enter__(self) -> Self:
         return self
