@@ -8,6 +8,8 @@ persists (where the cause can persist).
 from __future__ import annotations
 
 import dataclasses
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -26,7 +28,7 @@ from motion.safety import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.trajectory import JointLimits, Planner, State
 from motion.trajectory import Path as TrajectoryPath
 from motion.transport import Reply
-from tests.motion_rig import Rig, arm_config, emulated_arm, logged_requests, received
+from tests.motion_rig import CONFIGS, Rig, arm_config, emulated_arm, logged_requests, received
 
 # Slack for the emulator thread to log a frame after the control thread sent it, s.
 LOG_SLACK_S = 0.01
@@ -150,6 +152,10 @@ def test_missing_and_corrupt_replies(kind: FaultKind, expected: str, tmp_path: P
         fault = _move_and_catch(rig, lambda: _inject(rig, kind, 1, duration_s=60.0))
         assert fault.kind == expected and fault.joint == "shoulder"
         _assert_halted_in_detection_cycle(rig)
+        if kind is FaultKind.SILENT:  # no acknowledgement: the halt is re-sent until the retry bound (0.2 s)
+            time.sleep(0.3)
+            assert len(received(rig, Command.MOTOR_STOP)[1]) > 5
+            assert rig.supervisor is not None and not rig.supervisor.unacknowledged
         _assert_comes_to_rest(rig)  # the silent drive received its 0x81 too (it only stopped replying)
         _assert_refused_until_clear(rig, fault, persists=True)
 
@@ -342,3 +348,21 @@ def test_a_retarget_that_cannot_be_planned_is_refused_and_the_move_goes_on(tmp_p
         assert supervisor.state is not ArmState.FAULTED and not supervisor.faults
         assert supervisor.wait(5.0)  # the first move went on to its target
         assert np.abs(rig.plant.joint_positions_deg() - [80.0, -100.0]).max() < 1.0
+
+
+def test_process_exit_without_close_halts_every_axis(tmp_path: Path) -> None:
+    log = tmp_path / "frames.log"
+    script = tmp_path / "leave.py"
+    script.write_text(
+        "import sys, time\n"
+        "from motion import Arm\n"
+        f"arm = Arm.from_config({str(CONFIGS / 'arm2.yaml')!r}, emulate=True, emulator_log={str(log)!r})\n"
+        "arm.connect()\n"
+        "arm.move_to({'shoulder': 60.0}, speed_scale=0.3, wait=False)\n"
+        "time.sleep(0.3)\n"
+        "sys.exit(0)  # no close(): the exit handler must halt every axis\n"
+    )
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60, check=False)
+    assert result.returncode == 0, result.stderr
+    halted = {line.split()[3] for line in log.read_text().splitlines() if " IN " in line and ": 81 00" in line}
+    assert halted == {"141:", "142:"}
