@@ -85,15 +85,17 @@ class Watchdog:
         self._corrupt: list[collections.deque[float]] = [collections.deque() for _ in range(n)]
         self._overruns_seen = 0
         self._overrun_streak = 0
+        self._counters = [controller.bus.motor_counters(motor_id) for motor_id in self.ids]
         self.previous_reference: FloatArray | None = None
 
     def start(self, now_s: float) -> None:
         """Reset the reply clocks (at loop start or after a clear)."""
         self.last_good_s[:] = now_s
         self.misses[:] = 0
-        counters = self.controller.bus.counters
-        for i, motor_id in enumerate(self.ids):
-            self._bad_seen[i] = counters[motor_id].bad_frames if motor_id in counters else 0
+        # The counter objects live as long as the transport: look them up once, not every cycle.
+        self._counters = [self.controller.bus.motor_counters(motor_id) for motor_id in self.ids]
+        for i, counter in enumerate(self._counters):
+            self._bad_seen[i] = counter.bad_frames
             self._corrupt[i].clear()
         self._overruns_seen = self.controller.loop.overruns
         self._overrun_streak = 0
@@ -208,10 +210,8 @@ class Watchdog:
             )
 
     def _check_corrupt(self, now_s: float) -> None:
-        counters = self.controller.bus.counters
-        for i, motor_id in enumerate(self.ids):
-            counter = counters.get(motor_id)
-            if counter is None or counter.bad_frames == self._bad_seen[i]:
+        for i, counter in enumerate(self._counters):
+            if counter.bad_frames == self._bad_seen[i]:
                 continue
             window = self._corrupt[i]
             window.extend([now_s] * (counter.bad_frames - int(self._bad_seen[i])))
