@@ -191,6 +191,30 @@ def test_following_error_with_hold_policy(tmp_path: Path) -> None:
         assert supervisor.wait(10.0)
 
 
+def test_hold_that_cannot_start_halts_every_axis(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # issue 19: the stop ramp of a holdable fault cannot be planned -> the drives' own stop, in the detection cycle
+    config = _config(HaltPolicy.HOLD)
+    with emulated_arm(config, "virtual", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None and rig.controller.follower is not None
+
+        def unplannable(t_s: float) -> None:
+            raise PlanningError("stop ramp cannot be planned (forced by the test)")
+
+        monkeypatch.setattr(rig.controller.follower, "stop", unplannable)
+        fault = _move_and_catch(rig, lambda: _inject(rig, FaultKind.UNDER_VOLTAGE, 2, 19.0, duration_s=60.0))
+        assert fault.kind == "low_voltage"
+        halt = supervisor.halts[0]
+        assert halt.policy == "MOTOR_STOP"
+        _assert_halted_in_detection_cycle(rig)
+        _assert_comes_to_rest(rig)
+        stopped = rig.plant.joint_positions_deg()
+        time.sleep(0.5)
+        now = rig.plant.joint_positions_deg()
+        assert np.abs(now - stopped).max() < 0.1  # it stays where it stopped
+        assert np.abs(now - np.array([80.0, -100.0])).min() > 10.0  # and did not finish the move
+
+
 def test_measured_position_beyond_joint_limit_off_policy(tmp_path: Path) -> None:
     # torque mode without feed-forward in a vertical plane: the arm sags past a tight lower limit of the shoulder
     config = arm_config("arm2.yaml", mode=ControlMode.TORQUE, rate_hz=200)

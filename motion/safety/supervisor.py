@@ -238,13 +238,18 @@ class Supervisor:
         logger.log(level, "halting every axis (%s): %s", action, fault)
         try:
             if holdable:
-                self._holding = True
-                follower = controller.follower
-                assert follower is not None
-                follower.stop(start_s)
-                sent = controller.clock.now()
-                controller.step(sent, max(deadline_s, sent + _HALT_WINDOW_S), apply_pending=False)
-            else:
+                try:
+                    sent = self._start_hold(start_s, deadline_s)
+                except TransportError:
+                    raise
+                except Exception as exc:  # a hold that cannot start must not leave the last command in force
+                    logger.error(
+                        "the hold could not start (%s: %s): halting every axis with 0x81 instead",
+                        type(exc).__name__,
+                        exc,
+                    )
+                    holdable = False
+            if not holdable:
                 self._holding = False
                 self._halt_code = Command.MOTOR_OFF if policy is HaltPolicy.OFF else Command.MOTOR_STOP
                 self.unacknowledged = set(self.ids)
@@ -259,6 +264,26 @@ class Supervisor:
             logger.error("halt could not be sent: %s: %s", type(exc).__name__, exc)
         self.halts.append(HaltRecord(fault, k, detected, sent, "hold" if self._holding else self._halt_code.name))
         self._faulted.set()
+
+    def _start_hold(self, start_s: float, deadline_s: float) -> float:
+        """Replace the reference with a jerk-limited stop and send its first set-point; returns when it was sent.
+
+        Raises:
+            Exception: whatever kept the hold from starting (the caller falls back to the drives' own stop).
+        """
+        controller = self.controller
+        follower = controller.follower
+        if follower is None:
+            raise MotionError("no trajectory follower to plan the stop ramp")
+        self._holding = True
+        try:
+            follower.stop(start_s)
+            sent = controller.clock.now()
+            controller.step(sent, max(deadline_s, sent + _HALT_WINDOW_S), apply_pending=False)
+        except BaseException:
+            self._holding = False
+            raise
+        return sent
 
     def _lose_bus(self, exc: BaseException) -> None:
         if not self._bus_lost:
@@ -318,7 +343,9 @@ class Supervisor:
             self._clear_result = MotionFault("clear_failed", time_s=controller.clock.now(), detail="; ".join(problems))
             return
         q = controller.axes.positions()
-        assert controller.follower is not None
+        if controller.follower is None:
+            self._clear_result = MotionFault("clear_failed", time_s=controller.clock.now(), detail="no follower")
+            return
         controller.follower.hold_at(q)
         controller.reference = State.at_rest(q)
         self._holding = False
