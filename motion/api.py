@@ -17,8 +17,11 @@ Pinocchio model (:mod:`kinematics`) and hands the controller its feed-forward ca
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
+import sys
+import tempfile
 import types
-import uuid
 from collections.abc import Mapping, Sequence
 from contextlib import ExitStack
 from dataclasses import dataclass
@@ -32,12 +35,32 @@ from motion.config.build import build_controller, open_bus, safety_settings
 from motion.config.schema import CanBusConfig
 from motion.control.controller import Controller
 from motion.control.scheduler import LoopStatistics
-from motion.emulator import FrameLog, Rs485Attachment, VirtualCanAttachment
-from motion.errors import MotionError, MotionFault, PlanningError
+from motion.emulator import FrameLog
+from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
+from motion.errors import ConfigError, MotionError, MotionFault, PlanningError, TransportError
+from motion.protocol import Transport as Wire
 from motion.safety import ArmState, Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
 from motion.transmission import FloatArray
 from motion.transport import Transport
+
+_EMULATE_CHOICES: dict[bool | str, str | None] = {
+    False: None,
+    True: "simulated",
+    "simulated": "simulated",
+    "realtime": "realtime",
+}
+#: How long the emulator process gets to end after SIGTERM, s.
+_EMULATOR_EXIT_S = 5.0
+
+
+def _end_process(process: subprocess.Popen[str]) -> None:
+    process.terminate()
+    try:
+        process.communicate(timeout=_EMULATOR_EXIT_S)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.communicate()
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,7 +138,11 @@ class Arm:
 
     Args:
         config: the validated configuration.
-        emulate: run on emulated drives (in-process bus for CAN, a pseudo-terminal for RS485) instead of hardware.
+        emulate: run on emulated drives instead of hardware. ``True`` (or ``"simulated"``): in simulated time, in
+            this process: the wire and the drives are modelled frame by frame, the control cycles run in the thread
+            that waits (``handle.wait()``, :meth:`sleep`), and a run gives the same result on every host, faster than
+            real time. ``"realtime"``: the drives run in real time in a process of their own (``rmd-motion emulate``
+            on a slcan or RS485 pseudo-terminal, built from the configuration file), as hardware would.
         bus_overrides: replace configured bus settings (``channel=...``, ``port=...``).
         initial_deg: emulated joint angles at start (emulation only).
         emulator_log: write every frame the emulated drives receive and send to this file (emulation only).
@@ -127,14 +154,20 @@ class Arm:
         self,
         config: ArmConfig,
         *,
-        emulate: bool = False,
+        emulate: bool | str = False,
         bus_overrides: Mapping[str, object] | None = None,
         initial_deg: Sequence[float] | None = None,
         emulator_log: str | os.PathLike[str] | None = None,
         telemetry: TelemetryOptions | None = None,
     ) -> None:
         self.config = config
-        self.emulate = emulate
+        if emulate not in _EMULATE_CHOICES:
+            raise ConfigError(
+                config.source, "<emulate>", f"{emulate!r} is not one of False, True, 'simulated', 'realtime'"
+            )
+        #: ``None`` (hardware), ``"simulated"`` or ``"realtime"``.
+        self.emulation: str | None = _EMULATE_CHOICES[emulate]
+        self.emulate = self.emulation is not None
         self._overrides = dict(bus_overrides or {})
         self._initial = initial_deg
         self._emulator_log = emulator_log
@@ -148,11 +181,13 @@ class Arm:
         self.emulator: Any = None
         self.plant: Any = None
         self.frame_log: FrameLog | None = None
+        #: The simulation of ``emulate=True`` (its emulator, wire and clock), once connected.
+        self.simulation: Simulation | None = None
         self.names = config.joint_names
         self._index = {name: i for i, name in enumerate(self.names)}
 
     @classmethod
-    def from_config(cls, path: str | os.PathLike[str], *, emulate: bool = False, **kwargs: Any) -> Arm:
+    def from_config(cls, path: str | os.PathLike[str], *, emulate: bool | str = False, **kwargs: Any) -> Arm:
         """Load and validate ``path`` (the arm is connected by ``with`` or :meth:`connect`).
 
         Raises:
@@ -176,9 +211,14 @@ class Arm:
                 self.telemetry = self._stack.enter_context(
                     TelemetrySession(self._telemetry_options, self.config, emulated=self.emulate)
                 )
-            if self.emulate:
-                self._start_emulation()
-            self.bus = self._stack.enter_context(open_bus(self.config, **self._overrides))
+            clock = None
+            if self.emulation == "simulated":
+                self.bus, clock = self._start_simulation()
+                self._stack.callback(self.bus.close)
+            else:
+                if self.emulation == "realtime":
+                    self._start_emulator_process()
+                self.bus = self._stack.enter_context(open_bus(self.config, **self._overrides))
             if self.telemetry is not None:
                 self.telemetry.tap(self.bus)
             control = self.config.control
@@ -187,7 +227,7 @@ class Arm:
                 ff = feedforward(
                     build_arm(self.config), gravity=control.gravity_feedforward, inertia=control.inertia_feedforward
                 )
-            self.controller = build_controller(self.config, self.bus, feedforward=ff)
+            self.controller = build_controller(self.config, self.bus, feedforward=ff, clock=clock)
             self.controller.read_positions()
             self.supervisor = Supervisor(self.controller, safety_settings(self.config))
             if self.telemetry is not None:
@@ -198,20 +238,49 @@ class Arm:
             raise
         return self
 
-    def _start_emulation(self) -> None:
+    def _start_simulation(self) -> tuple[Transport, SimulatedClock]:
         from kinematics.emulation import arm_emulator  # noqa: PLC0415 - as above
 
         self.emulator, self.plant = arm_emulator(self.config, initial_deg=self._initial)
-        log = self._stack.enter_context(FrameLog(self._emulator_log)) if self._emulator_log is not None else None
-        self.frame_log = log
-        if isinstance(self.config.bus, CanBusConfig):
-            channel = f"rmd-emulated-{uuid.uuid4().hex[:8]}"
-            self._stack.enter_context(VirtualCanAttachment(self.emulator, channel, frame_log=log))
-            self._overrides = {"interface": "virtual", "channel": channel, "bitrate": None} | self._overrides
+        bus_config = self.config.bus
+        if isinstance(bus_config, CanBusConfig):
+            simulation = Simulation(self.emulator, Wire.CAN, bitrate=bus_config.bitrate or DEFAULT_BITRATE)
         else:
-            link = Path(os.environ.get("TMPDIR", "/tmp")) / f"rmd-emulated-{uuid.uuid4().hex[:8]}"
-            attachment = self._stack.enter_context(Rs485Attachment(self.emulator, link, frame_log=log))
-            self._overrides = {"port": attachment.path} | self._overrides
+            simulation = Simulation(self.emulator, Wire.RS485, baud=bus_config.baudrate)
+        if self._emulator_log is not None:
+            self.frame_log = self._stack.enter_context(FrameLog(self._emulator_log, clock=simulation.now))
+            simulation.frame_log = self.frame_log
+        self.simulation = simulation
+        return SimulatedBus(simulation), SimulatedClock(simulation)
+
+    def _start_emulator_process(self) -> None:
+        if self._initial is not None:
+            raise MotionError("initial_deg applies to simulated emulation only (emulate=True)")
+        source = Path(self.config.source)
+        if not source.is_file():
+            raise MotionError("emulate='realtime' builds the drives from the configuration file; this one has none")
+        link = Path(tempfile.mkdtemp(prefix="rmd-emulated-")) / "link"
+        self._stack.callback(shutil.rmtree, link.parent, ignore_errors=True)
+        can = isinstance(self.config.bus, CanBusConfig)
+        command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(source)]
+        command += ["--slcan-link" if can else "--rs485-link", str(link)]
+        if self._emulator_log is not None:
+            command += ["--log", str(self._emulator_log)]
+        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self._stack.callback(_end_process, process)
+        assert process.stdout is not None  # stdout=PIPE
+        lines: list[str] = []
+        while not lines or not lines[-1].startswith("emulating motors"):
+            line = process.stdout.readline()
+            if not line:
+                error = process.stderr.read() if process.stderr is not None else ""
+                raise TransportError(f"the emulator process did not start: {' '.join(lines)} {error}".strip())
+            lines.append(line.strip())
+        if can:
+            self._overrides = {"interface": "slcan", "channel": str(link), "bitrate": DEFAULT_BITRATE}
+            self._overrides |= {"sleep_after_open": 0}
+        else:
+            self._overrides = {"port": str(link)}
 
     def close(self) -> None:
         """Halt every axis (0x81), end the loop, release the bus and write the telemetry; safe to call twice."""
@@ -291,6 +360,13 @@ class Arm:
         if wait:
             handle.wait()
         return handle
+
+    def sleep(self, duration_s: float) -> None:
+        """Let ``duration_s`` seconds pass with the arm under control (holding, or moving with ``wait=False``).
+
+        In simulated emulation this is how time passes: the control cycles run in this call. Otherwise it sleeps.
+        """
+        self._guard().controller.pause(duration_s)
 
     def hold(self) -> None:
         """Jerk-limited stop of the current motion; the arm holds where it ends (not a fault)."""

@@ -80,9 +80,9 @@ def _follow_path(arm: Arm) -> None:
 
 
 def _gravity_move(arm: Arm) -> None:
-    time.sleep(HOLD_S)
+    arm.sleep(HOLD_S)
     arm.move_to(dict(zip(arm.names, TORQUE_TARGET_DEG, strict=True)), speed_scale=TORQUE_SPEED_SCALE)
-    time.sleep(HOLD_S)
+    arm.sleep(HOLD_S)
 
 
 def _run_phase(

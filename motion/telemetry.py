@@ -7,13 +7,14 @@ is formatted, logged or written until :meth:`TelemetrySession.close`. Memory gro
 per cycle for the log (arm6 at 250 Hz: 135 kB/s) and 30 bytes per CAN frame for the trace (arm6: 13 frames per
 cycle, 100 kB/s), so record runs of minutes, not days.
 
-The per-cycle log (``.npz``, schema ``rmd-motion-telemetry`` version 1)
+The per-cycle log (``.npz``, schema ``rmd-motion-telemetry`` version 2)
 ------------------------------------------------------------------------
 A :func:`numpy.savez_compressed` archive: one array per column, plus ``meta``, a JSON document in a 0-d string
 array. ``numpy.load(path)`` reads it without pickles; :func:`load_log` returns a :class:`TelemetryLog`. ``N`` is
 the number of recorded cycles, ``J`` the number of joints (configuration order, named in ``meta["joints"]``), ``F``
-the number of faults. Times are seconds since ``meta["t0_s"]`` (controller clock; ``meta["t0_unix_s"]`` is the same
-instant as Unix time, the time base of the bus trace).
+the number of faults. Times are seconds since ``meta["t0_s"]`` (controller clock: simulated time in a simulated run,
+where every array is reproducible to the bit; ``meta["t0_wall_unix_s"]`` is the host's wall-clock Unix time at that
+instant, the time base of the bus trace). Version 2 renamed version 1's ``t0_unix_s``.
 
 =================  =====  =======  ==============================================================================
 column             shape  dtype    meaning (unit)
@@ -46,7 +47,7 @@ column             shape  dtype    meaning (unit)
 
 Command columns are NaN in the cycles that sent no set-point (while halted). ``meta`` holds ``schema``,
 ``version``, ``config`` (name), ``config_source``, ``mode``, ``transport``, ``channel``, ``emulated``, ``rate_hz``,
-``period_s``, ``joints`` (``name``, ``motor_id``), ``units`` (column -> unit), ``t0_s``, ``t0_unix_s``,
+``period_s``, ``joints`` (``name``, ``motor_id``), ``units`` (column -> unit), ``t0_s``, ``t0_wall_unix_s``,
 ``following_error_limit_deg``, ``loop`` (the :class:`~motion.control.scheduler.LoopStatistics` of the run),
 ``counters`` (per motor id: sent, replied, timeouts, bad and stale frames) and ``trace`` (file name or null).
 
@@ -89,7 +90,7 @@ if TYPE_CHECKING:
     from motion.safety.supervisor import HaltRecord
 
 SCHEMA: Final = "rmd-motion-telemetry"
-VERSION: Final = 1
+VERSION: Final = 2
 #: Rows per chunk of the per-cycle log (16 s at 250 Hz).
 CHUNK_ROWS: Final = 4096
 #: Frames per chunk of the bus trace.
@@ -275,7 +276,7 @@ class Recorder:
         #: Time zero of the log, controller clock, s.
         self.t0_s = controller.clock.now()
         #: The same instant as Unix time, s.
-        self.t0_unix_s = time.time() - (controller.clock.now() - self.t0_s)
+        self.t0_wall_unix_s = time.time() - (controller.clock.now() - self.t0_s)
 
     def attach(self) -> Recorder:
         """Append to the controller's cycle hooks."""
@@ -353,7 +354,7 @@ class Recorder:
         joints = [{"name": s.name, "motor_id": s.motor_id} for s in controller.specs]
         return _schema_meta(controller.options.mode.value, controller.options.rate_hz, joints) | {
             "t0_s": self.t0_s,
-            "t0_unix_s": self.t0_unix_s,
+            "t0_wall_unix_s": self.t0_wall_unix_s,
             "loop": dataclasses.asdict(controller.loop.statistics()),
             "counters": {str(mid): dataclasses.asdict(c) for mid, c in sorted(controller.bus.counters.items())},
         }
@@ -575,7 +576,7 @@ class TelemetrySession:
         columns.update(_fault_columns((), 0.0))
         joints = [{"name": j.name, "motor_id": j.motor_id} for j in config.joints]
         meta |= _schema_meta(config.control.mode.value, config.control.rate_hz, joints)
-        meta |= {"t0_s": 0.0, "t0_unix_s": time.time(), "loop": None, "counters": {}}
+        meta |= {"t0_s": 0.0, "t0_wall_unix_s": time.time(), "loop": None, "counters": {}}
         return TelemetryLog(columns, meta)
 
     def _close_files(self) -> None:

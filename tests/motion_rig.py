@@ -1,5 +1,9 @@
-"""An emulated arm on a real bus for motion tests: config -> Pinocchio-coupled emulator -> attachment -> transport ->
-controller, plus the reconstruction of the commanded stream from the emulator's frame log."""
+"""An emulated arm for motion tests: config -> Pinocchio-coupled emulator -> simulated bus (simulated time: the same
+result on every host) or a real bus attachment -> controller, plus the reconstruction of the commanded stream from
+the emulator's frame log.
+
+In simulated time nothing runs between the test's calls: time passes in ``rig.sleep(s)`` and in the waits
+(``supervisor.wait()``, ``controller.wait_idle()``), which run the control cycles in the test's thread."""
 
 from __future__ import annotations
 
@@ -17,11 +21,14 @@ from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
 from motion.config import ArmConfig, load_config
 from motion.config.build import build_controller, open_bus, safety_settings
-from motion.config.schema import ControlMode
+from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.emulator import Emulator, FrameLog, Rs485Attachment, SlcanAttachment, VirtualCanAttachment
+from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.protocol import Message, MultiTurnPositionSpeed, can_frame, rs485_frame
+from motion.protocol import Transport as Wire
 from motion.safety import Supervisor
+from motion.transport import Transport
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
@@ -36,6 +43,14 @@ class Rig:
     cycle_starts: list[float]
     supervisor: Supervisor | None = None
     log_start_s: float = 0.0
+
+    def sleep(self, duration_s: float) -> None:
+        """Let ``duration_s`` pass with the loop running (simulated time, or a real sleep)."""
+        self.controller.pause(duration_s)
+
+    def now(self) -> float:
+        """The controller's clock, s."""
+        return self.controller.clock.now()
 
 
 def arm_config(name: str, *, mode: ControlMode | None = None, rate_hz: float | None = None) -> ArmConfig:
@@ -52,12 +67,22 @@ def arm_config(name: str, *, mode: ControlMode | None = None, rate_hz: float | N
 def emulated_arm(
     config: ArmConfig, attachment: str, tmp_path: Path, *, use_feedforward: bool = True, supervised: bool = False
 ) -> Iterator[Rig]:
-    """Run ``config`` on emulated drives over ``attachment`` (virtual | slcan | rs485); the controller is started,
-    under a safety :class:`Supervisor` if ``supervised``."""
+    """Run ``config`` on emulated drives over ``attachment`` (``sim``: the simulated bus of the configured protocol,
+    in simulated time; or in real time on an in-process attachment: virtual | slcan | rs485); the controller is
+    started, under a safety :class:`Supervisor` if ``supervised``."""
     emulator, plant = arm_emulator(config)
     log_path = tmp_path / f"frames-{uuid.uuid4().hex[:8]}.log"
+    clock = None
     with ExitStack() as stack:
-        log = stack.enter_context(FrameLog(log_path))
+        if attachment == "sim":
+            wire = Wire.CAN if isinstance(config.bus, CanBusConfig) else Wire.RS485
+            simulation = Simulation(emulator, wire)
+            log = stack.enter_context(FrameLog(log_path, clock=simulation.now))
+            simulation.frame_log = log
+            bus: Transport = stack.enter_context(SimulatedBus(simulation))
+            clock = SimulatedClock(simulation)
+        else:
+            log = stack.enter_context(FrameLog(log_path))
         if attachment == "virtual":
             channel = uuid.uuid4().hex
             stack.enter_context(VirtualCanAttachment(emulator, channel, frame_log=log))
@@ -65,15 +90,17 @@ def emulated_arm(
         elif attachment == "slcan":
             link = tmp_path / f"slcan-{uuid.uuid4().hex[:8]}"
             stack.enter_context(SlcanAttachment(emulator, link, frame_log=log))
-            bus = stack.enter_context(open_bus(config, interface="slcan", channel=str(link), bitrate=1_000_000))
-        else:
+            bus = stack.enter_context(
+                open_bus(config, interface="slcan", channel=str(link), bitrate=1_000_000, sleep_after_open=0)
+            )
+        elif attachment == "rs485":
             link = tmp_path / f"rs485-{uuid.uuid4().hex[:8]}"
             stack.enter_context(Rs485Attachment(emulator, link, frame_log=log))
             bus = stack.enter_context(open_bus(config, port=str(link)))
         ff = None
         if use_feedforward and config.control.gravity_feedforward:
             ff = feedforward(build_arm(config), gravity=True, inertia=config.control.inertia_feedforward)
-        controller = build_controller(config, bus, feedforward=ff)
+        controller = build_controller(config, bus, feedforward=ff, clock=clock)
         controller.read_positions()
         starts: list[float] = []
         controller.cycle_hooks.append(lambda _controller, start_s, _replies: starts.append(start_s))
@@ -92,7 +119,7 @@ def emulated_arm(
 
 
 def logged_requests(rig: Rig) -> Iterator[tuple[float, int | None, Message]]:
-    """Every request the emulated drives received: (monotonic time, motor id or None for 0x280, message)."""
+    """Every request the emulated drives received: (time of the rig's clock, motor id or None for 0x280, message)."""
     for line in rig.frame_log.read_text().splitlines():
         fields = line.split(maxsplit=3)
         if len(fields) < 4 or fields[1] != "IN":
@@ -108,7 +135,7 @@ def logged_requests(rig: Rig) -> Iterator[tuple[float, int | None, Message]]:
 
 
 def received(rig: Rig, command: int) -> dict[int, list[float]]:
-    """Monotonic times at which each motor received a request with ``command``."""
+    """Times (of the rig's clock) at which each motor received a request with ``command``."""
     out: dict[int, list[float]] = {}
     for t, motor_id, message in logged_requests(rig):
         if motor_id is not None and getattr(message, "command", None) == command:

@@ -1,12 +1,12 @@
-"""Coordinated motion on emulated arms over real buses (issue 5): position and torque mode, the commanded stream
-checked against the limits from the frames on the bus, gravity feed-forward, waypoints, re-targeting and stops.
+"""Coordinated motion on emulated arms in simulated time over the modelled CAN and RS485 wires (issue 5): position
+and torque mode, the commanded stream checked against the limits from the frames on the bus, gravity feed-forward,
+waypoints, re-targeting and stops.
 
 The emulated drives turn the arm's own Pinocchio model (forward dynamics with gravity), so gravity loads them.
 """
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import numpy as np
@@ -55,23 +55,21 @@ def _distance_to_polyline(stream: np.ndarray, point: np.ndarray) -> float:
 
 def _settle(rig: Rig, target: list[float], tolerance_deg: float) -> None:
     assert rig.controller.wait_idle(15.0)
-    deadline = time.monotonic() + SETTLE_S * 3
-    while time.monotonic() < deadline:
+    deadline = rig.now() + SETTLE_S * 3
+    while rig.now() < deadline:
         if np.abs(rig.plant.joint_positions_deg() - target).max() < tolerance_deg:
             break
-        time.sleep(0.05)
+        rig.sleep(0.05)
     true = rig.plant.joint_positions_deg()
     assert np.abs(true - target).max() < tolerance_deg, (true, target)
     assert np.abs(rig.controller.axes.q_deg - true).max() < 0.05  # tracked multi-turn position = true angle
 
 
-@pytest.mark.parametrize(("name", "attachment"), [("arm2.yaml", "virtual"), ("arm6.yaml", "slcan")])
-def test_position_mode_reaches_target_within_limits_all_joints_together(
-    name: str, attachment: str, tmp_path: Path
-) -> None:
-    config = arm_config(name, mode=ControlMode.POSITION, rate_hz=200)
+@pytest.mark.parametrize("name", ["arm2.yaml", "arm6.yaml", "arm2_rs485.yaml"])
+def test_position_mode_reaches_target_within_limits_all_joints_together(name: str, tmp_path: Path) -> None:
+    config = arm_config(name, mode=ControlMode.POSITION, rate_hz=100 if "rs485" in name else 200)
     target = [30.0, -45.0] if len(config.joints) == 2 else [40.0, -20.0, 30.0, -50.0, 25.0, 60.0]
-    with emulated_arm(config, attachment, tmp_path) as rig:
+    with emulated_arm(config, "sim", tmp_path) as rig:
         rig.controller.move_to(target)
         _settle(rig, target, tolerance_deg=0.05)
     stream = commanded_positions(rig)
@@ -88,9 +86,9 @@ def test_torque_mode_gravity_feedforward_holds_and_without_it_sags(tmp_path: Pat
     config = arm_config("arm2.yaml", mode=ControlMode.TORQUE, rate_hz=250)
     error = {}
     for use_ff in (True, False):
-        with emulated_arm(config, "virtual", tmp_path, use_feedforward=use_ff) as rig:
+        with emulated_arm(config, "sim", tmp_path, use_feedforward=use_ff) as rig:
             held = rig.controller.reference.position.copy()  # the start position, held by the PD (+ g(q))
-            time.sleep(1.2)
+            rig.sleep(1.2)
             error[use_ff] = np.abs(rig.plant.joint_positions_deg() - held).max()
             assert not rig.controller.limited.any()
     # Stated bound: with feed-forward the arm stays within 0.5 deg of where it started (0.02 deg measured on an idle
@@ -99,17 +97,17 @@ def test_torque_mode_gravity_feedforward_holds_and_without_it_sags(tmp_path: Pat
     assert error[False] > 5.0, error
 
 
-@pytest.mark.parametrize(("name", "attachment"), [("arm2.yaml", "virtual"), ("arm2_rs485.yaml", "rs485")])
-def test_torque_mode_move_reaches_target(name: str, attachment: str, tmp_path: Path) -> None:
-    config = arm_config(name, mode=ControlMode.TORQUE, rate_hz=100 if attachment == "rs485" else 250)
-    with emulated_arm(config, attachment, tmp_path) as rig:
+@pytest.mark.parametrize("name", ["arm2.yaml", "arm2_rs485.yaml"])
+def test_torque_mode_move_reaches_target(name: str, tmp_path: Path) -> None:
+    config = arm_config(name, mode=ControlMode.TORQUE, rate_hz=100 if "rs485" in name else 250)
+    with emulated_arm(config, "sim", tmp_path) as rig:
         rig.controller.move_to([20.0, -30.0], speed_scale=0.7)
         _settle(rig, [20.0, -30.0], tolerance_deg=0.3)
 
 
 def test_torque_mode_arm6_uses_multi_motor_frame(tmp_path: Path) -> None:
     config = arm_config("arm6.yaml", mode=ControlMode.TORQUE, rate_hz=200)
-    with emulated_arm(config, "virtual", tmp_path) as rig:
+    with emulated_arm(config, "sim", tmp_path) as rig:
         target = [10.0, -10.0, 15.0, -20.0, 10.0, 20.0]
         rig.controller.move_to(target, speed_scale=0.6)
         _settle(rig, target, tolerance_deg=0.5)
@@ -122,7 +120,7 @@ def test_torque_mode_arm6_uses_multi_motor_frame(tmp_path: Path) -> None:
 def test_waypoints_retarget_and_stop_in_position_mode(tmp_path: Path) -> None:
     config = arm_config("arm2.yaml", mode=ControlMode.POSITION, rate_hz=200)
     waypoints = [[20.0, -20.0], [40.0, -40.0], [60.0, -30.0]]
-    with emulated_arm(config, "virtual", tmp_path) as rig:
+    with emulated_arm(config, "sim", tmp_path) as rig:
         ctl = rig.controller
         ctl.follow(waypoints)
         _settle(rig, waypoints[-1], tolerance_deg=0.05)
@@ -134,7 +132,7 @@ def test_waypoints_retarget_and_stop_in_position_mode(tmp_path: Path) -> None:
 
         # re-target mid-move: the reference keeps a continuous velocity and ends at the new target
         ctl.move_to([-40.0, 30.0])
-        time.sleep(0.25)
+        rig.sleep(0.25)
         ctl.move_to([0.0, 60.0])
         _settle(rig, [0.0, 60.0], tolerance_deg=0.05)
         _finite_difference_bounds(commanded_positions(rig)[first:], rig, 4)
@@ -142,12 +140,12 @@ def test_waypoints_retarget_and_stop_in_position_mode(tmp_path: Path) -> None:
 
         # stop mid-move: a jerk-limited ramp to rest short of the target; the arm holds there
         ctl.move_to([-60.0, -60.0])
-        time.sleep(0.3)
+        rig.sleep(0.3)
         ctl.stop_motion()
         assert ctl.wait_idle(5.0)
-        time.sleep(SETTLE_S)
+        rig.sleep(SETTLE_S)
         rest = rig.plant.joint_positions_deg()
-        time.sleep(0.3)
+        rig.sleep(0.3)
         assert np.abs(rig.plant.joint_positions_deg() - rest).max() < 0.05  # at rest
         assert (np.abs(rest - [-60.0, -60.0]) > 5.0).all()  # stopped short of the target
         tail = commanded_positions(rig)[second:]

@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 import sys
-import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -30,9 +29,6 @@ from motion.trajectory import Path as TrajectoryPath
 from motion.transport import Reply
 from tests.motion_rig import CONFIGS, Rig, arm_config, emulated_arm, logged_requests, received
 
-# Slack for the emulator thread to log a frame after the control thread sent it, s.
-LOG_SLACK_S = 0.01
-
 
 def _config(policy: HaltPolicy = HaltPolicy.STOP, mode: ControlMode = ControlMode.POSITION, **safety: Any) -> ArmConfig:
     """arm2 in a horizontal plane (gravity along the joint axes: a halted or released arm stays where it is)."""
@@ -50,7 +46,7 @@ def _move_and_catch(
     supervisor = rig.supervisor
     assert supervisor is not None
     supervisor.move_to(target, speed_scale=0.4)
-    time.sleep(0.4)
+    rig.sleep(0.4)
     assert supervisor.state is ArmState.MOVING
     inject()
     with pytest.raises(MotionFault) as info:
@@ -67,17 +63,18 @@ def _assert_halted_in_detection_cycle(rig: Rig, command: int = Command.MOTOR_STO
     times = received(rig, command)
     for joint in rig.config.joints:
         first = min(times.get(joint.motor_id, [np.inf]))
-        assert halt.detected_s <= first <= halt.detected_s + period + LOG_SLACK_S, (joint.name, first - halt.detected_s)
+        # simulated time: exact (the frame log stamps each request when its last bit reached the drive)
+        assert halt.detected_s <= first < halt.detected_s + period, (joint.name, first - halt.detected_s)
 
 
 def _assert_comes_to_rest(rig: Rig, within_s: float = 3.0) -> None:
     """Every joint slower than 1 deg/s within ``within_s`` (a drive that turned itself off coasts to rest)."""
-    deadline = time.monotonic() + within_s
+    deadline = rig.now() + within_s
     while True:
         _, velocity = rig.plant.state()
-        if np.abs(velocity).max() < np.radians(1.0) or time.monotonic() > deadline:
+        if np.abs(velocity).max() < np.radians(1.0) or rig.now() > deadline:
             break
-        time.sleep(0.05)
+        rig.sleep(0.05)
     assert np.abs(velocity).max() < np.radians(1.0), velocity
 
 
@@ -101,7 +98,7 @@ def test_drive_over_temperature_flag(tmp_path: Path) -> None:
     config = _config()
     # our own temperature limit above the drive's protection (80 degC): the 0x9A flag is what trips
     joints = tuple(dataclasses.replace(j, temperature_limit_c=100.0) for j in config.joints)
-    with emulated_arm(dataclasses.replace(config, joints=joints), "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(dataclasses.replace(config, joints=joints), "sim", tmp_path, supervised=True) as rig:
         fault = _move_and_catch(rig, lambda: _inject(rig, FaultKind.OVER_TEMPERATURE, 2, 90.0, duration_s=60.0))
         assert fault.kind == "drive_over_temperature" and fault.joint == "elbow"
         _assert_halted_in_detection_cycle(rig)
@@ -110,16 +107,16 @@ def test_drive_over_temperature_flag(tmp_path: Path) -> None:
 
 
 def test_drive_low_voltage_flag_then_clear_after_the_cause_is_gone(tmp_path: Path) -> None:
-    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         fault = _move_and_catch(rig, lambda: _inject(rig, FaultKind.UNDER_VOLTAGE, 1, 12.0, duration_s=2.0))
-        fault_end_s = time.monotonic() + 2.0
+        fault_end_s = rig.now() + 2.0
         assert fault.kind == "drive_low_voltage" and fault.joint == "shoulder"
         _assert_halted_in_detection_cycle(rig)
         _assert_refused_until_clear(rig, fault, persists=True)
         _assert_comes_to_rest(rig)
         supervisor = rig.supervisor
         assert supervisor is not None
-        time.sleep(max(0.0, fault_end_s - time.monotonic()) + 0.2)  # the under-voltage ends
+        rig.sleep(max(0.0, fault_end_s - rig.now()) + 0.2)  # the under-voltage ends
         supervisor.clear()
         assert supervisor.state is ArmState.READY
         supervisor.move_to([10.0, -10.0])
@@ -134,7 +131,7 @@ def test_measured_temperature_and_voltage_against_configured_limits(
     kind: FaultKind, value: float, expected: str, tmp_path: Path
 ) -> None:
     # 75 degC is above the joint's 70 degC limit but below the drive's own 80; 19 V above the drive's 18 V
-    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         fault = _move_and_catch(rig, lambda: _inject(rig, kind, 2, value, duration_s=60.0))
         assert fault.kind == expected and fault.joint == "elbow"
         assert fault.threshold is not None and fault.value is not None
@@ -148,12 +145,12 @@ def test_measured_temperature_and_voltage_against_configured_limits(
     [(FaultKind.SILENT, "no_reply"), (FaultKind.DROP, "no_reply"), (FaultKind.CORRUPT, "corrupt_frames")],
 )
 def test_missing_and_corrupt_replies(kind: FaultKind, expected: str, tmp_path: Path) -> None:
-    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         fault = _move_and_catch(rig, lambda: _inject(rig, kind, 1, duration_s=60.0))
         assert fault.kind == expected and fault.joint == "shoulder"
         _assert_halted_in_detection_cycle(rig)
         if kind is FaultKind.SILENT:  # no acknowledgement: the halt is re-sent until the retry bound (0.2 s)
-            time.sleep(0.3)
+            rig.sleep(0.3)
             assert len(received(rig, Command.MOTOR_STOP)[1]) > 5
             assert rig.supervisor is not None and not rig.supervisor.unacknowledged
         _assert_comes_to_rest(rig)  # the silent drive received its 0x81 too (it only stopped replying)
@@ -163,7 +160,7 @@ def test_missing_and_corrupt_replies(kind: FaultKind, expected: str, tmp_path: P
 def test_following_error_with_hold_policy(tmp_path: Path) -> None:
     # position mode: the drive's own loop lags the stream; a tight threshold makes a fast move fault
     config = _config(HaltPolicy.HOLD, following_error_deg=0.5)
-    with emulated_arm(config, "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None
         supervisor.move_to([80.0, -100.0])
@@ -176,16 +173,16 @@ def test_following_error_with_hold_policy(tmp_path: Path) -> None:
         assert not received(rig, Command.MOTOR_STOP)  # hold streams a stop ramp instead of 0x81
         _assert_comes_to_rest(rig)
         held = rig.plant.joint_positions_deg()
-        time.sleep(0.3)
+        rig.sleep(0.3)
         assert np.abs(rig.plant.joint_positions_deg() - held).max() < 0.05  # holding
         _assert_refused_until_clear(rig, info.value, persists=False)
         assert not received(rig, Command.MOTOR_STOP)
         supervisor.estop()  # an E-stop while holding escalates to the drives' own stop
-        time.sleep(0.1)
+        rig.sleep(0.1)
         assert set(received(rig, Command.MOTOR_STOP)) == {1, 2}
         assert supervisor.faults[-1].kind == "estop"
         supervisor.clear()
-        time.sleep(0.1)
+        rig.sleep(0.1)
         assert supervisor.state is ArmState.READY  # the E-stop does not fire again after clear()
         supervisor.move_to([0.0, 0.0], speed_scale=0.2)
         assert supervisor.wait(10.0)
@@ -194,7 +191,7 @@ def test_following_error_with_hold_policy(tmp_path: Path) -> None:
 def test_hold_that_cannot_start_halts_every_axis(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     # issue 19: the stop ramp of a holdable fault cannot be planned -> the drives' own stop, in the detection cycle
     config = _config(HaltPolicy.HOLD)
-    with emulated_arm(config, "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None and rig.controller.follower is not None
 
@@ -209,7 +206,7 @@ def test_hold_that_cannot_start_halts_every_axis(tmp_path: Path, monkeypatch: py
         _assert_halted_in_detection_cycle(rig)
         _assert_comes_to_rest(rig)
         stopped = rig.plant.joint_positions_deg()
-        time.sleep(0.5)
+        rig.sleep(0.5)
         now = rig.plant.joint_positions_deg()
         assert np.abs(now - stopped).max() < 0.1  # it stays where it stopped
         assert np.abs(now - np.array([80.0, -100.0])).min() > 10.0  # and did not finish the move
@@ -223,12 +220,12 @@ def test_measured_position_beyond_joint_limit_off_policy(tmp_path: Path) -> None
     config = dataclasses.replace(
         config, joints=joints, control=control, safety=dataclasses.replace(config.safety, following_error_deg=45.0)
     )
-    with emulated_arm(config, "virtual", tmp_path, supervised=True, use_feedforward=False) as rig:
+    with emulated_arm(config, "sim", tmp_path, supervised=True, use_feedforward=False) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None
-        deadline = time.monotonic() + 3.0
-        while not supervisor.halts and time.monotonic() < deadline:  # the record is written once the halt is sent
-            time.sleep(0.01)
+        deadline = rig.now() + 3.0
+        while not supervisor.halts and rig.now() < deadline:  # the record is written once the halt is sent
+            rig.sleep(0.01)
         assert supervisor.fault is not None and supervisor.fault.kind == "position_limit"
         assert supervisor.fault.joint == "shoulder" and supervisor.fault.value is not None
         assert supervisor.fault.value < -3.0
@@ -241,7 +238,7 @@ def test_measured_position_beyond_joint_limit_off_policy(tmp_path: Path) -> None
 def test_planned_setpoint_outside_limits_is_never_sent(tmp_path: Path) -> None:
     # with the hold policy: a stop ramp from beyond a limit would go further past it, so 0x81 it is
     config = _config(HaltPolicy.HOLD, following_error_deg=45.0)
-    with emulated_arm(config, "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
         controller = rig.controller
         supervisor = rig.supervisor
         assert supervisor is not None and controller.follower is not None
@@ -268,7 +265,7 @@ def test_planned_setpoint_outside_limits_is_never_sent(tmp_path: Path) -> None:
 
 
 def test_closing_the_bus_under_the_running_loop_halts_every_axis_first(tmp_path: Path) -> None:
-    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         fault = _move_and_catch(rig, rig.controller.bus.close)  # the port is closed under the running loop
         assert fault.kind == "bus_closing"
         supervisor = rig.supervisor
@@ -279,24 +276,24 @@ def test_closing_the_bus_under_the_running_loop_halts_every_axis_first(tmp_path:
 
 
 def test_bus_failure_faults_once_and_ends_the_loop(tmp_path: Path) -> None:
-    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None
         rig.controller.bus.close_hooks.clear()  # a port that disappears without warning (USB adapter unplugged)
         fault = _move_and_catch(rig, rig.controller.bus.close)
         assert fault.kind == "transport"
-        time.sleep(0.2)
+        rig.sleep(0.2)
         assert not rig.controller.loop.running  # nothing can be sent: the loop ends instead of re-faulting
         assert len(supervisor.faults) == 1
 
 
 def test_overrun_streak(tmp_path: Path) -> None:
-    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         slow = {"on": False}
 
         def hook(controller: Controller, start_s: float, replies: list[Reply]) -> None:
             if slow["on"]:
-                time.sleep(controller.period_s * 1.5)
+                controller.clock.sleep_until(controller.clock.now() + controller.period_s * 1.5)  # a slow cycle
 
         rig.controller.cycle_hooks.append(hook)
         fault = _move_and_catch(rig, lambda: slow.update(on=True))
@@ -307,7 +304,7 @@ def test_overrun_streak(tmp_path: Path) -> None:
 
 
 def test_exception_in_cycle(tmp_path: Path) -> None:
-    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         broken = {"on": False}
 
         def hook(controller: Controller, start_s: float, replies: list[Reply]) -> None:
@@ -323,7 +320,7 @@ def test_exception_in_cycle(tmp_path: Path) -> None:
 
 
 def test_estop_api(tmp_path: Path) -> None:
-    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None
         fault = _move_and_catch(rig, supervisor.estop)
@@ -336,11 +333,11 @@ def test_estop_api(tmp_path: Path) -> None:
 
 
 def test_close_halts_every_axis(tmp_path: Path) -> None:
-    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None
         supervisor.move_to([80.0, -100.0], speed_scale=0.4)
-        time.sleep(0.3)
+        rig.sleep(0.3)
         supervisor.close()
         assert supervisor.state is ArmState.CLOSED
         times = received(rig, Command.MOTOR_STOP)
@@ -360,11 +357,11 @@ def test_state_machine_unknown_event_goes_to_safe_state() -> None:
 
 
 def test_a_retarget_that_cannot_be_planned_is_refused_and_the_move_goes_on(tmp_path: Path) -> None:
-    with emulated_arm(_config(), "virtual", tmp_path, supervised=True) as rig:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None
         supervisor.move_to([80.0, -100.0])
-        time.sleep(0.25)
+        rig.sleep(0.25)
         # at a hundredth of the acceleration the fast-moving arm cannot stop before the 90 deg limit
         supervisor.move_to([85.0, -100.0], speed_scale=0.1)
         with pytest.raises(PlanningError, match="move"):
@@ -383,7 +380,7 @@ def test_process_exit_without_close_halts_every_axis(tmp_path: Path) -> None:
         f"arm = Arm.from_config({str(CONFIGS / 'arm2.yaml')!r}, emulate=True, emulator_log={str(log)!r})\n"
         "arm.connect()\n"
         "arm.move_to({'shoulder': 60.0}, speed_scale=0.3, wait=False)\n"
-        "time.sleep(0.3)\n"
+        "arm.sleep(0.3)\n"
         "sys.exit(0)  # no close(): the exit handler must halt every axis\n"
     )
     result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=60, check=False)

@@ -71,3 +71,9 @@ class ManualClock:
         if dt_s < 0:
             raise ValueError(f"dt_s: {dt_s!r} must be >= 0")
         self._t += dt_s
+
+
+def is_simulated(clock: object) -> bool:
+    """True for a clock whose time passes only when the program waits (a simulation's): a loop on it runs its cycles
+    in the waiting thread, never in a thread of its own."""
+    return getattr(clock, "simulated", False) is True

@@ -14,6 +14,7 @@ that instant, so a new target never steps the reference's velocity or accelerati
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import Enum
@@ -21,7 +22,7 @@ from enum import Enum
 import numpy as np
 
 from motion.control.axes import AxisSpec, AxisStates
-from motion.control.clock import Clock, MonotonicClock
+from motion.control.clock import Clock, MonotonicClock, is_simulated
 from motion.control.scheduler import CycleFn, FixedRateLoop, LoopStatistics
 from motion.errors import MotionError, PlanningError, TransportError
 from motion.protocol import (
@@ -44,6 +45,14 @@ from motion.transport.base import Transport as Bus
 
 #: ``feedforward(q_deg, qd_dps, qdd_dps2) -> tau_nm``, arrays in joint order (gravity, optionally inertia).
 Feedforward = Callable[[FloatArray, FloatArray, FloatArray], FloatArray]
+
+# How often a thread that waits on a running loop looks again, s.
+_POLL_S = 0.002
+
+
+def _never() -> bool:
+    return False
+
 
 # CAN 0xA4 carries max speed in whole dps (uint16); RS485 in 0.01 dps (uint32).
 _MAX_SPEED_DPS = {Transport.CAN: 65535.0, Transport.RS485: 42949672.95}
@@ -230,7 +239,14 @@ class Controller:
 
     def wait_idle(self, timeout_s: float | None = None) -> bool:
         """Wait until the queued motion has ended; returns False on timeout."""
+        if self.loop.stepping:
+            return self.loop.step_until(self._idle.is_set, timeout_s)
         return self._idle.wait(timeout_s)
+
+    @property
+    def idle(self) -> bool:
+        """True when no motion is queued or playing (never waits)."""
+        return self._idle.is_set()
 
     # ------------------------------------------------------------------------------------------------ the cycle
 
@@ -374,7 +390,34 @@ class Controller:
         self._stop_loop = False
         if cycle is not None:
             self.loop = FixedRateLoop(self.options.rate_hz, cycle, clock=self.clock)
-        self.loop.start()
+        if is_simulated(self.clock):
+            self.loop.begin_stepping()
+        else:
+            self.loop.start()
+
+    def wait_for(self, done: Callable[[], bool], timeout_s: float | None = None) -> bool:
+        """Wait until ``done()`` holds or ``timeout_s`` passes; returns ``done()``.
+
+        With a simulated clock the waiting thread runs the control cycles itself (``timeout_s`` is simulated time);
+        otherwise it polls while the loop thread runs.
+        """
+        if self.loop.stepping:
+            return self.loop.step_until(done, timeout_s)
+        end = None if timeout_s is None else time.monotonic() + timeout_s
+        while not done():
+            if end is not None and time.monotonic() >= end:
+                return done()
+            time.sleep(_POLL_S)
+        return True
+
+    def pause(self, duration_s: float) -> None:
+        """Let ``duration_s`` pass with the loop running (simulated time advances; real time sleeps)."""
+        if self.loop.stepping:
+            end = self.clock.now() + duration_s
+            self.loop.step_until(_never, duration_s)
+            self.clock.sleep_until(end)  # time passes for the drives also after the loop has ended
+        else:
+            time.sleep(duration_s)
 
     @property
     def stopping(self) -> bool:

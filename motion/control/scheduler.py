@@ -78,41 +78,92 @@ class FixedRateLoop:
         self.error: BaseException | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._stepping = False
+        self._begun = False
+        self._ended = False
+        self._t0 = 0.0
+        self._k = 0
 
     def run(self) -> None:
         """Run cycles until ``cycle`` returns False or :meth:`stop` is called; re-raises a cycle's exception."""
-        clock, period, cycle = self.clock, self.period_s, self._cycle
+        self._begin()
+        while not self._stop.is_set() and self._next_cycle():
+            pass
+
+    def _begin(self) -> None:
+        self._t0 = self.clock.now()
+        self._k = 0
+        self._begun = True
+        self._ended = False
+
+    def _next_cycle(self) -> bool:
+        """Run cycle k at its scheduled start; False once the loop has ended (re-raises a cycle's exception)."""
+        clock, period = self.clock, self.period_s
         jitter, busy, starts, size = self._jitter, self._busy, self._starts, len(self._jitter)
-        t0 = clock.now()
-        k = 0
+        t0, k = self._t0, self._k
         try:
-            while not self._stop.is_set():
-                scheduled = t0 + k * period
-                clock.sleep_until(scheduled)
-                woke = clock.now()
-                slot = self.cycles % size
-                jitter[slot] = woke - scheduled
-                starts[slot] = woke
-                keep = cycle(k, scheduled, scheduled + period)
-                done = clock.now()
-                busy[slot] = done - woke
-                self.cycles += 1
-                if not keep:
-                    break
-                k += 1
-                if done > t0 + k * period:
-                    self.overruns += 1
-                    # Skip the grid points already missed: start at the next one still in the future.
-                    next_k = math.floor((done - t0) / period) + 1
-                    self.skipped_cycles += next_k - k
-                    k = next_k
+            scheduled = t0 + k * period
+            clock.sleep_until(scheduled)
+            woke = clock.now()
+            slot = self.cycles % size
+            jitter[slot] = woke - scheduled
+            starts[slot] = woke
+            keep = self._cycle(k, scheduled, scheduled + period)
+            done = clock.now()
+            busy[slot] = done - woke
+            self.cycles += 1
         except BaseException as exc:
             self.error = exc
+            self._ended = True
             raise
+        if not keep:
+            self._ended = True
+            return False
+        k += 1
+        if done > t0 + k * period:
+            self.overruns += 1
+            # Skip the grid points already missed: start at the next one still in the future.
+            next_k = math.floor((done - t0) / period) + 1
+            self.skipped_cycles += next_k - k
+            k = next_k
+        self._k = k
+        return True
+
+    def begin_stepping(self) -> None:
+        """Start the loop without a thread: the cycles run in whichever thread calls :meth:`step_until`.
+
+        This is how a simulated clock is run: simulated time passes only while someone waits for it.
+        """
+        if self._thread is not None or self._begun:
+            raise RuntimeError("the loop is already running")
+        self._stepping = True
+        self._begin()
+
+    def step_until(self, done: Callable[[], bool], timeout_s: float | None = None) -> bool:
+        """Run cycles in the calling thread until ``done()`` holds or ``timeout_s`` of the loop's clock passed.
+
+        Returns:
+            ``done()`` at the end (also when the loop ended).
+        """
+        clock = self.clock
+        end = None if timeout_s is None else clock.now() + timeout_s
+        while not done():
+            if self._ended or self._stop.is_set() or (end is not None and clock.now() >= end):
+                return done()
+            if end is not None and self._t0 + self._k * self.period_s > end:
+                clock.sleep_until(end)  # the next cycle starts after the wait ends
+                return done()
+            self._next_cycle()
+        return True
+
+    @property
+    def stepping(self) -> bool:
+        """True when the loop runs its cycles in the callers' threads (see :meth:`begin_stepping`)."""
+        return self._stepping
 
     def start(self, name: str = "rmd-control") -> None:
         """Run the loop in a new thread."""
-        if self._thread is not None:
+        if self._thread is not None or self._begun:
             raise RuntimeError("the loop is already running")
         self._thread = threading.Thread(target=self._run_quietly, name=name, daemon=True)
         self._thread.start()
@@ -145,7 +196,9 @@ class FixedRateLoop:
 
     @property
     def running(self) -> bool:
-        """True while the loop thread is alive."""
+        """True while the loop thread is alive (stepping: from :meth:`begin_stepping` until it ended or stopped)."""
+        if self._stepping:
+            return not (self._ended or self._stop.is_set())
         return self._thread is not None and self._thread.is_alive()
 
     def statistics(self) -> LoopStatistics:

@@ -168,6 +168,18 @@ class Emulator:
             for _ in range(due - self._steps):
                 self._step()
 
+    def advance_to(self, t_s: float) -> None:
+        """Advance simulation time to ``t_s`` (no-op when it is already there or past it).
+
+        Raises:
+            ValueError: a non-finite ``t_s``.
+        """
+        if not math.isfinite(t_s):
+            raise ValueError(f"cannot advance to {t_s!r} s")
+        with self._lock:
+            if t_s > self._target_s:
+                self.advance(t_s - self._target_s)
+
     def sync(self, now_s: float | None = None) -> None:
         """Advance simulation time to the monotonic clock (``now_s``, default ``time.monotonic()``).
 

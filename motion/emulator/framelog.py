@@ -4,7 +4,7 @@ Line format (columns separated by spaces)::
 
     TIME_S DIR CHANNEL WIRE | DECODED
 
-``TIME_S`` is monotonic seconds since the log was opened (6 decimals); ``DIR`` is ``IN`` (request), ``OUT`` (reply),
+``TIME_S`` is seconds of the log's clock (monotonic, or a simulation's) since the log was opened (6 decimals); ``DIR`` is ``IN`` (request), ``OUT`` (reply),
 ``BAD`` (input that breaks the protocol, with the decode error) or ``NOTE`` (an event, such as a fault that swallowed
 a request); ``CHANNEL`` names the attachment; ``WIRE`` is the frame in hex (CAN: ``ID: payload``).
 """
@@ -15,6 +15,7 @@ import os
 import threading
 import time
 import types
+from collections.abc import Callable
 from typing import TextIO
 
 
@@ -23,21 +24,23 @@ class FrameLog:
 
     Args:
         path: file to write (truncated).
+        clock: time source of the line times, s (default the monotonic clock; a simulation passes its own).
 
     Raises:
         OSError: the file cannot be opened.
     """
 
-    def __init__(self, path: str | os.PathLike[str]) -> None:
+    def __init__(self, path: str | os.PathLike[str], *, clock: Callable[[], float] = time.monotonic) -> None:
         self._file: TextIO = open(path, "w", encoding="utf-8", buffering=1)  # noqa: SIM115 - closed by close()
         self._lock = threading.Lock()
-        self._t0 = time.monotonic()
-        #: Monotonic time of the log's zero, s (line times are relative to it).
+        self.clock = clock
+        self._t0 = clock()
+        #: Time of the log's zero on its clock, s (line times are relative to it).
         self.start_s = self._t0
 
-    def write(self, direction: str, channel: str, wire: str, decoded: str) -> None:
-        """Append one line (see the module docstring)."""
-        line = f"{time.monotonic() - self._t0:12.6f} {direction:<4} {channel:<8} {wire} | {decoded}\n"
+    def write(self, direction: str, channel: str, wire: str, decoded: str, *, time_s: float | None = None) -> None:
+        """Append one line (see the module docstring); ``time_s`` on the log's clock, default now."""
+        line = f"{(self.clock() if time_s is None else time_s) - self._t0:12.6f} {direction:<4} {channel:<8} {wire} | {decoded}\n"
         with self._lock:
             if not self._file.closed:
                 self._file.write(line)

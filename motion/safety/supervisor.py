@@ -144,14 +144,9 @@ class Supervisor:
         Raises:
             MotionFault: a fault halted the arm (before or during the wait).
         """
-        step = 0.005
-        waited = 0.0
-        while not self.controller.wait_idle(step):
-            if self._faulted.is_set():
-                break
-            waited += step
-            if timeout_s is not None and waited >= timeout_s:
-                return False
+        controller = self.controller
+        if not controller.wait_for(lambda: controller.idle or self._faulted.is_set(), timeout_s):
+            return False
         if self._faulted.is_set() and self.fault is not None:
             raise self.fault
         rejected = self.controller.take_rejection()
@@ -162,7 +157,7 @@ class Supervisor:
     def estop(self, reason: str = "estop", timeout_s: float = 1.0) -> bool:
         """Halt every axis now (in the next cycle); returns True once the halt went out."""
         self._estop = reason
-        return self._faulted.wait(timeout_s)
+        return self.controller.wait_for(self._faulted.is_set, timeout_s)
 
     def clear(self, timeout_s: float = 1.0) -> None:
         """Send 0x9B to every drive; succeed only if every drive answers with clean flags and no cause remains.
@@ -176,7 +171,7 @@ class Supervisor:
         self._estop = None
         self._clear_done.clear()
         self._clear_request.set()
-        if not self._clear_done.wait(timeout_s):
+        if not self.controller.wait_for(self._clear_done.is_set, timeout_s):
             raise MotionError("the control loop did not process clear() in time")
         if self._clear_result is not None:
             raise self._clear_result
@@ -208,7 +203,7 @@ class Supervisor:
                 extra = (self._next_status_read(),)
                 replies = controller.step(start_s, deadline_s, extra=extra, check=self.watchdog.check_setpoint)
                 self.watchdog.evaluate(replies, controller.clock.now())
-                if self.machine.state is ArmState.MOVING and controller.wait_idle(0):
+                if self.machine.state is ArmState.MOVING and controller.idle:
                     self.machine.fire(ArmEvent.DONE)
         except MotionFault as fault:
             self._halt(fault, k, start_s, deadline_s)

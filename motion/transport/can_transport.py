@@ -18,6 +18,27 @@ from motion.protocol.table import CAN_ID_BASE, MOTOR_ID_MAX, MOTOR_ID_MIN
 from motion.transport.base import Request, Transport
 from motion.transport.can_endpoint import CanEndpoint
 
+
+def take_in_can_frame(transport: Transport, frame: CanFrame) -> None:
+    """Take one received CAN frame into ``transport``: tap it, decode it, offer it (or count why not).
+
+    Shared by every transport that carries RMD CAN frames (this one and the simulated bus).
+    """
+    if transport.frame_tap is not None:
+        transport.frame_tap(transport.clock(), True, frame.arbitration_id, frame.data)
+    motor_id = frame.arbitration_id - CAN_ID_BASE
+    if not MOTOR_ID_MIN <= motor_id <= MOTOR_ID_MAX:
+        # Other devices may share the bus; their frames are not drive replies, nor are 0x280 frames.
+        transport.bus_counters.unknown_id_frames += 1
+        return
+    try:
+        _, message = can_frame.decode_reply(frame.arbitration_id, frame.data)
+    except DecodeError:
+        transport.motor_counters(motor_id).bad_frames += 1
+        return
+    transport._offer(motor_id, message)
+
+
 #: Shortest time a frame may take to enter the interface's transmit queue before the bus counts as failed, s.
 SEND_TIMEOUT_MIN_S = 0.1
 
@@ -84,19 +105,7 @@ class CanTransport(Transport):
                 self._receive(received[0])
 
     def _receive(self, frame: CanFrame) -> None:
-        if self.frame_tap is not None:
-            self.frame_tap(self.clock(), True, frame.arbitration_id, frame.data)
-        motor_id = frame.arbitration_id - CAN_ID_BASE
-        if not MOTOR_ID_MIN <= motor_id <= MOTOR_ID_MAX:
-            # Other devices may share the bus; their frames are not drive replies, nor are 0x280 frames.
-            self.bus_counters.unknown_id_frames += 1
-            return
-        try:
-            _, message = can_frame.decode_reply(frame.arbitration_id, frame.data)
-        except DecodeError:
-            self.motor_counters(motor_id).bad_frames += 1
-            return
-        self._offer(motor_id, message)
+        take_in_can_frame(self, frame)
 
     def _close(self) -> None:
         self._endpoint.close()

@@ -1,0 +1,323 @@
+"""Simulated time: the controller and the emulated drives on one clock, with the wire modelled frame by frame.
+
+No threads and no sleeping: a :class:`Simulation` holds the emulated drives, the frames on the bus and the one
+clock both sides read. :class:`SimulatedBus` is a :class:`~motion.transport.base.Transport` whose ``transact``
+puts the cycle's requests on the modelled wire, advances the drives to the instant each request has fully arrived
+(CAN bits at the bit rate, stuff bits included; RS485 bytes at the baud rate), lets them answer after their latency
+(and any ``delay`` fault), and hands each reply to the host at the instant its last bit arrives, or not at all if
+that is after the deadline (then it is still on its way, and a later cycle takes it in as stale, as on a real bus).
+:class:`SimulatedClock` is the controller's clock: ``sleep_until`` advances the simulation to the deadline.
+
+The host's own computation takes no simulated time: results depend on the drives, the plant and the wire, never on
+how fast or busy the host is, so a run gives the same logs on every host and every run. What the host itself can
+hold in real time is measured separately (:mod:`motion.control.ratecheck`).
+
+Frame timing follows :mod:`motion.emulator.timing`: one medium, a frame starts when it is ready and the bus is free,
+first ready first sent (CAN arbitration by identifier is not modelled). RS485 follows the half-duplex rule of
+:class:`~motion.transport.rs485_transport.Rs485Transport` (one request, its reply or the end of its window, then the
+next request) with the same per-request windows.
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Final
+
+from motion.emulator.core import Emulator, Exchange, Outgoing
+from motion.emulator.framelog import FrameLog
+from motion.emulator.timing import TimingModel, can_frame_time_s, rs485_frame_time_s
+from motion.errors import DecodeError
+from motion.protocol import CanFrame, Transport, can_frame, rs485_frame
+from motion.transport.base import Request
+from motion.transport.base import Transport as Bus
+from motion.transport.can_transport import take_in_can_frame
+
+#: Default CAN bit rate, bit/s (RMD drives run at 1 Mbit/s).
+DEFAULT_BITRATE: Final = 1_000_000
+#: Default RS485 baud rate, bit/s (the RS485 document's default).
+DEFAULT_BAUD: Final = 115_200
+
+
+_Outgoing = Outgoing[CanFrame] | Outgoing[bytes]
+
+
+@dataclass(order=True, slots=True)
+class _Frame:
+    """A frame waiting for the bus."""
+
+    ready_s: float
+    seq: int
+    request: bool = field(compare=False)
+    wire: CanFrame | bytes = field(compare=False)
+    outgoing: _Outgoing | None = field(compare=False, default=None)
+
+
+@dataclass(frozen=True, slots=True)
+class Arrival:
+    """A reply whose last bit reached the host at ``time_s``."""
+
+    time_s: float
+    motor_id: int
+    wire: CanFrame | bytes
+
+
+class Simulation:
+    """Emulated drives on a modelled wire, and the one clock of the run.
+
+    Args:
+        emulator: the drives (their simulation time is the run's start).
+        protocol: CAN or RS485.
+        bitrate: CAN bit rate, bit/s.
+        baud: RS485 baud rate, bit/s.
+        timing: the drives' reply latency (the bus-time model is always on here).
+        frame_log: where to log every frame (at its simulated time), or None.
+
+    Raises:
+        ValueError: a bit rate or baud rate that is not positive.
+    """
+
+    def __init__(
+        self,
+        emulator: Emulator,
+        protocol: Transport = Transport.CAN,
+        *,
+        bitrate: int = DEFAULT_BITRATE,
+        baud: int = DEFAULT_BAUD,
+        timing: TimingModel | None = None,
+        frame_log: FrameLog | None = None,
+    ) -> None:
+        if bitrate <= 0 or baud <= 0:
+            raise ValueError(f"bit rate and baud rate must be > 0 bit/s, got {bitrate} and {baud}")
+        self.emulator = emulator
+        self.protocol = protocol
+        self.bitrate = bitrate
+        self.baud = baud
+        self.timing = timing or TimingModel()
+        self.frame_log = frame_log
+        self.channel = "sim-can" if protocol is Transport.CAN else "sim-rs485"
+        self.now_s = emulator.time_s
+        self._queue: list[_Frame] = []
+        self._busy_until_s = self.now_s
+        self._arrived: deque[Arrival] = deque()
+        self._seq = 0
+        #: Requests that broke the protocol (never answered), and requests no drive answered.
+        self.decode_errors = 0
+        self.unanswered = 0
+
+    # --- the clock ------------------------------------------------------------------------------------------
+
+    def now(self) -> float:
+        """Simulated time, s."""
+        return self.now_s
+
+    def sleep_until(self, deadline_s: float) -> None:
+        """Let the bus and the drives run until ``deadline_s`` (never backwards)."""
+        if deadline_s > self.now_s:
+            self._run_bus(deadline_s)
+            self.now_s = deadline_s
+            self.emulator.advance_to(deadline_s)
+
+    # --- the wire -------------------------------------------------------------------------------------------
+
+    def wire_time_s(self, wire: CanFrame | bytes) -> float:
+        """Time a frame occupies the bus, s."""
+        if isinstance(wire, CanFrame):
+            return can_frame_time_s(wire.arbitration_id, wire.data, self.bitrate)
+        return rs485_frame_time_s(len(wire), self.baud)
+
+    def submit(self, wire: CanFrame | bytes) -> None:
+        """The host hands a request to the wire now."""
+        self._push(self.now_s, True, wire, None)
+
+    def _push(self, ready_s: float, request: bool, wire: CanFrame | bytes, outgoing: _Outgoing | None) -> None:
+        self._seq += 1
+        heapq.heappush(self._queue, _Frame(ready_s, self._seq, request, wire, outgoing))
+
+    def next_arrival(self, limit_s: float) -> Arrival | None:
+        """Run the bus until a reply reaches the host by ``limit_s``; the first such reply, or None.
+
+        A reply that arrives after ``limit_s`` stays on its way (a later call or cycle takes it in).
+        """
+        if not self._arrived:
+            self._run_bus(limit_s, stop_at_arrival=True)
+        if self._arrived and self._arrived[0].time_s <= limit_s:
+            return self._arrived.popleft()
+        return None
+
+    def arrived_by(self, t_s: float) -> list[Arrival]:
+        """Every reply that reached the host by ``t_s`` and was not taken yet (in arrival order)."""
+        self._run_bus(t_s)
+        out = []
+        while self._arrived and self._arrived[0].time_s <= t_s:
+            out.append(self._arrived.popleft())
+        return out
+
+    def _run_bus(self, limit_s: float, *, stop_at_arrival: bool = False) -> None:
+        """Put the waiting frames on the bus, in order, while the next one starts by ``limit_s``."""
+        queue = self._queue
+        while queue:
+            start = max(queue[0].ready_s, self._busy_until_s)
+            if start > limit_s:
+                return
+            frame = heapq.heappop(queue)
+            end = self._busy_until_s = start + self.wire_time_s(frame.wire)
+            if frame.request:
+                self._execute(frame.wire, end)
+                continue
+            assert frame.outgoing is not None  # every reply frame carries its outgoing record
+            self._arrived.append(Arrival(end, frame.outgoing.motor_id, frame.wire))
+            self._log("OUT", frame.wire, f"motor {frame.outgoing.motor_id}: {frame.outgoing.message}", end)
+            if stop_at_arrival and end <= limit_s:
+                return
+
+    def _execute(self, wire: CanFrame | bytes, arrival_s: float) -> None:
+        """A request reached the drives at ``arrival_s``: advance them there, execute it, queue the replies."""
+        self.emulator.advance_to(arrival_s)
+        exchange: Exchange[CanFrame] | Exchange[bytes]
+        try:
+            if isinstance(wire, CanFrame):
+                exchange = self.emulator.handle_can(wire)
+            else:
+                exchange = self.emulator.handle_rs485(rs485_frame.split_frame(wire))
+        except DecodeError as exc:
+            self.decode_errors += 1
+            self._log("BAD", wire, f"{type(exc).__name__}: {exc}", arrival_s)
+            return
+        target = f"motor {exchange.motor_id}" if exchange.motor_id is not None else "motors 1-4"
+        self._log("IN", wire, f"{target}: {exchange.request}", arrival_s)
+        for note in exchange.notes:
+            self._log("NOTE", wire, note, arrival_s)
+        if not exchange.replies:
+            self.unanswered += 1
+        for outgoing in exchange.replies:
+            ready = arrival_s + self.timing.latency_s + outgoing.delay_s
+            self._push(ready, False, outgoing.wire, outgoing)
+
+    def _log(self, direction: str, wire: CanFrame | bytes, decoded: str, time_s: float) -> None:
+        if self.frame_log is not None:
+            text = f"{wire.arbitration_id:03X}: {wire.data.hex(' ')}" if isinstance(wire, CanFrame) else wire.hex(" ")
+            self.frame_log.write(direction, self.channel, text, decoded, time_s=time_s)
+
+
+class SimulatedBus(Bus):
+    """The transport of a :class:`Simulation`: the same slots, matching and counters as the real backends.
+
+    Its clock is the simulation's (pass ``simulation`` as the controller's clock too).
+    """
+
+    def __init__(self, simulation: Simulation) -> None:
+        super().__init__(clock=simulation.now)
+        self.simulation = simulation
+        self._can = simulation.protocol is Transport.CAN
+        self._wires: list[CanFrame | bytes] = []
+        self._motors: list[int] = []
+
+    def describe(self) -> str:
+        """``"simulated can"`` or ``"simulated rs485"``."""
+        return f"simulated {self.simulation.protocol.value.lower()}"
+
+    def _prepare(self, requests: Sequence[Request]) -> None:
+        wires, motors = self._wires, self._motors
+        wires.clear()
+        motors.clear()
+        for request in requests:
+            if self._can:
+                wires.append(can_frame.encode_request(request.message, request.motor_id))
+            else:
+                wires.append(rs485_frame.encode_request(request.message, request.motor_id))
+            motors.append(request.motor_id)
+
+    def _exchange(self, deadline_s: float) -> None:
+        if self._can:
+            self._exchange_can(deadline_s)
+        else:
+            self._exchange_rs485(deadline_s)
+
+    def _exchange_can(self, deadline_s: float) -> None:
+        sim = self.simulation
+        for stale in sim.arrived_by(sim.now_s):  # a previous cycle's replies
+            self._take_in(stale)
+        for index, wire in enumerate(self._wires):
+            sim.submit(wire)
+            self._sent(index)
+            self._tap(False, wire)
+        while self._open_slots:
+            arrival = sim.next_arrival(deadline_s)
+            if arrival is None:
+                sim.sleep_until(deadline_s)
+                return
+            sim.now_s = arrival.time_s
+            self._take_in(arrival)
+
+    def _exchange_rs485(self, deadline_s: float) -> None:
+        sim, count = self.simulation, len(self._wires)
+        for index, wire in enumerate(self._wires):
+            now = sim.now_s
+            if now >= deadline_s:
+                return
+            window_end_s = now + (deadline_s - now) / (count - index)
+            for stale in sim.arrived_by(now):  # a line is half duplex: what came before the request is stale
+                self._take_in(stale)
+            sim.submit(wire)
+            self._sent(index)
+            self._tap(False, wire)
+            while not self._answered(index):
+                arrival = sim.next_arrival(window_end_s)
+                if arrival is None:
+                    sim.sleep_until(window_end_s)
+                    self._expire(index)
+                    break
+                sim.now_s = arrival.time_s
+                self._take_in(arrival, waiting_for=self._motors[index])
+
+    def _tap(self, received: bool, wire: CanFrame | bytes) -> None:
+        tap = self.frame_tap
+        if tap is not None:
+            if isinstance(wire, CanFrame):
+                tap(self.simulation.now_s, received, wire.arbitration_id, wire.data)
+            else:
+                tap(self.simulation.now_s, received, None, wire)
+
+    def _take_in(self, arrival: Arrival, waiting_for: int | None = None) -> None:
+        wire = arrival.wire
+        if isinstance(wire, CanFrame):
+            take_in_can_frame(self, wire)
+            return
+        self._tap(True, wire)
+        try:
+            motor_id, message = rs485_frame.decode_reply(wire)
+        except DecodeError:
+            # On a half-duplex line only the addressed drive talks: corrupt bytes count against it.
+            self.motor_counters(arrival.motor_id if waiting_for is None else waiting_for).bad_frames += 1
+            return
+        self._offer(motor_id, message)
+
+    def _close(self) -> None:
+        """Nothing to release."""
+
+
+class SimulatedClock:
+    """The controller's clock in a :class:`Simulation` (see :class:`~motion.control.clock.Clock`).
+
+    ``simulated`` tells the control loop to run its cycles in the thread that waits for them, not in a thread of
+    its own: simulated time passes only while the program waits (for a motion, or :meth:`motion.api.Arm.sleep`).
+    """
+
+    simulated: Final = True
+
+    def __init__(self, simulation: Simulation) -> None:
+        self.simulation = simulation
+
+    def now(self) -> float:
+        """Simulated time, s."""
+        return self.simulation.now_s
+
+    def sleep_until(self, deadline_s: float) -> None:
+        """Advance the simulation to ``deadline_s``."""
+        self.simulation.sleep_until(deadline_s)
+
+
+__all__ = ["DEFAULT_BAUD", "DEFAULT_BITRATE", "Arrival", "SimulatedBus", "SimulatedClock", "Simulation"]
