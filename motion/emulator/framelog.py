@@ -4,7 +4,8 @@ Line format (columns separated by spaces)::
 
     TIME_S DIR CHANNEL WIRE | DECODED
 
-``TIME_S`` is seconds of the log's clock (monotonic, or a simulation's) since the log was opened (6 decimals); ``DIR`` is ``IN`` (request), ``OUT`` (reply),
+``TIME_S`` is seconds of the log's clock (monotonic, or a simulation's) since the log was opened (6 decimals);
+``DIR`` is ``IN`` (request), ``OUT`` (reply),
 ``BAD`` (input that breaks the protocol, with the decode error) or ``NOTE`` (an event, such as a fault that swallowed
 a request); ``CHANNEL`` names the attachment; ``WIRE`` is the frame in hex (CAN: ``ID: payload``).
 """
@@ -40,7 +41,8 @@ class FrameLog:
 
     def write(self, direction: str, channel: str, wire: str, decoded: str, *, time_s: float | None = None) -> None:
         """Append one line (see the module docstring); ``time_s`` on the log's clock, default now."""
-        line = f"{(self.clock() if time_s is None else time_s) - self._t0:12.6f} {direction:<4} {channel:<8} {wire} | {decoded}\n"
+        stamp = (self.clock() if time_s is None else time_s) - self._t0
+        line = f"{stamp:12.6f} {direction:<4} {channel:<8} {wire} | {decoded}\n"
         with self._lock:
             if not self._file.closed:
                 self._file.write(line)
