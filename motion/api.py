@@ -31,9 +31,10 @@ from typing import Any
 import numpy as np
 
 from motion.config import ArmConfig, load_config
-from motion.config.build import build_controller, open_bus, safety_settings
+from motion.config.build import build_controller, check_rate, open_bus, safety_settings
 from motion.config.schema import CanBusConfig
 from motion.control.controller import Controller
+from motion.control.ratecheck import RateCheck
 from motion.control.scheduler import LoopStatistics
 from motion.emulator import FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
@@ -181,6 +182,8 @@ class Arm:
         self.emulator: Any = None
         self.plant: Any = None
         self.frame_log: FrameLog | None = None
+        #: What the rate check at connect measured (see :mod:`motion.control.ratecheck`).
+        self.rate_check: RateCheck | None = None
         #: The simulation of ``emulate=True`` (its emulator, wire and clock), once connected.
         self.simulation: Simulation | None = None
         self.names = config.joint_names
@@ -202,6 +205,7 @@ class Arm:
 
         Raises:
             TransportError: the bus cannot be opened or a drive does not answer.
+            RateError: the configured rate cannot be held on this host and bus (a ConfigError; nothing moved).
         """
         from kinematics import build_arm, feedforward  # noqa: PLC0415 - Pinocchio is loaded only when an arm connects
 
@@ -228,6 +232,7 @@ class Arm:
                     build_arm(self.config), gravity=control.gravity_feedforward, inertia=control.inertia_feedforward
                 )
             self.controller = build_controller(self.config, self.bus, feedforward=ff, clock=clock)
+            self.rate_check = check_rate(self.controller, self.config)
             self.controller.read_positions()
             self.supervisor = Supervisor(self.controller, safety_settings(self.config))
             if self.telemetry is not None:

@@ -45,7 +45,10 @@ SLOW_MOVE = ("shoulder=60", "elbow=-90", "--speed-scale", "0.1")
 #: Default PI gains of an emulated drive (motion.emulator.model.DEFAULT_PID).
 DEFAULT_GAINS = {"angle_kp": 100, "angle_ki": 50, "speed_kp": 50, "speed_ki": 40, "iq_kp": 50, "iq_ki": 50}
 
-pytestmark = pytest.mark.skipif(os.name != "posix", reason="the emulator's links are pseudo-terminals")
+pytestmark = [
+    pytest.mark.skipif(os.name != "posix", reason="the emulator's links are pseudo-terminals"),
+    pytest.mark.realtime,
+]
 
 
 @dataclass

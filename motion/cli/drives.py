@@ -15,6 +15,7 @@ from typing import Any, Final
 from motion.cli.common import (
     EXIT_COMMUNICATION,
     EXIT_OK,
+    EXIT_USAGE,
     Interrupts,
     Session,
     UsageError,
@@ -26,6 +27,8 @@ from motion.cli.common import (
 )
 from motion.config import CanBusConfig, JointConfig
 from motion.config.build import build_controller
+from motion.config.schema import ControlMode
+from motion.control.ratecheck import RateCheck, RateError, measure_rate
 from motion.errors import MotionFault
 from motion.protocol import (
     Acceleration,
@@ -350,3 +353,63 @@ def zero(args: argparse.Namespace, interrupts: Interrupts) -> int:
     offset = f" (encoder offset {message.encoder_offset})" if isinstance(message, EncoderOffset) else ""
     print(f"{_label(joint)}: present position written to ROM as zero{offset}; power-cycle the drive to apply it")
     return EXIT_OK
+
+
+def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``check``: what this host and bus hold in real time, per control mode, for the configured joints.
+
+    Sends reads only. Exit 0 when the configured rate holds in the configured mode, 2 when it does not.
+    """
+    from kinematics import build_arm, feedforward  # noqa: PLC0415 - Pinocchio only for the torque-mode figure
+
+    session = Session.from_args(args)
+    config = session.config
+    checks: dict[str, RateCheck] = {}
+    with session.open_bus() as bus:
+        for mode in (ControlMode.POSITION, ControlMode.TORQUE):
+            control = replace(config.control, mode=mode)
+            variant = replace(config, control=control)
+            ff = feedforward(build_arm(config), gravity=True) if mode is ControlMode.TORQUE else None
+            controller = build_controller(variant, bus, feedforward=ff)
+            checks[mode.value] = measure_rate(controller, margin=config.control.rate_margin)
+        where = bus.describe()
+    configured = checks[config.control.mode.value]
+    rows = [
+        (
+            mode,
+            f"{c.round_trip_p99_s * 1e3:.2f} ms",
+            f"{c.host_p99_s * 1e3:.2f} ms",
+            f"{c.highest_rate_hz:g} Hz",
+            "holds" if c.holds else "does not hold",
+        )
+        for mode, c in checks.items()
+    ]
+    if args.json:
+        print_json(
+            {
+                "bus": where,
+                "rate_hz": config.control.rate_hz,
+                "mode": config.control.mode.value,
+                "margin": config.control.rate_margin,
+                "holds": configured.holds,
+                "modes": {
+                    mode: {
+                        "round_trip_p99_s": c.round_trip_p99_s,
+                        "host_p99_s": c.host_p99_s,
+                        "highest_rate_hz": c.highest_rate_hz,
+                        "holds": c.holds,
+                    }
+                    for mode, c in checks.items()
+                },
+            }
+        )
+    else:
+        print(
+            f"{len(config.joints)} joints on {where}; configured control.rate_hz {config.control.rate_hz:g} Hz "
+            f"({config.control.mode.value} mode), margin {config.control.rate_margin:g}"
+        )
+        print_table(("mode", "round trip p99", "host work p99", "highest rate", f"{config.control.rate_hz:g} Hz"), rows)
+    if configured.holds:
+        return EXIT_OK
+    warn(str(RateError(config.source, configured)))
+    return EXIT_USAGE

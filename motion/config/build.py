@@ -7,6 +7,7 @@ limit and rotor inertia, so a program tested on the emulator talks to the same i
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterable, Mapping
 
 from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, HaltPolicy, JointConfig
@@ -14,12 +15,15 @@ from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
 from motion.control.controller import ControlMode as LoopMode
+from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
 from motion.emulator import DriveModel, Emulator, Fault, LoadModel, Plant
 from motion.protocol import Transport as Wire
 from motion.safety import HaltPolicy as Halt
 from motion.safety import SafetySettings
 from motion.trajectory import JointLimits
 from motion.transport import Transport, open_transport
+
+logger = logging.getLogger("motion.config")
 
 # The emulated drive's own speed cap (0xA3/0xA5/0xA7 and holding) is this many times the joint limit, motor side.
 _DRIVE_SPEED_MARGIN = 2.0
@@ -85,6 +89,28 @@ def build_controller(
         feedforward=feedforward,
         clock=clock,
     )
+
+
+def check_rate(controller: Controller, config: ArmConfig) -> RateCheck:
+    """The rate check at connect (before ``read_positions``): measure, warn about a thin margin, refuse a rate that
+    does not hold.
+
+    Raises:
+        RateError: ``control.rate_hz`` cannot be held (names the measured figures and the highest rate that holds).
+        TransportError: a drive did not answer the measuring reads.
+    """
+    margin = config.control.rate_margin
+    if margin < DEFAULT_MARGIN:
+        logger.warning(
+            "control.rate_margin %g is below the default %g: the loop may miss deadlines when the host is busy",
+            margin,
+            DEFAULT_MARGIN,
+        )
+    check = measure_rate(controller, margin=margin)
+    logger.info("rate check: %s", check.summary())
+    if not check.holds:
+        raise RateError(config.source, check)
+    return check
 
 
 def drive_model(joint: JointConfig, supply_voltage_v: float = 24.0) -> DriveModel:

@@ -277,6 +277,7 @@ def _control(node: _Node) -> schema.ControlConfig:
         rate_hz=node.number("rate_hz", _Range(50, 1000)),
         gravity_feedforward=node.flag("gravity_feedforward"),
         inertia_feedforward=node.flag("inertia_feedforward"),
+        rate_margin=node.number("rate_margin", _Range(1, 10)),
     )
 
 

@@ -88,6 +88,8 @@ class ControlConfig:
         rate_hz: control cycle rate in Hz (50..1000).
         gravity_feedforward: add the model's gravity torque g(q).
         inertia_feedforward: add the inertial and Coriolis torques of the planned motion (RNEA).
+        rate_margin: the margin the rate check at connect requires (1..10, default 1.5): the measured bus round trip
+            and host work times this must fit the period. Below the default a warning says the margin is thin.
     """
 
     halt_policy: HaltPolicy
@@ -95,6 +97,7 @@ class ControlConfig:
     rate_hz: float = 200.0
     gravity_feedforward: bool = False
     inertia_feedforward: bool = False
+    rate_margin: float = 1.5
 
     @property
     def period_s(self) -> float:

@@ -1,0 +1,170 @@
+"""The rate check at connect: measure what this host and this bus can hold before the loop starts, never assume it.
+
+Two figures are measured, with requests that move nothing:
+
+- **the bus round trip**: ``transact`` of a batch shaped like the cycle's (one read per joint, answered like a
+  set-point, plus the cycle's 0x9A status read), repeated; from the first frame out to the last reply in, on the
+  transport's clock (real time on hardware and real-time emulation, simulated time in a simulation);
+- **the host's own work per cycle** beyond the exchange (whose encoding and decoding the round trip already holds):
+  building the cycle's set-points (in torque mode with the feed-forward, i.e. Pinocchio), timed with the process's
+  performance counter. In a simulation the host's computation takes no simulated time, so it does not count there.
+
+A rate holds when, with the margin, the round trip fits the share of the period given to ``transact``
+(``reply_budget``) and round trip plus host work fit the period:
+
+    round_trip × margin ≤ reply_budget / rate        (round_trip + host) × margin ≤ 1 / rate
+
+The highest rate that holds is the smaller of the two bounds, rounded down to a whole 5 Hz. The p99 of each figure
+is used, so a host that is slow one cycle in a hundred is judged by that cycle.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+
+from motion.control.clock import is_simulated
+from motion.control.controller import Controller
+from motion.errors import ConfigError, TransportError
+from motion.protocol import Bare, Command
+from motion.trajectory import State
+from motion.transport.base import Request
+
+#: Exchanges measured by default (a few dozen: about 0.1 s of bus time for six joints at 1 Mbit/s).
+DEFAULT_SAMPLES: Final = 40
+#: Exchanges measured in a simulation (each is the same).
+SIMULATED_SAMPLES: Final = 3
+#: The margin a rate must hold with unless the configuration accepts a smaller one (``control.rate_margin``).
+DEFAULT_MARGIN: Final = 1.5
+#: Rates are proposed in steps of this many Hz.
+RATE_STEP_HZ: Final = 5.0
+#: Time each measuring exchange may take before its reads count as unanswered, s.
+_EXCHANGE_TIMEOUT_S: Final = 0.1
+
+
+@dataclass(frozen=True, slots=True)
+class RateCheck:
+    """What was measured and what it allows.
+
+    Attributes:
+        rate_hz: the configured rate.
+        reply_budget: share of the period given to ``transact``.
+        margin: the margin the rate must hold with.
+        round_trip_p99_s: p99 of the cycle-shaped exchange, s (transport clock).
+        host_p99_s: p99 of the host's own work per cycle, s (0 in a simulation).
+        samples: exchanges measured.
+        simulated: measured in simulated time (the bus model only; the host's speed does not matter).
+    """
+
+    rate_hz: float
+    reply_budget: float
+    margin: float
+    round_trip_p99_s: float
+    host_p99_s: float
+    samples: int
+    simulated: bool
+
+    @property
+    def highest_rate_hz(self) -> float:
+        """The highest rate that holds with the margin, rounded down to :data:`RATE_STEP_HZ` (0 if none does)."""
+        bounds = []
+        if self.round_trip_p99_s > 0:
+            bounds.append(self.reply_budget / (self.round_trip_p99_s * self.margin))
+        total = self.round_trip_p99_s + self.host_p99_s
+        if total > 0:
+            bounds.append(1.0 / (total * self.margin))
+        if not bounds:
+            return math.inf
+        return math.floor(min(bounds) / RATE_STEP_HZ) * RATE_STEP_HZ
+
+    @property
+    def holds(self) -> bool:
+        """True when the configured rate holds with the margin."""
+        period = 1.0 / self.rate_hz
+        return (
+            self.round_trip_p99_s * self.margin <= self.reply_budget * period
+            and (self.round_trip_p99_s + self.host_p99_s) * self.margin <= period
+        )
+
+    def summary(self) -> str:
+        """One line for people."""
+        clock = "simulated bus" if self.simulated else "this host and bus"
+        return (
+            f"{clock}: round trip p99 {self.round_trip_p99_s * 1e3:.2f} ms, host work p99 "
+            f"{self.host_p99_s * 1e3:.2f} ms per cycle ({self.samples} exchanges); highest rate with margin "
+            f"{self.margin:g}: {self.highest_rate_hz:g} Hz; configured {self.rate_hz:g} Hz "
+            + ("holds" if self.holds else "does NOT hold")
+        )
+
+
+class RateError(ConfigError):
+    """The configured rate cannot be held on this host and bus (a configuration error: nothing moved)."""
+
+    def __init__(self, source: str, check: RateCheck) -> None:
+        self.check = check
+        super().__init__(
+            source,
+            "control.rate_hz",
+            f"{check.rate_hz:g} Hz cannot be held: the cycle's bus round trip takes {check.round_trip_p99_s * 1e3:.2f}"
+            f" ms (p99) and this host's work {check.host_p99_s * 1e3:.2f} ms, against a period of "
+            f"{1e3 / check.rate_hz:.2f} ms ({check.reply_budget:.0%} of it for the replies) with a margin of "
+            f"{check.margin:g}; the highest rate that holds is {check.highest_rate_hz:g} Hz (set control.rate_hz to "
+            "it or lower, or accept a smaller margin with control.rate_margin)",
+        )
+
+
+def measure_rate(
+    controller: Controller, *, margin: float = DEFAULT_MARGIN, samples: int | None = None
+) -> RateCheck:
+    """Measure the cycle's round trip and the host's work per cycle (before the loop starts).
+
+    Only reads are sent: nothing moves. In a simulation the exchange is the same every time, so a few samples do
+    (:data:`SIMULATED_SAMPLES`), which keeps the emulated arm's unattended time before the loop short.
+
+    Args:
+        controller: the controller (its bus, options and request builders).
+        margin: the margin the rate must hold with.
+        samples: exchanges to measure (default :data:`DEFAULT_SAMPLES`, or :data:`SIMULATED_SAMPLES`).
+
+    Raises:
+        TransportError: a drive did not answer the measuring reads.
+        ValueError: fewer than 2 samples, or a margin below 1.
+    """
+    simulated = is_simulated(controller.clock)
+    if samples is None:
+        samples = SIMULATED_SAMPLES if simulated else DEFAULT_SAMPLES
+    if samples < 2:
+        raise ValueError(f"samples: {samples} must be >= 2")
+    if not (math.isfinite(margin) and margin >= 1.0):
+        raise ValueError(f"margin: {margin!r} must be >= 1")
+    ids = controller.ids
+    batch = [Request(i, Bare(Command.READ_STATUS_2)) for i in ids] + [Request(ids[0], Bare(Command.READ_STATUS_1))]
+    clock, bus = controller.clock, controller.bus
+    round_trips = np.empty(samples)
+    host = np.zeros(samples)
+    # The set-points of a cycle at rest where the axes are (the builders' cost does not depend on the values).
+    reference = State.at_rest(controller.axes.q_deg.copy())
+    for n in range(samples):
+        start = clock.now()
+        replies = bus.transact(batch, start + _EXCHANGE_TIMEOUT_S)
+        round_trips[n] = clock.now() - start
+        missing = sorted({r.motor_id for r in replies if r.message is None})
+        if missing:
+            raise TransportError(f"no reply to the rate check's reads from motor(s) {missing}")
+        if not simulated:
+            t0 = time.perf_counter()
+            controller.build_requests(reference)
+            host[n] = time.perf_counter() - t0
+    return RateCheck(
+        rate_hz=controller.options.rate_hz,
+        reply_budget=controller.options.reply_budget,
+        margin=margin,
+        round_trip_p99_s=float(np.percentile(round_trips, 99)),
+        host_p99_s=float(np.percentile(host, 99)),
+        samples=samples,
+        simulated=simulated,
+    )

@@ -1,0 +1,141 @@
+"""The rate check at connect (issue 11): measured, never assumed; a rate that cannot be held is refused before
+anything moves, naming ``control.rate_hz``, the figures and the highest rate that holds.
+
+In simulated time the bus model decides (exact figures); against ``rmd-motion emulate`` in its own process the
+check measures this host and the pty in real time (tests marked ``realtime``: they assert what must hold on any
+host, never a speed)."""
+
+from __future__ import annotations
+
+import dataclasses
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from kinematics.emulation import arm_emulator
+from motion.config import ArmConfig
+from motion.config.build import build_controller, check_rate
+from motion.control.ratecheck import RateCheck, RateError, measure_rate
+from motion.emulator import FrameLog, TimingModel
+from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
+from motion.errors import ConfigError
+from tests.motion_rig import CONFIGS, arm_config
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _simulated(config: ArmConfig, latency_s: float, log: Path) -> tuple[Simulation, FrameLog, SimulatedBus]:
+    emulator, _ = arm_emulator(config)
+    simulation = Simulation(emulator, timing=TimingModel(latency_s))
+    frame_log = FrameLog(log, clock=simulation.now)
+    simulation.frame_log = frame_log
+    return simulation, frame_log, SimulatedBus(simulation)
+
+
+def test_simulated_slow_drives_refuse_500_hz_and_name_the_rate_that_holds(tmp_path: Path) -> None:
+    config = arm_config("arm2.yaml", rate_hz=500)
+    simulation, log, bus = _simulated(config, 0.003, tmp_path / "frames.log")
+    with log, bus:
+        controller = build_controller(config, bus, clock=SimulatedClock(simulation))
+        with pytest.raises(RateError) as info:
+            check_rate(controller, config)
+    error = info.value
+    assert isinstance(error, ConfigError) and error.key_path == "control.rate_hz"
+    check = error.check
+    assert check.simulated and check.host_p99_s == 0.0
+    # 3 requests out, 3 replies back at 1 Mbit/s (~0.12 ms each) after 3 ms of drive latency
+    assert 0.0033 < check.round_trip_p99_s < 0.0040
+    highest = check.highest_rate_hz
+    assert highest == pytest.approx(0.8 / (check.round_trip_p99_s * 1.5) // 5 * 5)
+    assert f"highest rate that holds is {highest:g} Hz" in str(error) and "control.rate_hz" in str(error)
+    sent = [line for line in (tmp_path / "frames.log").read_text().splitlines() if " IN " in line]
+    assert sent and all(": 9c " in line or ": 9a " in line for line in sent)  # reads only: nothing moved
+    # at the proposed rate the check passes
+    slower = dataclasses.replace(config, control=dataclasses.replace(config.control, rate_hz=highest))
+    simulation, log, bus = _simulated(slower, 0.003, tmp_path / "frames2.log")
+    with log, bus:
+        assert check_rate(build_controller(slower, bus, clock=SimulatedClock(simulation)), slower).holds
+
+
+def test_margin_is_configurable_and_validated(tmp_path: Path) -> None:
+    config = arm_config("arm2.yaml", rate_hz=500)
+    simulation, log, bus = _simulated(config, 0.0005, tmp_path / "frames.log")
+    with log, bus:
+        controller = build_controller(config, bus, clock=SimulatedClock(simulation))
+        strict = measure_rate(controller, margin=3.0)
+        loose = measure_rate(controller, margin=1.0)
+    assert loose.round_trip_p99_s == pytest.approx(strict.round_trip_p99_s, rel=0.05)  # same exchange, bar stuff bits
+    assert loose.highest_rate_hz > strict.highest_rate_hz
+    with pytest.raises(ValueError, match="margin"):
+        measure_rate(controller, margin=0.5)
+    text = (CONFIGS / "arm2.yaml").read_text().replace("rate_hz:", "rate_margin: 0.9\n  rate_hz:")
+    bad = tmp_path / "arm2.yaml"
+    bad.write_text(text)
+    (tmp_path / "arm6.urdf").write_text((CONFIGS / "arm6.urdf").read_text())
+    from motion.config import load_config
+
+    with pytest.raises(ConfigError, match=r"control\.rate_margin"):
+        load_config(bad)
+
+
+def test_rate_check_arithmetic() -> None:
+    check = RateCheck(
+        rate_hz=200, reply_budget=0.8, margin=1.5, round_trip_p99_s=0.002, host_p99_s=0.001, samples=10, simulated=False
+    )
+    # bounds: 0.8 / 0.003 = 266.7 Hz and 1 / 0.0045 = 222.2 Hz -> 220 Hz
+    assert check.highest_rate_hz == 220.0 and check.holds
+    assert not dataclasses.replace(check, rate_hz=225).holds
+    assert "holds" in check.summary()
+
+
+def _cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "motion.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+        cwd=ROOT,
+    )
+
+
+@pytest.mark.realtime
+def test_cli_move_at_a_rate_the_bus_cannot_hold_exits_2_before_moving(tmp_path: Path) -> None:
+    config = tmp_path / "arm2.yaml"
+    config.write_text((CONFIGS / "arm2.yaml").read_text().replace("rate_hz: 200", "rate_hz: 500"))
+    (tmp_path / "arm6.urdf").write_text((CONFIGS / "arm6.urdf").read_text())
+    assert "rate_hz: 500" in config.read_text()
+    link, log = tmp_path / "can", tmp_path / "frames.log"
+    command: list[str | Path] = [sys.executable, "-m", "motion.cli", "emulate", "--config", config, "--slcan-link", link]
+    emulator = subprocess.Popen(
+        [*command, "--log", log, "--latency-ms", "3"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    try:
+        assert emulator.stdout is not None
+        while not emulator.stdout.readline().startswith("emulating motors"):
+            assert emulator.poll() is None, "the emulator did not start"
+        bus = ("--interface", "slcan", "--channel", link)
+        result = _cli("move", "--config", config, *bus, "shoulder=5")
+        assert result.returncode == 2, result.stderr
+        assert "control.rate_hz" in result.stderr and "highest rate that holds is" in result.stderr
+        highest = float(result.stderr.split("highest rate that holds is ")[1].split(" Hz")[0])
+        assert 0 < highest < 500
+        moved = [line for line in log.read_text().splitlines() if " IN " in line and ": 9c " not in line]
+        assert all(": 9a " in line or ": 92 " in line for line in moved), moved  # nothing but reads was sent
+        checked = _cli("check", "--config", config, *bus)
+        assert checked.returncode == 2 and "does not hold" in checked.stdout
+        config.write_text(config.read_text().replace("rate_hz: 500", f"rate_hz: {min(highest, 100):g}"))
+        result = _cli("move", "--config", config, *bus, "shoulder=5")
+        assert result.returncode == 0, result.stderr
+        reached = float(result.stdout.split("shoulder=")[1].split()[0])
+        assert abs(reached - 5.0) < 1.0, result.stdout  # just done: the drive's own loop still settling
+        assert _cli("check", "--config", config, *bus).returncode == 0
+    finally:
+        emulator.terminate()
+        emulator.communicate(timeout=10)
