@@ -108,9 +108,9 @@ def test_cli_move_at_a_rate_the_bus_cannot_hold_exits_2_before_moving(tmp_path: 
     (tmp_path / "arm6.urdf").write_text((CONFIGS / "arm6.urdf").read_text())
     assert "rate_hz: 500" in config.read_text()
     link, log = tmp_path / "can", tmp_path / "frames.log"
-    command: list[str | Path] = [sys.executable, "-m", "motion.cli", "emulate", "--config", config, "--slcan-link", link]
+    command: list[str | Path] = [sys.executable, "-m", "motion.cli", "emulate", "--config", config]
     emulator = subprocess.Popen(
-        [*command, "--log", log, "--latency-ms", "3"],
+        [*command, "--slcan-link", link, "--log", log, "--latency-ms", "3"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
