@@ -16,14 +16,15 @@ Pinocchio model (:mod:`kinematics`) and hands the controller its feed-forward ca
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import shutil
 import subprocess
 import sys
 import tempfile
 import types
-from collections.abc import Mapping, Sequence
-from contextlib import ExitStack
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,9 +33,9 @@ import numpy as np
 
 from motion.config import ArmConfig, load_config
 from motion.config.build import build_controller, check_rate, open_bus, safety_settings
-from motion.config.schema import CanBusConfig
+from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
-from motion.control.ratecheck import RateCheck
+from motion.control.ratecheck import RateCheck, measure_rate
 from motion.control.scheduler import LoopStatistics
 from motion.emulator import FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
@@ -62,6 +63,78 @@ def _end_process(process: subprocess.Popen[str]) -> None:
     except subprocess.TimeoutExpired:
         process.kill()
         process.communicate()
+
+
+@contextmanager
+def emulator_process(
+    config: ArmConfig, *, log: str | os.PathLike[str] | None = None, latency_ms: float | None = None
+) -> Iterator[dict[str, object]]:
+    """The drives of ``config``'s file, emulated in real time in a process of their own (``rmd-motion emulate``) on
+    a slcan (CAN) or RS485 pseudo-terminal; yields the bus overrides that reach them. Ended on exit.
+
+    Raises:
+        MotionError: the configuration was not read from a file.
+        TransportError: the emulator process did not start.
+    """
+    source = Path(config.source)
+    if not source.is_file():
+        raise MotionError("real-time emulation builds the drives from the configuration file; this one has none")
+    folder = Path(tempfile.mkdtemp(prefix="rmd-emulated-"))
+    link = folder / "link"
+    can = isinstance(config.bus, CanBusConfig)
+    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(source)]
+    command += ["--slcan-link" if can else "--rs485-link", str(link)]
+    if log is not None:
+        command += ["--log", os.fspath(log)]
+    if latency_ms is not None:
+        command += ["--latency-ms", f"{latency_ms:g}"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        if process.stdout is None:
+            raise TransportError("the emulator process has no output pipe")
+        lines: list[str] = []
+        while not lines or not lines[-1].startswith("emulating motors"):
+            line = process.stdout.readline()
+            if not line:
+                error = process.stderr.read() if process.stderr is not None else ""
+                raise TransportError(f"the emulator process did not start: {' '.join(lines)} {error}".strip())
+            lines.append(line.strip())
+        if can:
+            yield {"interface": "slcan", "channel": str(link), "bitrate": DEFAULT_BITRATE, "sleep_after_open": 0}
+        else:
+            yield {"port": str(link)}
+    finally:
+        _end_process(process)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def measure_modes(config: ArmConfig, bus: Transport) -> dict[str, RateCheck]:
+    """The rate check of ``config``'s joints on ``bus`` for each control mode (reads only: nothing moves).
+
+    Raises:
+        TransportError: a drive did not answer.
+    """
+    from kinematics import build_arm, feedforward  # noqa: PLC0415 - Pinocchio only for the torque-mode figure
+
+    checks: dict[str, RateCheck] = {}
+    for mode in (ControlMode.POSITION, ControlMode.TORQUE):
+        variant = dataclasses.replace(config, control=dataclasses.replace(config.control, mode=mode))
+        ff = feedforward(build_arm(config), gravity=True) if mode is ControlMode.TORQUE else None
+        controller = build_controller(variant, bus, feedforward=ff)
+        checks[mode.value] = measure_rate(controller, margin=config.control.rate_margin)
+    return checks
+
+
+def realtime_capacity(config: ArmConfig) -> dict[str, RateCheck]:
+    """What this host holds in real time for ``config``'s joints, per mode, against its drives emulated in a process
+    of their own (the demo's honest real-time figure).
+
+    Raises:
+        MotionError: the configuration was not read from a file.
+        TransportError: the emulator process did not start or did not answer.
+    """
+    with emulator_process(config) as overrides, open_bus(config, **overrides) as bus:
+        return measure_modes(config, bus)
 
 
 @dataclass(frozen=True, slots=True)
@@ -261,31 +334,7 @@ class Arm:
     def _start_emulator_process(self) -> None:
         if self._initial is not None:
             raise MotionError("initial_deg applies to simulated emulation only (emulate=True)")
-        source = Path(self.config.source)
-        if not source.is_file():
-            raise MotionError("emulate='realtime' builds the drives from the configuration file; this one has none")
-        link = Path(tempfile.mkdtemp(prefix="rmd-emulated-")) / "link"
-        self._stack.callback(shutil.rmtree, link.parent, ignore_errors=True)
-        can = isinstance(self.config.bus, CanBusConfig)
-        command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(source)]
-        command += ["--slcan-link" if can else "--rs485-link", str(link)]
-        if self._emulator_log is not None:
-            command += ["--log", str(self._emulator_log)]
-        process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self._stack.callback(_end_process, process)
-        assert process.stdout is not None  # stdout=PIPE
-        lines: list[str] = []
-        while not lines or not lines[-1].startswith("emulating motors"):
-            line = process.stdout.readline()
-            if not line:
-                error = process.stderr.read() if process.stderr is not None else ""
-                raise TransportError(f"the emulator process did not start: {' '.join(lines)} {error}".strip())
-            lines.append(line.strip())
-        if can:
-            self._overrides = {"interface": "slcan", "channel": str(link), "bitrate": DEFAULT_BITRATE}
-            self._overrides |= {"sleep_after_open": 0}
-        else:
-            self._overrides = {"port": str(link)}
+        self._overrides = self._stack.enter_context(emulator_process(self.config, log=self._emulator_log))
 
     def close(self) -> None:
         """Halt every axis (0x81), end the loop, release the bus and write the telemetry; safe to call twice."""

@@ -24,6 +24,8 @@ from motion.errors import ConfigError
 from tests.motion_rig import CONFIGS, arm_config
 
 ROOT = Path(__file__).resolve().parent.parent
+#: The lowest control.rate_hz a configuration allows.
+MIN_RATE_HZ = 50.0
 
 
 def _simulated(config: ArmConfig, latency_s: float, log: Path) -> tuple[Simulation, FrameLog, SimulatedBus]:
@@ -104,8 +106,7 @@ def _cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
 @pytest.mark.realtime
 def test_cli_move_at_a_rate_the_bus_cannot_hold_exits_2_before_moving(tmp_path: Path) -> None:
     config = tmp_path / "arm2.yaml"
-    config.write_text((CONFIGS / "arm2.yaml").read_text().replace("rate_hz: 200", "rate_hz: 500"))
-    (tmp_path / "arm6.urdf").write_text((CONFIGS / "arm6.urdf").read_text())
+    config.write_text((CONFIGS / "arm2.yaml").read_text())
     assert "rate_hz: 500" in config.read_text()
     link, log = tmp_path / "can", tmp_path / "frames.log"
     command: list[str | Path] = [sys.executable, "-m", "motion.cli", "emulate", "--config", config]
@@ -130,7 +131,9 @@ def test_cli_move_at_a_rate_the_bus_cannot_hold_exits_2_before_moving(tmp_path: 
         assert all(": 9a " in line or ": 92 " in line for line in moved), moved  # nothing but reads was sent
         checked = _cli("check", "--config", config, *bus)
         assert checked.returncode == 2 and "does not hold" in checked.stdout
-        config.write_text(config.read_text().replace("rate_hz: 500", f"rate_hz: {min(highest, 100):g}"))
+        if highest < MIN_RATE_HZ:  # so slow or busy a host that no rate a configuration allows holds: refused is right
+            return
+        config.write_text(config.read_text().replace("rate_hz: 500", f"rate_hz: {min(highest, 200):g}"))
         result = _cli("move", "--config", config, *bus, "shoulder=5")
         assert result.returncode == 0, result.stderr
         reached = float(result.stdout.split("shoulder=")[1].split()[0])

@@ -27,8 +27,7 @@ from motion.cli.common import (
 )
 from motion.config import CanBusConfig, JointConfig
 from motion.config.build import build_controller
-from motion.config.schema import ControlMode
-from motion.control.ratecheck import RateCheck, RateError, measure_rate
+from motion.control.ratecheck import RateError
 from motion.errors import MotionFault
 from motion.protocol import (
     Acceleration,
@@ -360,18 +359,12 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
 
     Sends reads only. Exit 0 when the configured rate holds in the configured mode, 2 when it does not.
     """
-    from kinematics import build_arm, feedforward  # noqa: PLC0415 - Pinocchio only for the torque-mode figure
+    from motion.api import measure_modes  # noqa: PLC0415 - Pinocchio only when checking
 
     session = Session.from_args(args)
     config = session.config
-    checks: dict[str, RateCheck] = {}
     with session.open_bus() as bus:
-        for mode in (ControlMode.POSITION, ControlMode.TORQUE):
-            control = replace(config.control, mode=mode)
-            variant = replace(config, control=control)
-            ff = feedforward(build_arm(config), gravity=True) if mode is ControlMode.TORQUE else None
-            controller = build_controller(variant, bus, feedforward=ff)
-            checks[mode.value] = measure_rate(controller, margin=config.control.rate_margin)
+        checks = measure_modes(config, bus)
         where = bus.describe()
     configured = checks[config.control.mode.value]
     rows = [
