@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from motion.config import ArmConfig, load_config
+from motion.config import ArmConfig, load_config_or_example
 from motion.config.build import build_controller, open_bus, safety_settings
 from motion.config.schema import CanBusConfig
 from motion.control.controller import Controller
@@ -153,12 +153,14 @@ class Arm:
 
     @classmethod
     def from_config(cls, path: str | os.PathLike[str], *, emulate: bool = False, **kwargs: Any) -> Arm:
-        """Load and validate ``path`` (the arm is connected by ``with`` or :meth:`connect`).
+        """Load and validate ``path`` (the arm is connected by ``with`` or :meth:`connect`); when no such file exists,
+        an example's name (``arm6.yaml``, ``configs/arm6.yaml``) loads the packaged example
+        (:func:`motion.config.resolve_config`).
 
         Raises:
             ConfigError: the file is missing or invalid.
         """
-        return cls(load_config(path), emulate=emulate, **kwargs)
+        return cls(load_config_or_example(path), emulate=emulate, **kwargs)
 
     # ------------------------------------------------------------------------------------------------ lifecycle
 
