@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from motion.config import ArmConfig, load_config
+from motion.config import ArmConfig, load_config_or_example
 from motion.config.build import build_controller, check_rate, open_bus, safety_settings
 from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
@@ -264,12 +264,14 @@ class Arm:
 
     @classmethod
     def from_config(cls, path: str | os.PathLike[str], *, emulate: bool | str = False, **kwargs: Any) -> Arm:
-        """Load and validate ``path`` (the arm is connected by ``with`` or :meth:`connect`).
+        """Load and validate ``path`` (the arm is connected by ``with`` or :meth:`connect`); when no such file exists,
+        an example's name (``arm6.yaml``, ``configs/arm6.yaml``) loads the packaged example
+        (:func:`motion.config.resolve_config`).
 
         Raises:
             ConfigError: the file is missing or invalid.
         """
-        return cls(load_config(path), emulate=emulate, **kwargs)
+        return cls(load_config_or_example(path), emulate=emulate, **kwargs)
 
     # ------------------------------------------------------------------------------------------------ lifecycle
 

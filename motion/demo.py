@@ -7,9 +7,8 @@ and a plot:
 2. ``torque``: from where the path ended, the arm holds against gravity, makes a coordinated move and holds again in
    torque mode with gravity feed-forward (the same configuration with ``control.mode: torque``).
 
-The configuration is found next to the installed package (``configs/`` beside the ``motion`` directory, which is
-where an editable install or a source checkout has it), else in ``./configs``: the demo runs from any directory of
-such an install. A wheel does not ship ``configs/``.
+The configuration is the packaged example (:func:`motion.config.example_config`), the same file in a wheel, an
+editable install and a source checkout: the demo runs from any directory.
 """
 
 from __future__ import annotations
@@ -23,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from motion.api import Arm, realtime_capacity
-from motion.config import ArmConfig, load_config
+from motion.config import ArmConfig, example_config, load_config
 from motion.config.schema import ControlMode
 from motion.errors import ConfigError, MotionError, MotionFault, TransportError
 from motion.plot import plot_log
@@ -63,16 +62,9 @@ def config_path() -> Path:
     """The example configuration (see the module docstring).
 
     Raises:
-        ConfigError: found neither beside the package nor in ``./configs``.
+        ConfigError: the examples are not installed.
     """
-    candidates = [
-        Path(__file__).resolve().parent.parent / "configs" / CONFIG_NAME,
-        Path.cwd() / "configs" / CONFIG_NAME,
-    ]
-    for candidate in candidates:
-        if candidate.is_file():
-            return candidate
-    raise ConfigError(str(candidates[0]), "<file>", f"file not found (nor {candidates[1]})")
+    return example_config(CONFIG_NAME)
 
 
 def _follow_path(arm: Arm) -> None:

@@ -53,8 +53,18 @@ def test_readme_has_exactly_two_commands_and_ci_runs_the_second() -> None:
     commands = _readme_commands()
     assert len(commands) == 2
     assert all("\n" not in c for c in commands)
+    assert all(c.startswith("python3 -m venv .venv && ") for c in commands)  # whichever python3 is >= 3.11
     ci = (ROOT / ".ci" / "run").read_text().strip().splitlines()
-    assert ci[-1] == commands[1]
+    assert ci.count(commands[1]) == 1
+    after = [line for line in ci[ci.index(commands[1]) + 1 :] if not line.startswith("#")]
+    # Checks may follow; then a failure inside the && list (which `set -e` lets pass) must end the script first.
+    assert not after or after[0] == 'status=$?; if [ "$status" -ne 0 ]; then exit "$status"; fi', after[:1]
+
+
+def test_ci_checks_the_wheel_from_an_empty_directory() -> None:
+    ci = (ROOT / ".ci" / "run").read_text()
+    for step in ("pip wheel -q --no-deps", 'cd "$work/empty"', "rmd-motion\" demo", "rmd-motion\" init", "-ne 3"):
+        assert step in ci, step
 
 
 def test_docs_protocol_table_matches_the_code() -> None:

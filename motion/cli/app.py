@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Final
 
 from motion import __version__
-from motion.cli import drives, moves
+from motion.cli import drives, examples, moves
 from motion.cli.common import (
     EXIT_COMMUNICATION,
     EXIT_FAULT,
@@ -21,11 +21,10 @@ from motion.cli.common import (
     Interrupts,
     UsageError,
     add_bus_arguments,
-    load_arm_config,
     speed_scale_arg,
 )
 from motion.cli.protocol_demo import protocol_demo
-from motion.config import ArmConfig
+from motion.config import ArmConfig, load_config_or_example
 from motion.emulator import Emulator, Fault
 from motion.emulator.cli import EmulatorFactory, add_emulate_arguments, parse_ids, run_emulate
 from motion.errors import (
@@ -81,7 +80,7 @@ def arm_emulator_factory(config: ArmConfig) -> EmulatorFactory:
 def emulate(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """``emulate``: drives of ``--ids`` or of the arm of ``--config``."""
     interrupts.restore()  # run_emulate handles SIGINT and SIGTERM itself (a clean shutdown, exit 0)
-    factory = arm_emulator_factory(load_arm_config(args.config)) if args.config else None
+    factory = arm_emulator_factory(load_config_or_example(args.config)) if args.config else None
     return run_emulate(args, factory)
 
 
@@ -224,6 +223,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo_parser.add_argument(
         "--protocol", action="store_true", help="instead: one control cycle encoded and decoded on both transports"
     )
+    examples.add_init_arguments(_command(sub, "init", examples.init, examples.HELP, bus=False))
     plot_parser = _command(sub, "plot", plot, "plot a telemetry log (.npz of a motion) into a PNG", bus=False)
     plot_parser.add_argument("log", metavar="LOG")
     plot_parser.add_argument("-o", "--output", required=True, metavar="OUT.png")

@@ -13,12 +13,11 @@ import sys
 import types
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Final
 
-from motion.config import ArmConfig, CanBusConfig, JointConfig, load_config
+from motion.config import ArmConfig, CanBusConfig, JointConfig, load_config_or_example
 from motion.config.build import open_bus
-from motion.errors import ConfigError, TransportError
+from motion.errors import TransportError
 from motion.protocol import ErrorFlags, Message
 from motion.transport import Request, Transport
 
@@ -33,8 +32,6 @@ REPLY_TIMEOUT_S: Final = 0.2
 #: The bus override options and the bus kind each applies to.
 _CAN_OVERRIDES: Final = ("interface", "channel")
 _RS485_OVERRIDES: Final = ("port",)
-#: The example configurations, beside the package.
-EXAMPLE_CONFIGS: Final = Path(__file__).resolve().parents[2] / "configs"
 #: Where pseudo-terminal devices live.
 _PTY_PREFIX: Final = "/dev/pts/"
 
@@ -115,7 +112,7 @@ class Session:
             ConfigError: the file is missing or invalid.
             UsageError: an override for the other kind of bus.
         """
-        config = load_arm_config(args.config)
+        config = load_config_or_example(args.config)
         can = isinstance(config.bus, CanBusConfig)
         given = {name: value for name in (*_CAN_OVERRIDES, *_RS485_OVERRIDES) if (value := getattr(args, name, None))}
         wrong = [f"--{name}" for name in given if name not in (_CAN_OVERRIDES if can else _RS485_OVERRIDES)]
@@ -164,27 +161,6 @@ class Session:
         return tuple(self.joint(n) for n in names) if names else self.config.joints
 
 
-def load_arm_config(text: str) -> ArmConfig:
-    """Load ``--config``: a path, or the name of an example configuration (``arm2.yaml``, ``configs/arm2.yaml``)
-    when no such file is in the working directory; examples are found beside the installed package, so that the
-    commands work from any directory.
-
-    Raises:
-        ConfigError: the file is missing (the message names both places) or invalid.
-    """
-    path = Path(text)
-    example = EXAMPLE_CONFIGS / path.name
-    by_name = not path.is_absolute() and path.parent in (Path(), Path(EXAMPLE_CONFIGS.name))
-    if not path.exists() and by_name and example.is_file():
-        return load_config(example)
-    try:
-        return load_config(path)
-    except ConfigError as exc:
-        if by_name and not path.exists():
-            raise ConfigError(exc.file, exc.key_path, f"file not found (nor {example})") from None
-        raise
-
-
 def _is_pty(path: str) -> bool:
     """Whether ``path`` leads to a pseudo-terminal (such as the emulator's)."""
     return os.path.realpath(path).startswith(_PTY_PREFIX)
@@ -193,7 +169,10 @@ def _is_pty(path: str) -> bool:
 def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
     """``--config`` and the bus overrides."""
     parser.add_argument(
-        "--config", required=True, metavar="FILE", help="arm configuration (YAML; or an example's name: arm2.yaml)"
+        "--config",
+        required=True,
+        metavar="FILE",
+        help="arm configuration (YAML); when no such file exists, an example's name (arm2.yaml, configs/arm2.yaml)",
     )
     bus = parser.add_argument_group("bus overrides (replace the configured bus settings)")
     bus.add_argument("--interface", metavar="NAME", help="CAN: python-can interface (socketcan, slcan, pcan, ...)")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from motion.config.examples import example_config, example_names, load_config_or_example, resolve_config
 from motion.config.loader import load_config, parse_config, read_yaml
 from motion.config.schema import (
     ArmConfig,
@@ -37,7 +38,11 @@ __all__ = [
     "SafetyConfig",
     "Transport",
     "Vec3",
+    "example_config",
+    "example_names",
     "load_config",
+    "load_config_or_example",
     "parse_config",
     "read_yaml",
+    "resolve_config",
 ]
