@@ -7,7 +7,7 @@ waits for the motion to be under way before it sends SIGINT.
 
 These tests run in real time (marked ``realtime``): what they can assert on any host is that a rate the rate check
 accepts runs without a fault. So the commands that move use a copy of the configuration whose control loop runs at
-the highest rate ``rmd-motion check`` measures on this host (at most 200 Hz; a 500 Hz torque loop over a slcan
+half the highest rate ``rmd-motion check`` measures on this host (at most 200 Hz; a 500 Hz torque loop over a slcan
 pseudo-terminal to another Python process is no premise for a test on a loaded 2-vCPU machine). On a host so slow or
 busy that no rate the configuration allows (50 Hz and up) holds, they are skipped, saying so: there ``move`` refuses
 with exit 2 before anything moves, which ``tests/test_ratecheck.py`` asserts.
@@ -42,6 +42,8 @@ ARM2 = ROOT / "configs" / "arm2.yaml"
 ARM2_RS485 = ROOT / "configs" / "arm2_rs485.yaml"
 #: The lowest control.rate_hz a configuration allows.
 MIN_RATE_HZ = 50.0
+#: Share of the rate check's highest rate the moving tests run at.
+RATE_SHARE = 0.5
 #: Generous bound of one CLI run, s.
 RUN_TIMEOUT_S = 30.0
 #: A move that takes several seconds (the interrupt test stops it early).
@@ -65,6 +67,13 @@ class Emulated:
 
     def log_size(self) -> int:
         return self.log.stat().st_size
+
+
+def skip_if_rate_refused(result: subprocess.CompletedProcess[str]) -> None:
+    """A moving command that the rate check refused (exit 2, before anything moved) on a host busier now than when
+    the rate was chosen: that is the right answer there, and nothing else of the test applies."""
+    if result.returncode == 2 and "control.rate_hz" in result.stderr and "cannot be held" in result.stderr:
+        pytest.skip(f"the rate check refused the rate on this host just now: {result.stderr.strip()}")
 
 
 def cli(*args: str | Path, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
@@ -153,14 +162,15 @@ def rate_that_holds(config: Path, emulated: Emulated, tmp: Path, ceiling_hz: flo
     result = cli("check", "--config", config, *emulated.bus_args, "--json")
     assert result.returncode in {0, 2}, result.stderr
     data = json.loads(result.stdout)
-    highest = float(data["modes"][data["mode"]]["highest_rate_hz"])
+    # Half the measured figure: the check's p99 is itself a sample of a busy host, and each command measures anew.
+    highest = float(data["modes"][data["mode"]]["highest_rate_hz"]) * RATE_SHARE
     if highest < MIN_RATE_HZ:
         pytest.skip(f"this host holds no control rate {config.name} allows (rate check: {highest:g} Hz)")
     text = config.read_text()
     configured = f"rate_hz: {data['rate_hz']:g}"
     assert configured in text
     path = tmp / config.name
-    path.write_text(text.replace(configured, f"rate_hz: {min(highest, ceiling_hz):g}"))
+    path.write_text(text.replace(configured, f"rate_hz: {min(round(highest), ceiling_hz):g}"))
     return path
 
 
@@ -229,6 +239,7 @@ def test_move_then_status_shows_the_joints_there(can_arm: Emulated, arm2_200hz: 
         "move", "--config", arm2_200hz, *can_arm.bus_args, "shoulder=20", "elbow=-30", "--json",
         "--log", log, "--trace", trace,
     )  # fmt: skip
+    skip_if_rate_refused(result)
     assert result.returncode == 0, result.stderr
     summary = json.loads(result.stdout)
     assert summary["command"] == "move" and summary["targets"] == {"shoulder": 20.0, "elbow": -30.0}
@@ -323,6 +334,7 @@ def test_run_program(can_arm: Emulated, arm2_200hz: Path, tmp_path: Path) -> Non
         "  - path: [{shoulder: 0}, {shoulder: -10, elbow: 5}]\n"
     )
     result = cli("run", "--config", arm2_200hz, *can_arm.bus_args, program, "--json")
+    skip_if_rate_refused(result)
     assert result.returncode == 0, result.stderr
     summary = json.loads(result.stdout)
     assert summary["command"] == "run" and summary["steps"] == 3
@@ -369,6 +381,9 @@ def test_ctrl_c_during_a_move_halts_every_axis(can_arm: Emulated, arm2_200hz: Pa
     assert process.stderr is not None
     try:
         planned = process.stderr.readline()  # "move: N s planned": the motion is under way
+        if "cannot be held" in planned:
+            process.communicate(timeout=RUN_TIMEOUT_S)
+            skip_if_rate_refused(subprocess.CompletedProcess(process.args, process.returncode, "", planned))
         assert "planned" in planned, planned + process.stderr.read()
         assert float(planned.split()[1]) > 3.0
         time.sleep(0.3)
@@ -423,6 +438,7 @@ def test_rs485_scan_move_status(rs485_arm: Emulated, rs485_fit: Path) -> None:
     assert [d["motor_id"] for d in drives] == [1, 2]
     assert [d["model"]["motor_name"] for d in drives] == ["EMU-shoulder", "EMU-elbow"]  # from 0x12
     moved = cli("move", "--config", rs485_fit, *rs485_arm.bus_args, "shoulder=-15", "elbow=25")
+    skip_if_rate_refused(moved)
     assert moved.returncode == 0, moved.stderr
     reached = positions(ARM2_RS485, rs485_arm)
     assert reached["shoulder"] == pytest.approx(-15.0, abs=0.5)
