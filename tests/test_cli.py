@@ -36,6 +36,7 @@ from motion.cli.moves import Progress
 from motion.cli.program import MoveStep, PathStep, WaitStep, parse_program
 from motion.config import load_config
 from motion.errors import ConfigError
+from tests.motion_rig import skip_if_rate_refused
 
 ROOT = Path(__file__).resolve().parent.parent
 ARM2 = ROOT / "configs" / "arm2.yaml"
@@ -67,13 +68,6 @@ class Emulated:
 
     def log_size(self) -> int:
         return self.log.stat().st_size
-
-
-def skip_if_rate_refused(result: subprocess.CompletedProcess[str]) -> None:
-    """A moving command that the rate check refused (exit 2, before anything moved) on a host busier now than when
-    the rate was chosen: that is the right answer there, and nothing else of the test applies."""
-    if result.returncode == 2 and "control.rate_hz" in result.stderr and "cannot be held" in result.stderr:
-        pytest.skip(f"the rate check refused the rate on this host just now: {result.stderr.strip()}")
 
 
 def cli(*args: str | Path, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
