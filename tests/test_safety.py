@@ -41,16 +41,33 @@ def _config(policy: HaltPolicy = HaltPolicy.STOP, mode: ControlMode = ControlMod
 
 
 def _move_and_catch(
-    rig: Rig, inject: Callable[[], object], target: tuple[float, float] = (80.0, -100.0)
+    rig: Rig,
+    inject: Callable[[], object],
+    target: tuple[float, float] = (80.0, -100.0),
+    *,
+    detected_in: int | None = None,
+    status_read_of: int | None = None,
 ) -> MotionFault:
+    """Start a move, inject a fault, wait for it; assert how many cycles detection took (simulated time: exact).
+
+    ``detected_in`` counts the cycles from the first one that can see the fault (1: that very cycle). Faults seen
+    only in the round-robin 0x9A read (``status_read_of``: that drive's flags and supply voltage) are detected in
+    the first cycle whose read goes to that drive.
+    """
     supervisor = rig.supervisor
     assert supervisor is not None
     supervisor.move_to(target, speed_scale=0.4)
     rig.sleep(0.4)
     assert supervisor.state is ArmState.MOVING
+    first = rig.controller.loop.next_cycle  # the first cycle that can see what is injected now
+    if status_read_of is not None:
+        ids, last = supervisor.ids, supervisor._round_robin  # the drive whose 0x9A went out last
+        detected_in = next(j for j in range(1, len(ids) + 1) if ids[(last + j) % len(ids)] == status_read_of)
     inject()
     with pytest.raises(MotionFault) as info:
         supervisor.wait(5.0)
+    if detected_in is not None:
+        assert supervisor.halts[0].cycle - first + 1 == detected_in, (info.value, supervisor.halts[0].cycle - first)
     return info.value
 
 
@@ -99,7 +116,9 @@ def test_drive_over_temperature_flag(tmp_path: Path) -> None:
     # our own temperature limit above the drive's protection (80 degC): the 0x9A flag is what trips
     joints = tuple(dataclasses.replace(j, temperature_limit_c=100.0) for j in config.joints)
     with emulated_arm(dataclasses.replace(config, joints=joints), "sim", tmp_path, supervised=True) as rig:
-        fault = _move_and_catch(rig, lambda: _inject(rig, FaultKind.OVER_TEMPERATURE, 2, 90.0, duration_s=60.0))
+        fault = _move_and_catch(
+            rig, lambda: _inject(rig, FaultKind.OVER_TEMPERATURE, 2, 90.0, duration_s=60.0), status_read_of=2
+        )
         assert fault.kind == "drive_over_temperature" and fault.joint == "elbow"
         _assert_halted_in_detection_cycle(rig)
         _assert_comes_to_rest(rig)
@@ -108,7 +127,9 @@ def test_drive_over_temperature_flag(tmp_path: Path) -> None:
 
 def test_drive_low_voltage_flag_then_clear_after_the_cause_is_gone(tmp_path: Path) -> None:
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
-        fault = _move_and_catch(rig, lambda: _inject(rig, FaultKind.UNDER_VOLTAGE, 1, 12.0, duration_s=2.0))
+        fault = _move_and_catch(
+            rig, lambda: _inject(rig, FaultKind.UNDER_VOLTAGE, 1, 12.0, duration_s=2.0), status_read_of=1
+        )
         fault_end_s = rig.now() + 2.0
         assert fault.kind == "drive_low_voltage" and fault.joint == "shoulder"
         _assert_halted_in_detection_cycle(rig)
@@ -130,9 +151,11 @@ def test_drive_low_voltage_flag_then_clear_after_the_cause_is_gone(tmp_path: Pat
 def test_measured_temperature_and_voltage_against_configured_limits(
     kind: FaultKind, value: float, expected: str, tmp_path: Path
 ) -> None:
+    # the temperature comes back in every set-point reply (the next cycle); the voltage only in 0x9A (its turn)
+    timing: dict[str, int] = {"detected_in": 1} if expected == "temperature" else {"status_read_of": 2}
     # 75 degC is above the joint's 70 degC limit but below the drive's own 80; 19 V above the drive's 18 V
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
-        fault = _move_and_catch(rig, lambda: _inject(rig, kind, 2, value, duration_s=60.0))
+        fault = _move_and_catch(rig, lambda: _inject(rig, kind, 2, value, duration_s=60.0), **timing)
         assert fault.kind == expected and fault.joint == "elbow"
         assert fault.threshold is not None and fault.value is not None
         _assert_halted_in_detection_cycle(rig)
@@ -141,12 +164,14 @@ def test_measured_temperature_and_voltage_against_configured_limits(
 
 
 @pytest.mark.parametrize(
-    ("kind", "expected"),
-    [(FaultKind.SILENT, "no_reply"), (FaultKind.DROP, "no_reply"), (FaultKind.CORRUPT, "corrupt_frames")],
+    ("kind", "expected", "cycles"),
+    # arm2: max_missed_replies 3, so the 4th missing reply faults; max_corrupt_frames 3, so the 4th corrupt frame
+    # within 1 s, which the shoulder's 0xA4 replies and its round-robin 0x9A reply reach in the 3rd cycle
+    [(FaultKind.SILENT, "no_reply", 4), (FaultKind.DROP, "no_reply", 4), (FaultKind.CORRUPT, "corrupt_frames", 3)],
 )
-def test_missing_and_corrupt_replies(kind: FaultKind, expected: str, tmp_path: Path) -> None:
+def test_missing_and_corrupt_replies(kind: FaultKind, expected: str, cycles: int, tmp_path: Path) -> None:
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
-        fault = _move_and_catch(rig, lambda: _inject(rig, kind, 1, duration_s=60.0))
+        fault = _move_and_catch(rig, lambda: _inject(rig, kind, 1, duration_s=60.0), detected_in=cycles)
         assert fault.kind == expected and fault.joint == "shoulder"
         _assert_halted_in_detection_cycle(rig)
         if kind is FaultKind.SILENT:  # no acknowledgement: the halt is re-sent until the retry bound (0.2 s)
@@ -199,7 +224,9 @@ def test_hold_that_cannot_start_halts_every_axis(tmp_path: Path, monkeypatch: py
             raise PlanningError("stop ramp cannot be planned (forced by the test)")
 
         monkeypatch.setattr(rig.controller.follower, "stop", unplannable)
-        fault = _move_and_catch(rig, lambda: _inject(rig, FaultKind.UNDER_VOLTAGE, 2, 19.0, duration_s=60.0))
+        fault = _move_and_catch(
+            rig, lambda: _inject(rig, FaultKind.UNDER_VOLTAGE, 2, 19.0, duration_s=60.0), status_read_of=2
+        )
         assert fault.kind == "low_voltage"
         halt = supervisor.halts[0]
         assert halt.policy == "MOTOR_STOP"
@@ -266,7 +293,7 @@ def test_planned_setpoint_outside_limits_is_never_sent(tmp_path: Path) -> None:
 
 def test_closing_the_bus_under_the_running_loop_halts_every_axis_first(tmp_path: Path) -> None:
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
-        fault = _move_and_catch(rig, rig.controller.bus.close)  # the port is closed under the running loop
+        fault = _move_and_catch(rig, rig.controller.bus.close, detected_in=1)  # the port closes under the loop
         assert fault.kind == "bus_closing"
         supervisor = rig.supervisor
         assert supervisor is not None and supervisor.state is ArmState.FAULTED
@@ -280,7 +307,7 @@ def test_bus_failure_faults_once_and_ends_the_loop(tmp_path: Path) -> None:
         supervisor = rig.supervisor
         assert supervisor is not None
         rig.controller.bus.close_hooks.clear()  # a port that disappears without warning (USB adapter unplugged)
-        fault = _move_and_catch(rig, rig.controller.bus.close)
+        fault = _move_and_catch(rig, rig.controller.bus.close, detected_in=1)
         assert fault.kind == "transport"
         rig.sleep(0.2)
         assert not rig.controller.loop.running  # nothing can be sent: the loop ends instead of re-faulting
@@ -296,7 +323,9 @@ def test_overrun_streak(tmp_path: Path) -> None:
                 controller.clock.sleep_until(controller.clock.now() + controller.period_s * 1.5)  # a slow cycle
 
         rig.controller.cycle_hooks.append(hook)
-        fault = _move_and_catch(rig, lambda: slow.update(on=True))
+        # each slow cycle takes 1.5 periods, so the loop skips one grid point after it; the 4th overrun in a row
+        # (max_overrun_streak 3) is seen in the 5th slow cycle, grid cycle 1 + 4 * 2
+        fault = _move_and_catch(rig, lambda: slow.update(on=True), detected_in=9)
         slow["on"] = False
         assert fault.kind == "overrun"
         _assert_halted_in_detection_cycle(rig)
@@ -312,7 +341,7 @@ def test_exception_in_cycle(tmp_path: Path) -> None:
                 raise ZeroDivisionError("bug in a cycle hook")
 
         rig.controller.cycle_hooks.append(hook)
-        fault = _move_and_catch(rig, lambda: broken.update(on=True))
+        fault = _move_and_catch(rig, lambda: broken.update(on=True), detected_in=1)
         broken["on"] = False
         assert fault.kind == "exception" and "ZeroDivisionError" in str(fault)
         _assert_halted_in_detection_cycle(rig)
@@ -323,7 +352,7 @@ def test_estop_api(tmp_path: Path) -> None:
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None
-        fault = _move_and_catch(rig, supervisor.estop)
+        fault = _move_and_catch(rig, supervisor.estop, detected_in=1)
         assert fault.kind == "estop"
         _assert_halted_in_detection_cycle(rig)
         _assert_comes_to_rest(rig)

@@ -157,6 +157,11 @@ class FixedRateLoop:
         return True
 
     @property
+    def next_cycle(self) -> int:
+        """Index of the next cycle to run (cycle ``k`` is scheduled at ``t0 + k * period``)."""
+        return self._k
+
+    @property
     def stepping(self) -> bool:
         """True when the loop runs its cycles in the callers' threads (see :meth:`begin_stepping`)."""
         return self._stepping
