@@ -1,0 +1,70 @@
+"""Real time where real time is the point: the drives emulated in a process of their own on a slcan pseudo-terminal,
+the guarded loop in its own thread here, at a rate the rate check accepts on this host.
+
+What must hold on any host is asserted, never how fast the host is: a bus closed under a running loop halts every
+axis before the port is released, and nothing moves the drives after that.
+"""
+
+from __future__ import annotations
+
+import re
+import time
+from pathlib import Path
+
+import pytest
+
+from motion.api import Arm
+from motion.config import load_config
+from motion.control.ratecheck import RateError
+from motion.safety import ArmState
+from tests.motion_rig import CONFIGS
+
+pytestmark = pytest.mark.realtime
+
+#: The lowest rate the test moves at; a host that holds none at or above it gets the test skipped, with the figures.
+MIN_RATE_HZ = 50.0
+#: A frame the emulated drives received: time, then "IN", the adapter, "<CAN id>: <payload bytes>".
+_RECEIVED = re.compile(r"^\s*(\d+\.\d+) IN\s+\S+\s+([0-9a-f]{3}): ([0-9a-f]{2})")
+
+
+def _connect(tmp_path: Path, log: Path) -> Arm:
+    """arm2 at 100 Hz, or at 0.6x the highest rate the rate check measured if 100 Hz does not hold here."""
+    source = (CONFIGS / "arm2.yaml").read_text()
+    rate, why = 100.0, ""
+    for _ in range(2):
+        path = tmp_path / "arm2.yaml"
+        path.write_text(source.replace("rate_hz: 500", f"rate_hz: {rate:g}"))
+        arm = Arm(load_config(path), emulate="realtime", emulator_log=log)
+        try:
+            return arm.connect()
+        except RateError as refused:
+            why = str(refused)
+            rate = 5.0 * round(0.6 * refused.check.highest_rate_hz / 5.0)
+            if rate < MIN_RATE_HZ:
+                break
+    pytest.skip(f"no rate of at least {MIN_RATE_HZ:g} Hz holds on this host just now: {why}")
+
+
+def test_closing_the_bus_under_a_running_loop_halts_every_axis_before_the_port_goes(tmp_path: Path) -> None:
+    log = tmp_path / "frames.log"
+    arm = _connect(tmp_path, log)
+    try:
+        assert arm.supervisor is not None and arm.bus is not None
+        arm.move_to({"shoulder": 60.0, "elbow": -60.0}, speed_scale=0.5, wait=False)
+        time.sleep(0.3)  # real time: the loop thread streams the move meanwhile
+        assert arm.supervisor.state is ArmState.MOVING
+        arm.bus.close()  # from this thread, under the running loop
+        assert arm.supervisor.state is ArmState.FAULTED
+        assert arm.supervisor.fault is not None and arm.supervisor.fault.kind == "bus_closing"
+        assert not arm.controller.loop.running  # type: ignore[union-attr]
+    finally:
+        arm.close()
+    received = [_RECEIVED.match(line) for line in log.read_text().splitlines()]
+    frames = [(float(m[1]), int(m[2], 16) - 0x140, int(m[3], 16)) for m in received if m is not None]
+    setpoints = [(t, motor) for t, motor, code in frames if code in (0xA1, 0xA4)]
+    stops = {motor: t for t, motor, code in reversed(frames) if code == 0x81}
+    assert set(stops) == {1, 2}, "every axis received 0x81"
+    assert len(setpoints) > 10, "the move was streaming when the bus closed"
+    last_stop = max(stops.values())
+    assert all(t < min(stops.values()) for t, _ in setpoints), "no set-point after the first 0x81"
+    assert last_stop - min(stops.values()) < arm.controller.period_s  # type: ignore[union-attr]  # one cycle's batch
