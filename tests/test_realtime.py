@@ -52,11 +52,13 @@ def test_closing_the_bus_under_a_running_loop_halts_every_axis_before_the_port_g
         assert arm.supervisor is not None and arm.bus is not None
         arm.move_to({"shoulder": 60.0, "elbow": -60.0}, speed_scale=0.5, wait=False)
         time.sleep(0.3)  # real time: the loop thread streams the move meanwhile
-        assert arm.supervisor.state is ArmState.MOVING
+        supervisor, controller = arm.supervisor, arm.supervisor.controller
+        assert supervisor.state is ArmState.MOVING
         arm.bus.close()  # from this thread, under the running loop
-        assert arm.supervisor.state is ArmState.FAULTED
-        assert arm.supervisor.fault is not None and arm.supervisor.fault.kind == "bus_closing"
-        assert not arm.controller.loop.running  # type: ignore[union-attr]
+        states = {supervisor.state}  # (a set: mypy narrowed the state to MOVING above)
+        assert states == {ArmState.FAULTED}
+        assert supervisor.fault is not None and supervisor.fault.kind == "bus_closing"
+        assert not controller.loop.running
     finally:
         arm.close()
     received = [_RECEIVED.match(line) for line in log.read_text().splitlines()]
@@ -67,4 +69,4 @@ def test_closing_the_bus_under_a_running_loop_halts_every_axis_before_the_port_g
     assert len(setpoints) > 10, "the move was streaming when the bus closed"
     last_stop = max(stops.values())
     assert all(t < min(stops.values()) for t, _ in setpoints), "no set-point after the first 0x81"
-    assert last_stop - min(stops.values()) < arm.controller.period_s  # type: ignore[union-attr]  # one cycle's batch
+    assert last_stop - min(stops.values()) < controller.period_s  # one cycle's batch

@@ -152,7 +152,7 @@ def test_measured_temperature_and_voltage_against_configured_limits(
     kind: FaultKind, value: float, expected: str, tmp_path: Path
 ) -> None:
     # the temperature comes back in every set-point reply (the next cycle); the voltage only in 0x9A (its turn)
-    timing: dict[str, int] = {"detected_in": 1} if expected == "temperature" else {"status_read_of": 2}
+    timing: dict[str, Any] = {"detected_in": 1} if expected == "temperature" else {"status_read_of": 2}
     # 75 degC is above the joint's 70 degC limit but below the drive's own 80; 19 V above the drive's 18 V
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         fault = _move_and_catch(rig, lambda: _inject(rig, kind, 2, value, duration_s=60.0), **timing)
