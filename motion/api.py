@@ -41,7 +41,7 @@ from motion.emulator import FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, MotionError, MotionFault, PlanningError, TransportError
 from motion.protocol import Transport as Wire
-from motion.safety import ArmState, Supervisor
+from motion.safety import Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
 from motion.transmission import FloatArray
 from motion.transport import Transport
@@ -204,7 +204,7 @@ class MotionHandle:
     @property
     def done(self) -> bool:
         """True when the motion ended (or was halted)."""
-        return self._supervisor.controller.wait_idle(0) or self._supervisor.state is ArmState.FAULTED
+        return self._supervisor.controller.wait_idle(0) or self._supervisor.state.faulted
 
 
 class Arm:

@@ -56,7 +56,7 @@ def test_closing_the_bus_under_a_running_loop_halts_every_axis_before_the_port_g
         assert supervisor.state is ArmState.MOVING
         arm.bus.close()  # from this thread, under the running loop
         states = {supervisor.state}  # (a set: mypy narrowed the state to MOVING above)
-        assert states == {ArmState.FAULTED}
+        assert states == {ArmState.HALTED}
         assert supervisor.fault is not None and supervisor.fault.kind == "bus_closing"
         assert not controller.loop.running
     finally:

@@ -24,6 +24,7 @@ from motion.emulator import Fault, FaultKind
 from motion.errors import MotionError, MotionFault, PlanningError
 from motion.protocol import Command, MultiTurnPositionSpeed
 from motion.safety import ArmEvent, ArmState, InvalidTransition, StateMachine
+from motion.safety.states import SAFE_STATE, TRANSITIONS
 from motion.trajectory import JointLimits, Planner, State
 from motion.trajectory import Path as TrajectoryPath
 from motion.transport import Reply
@@ -103,7 +104,7 @@ def _assert_refused_until_clear(rig: Rig, fault: MotionFault, *, persists: bool)
     if persists:
         with pytest.raises(MotionFault, match="clear_failed"):
             supervisor.clear()
-        assert supervisor.state is ArmState.FAULTED
+        assert supervisor.state is ArmState.HALTED
 
 
 def _inject(rig: Rig, kind: FaultKind, motor_id: int, value: float | None = None, duration_s: float = 0.5) -> None:
@@ -296,7 +297,7 @@ def test_closing_the_bus_under_the_running_loop_halts_every_axis_first(tmp_path:
         fault = _move_and_catch(rig, rig.controller.bus.close, detected_in=1)  # the port closes under the loop
         assert fault.kind == "bus_closing"
         supervisor = rig.supervisor
-        assert supervisor is not None and supervisor.state is ArmState.FAULTED
+        assert supervisor is not None and supervisor.state is ArmState.HALTED
         assert rig.controller.bus.closed and not rig.controller.loop.running
         _assert_halted_in_detection_cycle(rig)
         _assert_comes_to_rest(rig)
@@ -376,13 +377,52 @@ def test_close_halts_every_axis(tmp_path: Path) -> None:
             supervisor.move_to([0.0, 0.0])
 
 
-def test_state_machine_unknown_event_goes_to_safe_state() -> None:
-    machine = StateMachine(ArmState.READY)
-    assert machine.fire(ArmEvent.MOVE) is ArmState.MOVING
-    with pytest.raises(InvalidTransition, match="cleared"):
-        machine.fire(ArmEvent.CLEARED)
-    assert machine.state is ArmState.FAULTED
-    assert machine.fire(ArmEvent.CLEARED) is ArmState.READY
+@pytest.mark.parametrize("state", list(ArmState))
+@pytest.mark.parametrize("event", list(ArmEvent))
+def test_every_state_and_event_pair(state: ArmState, event: ArmEvent) -> None:
+    machine = StateMachine(state)
+    expected = TRANSITIONS.get((state, event))
+    if expected is not None:
+        assert machine.fire(event) is expected
+        return
+    with pytest.raises(InvalidTransition, match=event.value):
+        machine.fire(event)
+    # an unknown pair halts every axis (again), except where nothing can be sent any more
+    assert machine.state is (state if state in (ArmState.BUS_LOST, ArmState.CLOSED) else SAFE_STATE)
+
+
+def test_the_transition_table_keeps_faults_faulted() -> None:
+    assert SAFE_STATE is ArmState.HALTING and SAFE_STATE.faulted
+    faulted = {s for s in ArmState if s.faulted}
+    assert faulted == {ArmState.HOLDING, ArmState.HALTING, ArmState.HALTED, ArmState.BUS_LOST}
+    for (state, event), target in TRANSITIONS.items():
+        if state.faulted and target in (ArmState.READY, ArmState.MOVING):
+            assert event is ArmEvent.CLEARED and state in (ArmState.HOLDING, ArmState.HALTED), (state, event)
+        if event in (ArmEvent.HOLD, ArmEvent.HALT, ArmEvent.BUS_GONE):
+            assert target.faulted
+    # every state that can still send reaches the halt on a fault, and every state can be closed
+    for state in ArmState:
+        assert TRANSITIONS[state, ArmEvent.CLOSE] is ArmState.CLOSED
+        if state not in (ArmState.BUS_LOST, ArmState.CLOSED):
+            assert TRANSITIONS[state, ArmEvent.HALT] is ArmState.HALTING
+
+
+def test_an_unknown_pair_in_the_loop_sends_the_halt(tmp_path: Path) -> None:
+    # the table's safe state is HALTING; reached without a halt having gone out, the next cycle sends it
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        supervisor.move_to([80.0, -100.0], speed_scale=0.4)
+        rig.sleep(0.4)
+        with pytest.raises(InvalidTransition):
+            supervisor.machine.fire(ArmEvent.CLEARED)  # an event MOVING does not accept
+        states = [supervisor.state]
+        assert not received(rig, Command.MOTOR_STOP)
+        rig.sleep(0.02)
+        states.append(supervisor.state)
+        assert set(received(rig, Command.MOTOR_STOP)) == {1, 2}
+        assert states == [ArmState.HALTING, ArmState.HALTED]
+        _assert_comes_to_rest(rig)
 
 
 def test_a_retarget_that_cannot_be_planned_is_refused_and_the_move_goes_on(tmp_path: Path) -> None:
@@ -395,7 +435,7 @@ def test_a_retarget_that_cannot_be_planned_is_refused_and_the_move_goes_on(tmp_p
         supervisor.move_to([85.0, -100.0], speed_scale=0.1)
         with pytest.raises(PlanningError, match="move"):
             supervisor.wait(5.0)
-        assert supervisor.state is not ArmState.FAULTED and not supervisor.faults
+        assert not supervisor.state.faulted and not supervisor.faults
         assert supervisor.wait(5.0)  # the first move went on to its target
         assert np.abs(rig.plant.joint_positions_deg() - [80.0, -100.0]).max() < 1.0
 

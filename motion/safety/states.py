@@ -10,12 +10,23 @@ from motion.errors import MotionError
 
 
 class ArmState(Enum):
-    """Where the arm is."""
+    """Where the arm is. Four of the states are faulted (:attr:`faulted`): motion is refused in them."""
 
     READY = "ready"  #: enabled, holding the reference, accepts motion
     MOVING = "moving"  #: playing a motion
-    FAULTED = "faulted"  #: every axis halted; motion is refused until clear() succeeds
+    HOLDING = "holding"  #: faulted: a jerk-limited stop of the reference is streamed, then held (policy ``hold``)
+    HALTING = "halting"  #: faulted: 0x81 / 0x80 went to every axis; re-sent to those that have not acknowledged
+    HALTED = "halted"  #: faulted: every drive acknowledged its halt (or the retry bound passed); reads only
+    BUS_LOST = "bus_lost"  #: faulted: the bus failed, nothing can be sent; the loop has ended
     CLOSED = "closed"  #: the loop has ended and the bus is released
+
+    @property
+    def faulted(self) -> bool:
+        """True in the states that refuse motion until ``clear()`` (HOLDING, HALTING, HALTED, BUS_LOST)."""
+        return self in _FAULTED
+
+
+_FAULTED: Final = frozenset({ArmState.HOLDING, ArmState.HALTING, ArmState.HALTED, ArmState.BUS_LOST})
 
 
 class ArmEvent(Enum):
@@ -23,27 +34,41 @@ class ArmEvent(Enum):
 
     MOVE = "move"  #: a motion command was accepted
     DONE = "done"  #: the motion ended
-    FAULT = "fault"  #: a fault was detected (or an E-stop requested)
+    HOLD = "hold"  #: a fault whose reaction is the stop ramp (policy ``hold``, a holdable kind, healthy bus)
+    HALT = "halt"  #: a fault whose reaction is the drives' own halt (0x81 / 0x80 to every axis)
+    ACKNOWLEDGED = "acknowledged"  #: every drive acknowledged the halt, or the retry bound passed
+    BUS_GONE = "bus_gone"  #: the bus failed: nothing more can be sent
     CLEARED = "cleared"  #: clear() found every drive clean
     CLOSE = "close"  #: the arm is shut down
 
 
-SAFE_STATE: Final = ArmState.FAULTED
+#: Where an event that the current state does not accept leads: every axis is halted (again).
+SAFE_STATE: Final = ArmState.HALTING
+#: States that an unknown event leaves as they are: nothing can be sent from them.
+_FINAL: Final = frozenset({ArmState.BUS_LOST, ArmState.CLOSED})
+
+
+def _from_each(
+    states: tuple[ArmState, ...], event: ArmEvent, target: ArmState
+) -> dict[tuple[ArmState, ArmEvent], ArmState]:
+    return {(state, event): target for state in states}
+
+
+_RUNNING: Final = (ArmState.READY, ArmState.MOVING)
+_SENDING: Final = (ArmState.READY, ArmState.MOVING, ArmState.HOLDING, ArmState.HALTING, ArmState.HALTED)
 
 TRANSITIONS: Final[dict[tuple[ArmState, ArmEvent], ArmState]] = {
-    (ArmState.READY, ArmEvent.MOVE): ArmState.MOVING,
-    (ArmState.READY, ArmEvent.DONE): ArmState.READY,
-    (ArmState.READY, ArmEvent.FAULT): ArmState.FAULTED,
-    (ArmState.READY, ArmEvent.CLOSE): ArmState.CLOSED,
-    (ArmState.MOVING, ArmEvent.MOVE): ArmState.MOVING,
-    (ArmState.MOVING, ArmEvent.DONE): ArmState.READY,
-    (ArmState.MOVING, ArmEvent.FAULT): ArmState.FAULTED,
-    (ArmState.MOVING, ArmEvent.CLOSE): ArmState.CLOSED,
-    (ArmState.FAULTED, ArmEvent.FAULT): ArmState.FAULTED,
-    (ArmState.FAULTED, ArmEvent.CLEARED): ArmState.READY,
-    (ArmState.FAULTED, ArmEvent.CLOSE): ArmState.CLOSED,
-    (ArmState.CLOSED, ArmEvent.CLOSE): ArmState.CLOSED,
-    (ArmState.CLOSED, ArmEvent.FAULT): ArmState.CLOSED,
+    **_from_each(_RUNNING, ArmEvent.MOVE, ArmState.MOVING),
+    **_from_each(_RUNNING, ArmEvent.DONE, ArmState.READY),
+    **_from_each(_RUNNING, ArmEvent.HOLD, ArmState.HOLDING),
+    # a fault in any state that can still send halts every axis: also an escalation of a hold (a fault of the bus,
+    # of a drive, a limit, an E-stop) and a new fault or E-stop while halting or halted (the halt is sent again)
+    **_from_each(_SENDING, ArmEvent.HALT, ArmState.HALTING),
+    (ArmState.HALTING, ArmEvent.ACKNOWLEDGED): ArmState.HALTED,
+    **_from_each(_SENDING, ArmEvent.BUS_GONE, ArmState.BUS_LOST),
+    (ArmState.HOLDING, ArmEvent.CLEARED): ArmState.READY,
+    (ArmState.HALTED, ArmEvent.CLEARED): ArmState.READY,
+    **_from_each(tuple(ArmState), ArmEvent.CLOSE, ArmState.CLOSED),
 }
 
 
@@ -67,13 +92,14 @@ class StateMachine:
         """Apply ``event``.
 
         Raises:
-            InvalidTransition: the pair is not in the table; the state becomes :data:`SAFE_STATE` (unless closed).
+            InvalidTransition: the pair is not in the table; the state becomes :data:`SAFE_STATE` (unless the bus is
+                lost or the arm closed: nothing can be sent from there).
         """
         with self._lock:
             nxt = TRANSITIONS.get((self._state, event))
             if nxt is None:
                 previous = self._state
-                if previous is not ArmState.CLOSED:
+                if previous not in _FINAL:
                     self._state = SAFE_STATE
                 raise InvalidTransition(f"event {event.value!r} is not allowed in state {previous.value!r}")
             self._state = nxt

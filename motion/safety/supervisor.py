@@ -7,6 +7,11 @@ torque) to hold where it ends — only while communication is healthy: faults of
 code fall back to 0x81. Then the arm is FAULTED: motion commands raise the fault until :meth:`Supervisor.clear`
 (0x9B to every drive) finds every drive answering with clean flags and no cause left.
 
+The states (:class:`~motion.safety.states.ArmState`) are the whole story: READY and MOVING run the guarded cycle;
+HOLDING streams the stop ramp; HALTING re-sends the halt to the drives that have not acknowledged it; HALTED only
+reads; BUS_LOST ends the loop. Every change of state goes through the transition table, and a pair the table does not
+know leads to HALTING, whose cycle sends the halt if none went out.
+
 No path leaves a motor moving under our last command: exceptions in the cycle are faults; E-stop requests
 (:meth:`Supervisor.estop`, the CLI's Ctrl-C / SIGTERM) are faults; :meth:`Supervisor.close`, garbage collection and
 process exit send 0x81 to every axis before the bus is released.
@@ -67,18 +72,17 @@ class Supervisor:
         self.fault: MotionFault | None = None
         self.faults: list[MotionFault] = []
         self.halts: list[HaltRecord] = []
+        #: Drives that have not acknowledged the halt yet (in HALTING).
         self.unacknowledged: set[int] = set()
-        self._holding = False
         self._halt_code = Command.MOTOR_STOP
-        self._halt_until_s = 0.0
-        self._estop: str | None = None
+        self._halt_until_s: float | None = None  # until when the halt is re-sent; None: no halt went out yet
+        # Requests from other threads, taken by the next cycle:
+        self._estop_request: str | None = None
         self._clear_request = threading.Event()
         self._clear_done = threading.Event()
         self._clear_result: MotionFault | None = None
-        self._faulted = threading.Event()
         self._status_reads = [Request(i, Bare(Command.READ_STATUS_1)) for i in self.ids]
         self._round_robin = 0  # a counter of its own: the cycle index k jumps over skipped cycles
-        self._bus_lost = False
         self._state_reads = [Request(i, Bare(Command.READ_STATUS_2)) for i in self.ids]
         self._finalizer = weakref.finalize(self, _emergency_stop, controller, self.ids)
         atexit.register(self._finalizer)
@@ -98,12 +102,12 @@ class Supervisor:
 
     def _before_bus_close(self) -> None:
         if self.controller.loop.running:
-            if self.machine.state is not ArmState.FAULTED:
+            if not self.machine.state.faulted:
                 self.estop("bus_closing")
             self.controller.shutdown()
 
     def _refuse_if_faulted(self) -> None:
-        if self.machine.state is ArmState.FAULTED:
+        if self.machine.state.faulted:
             fault = self.fault or MotionFault("faulted")
             raise MotionFault(
                 fault.kind,
@@ -145,9 +149,10 @@ class Supervisor:
             MotionFault: a fault halted the arm (before or during the wait).
         """
         controller = self.controller
-        if not controller.wait_for(lambda: controller.idle or self._faulted.is_set(), timeout_s):
+        machine = self.machine
+        if not controller.wait_for(lambda: controller.idle or machine.state.faulted, timeout_s):
             return False
-        if self._faulted.is_set() and self.fault is not None:
+        if machine.state.faulted and self.fault is not None:
             raise self.fault
         rejected = self.controller.take_rejection()
         if rejected is not None:
@@ -156,8 +161,9 @@ class Supervisor:
 
     def estop(self, reason: str = "estop", timeout_s: float = 1.0) -> bool:
         """Halt every axis now (in the next cycle); returns True once the halt went out."""
-        self._estop = reason
-        return self.controller.wait_for(self._faulted.is_set, timeout_s)
+        self._estop_request = reason
+        machine = self.machine
+        return self.controller.wait_for(lambda: machine.state.faulted, timeout_s)
 
     def clear(self, timeout_s: float = 1.0) -> None:
         """Send 0x9B to every drive; succeed only if every drive answers with clean flags and no cause remains.
@@ -166,9 +172,10 @@ class Supervisor:
             MotionFault: kind ``clear_failed`` naming what is still wrong (the arm stays FAULTED).
             MotionError: the arm is not faulted, or the loop did not answer in time.
         """
-        if self.machine.state is not ArmState.FAULTED:
-            raise MotionError(f"clear() needs a faulted arm; it is {self.machine.state.value}")
-        self._estop = None
+        state = self.machine.state
+        if not state.faulted or state is ArmState.BUS_LOST:
+            raise MotionError(f"clear() needs a faulted arm with its bus; it is {state.value}")
+        self._estop_request = None
         self._clear_done.clear()
         self._clear_request.set()
         if not self.controller.wait_for(self._clear_done.is_set, timeout_s):
@@ -180,7 +187,7 @@ class Supervisor:
         """Halt every axis with 0x81, end the loop (the bus stays open for its owner to close)."""
         if self.machine.state is ArmState.CLOSED:
             return
-        if self.controller.loop.running and self.machine.state is not ArmState.FAULTED:
+        if self.controller.loop.running and not self.machine.state.faulted:
             self.estop("close", timeout_s)
         self.controller.shutdown(timeout_s)
         self._finalizer()
@@ -191,14 +198,15 @@ class Supervisor:
     def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
         """The guarded cycle: run by the scheduler; never raises (every failure is a fault that halts)."""
         controller = self.controller
-        if self._bus_lost:
+        state = self.machine.state
+        if state is ArmState.BUS_LOST or state is ArmState.CLOSED:
             return False
         try:
-            if self.machine.state is ArmState.FAULTED:
-                self._faulted_cycle(start_s, deadline_s)
+            if state.faulted:
+                self._faulted_cycle(state, start_s, deadline_s)
             else:
-                if self._estop is not None:
-                    reason, self._estop = self._estop, None
+                if self._estop_request is not None:
+                    reason, self._estop_request = self._estop_request, None
                     raise MotionFault(reason, time_s=controller.clock.now(), detail="E-stop requested")
                 extra = (self._next_status_read(),)
                 replies = controller.step(start_s, deadline_s, extra=extra, check=self.watchdog.check_setpoint)
@@ -212,25 +220,27 @@ class Supervisor:
         except Exception as exc:
             detail = f"{type(exc).__name__}: {exc}"
             self._halt(MotionFault("exception", time_s=controller.clock.now(), detail=detail), k, start_s, deadline_s)
-        return not controller.stopping and not self._bus_lost
+        return not controller.stopping and self.machine.state is not ArmState.BUS_LOST
 
     def _next_status_read(self) -> Request:
         """0x9A for the next drive in turn: every drive's flags are at most ``n_axes`` cycles old."""
         self._round_robin = (self._round_robin + 1) % len(self.ids)
         return self._status_reads[self._round_robin]
 
-    def _halt(self, fault: MotionFault, k: int, start_s: float, deadline_s: float, *, allow_hold: bool = True) -> None:
+    def _halt(self, fault: MotionFault, k: int, start_s: float, deadline_s: float) -> None:
+        """React to ``fault``: the stop ramp where the policy, the kind and the state allow it, else the halt."""
         controller = self.controller
         detected = controller.clock.now()
         controller.discard_pending()  # a move queued during this cycle must not replace the halt
         self.fault = fault
         self.faults.append(fault)
-        self.machine.fire(ArmEvent.FAULT)
         policy = self.settings.halt_policy
-        holdable = allow_hold and policy is HaltPolicy.HOLD and fault.kind in HOLDABLE and not self._holding
+        running = self.machine.state in (ArmState.READY, ArmState.MOVING)
+        holdable = running and policy is HaltPolicy.HOLD and fault.kind in HOLDABLE
         action = "stop ramp and hold" if holdable else ("0x80 off" if policy is HaltPolicy.OFF else "0x81 stop")
         level = logging.INFO if fault.kind == "close" else logging.ERROR
         logger.log(level, "halting every axis (%s): %s", action, fault)
+        sent = detected
         try:
             if holdable:
                 try:
@@ -245,87 +255,92 @@ class Supervisor:
                     )
                     holdable = False
             if not holdable:
-                self._holding = False
-                self._halt_code = Command.MOTOR_OFF if policy is HaltPolicy.OFF else Command.MOTOR_STOP
-                self.unacknowledged = set(self.ids)
-                self._halt_until_s = detected + self.settings.halt_retry_s
-                sent = controller.clock.now()
-                self._send_halt(sent, max(deadline_s, sent + _HALT_WINDOW_S))
+                sent = self._start_halt(detected, deadline_s)
         except TransportError as exc:  # the bus itself is what failed: nothing more can be sent
-            sent = controller.clock.now()
             self._lose_bus(exc)
-        except Exception as exc:
-            sent = controller.clock.now()
+        except Exception as exc:  # the state is HALTING: the next cycle sends the halt again
             logger.error("halt could not be sent: %s: %s", type(exc).__name__, exc)
-        self.halts.append(HaltRecord(fault, k, detected, sent, "hold" if self._holding else self._halt_code.name))
-        self._faulted.set()
+        held = self.machine.state is ArmState.HOLDING
+        self.halts.append(HaltRecord(fault, k, detected, sent, "hold" if held else self._halt_code.name))
 
     def _start_hold(self, start_s: float, deadline_s: float) -> float:
-        """Replace the reference with a jerk-limited stop and send its first set-point; returns when it was sent.
+        """Enter HOLDING: replace the reference with a jerk-limited stop and send its first set-point; returns when it
+        was sent.
 
         Raises:
-            Exception: whatever kept the hold from starting (the caller falls back to the drives' own stop).
+            Exception: whatever kept the hold from starting (the caller falls back to the drives' own halt).
         """
         controller = self.controller
+        self.machine.fire(ArmEvent.HOLD)
         follower = controller.follower
         if follower is None:
             raise MotionError("no trajectory follower to plan the stop ramp")
-        self._holding = True
-        try:
-            follower.stop(start_s)
-            sent = controller.clock.now()
-            controller.step(sent, max(deadline_s, sent + _HALT_WINDOW_S), apply_pending=False)
-        except BaseException:
-            self._holding = False
-            raise
+        follower.stop(start_s)
+        sent = controller.clock.now()
+        controller.step(sent, max(deadline_s, sent + _HALT_WINDOW_S), apply_pending=False)
+        return sent
+
+    def _start_halt(self, detected_s: float, deadline_s: float) -> float:
+        """Enter HALTING: 0x81 (0x80 with policy ``off``) to every axis now; returns when it was sent."""
+        self._halt_code = Command.MOTOR_OFF if self.settings.halt_policy is HaltPolicy.OFF else Command.MOTOR_STOP
+        self.unacknowledged = set(self.ids)
+        self._halt_until_s = detected_s + self.settings.halt_retry_s
+        self.machine.fire(ArmEvent.HALT)
+        sent = self.controller.clock.now()
+        self._send_halt(max(deadline_s, sent + _HALT_WINDOW_S))
         return sent
 
     def _lose_bus(self, exc: BaseException) -> None:
-        if not self._bus_lost:
-            self._bus_lost = True
+        if self.machine.state is not ArmState.BUS_LOST:
+            self.machine.fire(ArmEvent.BUS_GONE)
             logger.critical("the bus is gone (%s): the halt could not be sent; the control loop ends", exc)
 
-    def _send_halt(self, now_s: float, deadline_s: float) -> None:
+    def _send_halt(self, deadline_s: float) -> None:
+        """The halt to the drives that have not acknowledged it; HALTED once none is left."""
         requests = [Request(i, Bare(self._halt_code)) for i in sorted(self.unacknowledged)]
         replies = self.controller.bus.transact(requests, deadline_s)
         for reply in replies:
             if isinstance(reply.message, Bare) and reply.message.command == self._halt_code:
                 self.unacknowledged.discard(reply.motor_id)
+        if not self.unacknowledged:
+            self.machine.fire(ArmEvent.ACKNOWLEDGED)
 
-    def _faulted_cycle(self, start_s: float, deadline_s: float) -> None:
+    def _faulted_cycle(self, state: ArmState, start_s: float, deadline_s: float) -> None:
         controller = self.controller
         now = controller.clock.now()
-        if self._clear_request.is_set():
+        if self._clear_request.is_set() and state in (ArmState.HOLDING, ArmState.HALTED):
             self._clear_request.clear()
             try:
                 self._do_clear(start_s, deadline_s)
             finally:
                 self._clear_done.set()
             return
-        estop, self._estop = self._estop, None
-        try:
-            if self._holding:
-                if estop is not None:  # an E-stop during a hold escalates to the drives' own stop
-                    raise MotionFault(estop, time_s=now, detail="E-stop requested while holding")
-                extra = (self._next_status_read(),)
-                check = self.watchdog.check_setpoint  # the stop ramp must not pass a limit either
+        if self._estop_request is not None:  # while holding: escalates to the drives' own halt; else sent again
+            reason, self._estop_request = self._estop_request, None
+            raise MotionFault(reason, time_s=now, detail=f"E-stop requested while {state.value}")
+        if state is ArmState.HOLDING:
+            extra = (self._next_status_read(),)
+            check = self.watchdog.check_setpoint  # the stop ramp must not pass a limit either
+            try:
                 replies = controller.step(start_s, deadline_s, extra=extra, check=check, apply_pending=False)
                 self.watchdog.evaluate(replies, controller.clock.now())
+            except MotionFault as fault:
+                if fault.kind not in HOLDABLE:  # communication, a drive, a limit: the drives' own halt
+                    self._halt(fault, -1, start_s, deadline_s)
+                # else the kind of fault the hold is for (e.g. the following error it started with)
+            return
+        if state is ArmState.HALTING:
+            if self._halt_until_s is None:  # reached through the safe state of the table: no halt went out yet
+                logger.error("halting without a halt sent: halting every axis now")
+                self._start_halt(now, deadline_s)
                 return
-        except MotionFault as fault:
-            if fault.kind in HOLDABLE and fault.kind != estop:
-                return  # the kind of fault the hold is for (e.g. the following error it started with)
-            # communication, a drive, a limit or an E-stop: fall back to the drives' own stop (0x81 / 0x80)
-            self._holding = False
-            self._halt(fault, -1, start_s, deadline_s, allow_hold=False)
-            return
-        if self.unacknowledged and now < self._halt_until_s:
-            self._send_halt(now, start_s + controller.options.reply_budget * (deadline_s - start_s))
-            return
-        if self.unacknowledged:
+            if now < self._halt_until_s:
+                self._send_halt(start_s + controller.options.reply_budget * (deadline_s - start_s))
+                return
             logger.error("drives %s did not acknowledge the halt", sorted(self.unacknowledged))
             self.unacknowledged.clear()
-        # Halted: keep reading the drives (reads do not move them) so that positions and flags stay current.
+            self.machine.fire(ArmEvent.ACKNOWLEDGED)
+        # HALTED: keep reading the drives (reads do not move them) so that positions and flags stay current.
         controller.step(start_s, deadline_s, extra=self._state_reads, command=False, apply_pending=False)
 
     def _do_clear(self, start_s: float, deadline_s: float) -> None:
@@ -343,9 +358,9 @@ class Supervisor:
             return
         controller.follower.hold_at(q)
         controller.reference = State.at_rest(q)
-        self._holding = False
         self.fault = None
-        self._faulted.clear()
+        self._halt_until_s = None
+        self.unacknowledged.clear()
         self._clear_result = None
         self.watchdog.start(controller.clock.now())
         self.machine.fire(ArmEvent.CLEARED)
