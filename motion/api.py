@@ -39,7 +39,7 @@ from motion.control.ratecheck import RateCheck, measure_rate
 from motion.control.scheduler import LoopStatistics
 from motion.emulator import FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
-from motion.errors import ConfigError, MotionError, MotionFault, PlanningError, TransportError
+from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
 from motion.protocol import Transport as Wire
 from motion.safety import Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
@@ -375,9 +375,7 @@ class Arm:
         q = supervisor.controller.axes.positions()
         return {name: float(q[i]) for i, name in enumerate(self.names)}
 
-    def move_to(
-        self, targets: Mapping[str, float], *, speed_scale: float = 1.0, wait: bool = True
-    ) -> MotionHandle:
+    def move_to(self, targets: Mapping[str, float], *, speed_scale: float = 1.0, wait: bool = True) -> MotionHandle:
         """Move the named joints to their targets (degrees); the others keep their reference.
 
         Raises:
@@ -433,7 +431,7 @@ class Arm:
 
         Unlike a fault under ``halt_policy: hold``, an explicit stop never streams a ramp: the drives stop themselves.
         """
-        self._guard().estop("stop")
+        self._guard().estop(FaultKind.STOP)
 
     def clear(self) -> None:
         """Clear a fault (0x9B); raises MotionFault ``clear_failed`` while a cause persists."""

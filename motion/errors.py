@@ -9,6 +9,8 @@ a trajectory that cannot be planned (:class:`PlanningError`) and a fault that ha
 from __future__ import annotations
 
 from collections.abc import Sequence
+from enum import StrEnum
+from typing import Final
 
 
 class MotionError(Exception):
@@ -78,12 +80,54 @@ class PlanningError(MotionError):
     """A trajectory could not be planned (limits, invalid input, unreachable target)."""
 
 
+class FaultKind(StrEnum):
+    """What halted the arm (:attr:`MotionFault.kind`); compares equal to its value, e.g. ``"no_reply"``."""
+
+    # seen by the watchdog in the cycle's replies
+    FOLLOWING_ERROR = "following_error"  #: |reference - measured| beyond ``safety.following_error_deg``
+    POSITION_LIMIT = "position_limit"  #: a measured angle beyond its joint limit
+    SETPOINT_LIMIT = "setpoint_limit"  #: a planned set-point beyond its joint limit (it was not sent)
+    TEMPERATURE = "temperature"  #: motor temperature at or above the joint's ``temperature_limit_c``
+    LOW_VOLTAGE = "low_voltage"  #: supply voltage below ``safety.min_voltage_v``
+    DRIVE_OVER_TEMPERATURE = "drive_over_temperature"  #: the drive's own over-temperature flag (0x9A)
+    DRIVE_LOW_VOLTAGE = "drive_low_voltage"  #: the drive's own low-voltage flag (0x9A)
+    DRIVE_ERROR = "drive_error"  #: any other error flag of the drive (0x9A)
+    NO_REPLY = "no_reply"  #: too many consecutive missing replies, or too long without a good one
+    CORRUPT_FRAMES = "corrupt_frames"  #: too many corrupt frames from a drive within a second
+    OVERRUN = "overrun"  #: too many control cycles in a row over their period
+    # failures of the host side
+    TRANSPORT = "transport"  #: the bus or port failed
+    EXCEPTION = "exception"  #: an exception in the control cycle (a bug: the arm halts rather than go on)
+    STATE = "state"  #: an event the arm's state did not accept (the transition table's safe state)
+    # requested
+    ESTOP = "estop"  #: ``Supervisor.estop()`` (under policy ``hold``, a stop ramp)
+    STOP = "stop"  #: ``Arm.stop()``: the drives' own halt, never a ramp
+    CLOSE = "close"  #: the arm was closed while the loop ran (not an error)
+    BUS_CLOSING = "bus_closing"  #: the bus was closed under the running loop
+    # outcomes of commands
+    CLEAR_FAILED = "clear_failed"  #: ``clear()`` found a cause still there
+    WRITE_FAILED = "write_failed"  #: a drive did not echo what was written to it
+
+    @property
+    def holdable(self) -> bool:
+        """True for the kinds after which streaming a stop ramp (policy ``hold``) is still trusted."""
+        return self in HOLDABLE
+
+
+#: The kinds after which the ``hold`` policy streams a stop ramp; every other kind halts with 0x81 / 0x80. Not the
+#: limit faults (a ramp from at or beyond a limit would carry the arm further past it), nor communication, drive
+#: flags or failures of our own code.
+HOLDABLE: Final = frozenset(
+    {FaultKind.FOLLOWING_ERROR, FaultKind.TEMPERATURE, FaultKind.LOW_VOLTAGE, FaultKind.OVERRUN, FaultKind.ESTOP}
+)
+
+
 class MotionFault(MotionError):
     """A fault halted every axis.
 
     Attributes:
         joint: the joint the fault was seen on, or ``None`` for arm-wide faults.
-        kind: short machine-readable fault kind (``"over_temperature"``, ``"no_reply"``, ...).
+        kind: what halted the arm (a :class:`FaultKind`).
         value: the measured value, if any.
         threshold: the configured threshold the value crossed, if any.
         time_s: controller time of the detection, in seconds.
@@ -91,7 +135,7 @@ class MotionFault(MotionError):
 
     def __init__(
         self,
-        kind: str,
+        kind: FaultKind | str,
         *,
         joint: str | None = None,
         value: float | None = None,
@@ -99,13 +143,13 @@ class MotionFault(MotionError):
         time_s: float = 0.0,
         detail: str = "",
     ) -> None:
-        self.kind = kind
+        self.kind = FaultKind(kind)  # an unknown kind is a ValueError here, never a default
         self.joint = joint
         self.value = value
         self.threshold = threshold
         self.time_s = time_s
         parts: Sequence[str] = [
-            f"{kind}",
+            str(self.kind),
             f"joint={joint}" if joint is not None else "",
             f"value={value:g}" if value is not None else "",
             f"threshold={threshold:g}" if threshold is not None else "",

@@ -28,7 +28,7 @@ from motion.cli.common import (
 from motion.config import CanBusConfig, JointConfig
 from motion.config.build import build_controller
 from motion.control.ratecheck import RateError
-from motion.errors import MotionFault
+from motion.errors import FaultKind, MotionFault
 from motion.protocol import (
     Acceleration,
     Bare,
@@ -82,7 +82,7 @@ def _ask_once(
 
 def _check_echo(joint: JointConfig, echo: Message, sent: Message) -> None:
     if echo != sent:
-        raise MotionFault("write_failed", joint=joint.name, detail=f"the drive echoed {echo}, not {sent}")
+        raise MotionFault(FaultKind.WRITE_FAILED, joint=joint.name, detail=f"the drive echoed {echo}, not {sent}")
 
 
 def _label(joint: JointConfig) -> str:
@@ -258,7 +258,7 @@ def clear(args: argparse.Namespace, interrupts: Interrupts) -> int:
         print(f"{_label(joint)}: {', '.join(left.get(joint.name, [])) or 'clear'}")
     if left:
         detail = "; ".join(f"{name}: {', '.join(flags)} still set (its cause persists)" for name, flags in left.items())
-        raise MotionFault("clear_failed", joint=next(iter(left)), detail=detail)
+        raise MotionFault(FaultKind.CLEAR_FAILED, joint=next(iter(left)), detail=detail)
     return EXIT_OK
 
 

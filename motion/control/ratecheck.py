@@ -117,9 +117,7 @@ class RateError(ConfigError):
         )
 
 
-def measure_rate(
-    controller: Controller, *, margin: float = DEFAULT_MARGIN, samples: int | None = None
-) -> RateCheck:
+def measure_rate(controller: Controller, *, margin: float = DEFAULT_MARGIN, samples: int | None = None) -> RateCheck:
     """Measure the cycle's round trip and the host's work per cycle (before the loop starts).
 
     Only reads are sent: nothing moves. In a simulation the exchange is the same every time, so a few samples do

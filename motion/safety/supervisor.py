@@ -27,7 +27,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from motion.control.controller import Controller
-from motion.errors import MotionError, MotionFault, TransportError
+from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Bare, Command, MotorState, Status1
 from motion.safety.states import ArmEvent, ArmState, StateMachine
 from motion.safety.watchdog import HaltPolicy, SafetySettings, Watchdog
@@ -37,9 +37,6 @@ from motion.transport import Reply, Request
 
 logger = logging.getLogger("motion.safety")
 
-# Fault kinds after which streaming a stop (hold) is still trusted; every other kind falls back to 0x81.
-# Not the limit faults: a stop ramp from a reference at or beyond a limit would carry the arm further past it.
-HOLDABLE = frozenset({"following_error", "temperature", "low_voltage", "overrun", "estop"})
 # Shortest window given to the halt frames' acknowledgements in the detection cycle, s.
 _HALT_WINDOW_S = 0.002
 
@@ -77,7 +74,7 @@ class Supervisor:
         self._halt_code = Command.MOTOR_STOP
         self._halt_until_s: float | None = None  # until when the halt is re-sent; None: no halt went out yet
         # Requests from other threads, taken by the next cycle:
-        self._estop_request: str | None = None
+        self._estop_request: FaultKind | None = None
         self._clear_request = threading.Event()
         self._clear_done = threading.Event()
         self._clear_result: MotionFault | None = None
@@ -103,12 +100,12 @@ class Supervisor:
     def _before_bus_close(self) -> None:
         if self.controller.loop.running:
             if not self.machine.state.faulted:
-                self.estop("bus_closing")
+                self.estop(FaultKind.BUS_CLOSING)
             self.controller.shutdown()
 
     def _refuse_if_faulted(self) -> None:
         if self.machine.state.faulted:
-            fault = self.fault or MotionFault("faulted")
+            fault = self.fault or MotionFault(FaultKind.STATE, detail="faulted without a recorded fault")
             raise MotionFault(
                 fault.kind,
                 joint=fault.joint,
@@ -159,7 +156,7 @@ class Supervisor:
             raise rejected
         return True
 
-    def estop(self, reason: str = "estop", timeout_s: float = 1.0) -> bool:
+    def estop(self, reason: FaultKind = FaultKind.ESTOP, timeout_s: float = 1.0) -> bool:
         """Halt every axis now (in the next cycle); returns True once the halt went out."""
         self._estop_request = reason
         machine = self.machine
@@ -188,7 +185,7 @@ class Supervisor:
         if self.machine.state is ArmState.CLOSED:
             return
         if self.controller.loop.running and not self.machine.state.faulted:
-            self.estop("close", timeout_s)
+            self.estop(FaultKind.CLOSE, timeout_s)
         self.controller.shutdown(timeout_s)
         self._finalizer()
         self.machine.fire(ArmEvent.CLOSE)
@@ -216,10 +213,14 @@ class Supervisor:
         except MotionFault as fault:
             self._halt(fault, k, start_s, deadline_s)
         except TransportError as exc:
-            self._halt(MotionFault("transport", time_s=controller.clock.now(), detail=str(exc)), k, start_s, deadline_s)
+            self._halt(
+                MotionFault(FaultKind.TRANSPORT, time_s=controller.clock.now(), detail=str(exc)), k, start_s, deadline_s
+            )
         except Exception as exc:
             detail = f"{type(exc).__name__}: {exc}"
-            self._halt(MotionFault("exception", time_s=controller.clock.now(), detail=detail), k, start_s, deadline_s)
+            self._halt(
+                MotionFault(FaultKind.EXCEPTION, time_s=controller.clock.now(), detail=detail), k, start_s, deadline_s
+            )
         return not controller.stopping and self.machine.state is not ArmState.BUS_LOST
 
     def _next_status_read(self) -> Request:
@@ -236,9 +237,9 @@ class Supervisor:
         self.faults.append(fault)
         policy = self.settings.halt_policy
         running = self.machine.state in (ArmState.READY, ArmState.MOVING)
-        holdable = running and policy is HaltPolicy.HOLD and fault.kind in HOLDABLE
+        holdable = running and policy is HaltPolicy.HOLD and fault.kind.holdable
         action = "stop ramp and hold" if holdable else ("0x80 off" if policy is HaltPolicy.OFF else "0x81 stop")
-        level = logging.INFO if fault.kind == "close" else logging.ERROR
+        level = logging.INFO if fault.kind is FaultKind.CLOSE else logging.ERROR
         logger.log(level, "halting every axis (%s): %s", action, fault)
         sent = detected
         try:
@@ -325,14 +326,18 @@ class Supervisor:
                 replies = controller.step(start_s, deadline_s, extra=extra, check=check, apply_pending=False)
                 self.watchdog.evaluate(replies, controller.clock.now())
             except MotionFault as fault:
-                if fault.kind not in HOLDABLE:  # communication, a drive, a limit: the drives' own halt
+                if not fault.kind.holdable:  # communication, a drive, a limit: the drives' own halt
                     self._halt(fault, -1, start_s, deadline_s)
                 # else the kind of fault the hold is for (e.g. the following error it started with)
             return
         if state is ArmState.HALTING:
             if self._halt_until_s is None:  # reached through the safe state of the table: no halt went out yet
-                logger.error("halting without a halt sent: halting every axis now")
-                self._start_halt(now, deadline_s)
+                unsent = MotionFault(FaultKind.STATE, time_s=now, detail="halting without a halt sent")
+                self.fault = unsent
+                self.faults.append(unsent)
+                logger.error("halting every axis: %s", unsent)
+                sent = self._start_halt(now, deadline_s)
+                self.halts.append(HaltRecord(unsent, -1, now, sent, self._halt_code.name))
                 return
             if now < self._halt_until_s:
                 self._send_halt(start_s + controller.options.reply_budget * (deadline_s - start_s))
@@ -350,11 +355,15 @@ class Supervisor:
         controller.absorb(replies)
         problems = self._clear_problems(replies)
         if problems:
-            self._clear_result = MotionFault("clear_failed", time_s=controller.clock.now(), detail="; ".join(problems))
+            self._clear_result = MotionFault(
+                FaultKind.CLEAR_FAILED, time_s=controller.clock.now(), detail="; ".join(problems)
+            )
             return
         q = controller.axes.positions()
         if controller.follower is None:
-            self._clear_result = MotionFault("clear_failed", time_s=controller.clock.now(), detail="no follower")
+            self._clear_result = MotionFault(
+                FaultKind.CLEAR_FAILED, time_s=controller.clock.now(), detail="no follower"
+            )
             return
         controller.follower.hold_at(q)
         controller.reference = State.at_rest(q)

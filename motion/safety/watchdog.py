@@ -15,7 +15,7 @@ from enum import Enum
 import numpy as np
 
 from motion.control.controller import Controller
-from motion.errors import MotionFault
+from motion.errors import FaultKind, MotionFault
 from motion.protocol import ErrorFlags, MotorState, Status1
 from motion.trajectory import State
 from motion.transmission import FloatArray
@@ -107,9 +107,9 @@ class Watchdog:
         Raises:
             MotionFault: kind ``setpoint_limit``.
         """
-        self._check_limits(reference.position, "setpoint_limit", "planned set-point outside the limits")
+        self._check_limits(reference.position, FaultKind.SETPOINT_LIMIT, "planned set-point outside the limits")
 
-    def _check_limits(self, q: FloatArray, kind: str, detail: str) -> None:
+    def _check_limits(self, q: FloatArray, kind: FaultKind, detail: str) -> None:
         outside = (q < self.lower) | (q > self.upper)
         if outside.any():
             i = int(np.argmax(outside))
@@ -117,7 +117,7 @@ class Watchdog:
             raise self._fault(kind, i, float(q[i]), float(bound), detail)
 
     def _fault(
-        self, kind: str, i: int | None, value: float | None, threshold: float | None, detail: str
+        self, kind: FaultKind, i: int | None, value: float | None, threshold: float | None, detail: str
     ) -> MotionFault:
         return MotionFault(
             kind,
@@ -155,18 +155,26 @@ class Watchdog:
                 self._check_status(i, message)
             elif isinstance(message, MotorState) and message.temperature_c >= self.temperature_limit[i]:
                 raise self._fault(
-                    "temperature", i, message.temperature_c, float(self.temperature_limit[i]), "motor temperature"
+                    FaultKind.TEMPERATURE,
+                    i,
+                    message.temperature_c,
+                    float(self.temperature_limit[i]),
+                    "motor temperature",
                 )
         self._check_corrupt(now_s)
         q = self.controller.axes.q_deg
-        self._check_limits(q, "position_limit", "measured position beyond the limit")
+        self._check_limits(q, FaultKind.POSITION_LIMIT, "measured position beyond the limit")
         previous = self.previous_reference
         if previous is not None:
             error = np.abs(previous - q)
             worst = int(np.argmax(error))
             if error[worst] > settings.following_error_deg:
                 raise self._fault(
-                    "following_error", worst, float(error[worst]), settings.following_error_deg, "|reference - q|"
+                    FaultKind.FOLLOWING_ERROR,
+                    worst,
+                    float(error[worst]),
+                    settings.following_error_deg,
+                    "|reference - q|",
                 )
         self.previous_reference = self.controller.reference.position
         overruns = self.controller.loop.overruns
@@ -174,21 +182,27 @@ class Watchdog:
         self._overruns_seen = overruns
         if self._overrun_streak > settings.max_overrun_streak:
             raise self._fault(
-                "overrun", None, float(self._overrun_streak), float(settings.max_overrun_streak), "consecutive overruns"
+                FaultKind.OVERRUN,
+                None,
+                float(self._overrun_streak),
+                float(settings.max_overrun_streak),
+                "consecutive overruns",
             )
 
     def _check_status(self, i: int, status: Status1) -> None:
         if status.errors & ErrorFlags.OVER_TEMPERATURE:
-            raise self._fault("drive_over_temperature", i, status.temperature_c, None, "drive error flag bit 3")
+            raise self._fault(FaultKind.DRIVE_OVER_TEMPERATURE, i, status.temperature_c, None, "drive error flag bit 3")
         if status.errors & ErrorFlags.LOW_VOLTAGE:
-            raise self._fault("drive_low_voltage", i, status.voltage_v, None, "drive error flag bit 0")
+            raise self._fault(FaultKind.DRIVE_LOW_VOLTAGE, i, status.voltage_v, None, "drive error flag bit 0")
         if status.errors:
-            raise self._fault("drive_error", i, float(status.errors), None, f"drive error flags {status.errors!r}")
+            raise self._fault(
+                FaultKind.DRIVE_ERROR, i, float(status.errors), None, f"drive error flags {status.errors!r}"
+            )
         if status.voltage_v < self.settings.min_voltage_v:
-            raise self._fault("low_voltage", i, status.voltage_v, self.settings.min_voltage_v, "supply voltage")
+            raise self._fault(FaultKind.LOW_VOLTAGE, i, status.voltage_v, self.settings.min_voltage_v, "supply voltage")
         if status.temperature_c >= self.temperature_limit[i]:
             raise self._fault(
-                "temperature", i, status.temperature_c, float(self.temperature_limit[i]), "motor temperature"
+                FaultKind.TEMPERATURE, i, status.temperature_c, float(self.temperature_limit[i]), "motor temperature"
             )
 
     def _check_replies(self, now_s: float) -> None:
@@ -200,13 +214,21 @@ class Watchdog:
         worst = int(np.argmax(self.misses))
         if self.misses[worst] > settings.max_missed_replies:
             raise self._fault(
-                "no_reply", worst, float(self.misses[worst]), float(settings.max_missed_replies), "consecutive misses"
+                FaultKind.NO_REPLY,
+                worst,
+                float(self.misses[worst]),
+                float(settings.max_missed_replies),
+                "consecutive misses",
             )
         silent = now_s - self.last_good_s
         worst = int(np.argmax(silent))
         if silent[worst] > settings.reply_timeout_s:
             raise self._fault(
-                "no_reply", worst, float(silent[worst]), settings.reply_timeout_s, "seconds since the last good reply"
+                FaultKind.NO_REPLY,
+                worst,
+                float(silent[worst]),
+                settings.reply_timeout_s,
+                "seconds since the last good reply",
             )
 
     def _check_corrupt(self, now_s: float) -> None:
@@ -220,7 +242,7 @@ class Watchdog:
                 window.popleft()
             if len(window) > self.settings.max_corrupt_frames:
                 raise self._fault(
-                    "corrupt_frames",
+                    FaultKind.CORRUPT_FRAMES,
                     i,
                     float(len(window)),
                     float(self.settings.max_corrupt_frames),
