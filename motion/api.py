@@ -40,7 +40,7 @@ from motion.control.scheduler import LoopStatistics
 from motion.emulator import FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
-from motion.protocol import Transport as Wire
+from motion.protocol import WireProtocol
 from motion.safety import Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
 from motion.transmission import FloatArray
@@ -324,9 +324,9 @@ class Arm:
         self.emulator, self.plant = arm_emulator(self.config, initial_deg=self._initial)
         bus_config = self.config.bus
         if isinstance(bus_config, CanBusConfig):
-            simulation = Simulation(self.emulator, Wire.CAN, bitrate=bus_config.bitrate or DEFAULT_BITRATE)
+            simulation = Simulation(self.emulator, WireProtocol.CAN, bitrate=bus_config.bitrate or DEFAULT_BITRATE)
         else:
-            simulation = Simulation(self.emulator, Wire.RS485, baud=bus_config.baudrate)
+            simulation = Simulation(self.emulator, WireProtocol.RS485, baud=bus_config.baudrate)
         if self._emulator_log is not None:
             self.frame_log = self._stack.enter_context(FrameLog(self._emulator_log, clock=simulation.now))
             simulation.frame_log = self.frame_log

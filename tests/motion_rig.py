@@ -27,8 +27,7 @@ from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.emulator import Emulator, FrameLog, Rs485Attachment, SlcanAttachment, VirtualCanAttachment
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
-from motion.protocol import Message, MultiTurnPositionSpeed, can_frame, rs485_frame
-from motion.protocol import Transport as Wire
+from motion.protocol import Message, MultiTurnPositionSpeed, WireProtocol, can_frame, rs485_frame
 from motion.safety import Supervisor
 from motion.transport import Transport
 
@@ -77,7 +76,7 @@ def emulated_arm(
     clock = None
     with ExitStack() as stack:
         if attachment == "sim":
-            wire = Wire.CAN if isinstance(config.bus, CanBusConfig) else Wire.RS485
+            wire = WireProtocol.CAN if isinstance(config.bus, CanBusConfig) else WireProtocol.RS485
             simulation = Simulation(emulator, wire)
             log = stack.enter_context(FrameLog(log_path, clock=simulation.now))
             simulation.frame_log = log

@@ -72,9 +72,9 @@ from motion.protocol import (
     SpinDirection,
     Status1,
     TorqueControl,
+    WireProtocol,
     rs485_frame,
 )
-from motion.protocol import Transport as Protocol
 from motion.protocol.table import command_of
 from motion.transport import CanTransport, Reply, Request, Rs485Transport, Transport
 from motion.transport.can_endpoint import CanEndpoint
@@ -129,8 +129,8 @@ class Bus:
     exercised: set[Command] = field(default_factory=set)
 
     @property
-    def protocol(self) -> Protocol:
-        return Protocol.RS485 if self.kind == "rs485" else Protocol.CAN
+    def protocol(self) -> WireProtocol:
+        return WireProtocol.RS485 if self.kind == "rs485" else WireProtocol.CAN
 
     def open_transport(self) -> Transport:
         """Open a new host transport on the attachment (the previous one must be closed)."""
@@ -237,7 +237,7 @@ def assert_balanced(bus: Bus) -> None:
 def test_every_command_through_the_transport(bus: Bus) -> None:
     m, model, emulator = 2, MODEL, bus.emulator
     drive = emulator.drives[m]
-    can = bus.protocol is Protocol.CAN
+    can = bus.protocol is WireProtocol.CAN
 
     # At rest and off after power-on.
     status = bus.ask(m, Bare(Command.READ_STATUS_1))
@@ -445,7 +445,7 @@ def test_dropped_requests_get_no_reply_and_are_not_executed(bus: Bus) -> None:
     replies = bus.cycle([Request(1, Bare(Command.READ_STATUS_2)), Request(4, MultiTurnPosition(angle_deg=30.0))])
     assert isinstance(replies[0].message, MotorState) and replies[1].message is None
     assert drive.setpoint is None and state_of(drive) is RunState.OFF
-    if bus.protocol is Protocol.CAN:  # one 0x280 frame: motors 1..3 answer, the dropped one does not
+    if bus.protocol is WireProtocol.CAN:  # one 0x280 frame: motors 1..3 answer, the dropped one does not
         replies = bus.cycle([Request(1, MultiMotorTorque(0.1, 0.1, 0.1, 0.1))])
         assert [r.motor_id for r in replies] == list(MOTORS)
         assert [r.ok for r in replies] == [True, True, True, False]
@@ -500,13 +500,13 @@ def test_corrupt_replies_are_counted_and_never_matched(bus: Bus, corruption: Cor
     assert wait_for(lambda: bus.attachment.stats.corrupted == 1)  # the drive did answer, damaged
     counters, bus_counters = bus.transport.counters[3], bus.transport.bus_counters
     assert (counters.sent, counters.replied, counters.timeouts, counters.stale_frames) == (1, 0, 1, 0)
-    if bus.protocol is Protocol.CAN and corruption is Corruption.ID:
+    if bus.protocol is WireProtocol.CAN and corruption is Corruption.ID:
         # 0x100 + id is no drive's reply id: counted on the bus, not attributable to a motor.
         assert bus_counters.unknown_id_frames == 1 and counters.bad_frames == 0
     else:
         # CAN: command byte 0x00 or a 7-byte payload; RS485: data checksum, motor id 0, truncated frame.
         assert counters.bad_frames == 1 and bus_counters.unknown_id_frames == 0
-    if bus.protocol is Protocol.RS485:
+    if bus.protocol is WireProtocol.RS485:
         assert bus_counters.dropped_bytes > 0
     for motor_id in (1, 2, 4):
         assert motor_id not in bus.transport.counters or bus.transport.counters[motor_id].bad_frames == 0
@@ -606,10 +606,10 @@ def test_protocol_breaking_requests_are_counted_logged_and_not_answered(bus: Bus
     bus.transport.close()
     wires = _send_broken_rs485(bus) if bus.kind == "rs485" else _send_broken_can(bus)
     assert stats.replies == 1 and stats.unanswered == 0
-    assert stats.decode_errors >= len(BROKEN_CAN if bus.protocol is Protocol.CAN else BROKEN_RS485)
+    assert stats.decode_errors >= len(BROKEN_CAN if bus.protocol is WireProtocol.CAN else BROKEN_RS485)
     bad = bus.log("BAD")
     assert len(bad) == stats.decode_errors
-    if bus.protocol is Protocol.CAN:
+    if bus.protocol is WireProtocol.CAN:
         assert bad == wires
     else:
         assert set(wires) <= set(bad)

@@ -36,7 +36,7 @@ from motion.protocol import (
     MotorState,
     MultiMotorTorque,
     Rs485Parser,
-    Transport,
+    WireProtocol,
     can_frame,
     rs485_frame,
 )
@@ -106,11 +106,11 @@ BROKEN_CAN = [
 
 def check_can_bus(host: CanEndpoint, attachment: VirtualCanAttachment | SlcanAttachment, tmp_path: Path) -> None:
     """Every CAN command answered as the table says; 0x280 answered by 1..4 in order; broken frames counted."""
-    requests = requests_for(Transport.CAN)
+    requests = requests_for(WireProtocol.CAN)
     for message in requests:
         replies = can_exchange(host, can_frame.encode_request(message, 2))
         assert len(replies) == 1 and replies[0][0] == 2, message
-        check_reply(message, replies[0][1], Transport.CAN)
+        check_reply(message, replies[0][1], WireProtocol.CAN)
     replies = can_exchange(host, can_frame.encode_request(MultiMotorTorque(0.1, 0.2, 0.3, 0.4)), 4)
     assert [motor_id for motor_id, _ in replies] == [1, 2, 3, 4]
     assert all(isinstance(m, MotorState) and m.command is Command.TORQUE for _, m in replies)
@@ -204,13 +204,13 @@ def test_rs485_pty_opened_by_pyserial(tmp_path: Path, frame_log: FrameLog) -> No
         Rs485Attachment(emulator, link, frame_log=frame_log) as attachment,
         serial.Serial(str(link), 115200, timeout=0.01) as port,
     ):
-        requests = requests_for(Transport.RS485)
+        requests = requests_for(WireProtocol.RS485)
         for message in requests:
             reply = rs485_exchange(port, rs485_frame.encode_request(message, 5))
             assert reply is not None, message
             motor_id, decoded = rs485_frame.decode_reply(reply)
             assert motor_id == 5
-            check_reply(message, decoded, Transport.RS485)
+            check_reply(message, decoded, WireProtocol.RS485)
         good = rs485_frame.encode_request(Bare(Command.READ_STATUS_1), 1)
         broken = [
             good[:-1] + bytes([good[-1] ^ 1]),  # header checksum

@@ -35,14 +35,14 @@ from motion.protocol import (
     SpinDirection,
     Status1,
     TorqueControl,
-    Transport,
+    WireProtocol,
 )
 from motion.protocol.table import command_of
 
 FRICTIONLESS = LoadModel(inertia_kgm2=1e-3, viscous_friction_nm_per_dps=0.0, coulomb_friction_nm=0.0)
 
 
-def ask(emulator: Emulator, motor_id: int, message: Message, transport: Transport = Transport.CAN) -> Message:
+def ask(emulator: Emulator, motor_id: int, message: Message, transport: WireProtocol = WireProtocol.CAN) -> Message:
     """One request, exactly one reply from the addressed drive."""
     replies = emulator.request(motor_id, message, transport)
     assert [r[0] for r in replies] == [motor_id]
@@ -258,7 +258,7 @@ def test_pid_gains_ram_are_lost_at_power_cycle_and_rom_survives() -> None:
     emulator.power_cycle(1)
     assert ask(emulator, 1, Bare(Command.READ_PID)) == factory
     rom = PidGains(Command.WRITE_PID_ROM, 90, 5, 60, 30, 70, 70)
-    assert ask(emulator, 1, rom, Transport.RS485) == rom
+    assert ask(emulator, 1, rom, WireProtocol.RS485) == rom
     assert ask(emulator, 1, Bare(Command.READ_PID)) == PidGains(Command.READ_PID, 90, 5, 60, 30, 70, 70)
     emulator.power_cycle()
     assert ask(emulator, 1, Bare(Command.READ_PID)) == PidGains(Command.READ_PID, 90, 5, 60, 30, 70, 70)
@@ -295,7 +295,7 @@ def test_under_voltage_flag_clears_only_when_the_cause_is_gone() -> None:
     run(emulator, 0.3)  # voltage back at 0.5 s; the flag stays latched
     status = ask(emulator, 1, Bare(Command.READ_STATUS_1))
     assert isinstance(status, Status1) and status.voltage_v == 24.0 and status.errors == ErrorFlags.LOW_VOLTAGE
-    cleared = ask(emulator, 1, Bare(Command.CLEAR_ERRORS), Transport.RS485)
+    cleared = ask(emulator, 1, Bare(Command.CLEAR_ERRORS), WireProtocol.RS485)
     assert cleared == Status1(Command.CLEAR_ERRORS, 25, 24.0, ErrorFlags.NONE)
     ask(emulator, 1, SpeedControl(speed_dps=200.0))
     run(emulator, 0.3)
@@ -379,7 +379,7 @@ def test_encoder_offset_writes_take_effect_at_the_next_power_cycle() -> None:
     assert isinstance(angle, MultiTurnAngle) and angle.angle_deg == pytest.approx(3096 * 360 / 16384, abs=0.01)
     # 0x19: the current raw position becomes the ROM zero; CAN replies with it, RS485 echoes.
     assert ask(emulator, 1, Bare(Command.WRITE_ZERO_ROM)) == EncoderOffset(Command.WRITE_ZERO_ROM, 4096)
-    assert ask(emulator, 1, Bare(Command.WRITE_ZERO_ROM), Transport.RS485) == Bare(Command.WRITE_ZERO_ROM)
+    assert ask(emulator, 1, Bare(Command.WRITE_ZERO_ROM), WireProtocol.RS485) == Bare(Command.WRITE_ZERO_ROM)
     assert ask(emulator, 1, Bare(Command.READ_ENCODER)) == EncoderReading(3096, 4096, 1000)
     emulator.power_cycle()
     assert ask(emulator, 1, Bare(Command.READ_ENCODER)) == EncoderReading(0, 4096, 4096)
@@ -417,13 +417,13 @@ def test_phase_currents_are_balanced_and_match_iq() -> None:
     emulator = Emulator([1], load=LoadModel(coulomb_friction_nm=100.0))
     ask(emulator, 1, TorqueControl(iq_a=4.0))
     emulator.advance(0.05)
-    for transport in (Transport.CAN, Transport.RS485):
+    for transport in (WireProtocol.CAN, WireProtocol.RS485):
         phases = ask(emulator, 1, Bare(Command.READ_STATUS_3), transport)
         assert isinstance(phases, PhaseCurrents)
         assert phases.ia_a + phases.ib_a + phases.ic_a == pytest.approx(0.0, abs=0.05)
         amplitude = math.sqrt(2 / 3 * (phases.ia_a**2 + phases.ib_a**2 + phases.ic_a**2))
         assert amplitude == pytest.approx(4.0, abs=0.05)
-        assert (phases.temperature_c is None) == (transport is Transport.CAN)
+        assert (phases.temperature_c is None) == (transport is WireProtocol.CAN)
 
 
 SAMPLE_REQUESTS: list[Message] = [
@@ -464,7 +464,7 @@ def code(message: Message) -> Command:
     return command
 
 
-def requests_for(transport: Transport) -> list[Message]:
+def requests_for(transport: WireProtocol) -> list[Message]:
     """The sample request of every command the transport has (the table decides which)."""
     out = [m for m in SAMPLE_REQUESTS if COMMANDS[code(m)].layout(transport, Direction.REQUEST)]
     assert {code(m) for m in out} == {
@@ -473,7 +473,7 @@ def requests_for(transport: Transport) -> list[Message]:
     return out
 
 
-def check_reply(request: Message, reply: Message, transport: Transport) -> None:
+def check_reply(request: Message, reply: Message, transport: WireProtocol) -> None:
     """The reply has the command and the class the table declares for it."""
     command = code(request)
     layout = COMMANDS[command].layout(transport, Direction.REPLY)
@@ -483,8 +483,8 @@ def check_reply(request: Message, reply: Message, transport: Transport) -> None:
         assert reply == request
 
 
-@pytest.mark.parametrize("transport", [Transport.CAN, Transport.RS485])
-def test_every_command_is_answered_with_the_table_reply(transport: Transport) -> None:
+@pytest.mark.parametrize("transport", [WireProtocol.CAN, WireProtocol.RS485])
+def test_every_command_is_answered_with_the_table_reply(transport: WireProtocol) -> None:
     emulator = Emulator([3])
     for message in requests_for(transport):
         emulator.advance(0.01)

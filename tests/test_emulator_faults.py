@@ -15,7 +15,7 @@ from motion.protocol import (
     Rs485Parser,
     SpeedControl,
     Status1,
-    Transport,
+    WireProtocol,
     can_frame,
     rs485_frame,
 )
@@ -131,7 +131,7 @@ def test_physical_fault_defaults_follow_the_drive_thresholds() -> None:
     assert emulator.request(1, Bare(Command.READ_STATUS_1)) == [
         (1, Status1(Command.READ_STATUS_1, 25, 12.0, ErrorFlags.LOW_VOLTAGE))
     ]
-    assert emulator.request(2, Bare(Command.READ_STATUS_1), Transport.RS485) == [
+    assert emulator.request(2, Bare(Command.READ_STATUS_1), WireProtocol.RS485) == [
         (2, Status1(Command.READ_STATUS_1, 90, 24.0, ErrorFlags.OVER_TEMPERATURE))
     ]
 

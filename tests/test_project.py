@@ -63,7 +63,7 @@ def test_readme_has_exactly_two_commands_and_ci_runs_the_second() -> None:
 
 def test_ci_checks_the_wheel_from_an_empty_directory() -> None:
     ci = (ROOT / ".ci" / "run").read_text()
-    for step in ("pip wheel -q --no-deps", 'cd "$work/empty"', "rmd-motion\" demo", "rmd-motion\" init", "-ne 3"):
+    for step in ("pip wheel -q --no-deps", 'cd "$work/empty"', 'rmd-motion" demo', 'rmd-motion" init', "-ne 3"):
         assert step in ci, step
 
 

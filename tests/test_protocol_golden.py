@@ -220,11 +220,11 @@ def test_decode_matches_golden(vector: Vector) -> None:
 
 
 def test_every_command_has_a_golden_vector_on_each_transport_that_has_it() -> None:
-    from motion.protocol import COMMANDS, Transport
+    from motion.protocol import COMMANDS, WireProtocol
 
     covered = {(v.transport, getattr(v.message, "command", None)) for v in VECTORS}
     for code, spec in COMMANDS.items():
-        for transport in Transport:
+        for transport in WireProtocol:
             if transport in spec.request:
                 assert (transport.value, code) in covered, f"no golden vector for 0x{code:02X} on {transport.value}"
 

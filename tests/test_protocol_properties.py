@@ -24,7 +24,7 @@ from motion.protocol import (
     SingleTurnPositionSpeed,
     SpinDirection,
     TorqueControl,
-    Transport,
+    WireProtocol,
     can_frame,
     raw_values,
     rs485_frame,
@@ -37,7 +37,7 @@ EXACT_FLOAT_RAW = 1 << 50
 CASES = [
     (code, transport, direction, layout)
     for code, spec in COMMANDS.items()
-    for transport in Transport
+    for transport in WireProtocol
     for direction in Direction
     if (layout := spec.layout(transport, direction)) is not None
 ]
@@ -71,8 +71,8 @@ def _message_strategy(layout: Layout, code: Command | None) -> st.SearchStrategy
     return st.fixed_dictionaries(parts).map(build)
 
 
-def _encode(transport: Transport, direction: Direction, message: Any, motor_id: int) -> bytes:
-    if transport is Transport.CAN:
+def _encode(transport: WireProtocol, direction: Direction, message: Any, motor_id: int) -> bytes:
+    if transport is WireProtocol.CAN:
         enc = can_frame.encode_request if direction is Direction.REQUEST else can_frame.encode_reply
         frame = enc(message, motor_id)
         return frame.arbitration_id.to_bytes(2, "big") + frame.data
@@ -80,8 +80,8 @@ def _encode(transport: Transport, direction: Direction, message: Any, motor_id: 
     return enc485(message, motor_id)
 
 
-def _decode(transport: Transport, direction: Direction, wire: bytes) -> tuple[int | None, Any]:
-    if transport is Transport.CAN:
+def _decode(transport: WireProtocol, direction: Direction, wire: bytes) -> tuple[int | None, Any]:
+    if transport is WireProtocol.CAN:
         ident, data = int.from_bytes(wire[:2], "big"), wire[2:]
         if direction is Direction.REQUEST:
             req = can_frame.decode_request(ident, data)
@@ -99,7 +99,7 @@ def _decode(transport: Transport, direction: Direction, wire: bytes) -> tuple[in
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data(), motor_id=st.integers(1, 32))
 def test_round_trip_every_command(
-    code: Command, transport: Transport, direction: Direction, layout: Layout, data: st.DataObject, motor_id: int
+    code: Command, transport: WireProtocol, direction: Direction, layout: Layout, data: st.DataObject, motor_id: int
 ) -> None:
     message, raws = data.draw(_message_strategy(layout, code))
     wire = _encode(transport, direction, message, motor_id)
@@ -119,7 +119,7 @@ def test_round_trip_multi_motor_torque(data: st.DataObject) -> None:
     decoded = can_frame.decode_request(frame.arbitration_id, frame.data)
     assert decoded.motor_id is None
     assert decoded.message == message
-    assert raw_values(message, Transport.CAN, Direction.REQUEST) == raws
+    assert raw_values(message, WireProtocol.CAN, Direction.REQUEST) == raws
 
 
 # ------------------------------------------------------------------------------------------------ fuzz invariant
@@ -269,7 +269,7 @@ def test_rs485_widths_differ_from_can() -> None:
     with pytest.raises(EncodeError, match="angle_deg"):
         can_frame.encode_request(MultiTurnPosition(1e9), 1)
     # RS485 max speed is uint32 0.01 dps: 0.5 dps is representable there, rounds to 0 or 1 dps on CAN
-    assert raw_values(MultiTurnPositionSpeed(0.0, 0.5), Transport.RS485, Direction.REQUEST)["max_speed_dps"] == 50
+    assert raw_values(MultiTurnPositionSpeed(0.0, 0.5), WireProtocol.RS485, Direction.REQUEST)["max_speed_dps"] == 50
     with pytest.raises(EncodeError, match="max_speed_dps"):
         rs485_frame.encode_request(MultiTurnPositionSpeed(0.0, 42949672.96), 1)
 

@@ -86,4 +86,3 @@ def test_threaded_real_clock_run_and_stop() -> None:
 def test_rate_is_validated(rate: object) -> None:
     with pytest.raises(ValueError, match="rate_hz"):
         FixedRateLoop(rate, lambda k, s, d: False)  # type: ignore[arg-type]
-

@@ -36,8 +36,7 @@ from motion.errors import (
     PlanningError,
     TransportError,
 )
-from motion.protocol import MultiTurnPositionSpeed
-from motion.protocol import Transport as Wire
+from motion.protocol import MultiTurnPositionSpeed, WireProtocol
 
 DESCRIPTION: Final = "Multi-axis motion control of MyActuator RMD drives over CAN or RS485."
 EPILOG: Final = """\
@@ -71,7 +70,7 @@ def arm_emulator_factory(config: ArmConfig) -> EmulatorFactory:
         for joint in config.joints:
             drive = emulator.drives[joint.motor_id]
             speed = joint.velocity_limit_dps * joint.gear_ratio * EMULATED_HOLD_SPEED_SHARE
-            drive.handle(MultiTurnPositionSpeed(drive.angle_deg, speed), Wire.CAN)  # no link faults at power-on
+            drive.handle(MultiTurnPositionSpeed(drive.angle_deg, speed), WireProtocol.CAN)  # no link faults at power-on
         return emulator
 
     return build

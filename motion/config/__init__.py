@@ -18,7 +18,6 @@ from motion.config.schema import (
     ModelConfig,
     Rs485BusConfig,
     SafetyConfig,
-    Transport,
     Vec3,
 )
 
@@ -36,7 +35,6 @@ __all__ = [
     "ModelConfig",
     "Rs485BusConfig",
     "SafetyConfig",
-    "Transport",
     "Vec3",
     "example_config",
     "example_names",

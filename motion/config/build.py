@@ -17,7 +17,7 @@ from motion.control.controller import Controller, ControllerOptions, Feedforward
 from motion.control.controller import ControlMode as LoopMode
 from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
 from motion.emulator import DriveModel, Emulator, Fault, LoadModel, Plant
-from motion.protocol import Transport as Wire
+from motion.protocol import WireProtocol
 from motion.safety import HaltPolicy as Halt
 from motion.safety import SafetySettings
 from motion.trajectory import JointLimits
@@ -52,9 +52,9 @@ def axis_specs(config: ArmConfig) -> tuple[AxisSpec, ...]:
     return tuple(AxisSpec(j.name, j.motor_id, j.encoder_bits, j.kp_nm_per_deg, j.kd_nm_per_dps) for j in config.joints)
 
 
-def wire_protocol(config: ArmConfig) -> Wire:
+def wire_protocol(config: ArmConfig) -> WireProtocol:
     """The protocol spoken on the configured bus."""
-    return Wire.CAN if isinstance(config.bus, CanBusConfig) else Wire.RS485
+    return WireProtocol.CAN if isinstance(config.bus, CanBusConfig) else WireProtocol.RS485
 
 
 def controller_options(config: ArmConfig) -> ControllerOptions:

@@ -23,6 +23,7 @@ import yaml
 from motion.config import schema
 from motion.config.urdf import revolute_joints
 from motion.errors import ConfigError
+from motion.protocol import WireProtocol
 from motion.transmission import IQ_LIMIT_A
 
 _T = TypeVar("_T")
@@ -253,13 +254,13 @@ class _Node:
 
 
 def _bus(root: _Node) -> schema.BusConfig:
-    kinds: dict[schema.Transport, type[schema.BusConfig]] = {
+    kinds: dict[WireProtocol, type[schema.BusConfig]] = {
         kind.transport: kind for kind in (schema.CanBusConfig, schema.Rs485BusConfig)
     }
     # Read `transport` with the keys of every bus kind allowed, then re-read strictly with the chosen kind's keys.
-    transport = root.child("bus", *kinds.values(), extra=["transport"]).choice("transport", schema.Transport)
+    transport = root.child("bus", *kinds.values(), extra=["transport"]).choice("transport", WireProtocol)
     node = root.child("bus", kinds[transport], extra=["transport"])
-    if transport is schema.Transport.CAN:
+    if transport is WireProtocol.CAN:
         return schema.CanBusConfig(
             interface=node.text("interface"),
             channel=node.text("channel"),

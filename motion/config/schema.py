@@ -11,18 +11,10 @@ from enum import StrEnum
 from pathlib import Path
 from typing import ClassVar, TypeAlias
 
+from motion.protocol import WireProtocol
 from motion.transmission import ArmTransmission, Transmission
 
 Vec3: TypeAlias = tuple[float, float, float]
-
-
-class Transport(StrEnum):
-    """Which bus the drives are on."""
-
-    #: CAN 2.0 through python-can (RMD CAN protocol v2.3).
-    CAN = "can"
-    #: RS485 through pyserial (RMD RS485 protocol v1.62).
-    RS485 = "rs485"
 
 
 class ControlMode(StrEnum):
@@ -55,7 +47,7 @@ class CanBusConfig:
         bitrate: bit rate in bit/s (500000 or 1000000, the rates the RMD drives support).
     """
 
-    transport: ClassVar[Transport] = Transport.CAN
+    transport: ClassVar[WireProtocol] = WireProtocol.CAN
     interface: str
     channel: str
     bitrate: int = 1_000_000
@@ -70,7 +62,7 @@ class Rs485BusConfig:
         baudrate: baud rate in bit/s (9600, 19200, 57600 or 115200).
     """
 
-    transport: ClassVar[Transport] = Transport.RS485
+    transport: ClassVar[WireProtocol] = WireProtocol.RS485
     port: str
     baudrate: int = 115_200
 

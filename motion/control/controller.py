@@ -34,14 +34,13 @@ from motion.protocol import (
     MultiTurnAngle,
     MultiTurnPositionSpeed,
     TorqueControl,
-    Transport,
+    WireProtocol,
 )
 from motion.protocol.scales import iq_amps
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS
 from motion.trajectory import Follower, JointLimits, Path, Planner, State
 from motion.transmission import ArmTransmission, FloatArray
-from motion.transport.base import Reply, Request
-from motion.transport.base import Transport as Bus
+from motion.transport.base import Reply, Request, Transport
 
 #: ``feedforward(q_deg, qd_dps, qdd_dps2) -> tau_nm``, arrays in joint order (gravity, optionally inertia).
 Feedforward = Callable[[FloatArray, FloatArray, FloatArray], FloatArray]
@@ -55,7 +54,7 @@ def _never() -> bool:
 
 
 # CAN 0xA4 carries max speed in whole dps (uint16); RS485 in 0.01 dps (uint32).
-_MAX_SPEED_DPS = {Transport.CAN: 65535.0, Transport.RS485: 42949672.95}
+_MAX_SPEED_DPS = {WireProtocol.CAN: 65535.0, WireProtocol.RS485: 42949672.95}
 
 
 class ControlMode(Enum):
@@ -84,7 +83,7 @@ class ControllerOptions:
 
     mode: ControlMode = ControlMode.POSITION
     rate_hz: float = 200.0
-    protocol: Transport = Transport.CAN
+    protocol: WireProtocol = WireProtocol.CAN
     speed_headroom: float = 1.5
     speed_floor_share: float = 0.1
     reply_budget: float = 0.8
@@ -118,7 +117,7 @@ class Controller:
         specs: Sequence[AxisSpec],
         transmission: ArmTransmission,
         limits: JointLimits,
-        bus: Bus,
+        bus: Transport,
         *,
         options: ControllerOptions,
         feedforward: Feedforward | None = None,
@@ -155,7 +154,7 @@ class Controller:
         self._multi = (
             in_multi
             if options.mode is ControlMode.TORQUE
-            and options.protocol is Transport.CAN
+            and options.protocol is WireProtocol.CAN
             and options.multi_motor_frame
             and len(in_multi) == len(MULTI_TORQUE_MOTOR_IDS)
             else []

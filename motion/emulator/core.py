@@ -29,7 +29,7 @@ from motion.emulator.model import DriveModel, LoadModel
 from motion.emulator.plant import IndependentLoads, Plant
 from motion.errors import ConfigError
 from motion.protocol import CanFrame, Message, MultiMotorTorque, Rs485Frame, TorqueControl, can_frame, rs485_frame
-from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, Direction, Transport, check_motor_id
+from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, Direction, WireProtocol, check_motor_id
 
 logger = logging.getLogger("motion.emulator")
 
@@ -294,9 +294,9 @@ class Emulator:
             targets: list[tuple[int, Message]] = [
                 (i, TorqueControl(iq)) for i, iq in zip(MULTI_TORQUE_MOTOR_IDS, currents, strict=True)
             ]
-            return self._dispatch(None, message, targets, Transport.CAN, _encode_can)
+            return self._dispatch(None, message, targets, WireProtocol.CAN, _encode_can)
         assert request.motor_id is not None  # every other CAN request addresses one drive
-        return self._dispatch(request.motor_id, message, [(request.motor_id, message)], Transport.CAN, _encode_can)
+        return self._dispatch(request.motor_id, message, [(request.motor_id, message)], WireProtocol.CAN, _encode_can)
 
     def handle_rs485(self, frame: Rs485Frame) -> Exchange[bytes]:
         """Execute an RS485 request frame (checksums already verified by the parser).
@@ -305,14 +305,14 @@ class Emulator:
             DecodeError: the frame breaks the RS485 protocol (command, data length, field, reserved byte).
         """
         message = rs485_frame.decode_frame(frame, Direction.REQUEST)
-        return self._dispatch(frame.motor_id, message, [(frame.motor_id, message)], Transport.RS485, _encode_rs485)
+        return self._dispatch(frame.motor_id, message, [(frame.motor_id, message)], WireProtocol.RS485, _encode_rs485)
 
     def _dispatch(
         self,
         motor_id: int | None,
         request: Message,
         targets: list[tuple[int, Message]],
-        transport: Transport,
+        transport: WireProtocol,
         encode: Callable[[Message, int, Corruption | None], W],
     ) -> Exchange[W]:
         replies: list[Outgoing[W]] = []
@@ -335,7 +335,7 @@ class Emulator:
         return Exchange(motor_id, request, tuple(replies), tuple(notes))
 
     def request(
-        self, motor_id: int, message: Message, transport: Transport = Transport.CAN
+        self, motor_id: int, message: Message, transport: WireProtocol = WireProtocol.CAN
     ) -> list[tuple[int, Message]]:
         """Send one request through the codec and return the decoded replies as ``(motor_id, message)``.
 
@@ -345,7 +345,7 @@ class Emulator:
             EncodeError: the request cannot be encoded.
             DecodeError: a reply was corrupted by a fault.
         """
-        if transport is Transport.CAN:
+        if transport is WireProtocol.CAN:
             exchange_can = self.handle_can(can_frame.encode_request(message, motor_id))
             return [can_frame.decode_reply(o.wire.arbitration_id, o.wire.data) for o in exchange_can.replies]
         raw = rs485_frame.encode_request(message, motor_id)

@@ -63,7 +63,7 @@ from motion.protocol.messages import (
     TorqueControl,
 )
 from motion.protocol.scales import CENTIDEGREE
-from motion.protocol.table import COMMANDS, Direction, Transport, command_of
+from motion.protocol.table import COMMANDS, Direction, WireProtocol, command_of
 
 _RAD_PER_DEG: Final = math.pi / 180.0
 _DEG_PER_RAD: Final = 180.0 / math.pi
@@ -79,7 +79,7 @@ _THIRD_TURN_RAD: Final = 2.0 * math.pi / 3.0
 
 def _field_limits(command: Command, direction: Direction, name: str) -> tuple[float, float]:
     """Smallest and largest physical value of a field, from the command table (the CAN layout)."""
-    layout = COMMANDS[command].layout(Transport.CAN, direction)
+    layout = COMMANDS[command].layout(WireProtocol.CAN, direction)
     assert layout is not None
     spec = next(f for f in layout.fields if f.name == name)
     return spec.physical(spec.lo), spec.physical(spec.hi)
@@ -370,7 +370,7 @@ class EmulatedDrive:
 
     # --- requests -------------------------------------------------------------------------------------------------
 
-    def handle(self, message: Message, transport: Transport) -> Message:
+    def handle(self, message: Message, transport: WireProtocol) -> Message:
         """Execute one request and return the reply (of the class the command table gives for ``transport``).
 
         Raises:
@@ -457,7 +457,7 @@ class EmulatedDrive:
 
     # --- replies --------------------------------------------------------------------------------------------------
 
-    def _reply(self, command: Command, cls: type[Message], transport: Transport) -> Message:
+    def _reply(self, command: Command, cls: type[Message], transport: WireProtocol) -> Message:
         """Build the reply of class ``cls`` from the drive's state."""
         coldest, hottest = _TEMPERATURE_REPLY_C
         temperature = int(max(coldest, min(hottest, round(self.temperature_c))))
@@ -482,7 +482,7 @@ class EmulatedDrive:
             centi = _CENTIDEGREES_PER_DEG
             return SingleTurnAngle(self.encoder * 360 * centi // self._counts_per_rev / centi)
         if cls is PhaseCurrents:
-            return self._phase_currents(temperature if transport is Transport.RS485 else None)
+            return self._phase_currents(temperature if transport is WireProtocol.RS485 else None)
         if cls is OpenLoopState:
             setpoint = self.setpoint if self.state is RunState.RUNNING else None
             power = int(setpoint.value) if setpoint is not None and setpoint.mode is ControlMode.OPEN_LOOP else 0

@@ -30,9 +30,8 @@ from motion.emulator.core import Emulator, Exchange, Outgoing
 from motion.emulator.framelog import FrameLog
 from motion.emulator.timing import TimingModel, can_frame_time_s, rs485_frame_time_s
 from motion.errors import DecodeError
-from motion.protocol import CanFrame, Transport, can_frame, rs485_frame
-from motion.transport.base import Request
-from motion.transport.base import Transport as Bus
+from motion.protocol import CanFrame, WireProtocol, can_frame, rs485_frame
+from motion.transport.base import Request, Transport
 from motion.transport.can_transport import take_in_can_frame
 
 #: Default CAN bit rate, bit/s (RMD drives run at 1 Mbit/s).
@@ -82,7 +81,7 @@ class Simulation:
     def __init__(
         self,
         emulator: Emulator,
-        protocol: Transport = Transport.CAN,
+        protocol: WireProtocol = WireProtocol.CAN,
         *,
         bitrate: int = DEFAULT_BITRATE,
         baud: int = DEFAULT_BAUD,
@@ -97,7 +96,7 @@ class Simulation:
         self.baud = baud
         self.timing = timing or TimingModel()
         self.frame_log = frame_log
-        self.channel = "sim-can" if protocol is Transport.CAN else "sim-rs485"
+        self.channel = "sim-can" if protocol is WireProtocol.CAN else "sim-rs485"
         self.now_s = emulator.time_s
         self._queue: list[_Frame] = []
         self._busy_until_s = self.now_s
@@ -202,7 +201,7 @@ class Simulation:
             self.frame_log.write(direction, self.channel, text, decoded, time_s=time_s)
 
 
-class SimulatedBus(Bus):
+class SimulatedBus(Transport):
     """The transport of a :class:`Simulation`: the same slots, matching and counters as the real backends.
 
     Its clock is the simulation's (pass ``simulation`` as the controller's clock too).
@@ -211,7 +210,7 @@ class SimulatedBus(Bus):
     def __init__(self, simulation: Simulation) -> None:
         super().__init__(clock=simulation.now)
         self.simulation = simulation
-        self._can = simulation.protocol is Transport.CAN
+        self._can = simulation.protocol is WireProtocol.CAN
         self._wires: list[CanFrame | bytes] = []
         self._motors: list[int] = []
 

@@ -38,7 +38,7 @@ from motion.protocol.messages import (
     TorqueControl,
 )
 from motion.protocol.rs485_frame import Rs485Frame, Rs485Parser
-from motion.protocol.table import COMMANDS, CommandSpec, Direction, Transport, raw_values
+from motion.protocol.table import COMMANDS, CommandSpec, Direction, WireProtocol, raw_values
 
 __all__ = [
     "COMMANDS",
@@ -74,7 +74,7 @@ __all__ = [
     "SpinDirection",
     "Status1",
     "TorqueControl",
-    "Transport",
+    "WireProtocol",
     "can_frame",
     "raw_values",
     "rs485_frame",

@@ -21,7 +21,7 @@ from motion.protocol.table import (
     MOTOR_ID_MIN,
     MULTI_TORQUE_LAYOUT,
     Direction,
-    Transport,
+    WireProtocol,
     check_motor_id,
     command_of,
     layout_for,
@@ -47,7 +47,7 @@ class CanRequest:
 
 
 def _encode(message: Message, motor_id: int, direction: Direction) -> CanFrame:
-    layout = layout_for(message, Transport.CAN, direction)
+    layout = layout_for(message, WireProtocol.CAN, direction)
     data = bytearray(CAN_PAYLOAD_BYTES)
     if isinstance(message, MultiMotorTorque):
         pack_fields(layout, message, data)
@@ -98,7 +98,7 @@ def _check_frame(arbitration_id: int, data: bytes) -> None:
 def _decode(data: bytes, direction: Direction) -> Message:
     code = data[0]
     spec = COMMANDS.get(Command(code)) if code in Command._value2member_map_ else None
-    layout = spec.layout(Transport.CAN, direction) if spec is not None else None
+    layout = spec.layout(WireProtocol.CAN, direction) if spec is not None else None
     if spec is None or layout is None:
         raise DecodeError(f"0x{code:02X} is not a CAN v2.3 {direction.value} command", data)
     return unpack_fields(layout, data, spec.code, first=1, check_reserved=direction is Direction.REQUEST)

@@ -11,13 +11,13 @@ from motion.protocol.table import (
     Field,
     Kind,
     Layout,
-    Transport,
+    WireProtocol,
 )
 
 
-def _field(f: Field, transport: Transport) -> str:
+def _field(f: Field, transport: WireProtocol) -> str:
     # CAN offsets are DATA[i] of the 8-byte payload; RS485 offsets count from the frame's first byte.
-    index = f.offset if transport is Transport.CAN else f.offset + 5
+    index = f.offset if transport is WireProtocol.CAN else f.offset + 5
     place = f"DATA[{index}]" if f.width == 1 else f"DATA[{index}..{index + f.width - 1}]"
     if f.kind is Kind.TEXT:
         return f"{place} {f.name} {f.ctype}"
@@ -30,11 +30,11 @@ def _field(f: Field, transport: Transport) -> str:
     return f"{place} {f.name} {f.ctype}{scale}{unit}{limits}"
 
 
-def _layout(layout: Layout | None, transport: Transport) -> str:
+def _layout(layout: Layout | None, transport: WireProtocol) -> str:
     if layout is None:
         return "—"
     body = "; ".join(_field(f, transport) for f in layout.fields) or "no data"
-    if transport is Transport.RS485:
+    if transport is WireProtocol.RS485:
         body = f"{frame_size(layout.length)} B: {body}"
     cls = layout.cls.__name__
     return f"`{cls}` {'(echo) ' if layout.echo else ''}{body}"
@@ -49,11 +49,11 @@ def markdown_table() -> str:
     for code, spec in COMMANDS.items():
         cells = [
             _layout(spec.layout(t, d), t)
-            for t in (Transport.CAN, Transport.RS485)
+            for t in (WireProtocol.CAN, WireProtocol.RS485)
             for d in (Direction.REQUEST, Direction.REPLY)
         ]
         lines.append(f"| 0x{code:02X} | {spec.title} | " + " | ".join(cells) + " |")
-    multi = _layout(MULTI_TORQUE_LAYOUT, Transport.CAN)
+    multi = _layout(MULTI_TORQUE_LAYOUT, WireProtocol.CAN)
     lines.append(
         f"| ID 0x{CAN_MULTI_TORQUE_ID:03X} | Multi-motor torque (motors 1–4) | {multi} | "
         "each motor 1–4 replies on 0x140+id like 0xA1, in ascending id order | — | — |"

@@ -19,7 +19,7 @@ from motion.protocol.table import (
     MOTOR_ID_MIN,
     RS485_MAX_DATA_BYTES,
     Direction,
-    Transport,
+    WireProtocol,
     check_motor_id,
     command_of,
     layout_for,
@@ -59,7 +59,7 @@ class Rs485Frame:
 
 
 def _encode(message: Message, motor_id: int, direction: Direction) -> bytes:
-    layout = layout_for(message, Transport.RS485, direction)
+    layout = layout_for(message, WireProtocol.RS485, direction)
     check_motor_id(motor_id)
     command = command_of(message)
     assert command is not None
@@ -120,7 +120,7 @@ def decode_frame(frame: Rs485Frame, direction: Direction) -> Message:
     """
     code = frame.command
     spec = COMMANDS.get(Command(code)) if code in Command._value2member_map_ else None
-    layout = spec.layout(Transport.RS485, direction) if spec is not None else None
+    layout = spec.layout(WireProtocol.RS485, direction) if spec is not None else None
     if spec is None or layout is None:
         raise DecodeError(f"0x{code:02X} is not an RS485 v1.62 {direction.value} command", frame.to_bytes())
     if len(frame.data) != layout.length:

@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
-from enum import Enum, IntEnum, IntFlag
+from enum import Enum, IntEnum, IntFlag, StrEnum
 from fractions import Fraction
 from typing import Any, Final
 
@@ -51,8 +51,8 @@ from motion.protocol.messages import (
 )
 
 
-class Transport(Enum):
-    """The two wire protocols."""
+class WireProtocol(StrEnum):
+    """The two wire protocols (the configuration's ``bus.transport`` names one)."""
 
     CAN = "can"  #: CAN v2.3: 8-byte frames on ID 0x140 + motor id
     RS485 = "rs485"  #: RS485 v1.62: 0x3E-framed, checksummed
@@ -177,10 +177,10 @@ class CommandSpec:
 
     code: Command
     title: str
-    request: Mapping[Transport, Layout]
-    reply: Mapping[Transport, Layout]
+    request: Mapping[WireProtocol, Layout]
+    reply: Mapping[WireProtocol, Layout]
 
-    def layout(self, transport: Transport, direction: Direction) -> Layout | None:
+    def layout(self, transport: WireProtocol, direction: Direction) -> Layout | None:
         """The layout on ``transport`` in ``direction``, or None when the transport lacks the command."""
         return (self.request if direction is Direction.REQUEST else self.reply).get(transport)
 
@@ -267,34 +267,34 @@ _PHASE: dict[str, Any] = dict(kind=Kind.REAL, num=1, den=64, unit="A")
 _BARE = Layout(Bare)
 
 
-def _both(layout: Layout) -> dict[Transport, Layout]:
-    return {Transport.CAN: layout, Transport.RS485: layout}
+def _both(layout: Layout) -> dict[WireProtocol, Layout]:
+    return {WireProtocol.CAN: layout, WireProtocol.RS485: layout}
 
 
-def _bare_both(echo: bool = False) -> dict[Transport, Layout]:
+def _bare_both(echo: bool = False) -> dict[WireProtocol, Layout]:
     return _both(Layout(Bare, echo=echo))
 
 
-def _can_rs(can: Layout, rs485: Layout) -> dict[Transport, Layout]:
-    return {Transport.CAN: can, Transport.RS485: rs485}
+def _can_rs(can: Layout, rs485: Layout) -> dict[WireProtocol, Layout]:
+    return {WireProtocol.CAN: can, WireProtocol.RS485: rs485}
 
 
-def _state_reply() -> dict[Transport, Layout]:
+def _state_reply() -> dict[WireProtocol, Layout]:
     return _can_rs(Layout(MotorState, _state(1)), Layout(MotorState, _state(0), 7))
 
 
-def _pid_both(echo: bool) -> dict[Transport, Layout]:
+def _pid_both(echo: bool) -> dict[WireProtocol, Layout]:
     return _can_rs(Layout(PidGains, _pid(2), echo=echo), Layout(PidGains, _pid(0), 6, echo=echo))
 
 
-def _accel_both(echo: bool) -> dict[Transport, Layout]:
+def _accel_both(echo: bool) -> dict[WireProtocol, Layout]:
     return _can_rs(
         Layout(Acceleration, (_i32("acceleration_dps2", 4, **_ACCEL),), echo=echo),
         Layout(Acceleration, (_i32("acceleration_dps2", 0, **_ACCEL),), 4, echo=echo),
     )
 
 
-def _status1_reply() -> dict[Transport, Layout]:
+def _status1_reply() -> dict[WireProtocol, Layout]:
     return _can_rs(Layout(Status1, _status1(1)), Layout(Status1, _status1(0), 7))
 
 
@@ -352,8 +352,8 @@ _SPECS: tuple[CommandSpec, ...] = (
     CommandSpec(
         Command.SET_ZERO_RAM,
         "Set current position as zero (RAM)",
-        {Transport.CAN: _BARE},
-        {Transport.CAN: Layout(Bare, echo=True)},
+        {WireProtocol.CAN: _BARE},
+        {WireProtocol.CAN: Layout(Bare, echo=True)},
     ),
     CommandSpec(Command.READ_STATUS_1, "Read status 1 and error flags", _bare_both(), _status1_reply()),
     CommandSpec(Command.CLEAR_ERRORS, "Clear error flags", _bare_both(), _status1_reply()),
@@ -479,9 +479,9 @@ _SPECS: tuple[CommandSpec, ...] = (
     CommandSpec(
         Command.READ_MODEL,
         "Read driver and motor model",
-        {Transport.RS485: _BARE},
+        {WireProtocol.RS485: _BARE},
         {
-            Transport.RS485: Layout(
+            WireProtocol.RS485: Layout(
                 ProductInfo,
                 (
                     Field("driver_name", 0, 20, False, kind=Kind.TEXT),
@@ -528,14 +528,14 @@ def check_motor_id(motor_id: int) -> int:
     return motor_id
 
 
-def layout_for(message: Message, transport: Transport, direction: Direction) -> Layout:
+def layout_for(message: Message, transport: WireProtocol, direction: Direction) -> Layout:
     """The layout that carries ``message`` on ``transport`` in ``direction``.
 
     Raises:
         EncodeError: the transport lacks the command, or the message class does not belong to it.
     """
     if isinstance(message, MultiMotorTorque):
-        if transport is Transport.CAN and direction is Direction.REQUEST:
+        if transport is WireProtocol.CAN and direction is Direction.REQUEST:
             return MULTI_TORQUE_LAYOUT
         raise EncodeError("message", "a CAN request (0x280 exists on CAN only)", type(message).__name__)
     command = command_of(message)
@@ -642,7 +642,7 @@ def unpack_fields(layout: Layout, data: bytes, command: Command | None, *, first
     return layout.cls(**values)
 
 
-def raw_values(message: Message, transport: Transport, direction: Direction) -> dict[str, int]:
+def raw_values(message: Message, transport: WireProtocol, direction: Direction) -> dict[str, int]:
     """The raw integers of a message's numeric fields as they go on the wire of ``transport``.
 
     Raises:
