@@ -46,9 +46,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from kinematics import build_arm, feedforward
+from motion.compose import build_controller, open_bus
 from motion.config import ArmConfig, parse_config
-from motion.config.build import build_controller, open_bus
-from motion.control.controller import Controller, ControlMode, Feedforward
+from motion.config.schema import ControlMode
+from motion.control.controller import Controller, Feedforward
 from motion.control.scheduler import LoopStatistics
 from motion.emulator.timing import DEFAULT_LATENCY_S, can_frame_bits, rs485_frame_time_s
 from motion.protocol import Bare, CanFrame, Command, Message, MotorState, MultiTurnAngle, can_frame, rs485_frame

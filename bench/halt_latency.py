@@ -25,14 +25,14 @@ from pathlib import Path
 from motion.api import Arm
 from motion.config import load_config
 from motion.config.schema import ControlMode, HaltPolicy
-from motion.emulator import Fault, FaultKind
+from motion.emulator import Fault, InjectedFault
 from motion.errors import MotionFault
 
 CONFIG = Path(__file__).resolve().parent.parent / "configs" / "arm2.yaml"
 KINDS = {
-    "silent": (FaultKind.SILENT, None),
-    "over_temperature_75C": (FaultKind.OVER_TEMPERATURE, 75.0),
-    "under_voltage_12V": (FaultKind.UNDER_VOLTAGE, 12.0),
+    "silent": (InjectedFault.SILENT, None),
+    "over_temperature_75C": (InjectedFault.OVER_TEMPERATURE, 75.0),
+    "under_voltage_12V": (InjectedFault.UNDER_VOLTAGE, 12.0),
     "estop": (None, None),
 }
 

@@ -10,8 +10,8 @@ import numpy as np
 from kinematics.dynamics import mass_matrix
 from kinematics.model import build_arm
 from kinematics.plant import ArmPlant
+from motion.compose import emulator_for
 from motion.config import ArmConfig
-from motion.config.build import emulator_for
 from motion.emulator import Emulator, Fault
 
 

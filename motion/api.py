@@ -31,8 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from motion.compose import build_controller, check_rate, open_bus, safety_settings
 from motion.config import ArmConfig, load_config_or_example
-from motion.config.build import build_controller, check_rate, open_bus, safety_settings
 from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.control.ratecheck import RateCheck, measure_rate

@@ -79,8 +79,8 @@ from typing import IO, TYPE_CHECKING, Any, Final, NamedTuple, TextIO
 import numpy as np
 from numpy.typing import NDArray
 
-from motion.config.schema import ArmConfig, CanBusConfig
-from motion.control.controller import Controller, ControlMode
+from motion.config.schema import ArmConfig, CanBusConfig, ControlMode
+from motion.control.controller import Controller
 from motion.protocol import MultiMotorTorque, MultiTurnPositionSpeed, TorqueControl
 from motion.transmission import FloatArray
 from motion.transport.base import Reply, Transport

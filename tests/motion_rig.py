@@ -21,8 +21,8 @@ import pytest
 from kinematics import build_arm, feedforward
 from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
+from motion.compose import build_controller, open_bus, safety_settings
 from motion.config import ArmConfig, load_config
-from motion.config.build import build_controller, open_bus, safety_settings
 from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.emulator import Emulator, FrameLog, Rs485Attachment, SlcanAttachment, VirtualCanAttachment

@@ -31,15 +31,15 @@ from motion.emulator import (
     EmulatedDrive,
     Emulator,
     Fault,
-    FaultKind,
     FrameLog,
+    InjectedFault,
     Rs485Attachment,
     RunState,
     Setpoint,
     SlcanAttachment,
     VirtualCanAttachment,
 )
-from motion.emulator.drive import ControlMode
+from motion.emulator.drive import DriveLoop
 from motion.errors import EncodeError
 from motion.protocol import (
     COMMANDS,
@@ -168,7 +168,7 @@ class Bus:
         assert wait_for(lambda: self.emulator.time_s >= time_s), f"simulation time stuck at {self.emulator.time_s}"
 
     def fault(
-        self, kind: FaultKind, motor_id: int, lasting_s: float | None = None, after_s: float = 0.0, **kwargs: Any
+        self, kind: InjectedFault, motor_id: int, lasting_s: float | None = None, after_s: float = 0.0, **kwargs: Any
     ) -> Fault:
         """Schedule a fault ``after_s`` s of simulation time from now, ``lasting_s`` long (None: open-ended).
 
@@ -314,7 +314,7 @@ def test_every_command_through_the_transport(bus: Bus) -> None:
         bus.ask(m, message)
         setpoint = drive.setpoint
         assert setpoint is not None and setpoint.command is command_of(message)
-        assert setpoint.mode is ControlMode.POSITION and state_of(drive) is RunState.RUNNING
+        assert setpoint.mode is DriveLoop.POSITION and state_of(drive) is RunState.RUNNING
         if hasattr(message, "max_speed_dps"):
             assert setpoint.max_speed_dps == message.max_speed_dps
         else:
@@ -365,7 +365,7 @@ def test_every_command_through_the_transport(bus: Bus) -> None:
         for reply, iq in zip(replies, currents, strict=True):
             assert isinstance(reply.message, MotorState) and reply.message.command is Command.TORQUE
             setpoint = emulator.drives[reply.motor_id].setpoint
-            assert setpoint is not None and setpoint.mode is ControlMode.TORQUE
+            assert setpoint is not None and setpoint.mode is DriveLoop.TORQUE
             assert setpoint.value == pytest.approx(iq, abs=0.016)  # the wire carries 32/2000 A steps
         replies = bus.cycle([Request(i, Bare(Command.MOTOR_OFF)) for i in MOTORS])
         assert all(r.message == Bare(Command.MOTOR_OFF) for r in replies)
@@ -406,7 +406,7 @@ def test_every_command_through_the_transport(bus: Bus) -> None:
 def test_silent_drive_times_out_by_the_deadline_and_recovers(bus: Bus) -> None:
     drive = bus.emulator.drives[3]
     bus.ask(3, SpeedControl(speed_dps=60.0))  # running before it falls silent
-    fault = bus.fault(FaultKind.SILENT, 3, lasting_s=0.5)
+    fault = bus.fault(InjectedFault.SILENT, 3, lasting_s=0.5)
     deadline = bus.transport.clock() + 2 * DEADLINE_S
     replies = bus.transport.transact([Request(1, Bare(Command.READ_STATUS_1)), Request(3, SpeedControl(-60.0))],
                                      deadline)  # fmt: skip
@@ -441,7 +441,7 @@ def test_silent_drive_times_out_by_the_deadline_and_recovers(bus: Bus) -> None:
 
 def test_dropped_requests_get_no_reply_and_are_not_executed(bus: Bus) -> None:
     drive = bus.emulator.drives[4]
-    fault = bus.fault(FaultKind.DROP, 4, lasting_s=0.5)  # probability 1
+    fault = bus.fault(InjectedFault.DROP, 4, lasting_s=0.5)  # probability 1
     replies = bus.cycle([Request(1, Bare(Command.READ_STATUS_2)), Request(4, MultiTurnPosition(angle_deg=30.0))])
     assert isinstance(replies[0].message, MotorState) and replies[1].message is None
     assert drive.setpoint is None and state_of(drive) is RunState.OFF
@@ -470,7 +470,7 @@ def test_dropped_requests_get_no_reply_and_are_not_executed(bus: Bus) -> None:
 def test_late_reply_is_stale_in_the_next_cycle_and_never_matched(bus: Bus) -> None:
     drive = bus.emulator.drives[2]
     delay_s = 0.4
-    bus.fault(FaultKind.DELAY, 2, value=delay_s * 1000.0)  # longer than the first cycle's deadline
+    bus.fault(InjectedFault.DELAY, 2, value=delay_s * 1000.0)  # longer than the first cycle's deadline
     first = PidGains(Command.WRITE_PID_RAM, 91, 41, 46, 36, 46, 46)
     second = PidGains(Command.WRITE_PID_RAM, 92, 42, 47, 37, 47, 47)
     replies = bus.cycle([Request(1, Bare(Command.READ_STATUS_1)), Request(2, first)])
@@ -492,7 +492,7 @@ def test_late_reply_is_stale_in_the_next_cycle_and_never_matched(bus: Bus) -> No
 
 @pytest.mark.parametrize("corruption", list(Corruption), ids=[c.value for c in Corruption])
 def test_corrupt_replies_are_counted_and_never_matched(bus: Bus, corruption: Corruption) -> None:
-    bus.fault(FaultKind.CORRUPT, 3, corruption=corruption)
+    bus.fault(InjectedFault.CORRUPT, 3, corruption=corruption)
     pair = [Request(1, Bare(Command.READ_STATUS_1)), Request(3, Bare(Command.READ_STATUS_1))]
     replies = bus.cycle(pair, budget_s=DEADLINE_S)
     assert isinstance(replies[0].message, Status1) and replies[0].motor_id == 1
@@ -516,10 +516,13 @@ def test_corrupt_replies_are_counted_and_never_matched(bus: Bus, corruption: Cor
 
 @pytest.mark.parametrize(
     ("kind", "flag"),
-    [(FaultKind.OVER_TEMPERATURE, ErrorFlags.OVER_TEMPERATURE), (FaultKind.UNDER_VOLTAGE, ErrorFlags.LOW_VOLTAGE)],
+    [
+        (InjectedFault.OVER_TEMPERATURE, ErrorFlags.OVER_TEMPERATURE),
+        (InjectedFault.UNDER_VOLTAGE, ErrorFlags.LOW_VOLTAGE),
+    ],
     ids=["over_temperature", "under_voltage"],
 )
-def test_protection_flag_latches_while_the_cause_persists(bus: Bus, kind: FaultKind, flag: ErrorFlags) -> None:
+def test_protection_flag_latches_while_the_cause_persists(bus: Bus, kind: InjectedFault, flag: ErrorFlags) -> None:
     m, model = 1, MODEL
     drive = bus.emulator.drives[m]
     status = bus.ask(m, Bare(Command.READ_STATUS_1))
@@ -528,7 +531,7 @@ def test_protection_flag_latches_while_the_cause_persists(bus: Bus, kind: FaultK
 
     status = bus.ask(m, Bare(Command.READ_STATUS_1))
     assert isinstance(status, Status1) and status.errors & flag
-    if kind is FaultKind.OVER_TEMPERATURE:
+    if kind is InjectedFault.OVER_TEMPERATURE:
         assert status.temperature_c > model.over_temperature_c
     else:
         assert status.voltage_v < model.low_voltage_v
@@ -540,7 +543,7 @@ def test_protection_flag_latches_while_the_cause_persists(bus: Bus, kind: FaultK
 
     assert fault.end_s is not None
     bus.wait_sim(fault.end_s)
-    if kind is FaultKind.OVER_TEMPERATURE:
+    if kind is InjectedFault.OVER_TEMPERATURE:
         assert wait_for(lambda: drive.temperature_c <= model.over_temperature_c)  # cools after the fault
     status = bus.ask(m, Bare(Command.READ_STATUS_1))
     assert isinstance(status, Status1) and status.errors & flag  # latched until 0x9B

@@ -10,8 +10,8 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
+from motion.compose import build_controller, open_bus
 from motion.config import ArmConfig, load_config
-from motion.config.build import build_controller, open_bus
 from motion.config.schema import ControlMode
 from motion.control.controller import Controller, Feedforward
 from motion.protocol import MultiMotorTorque, MultiTurnPositionSpeed, TorqueControl

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from motion.emulator import ControlMode, DriveModel, Emulator, LoadModel, RunState, parse_fault
+from motion.emulator import DriveLoop, DriveModel, Emulator, LoadModel, RunState, parse_fault
 from motion.protocol import (
     COMMANDS,
     Acceleration,
@@ -410,7 +410,7 @@ def test_multi_motor_torque_frame_answers_in_ascending_id_order() -> None:
     assert [emulator.drives[i].iq_a for i in (1, 2, 4)] == pytest.approx([0.5, 1.0, -2.0], abs=0.01)
     assert emulator.drives[7].state is RunState.OFF
     setpoint = emulator.drives[4].setpoint
-    assert setpoint is not None and setpoint.mode is ControlMode.TORQUE
+    assert setpoint is not None and setpoint.mode is DriveLoop.TORQUE
 
 
 def test_phase_currents_are_balanced_and_match_iq() -> None:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from motion.emulator import Corruption, Emulator, Fault, FaultKind, RunState, parse_fault
+from motion.emulator import Corruption, Emulator, Fault, InjectedFault, RunState, parse_fault
 from motion.errors import DecodeError
 from motion.protocol import (
     Bare,
@@ -24,12 +24,12 @@ from motion.protocol import (
 @pytest.mark.parametrize(
     ("spec", "fault"),
     [
-        ("over_temperature:2@5-20:95", Fault(FaultKind.OVER_TEMPERATURE, 2, 5.0, 20.0, 95.0)),
-        ("under_voltage:1@0", Fault(FaultKind.UNDER_VOLTAGE, 1, 0.0)),
-        ("silent:32@1.5", Fault(FaultKind.SILENT, 32, 1.5)),
-        ("delay:1@0:15", Fault(FaultKind.DELAY, 1, 0.0, None, 15.0)),
-        ("corrupt:3@2-3:length", Fault(FaultKind.CORRUPT, 3, 2.0, 3.0, corruption=Corruption.LENGTH)),
-        ("DROP:4@0.5:0.25", Fault(FaultKind.DROP, 4, 0.5, None, 0.25)),
+        ("over_temperature:2@5-20:95", Fault(InjectedFault.OVER_TEMPERATURE, 2, 5.0, 20.0, 95.0)),
+        ("under_voltage:1@0", Fault(InjectedFault.UNDER_VOLTAGE, 1, 0.0)),
+        ("silent:32@1.5", Fault(InjectedFault.SILENT, 32, 1.5)),
+        ("delay:1@0:15", Fault(InjectedFault.DELAY, 1, 0.0, None, 15.0)),
+        ("corrupt:3@2-3:length", Fault(InjectedFault.CORRUPT, 3, 2.0, 3.0, corruption=Corruption.LENGTH)),
+        ("DROP:4@0.5:0.25", Fault(InjectedFault.DROP, 4, 0.5, None, 0.25)),
     ],
 )
 def test_fault_specs_parse_and_describe_themselves(spec: str, fault: Fault) -> None:
@@ -105,7 +105,7 @@ def test_delay_fault_delays_replies_of_that_drive_only() -> None:
 
 @pytest.mark.parametrize("how", list(Corruption))
 def test_corrupted_can_replies_do_not_decode(how: Corruption) -> None:
-    emulator = Emulator([5], faults=[Fault(FaultKind.CORRUPT, 5, 0.0, corruption=how)])
+    emulator = Emulator([5], faults=[Fault(InjectedFault.CORRUPT, 5, 0.0, corruption=how)])
     exchange = emulator.handle_can(can_frame.encode_request(Bare(Command.READ_STATUS_2), 5))
     (outgoing,) = exchange.replies
     assert outgoing.corruption is how and isinstance(outgoing.message, MotorState)
@@ -116,7 +116,7 @@ def test_corrupted_can_replies_do_not_decode(how: Corruption) -> None:
 @pytest.mark.parametrize("how", list(Corruption))
 @pytest.mark.parametrize("command", [Command.READ_STATUS_2, Command.MOTOR_STOP])  # with and without data
 def test_corrupted_rs485_replies_are_rejected_by_the_parser(how: Corruption, command: Command) -> None:
-    emulator = Emulator([5], faults=[Fault(FaultKind.CORRUPT, 5, 0.0, corruption=how)])
+    emulator = Emulator([5], faults=[Fault(InjectedFault.CORRUPT, 5, 0.0, corruption=how)])
     frame = rs485_frame.split_frame(rs485_frame.encode_request(Bare(command), 5))
     (outgoing,) = emulator.handle_rs485(frame).replies
     with pytest.raises(DecodeError):

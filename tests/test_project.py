@@ -19,12 +19,15 @@ LAYERS = [
     "motion.errors",
     "motion.protocol",
     "motion.transmission",
+    # the configuration's schema and loader: its enums (control mode, halt policy) are what control and safety use
+    "motion.config",
     "motion.transport",
     "motion.emulator",
     "motion.trajectory",
     "motion.control",
     "motion.safety",
-    "motion.config",
+    # the one place that builds bus + controller + rate check + supervisor (+ emulated drives) from a configuration
+    "motion.compose",
     "motion.telemetry",
     "motion.plot",
     "motion.api",
@@ -32,7 +35,7 @@ LAYERS = [
     "motion.cli",
 ]
 # The composition roots: the only modules of motion that may build the Pinocchio model (kinematics).
-COMPOSITION_ROOTS = ("motion.api", "motion.demo", "motion.cli")
+COMPOSITION_ROOTS = ("motion.compose", "motion.api", "motion.demo", "motion.cli")
 # Third-party packages that exactly one subpackage may import.
 OWNERS = {
     "can": "motion.transport",
@@ -111,6 +114,33 @@ def test_imports_point_downward_only(package: str) -> None:
             if own is not None and target is not None and target > own:
                 wrong.append(f"{module} (layer {LAYERS[own]}) imports {imported} (layer {LAYERS[target]})")
     assert not wrong, "\n".join(wrong)
+
+
+@pytest.mark.parametrize(
+    ("concept", "home"),
+    [
+        ("WireProtocol", "motion/protocol/table.py"),
+        ("ControlMode", "motion/config/schema.py"),
+        ("HaltPolicy", "motion/config/schema.py"),
+        ("FaultKind", "motion/errors.py"),
+        ("ArmState", "motion/safety/states.py"),
+    ],
+)
+def test_one_definition_per_concept(concept: str, home: str) -> None:
+    defined = [
+        str(path.relative_to(ROOT))
+        for package in ("motion", "kinematics", "bench")
+        for path in sorted((ROOT / package).rglob("*.py"))
+        if re.search(rf"^class {concept}\b", path.read_text(), flags=re.M)
+    ]
+    assert defined == [home]
+    aliased = [
+        str(path.relative_to(ROOT))
+        for package in ("motion", "kinematics", "bench", "tests")
+        for path in sorted((ROOT / package).rglob("*.py"))
+        if re.search(rf"\bimport\b[^\n]*\b{concept} as \w+", path.read_text())
+    ]
+    assert not aliased, f"{concept} imported under another name in {aliased}"
 
 
 def test_protocol_core_is_stdlib_only() -> None:

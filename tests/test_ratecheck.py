@@ -15,8 +15,8 @@ from pathlib import Path
 import pytest
 
 from kinematics.emulation import arm_emulator
+from motion.compose import build_controller, check_rate
 from motion.config import ArmConfig
-from motion.config.build import build_controller, check_rate
 from motion.control.ratecheck import RateCheck, RateError, measure_rate
 from motion.emulator import FrameLog, TimingModel
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation

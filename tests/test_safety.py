@@ -20,7 +20,7 @@ import pytest
 from motion.config import ArmConfig
 from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller
-from motion.emulator import Fault, FaultKind
+from motion.emulator import Fault, InjectedFault
 from motion.errors import MotionError, MotionFault, PlanningError
 from motion.protocol import Command, MultiTurnPositionSpeed
 from motion.safety import ArmEvent, ArmState, InvalidTransition, StateMachine
@@ -107,7 +107,7 @@ def _assert_refused_until_clear(rig: Rig, fault: MotionFault, *, persists: bool)
         assert supervisor.state is ArmState.HALTED
 
 
-def _inject(rig: Rig, kind: FaultKind, motor_id: int, value: float | None = None, duration_s: float = 0.5) -> None:
+def _inject(rig: Rig, kind: InjectedFault, motor_id: int, value: float | None = None, duration_s: float = 0.5) -> None:
     now = rig.emulator.time_s
     rig.emulator.add_fault(Fault(kind, motor_id, start_s=now, end_s=now + duration_s, value=value))
 
@@ -118,7 +118,7 @@ def test_drive_over_temperature_flag(tmp_path: Path) -> None:
     joints = tuple(dataclasses.replace(j, temperature_limit_c=100.0) for j in config.joints)
     with emulated_arm(dataclasses.replace(config, joints=joints), "sim", tmp_path, supervised=True) as rig:
         fault = _move_and_catch(
-            rig, lambda: _inject(rig, FaultKind.OVER_TEMPERATURE, 2, 90.0, duration_s=60.0), status_read_of=2
+            rig, lambda: _inject(rig, InjectedFault.OVER_TEMPERATURE, 2, 90.0, duration_s=60.0), status_read_of=2
         )
         assert fault.kind == "drive_over_temperature" and fault.joint == "elbow"
         _assert_halted_in_detection_cycle(rig)
@@ -129,7 +129,7 @@ def test_drive_over_temperature_flag(tmp_path: Path) -> None:
 def test_drive_low_voltage_flag_then_clear_after_the_cause_is_gone(tmp_path: Path) -> None:
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         fault = _move_and_catch(
-            rig, lambda: _inject(rig, FaultKind.UNDER_VOLTAGE, 1, 12.0, duration_s=2.0), status_read_of=1
+            rig, lambda: _inject(rig, InjectedFault.UNDER_VOLTAGE, 1, 12.0, duration_s=2.0), status_read_of=1
         )
         fault_end_s = rig.now() + 2.0
         assert fault.kind == "drive_low_voltage" and fault.joint == "shoulder"
@@ -147,10 +147,10 @@ def test_drive_low_voltage_flag_then_clear_after_the_cause_is_gone(tmp_path: Pat
 
 @pytest.mark.parametrize(
     ("kind", "value", "expected"),
-    [(FaultKind.OVER_TEMPERATURE, 75.0, "temperature"), (FaultKind.UNDER_VOLTAGE, 19.0, "low_voltage")],
+    [(InjectedFault.OVER_TEMPERATURE, 75.0, "temperature"), (InjectedFault.UNDER_VOLTAGE, 19.0, "low_voltage")],
 )
 def test_measured_temperature_and_voltage_against_configured_limits(
-    kind: FaultKind, value: float, expected: str, tmp_path: Path
+    kind: InjectedFault, value: float, expected: str, tmp_path: Path
 ) -> None:
     # the temperature comes back in every set-point reply (the next cycle); the voltage only in 0x9A (its turn)
     timing: dict[str, Any] = {"detected_in": 1} if expected == "temperature" else {"status_read_of": 2}
@@ -168,14 +168,18 @@ def test_measured_temperature_and_voltage_against_configured_limits(
     ("kind", "expected", "cycles"),
     # arm2: max_missed_replies 3, so the 4th missing reply faults; max_corrupt_frames 3, so the 4th corrupt frame
     # within 1 s, which the shoulder's 0xA4 replies and its round-robin 0x9A reply reach in the 3rd cycle
-    [(FaultKind.SILENT, "no_reply", 4), (FaultKind.DROP, "no_reply", 4), (FaultKind.CORRUPT, "corrupt_frames", 3)],
+    [
+        (InjectedFault.SILENT, "no_reply", 4),
+        (InjectedFault.DROP, "no_reply", 4),
+        (InjectedFault.CORRUPT, "corrupt_frames", 3),
+    ],
 )
-def test_missing_and_corrupt_replies(kind: FaultKind, expected: str, cycles: int, tmp_path: Path) -> None:
+def test_missing_and_corrupt_replies(kind: InjectedFault, expected: str, cycles: int, tmp_path: Path) -> None:
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         fault = _move_and_catch(rig, lambda: _inject(rig, kind, 1, duration_s=60.0), detected_in=cycles)
         assert fault.kind == expected and fault.joint == "shoulder"
         _assert_halted_in_detection_cycle(rig)
-        if kind is FaultKind.SILENT:  # no acknowledgement: the halt is re-sent until the retry bound (0.2 s)
+        if kind is InjectedFault.SILENT:  # no acknowledgement: the halt is re-sent until the retry bound (0.2 s)
             rig.sleep(0.3)
             assert len(received(rig, Command.MOTOR_STOP)[1]) > 5
             assert rig.supervisor is not None and not rig.supervisor.unacknowledged
@@ -226,7 +230,7 @@ def test_hold_that_cannot_start_halts_every_axis(tmp_path: Path, monkeypatch: py
 
         monkeypatch.setattr(rig.controller.follower, "stop", unplannable)
         fault = _move_and_catch(
-            rig, lambda: _inject(rig, FaultKind.UNDER_VOLTAGE, 2, 19.0, duration_s=60.0), status_read_of=2
+            rig, lambda: _inject(rig, InjectedFault.UNDER_VOLTAGE, 2, 19.0, duration_s=60.0), status_read_of=2
         )
         assert fault.kind == "low_voltage"
         halt = supervisor.halts[0]

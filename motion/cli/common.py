@@ -15,8 +15,8 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
+from motion.compose import open_bus
 from motion.config import ArmConfig, CanBusConfig, JointConfig, load_config_or_example
-from motion.config.build import open_bus
 from motion.errors import TransportError
 from motion.protocol import ErrorFlags, Message
 from motion.transport import Request, Transport

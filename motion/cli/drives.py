@@ -25,8 +25,8 @@ from motion.cli.common import (
     print_table,
     warn,
 )
+from motion.compose import build_controller
 from motion.config import CanBusConfig, JointConfig
-from motion.config.build import build_controller
 from motion.control.ratecheck import RateError
 from motion.errors import FaultKind, MotionFault
 from motion.protocol import (

@@ -27,13 +27,13 @@ class ControlMode(StrEnum):
 
 
 class HaltPolicy(StrEnum):
-    """What every axis does when the controller halts (fault, Ctrl-C, end of program)."""
+    """What every axis does on a fault (and an E-stop, Ctrl-C, the end of a program)."""
 
-    #: Motor stop command (0x81).
+    #: 0x81: the drives brake and hold (keeping their mode).
     STOP = "stop"
-    #: Motor off command (0x80): torque released (an arm under gravity falls unless it has brakes).
+    #: 0x80: torque off (an arm under gravity falls unless it has brakes).
     OFF = "off"
-    #: Keep commanding the last measured position.
+    #: A jerk-limited stop of the reference, then hold; only while communication is healthy (else 0x81).
     HOLD = "hold"
 
 

@@ -17,10 +17,10 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from enum import Enum
 
 import numpy as np
 
+from motion.config.schema import ControlMode
 from motion.control.axes import AxisSpec, AxisStates
 from motion.control.clock import Clock, MonotonicClock, is_simulated
 from motion.control.scheduler import CycleFn, FixedRateLoop, LoopStatistics
@@ -55,13 +55,6 @@ def _never() -> bool:
 
 # CAN 0xA4 carries max speed in whole dps (uint16); RS485 in 0.01 dps (uint32).
 _MAX_SPEED_DPS = {WireProtocol.CAN: 65535.0, WireProtocol.RS485: 42949672.95}
-
-
-class ControlMode(Enum):
-    """How set-points reach the drives."""
-
-    POSITION = "position"  #: stream 0xA4 multi-turn position + max speed
-    TORQUE = "torque"  #: feed-forward + PD torque through 0x280 / 0xA1
 
 
 @dataclass(frozen=True, slots=True)
@@ -288,9 +281,13 @@ class Controller:
 
     def build_requests(self, reference: State) -> list[Request]:
         """The cycle's batch for a reference state (pure apart from recording the torque and limiting)."""
-        if self.options.mode is ControlMode.POSITION:
-            return self._position_requests(reference)
-        return self._torque_requests(reference)
+        match self.options.mode:
+            case ControlMode.POSITION:
+                return self._position_requests(reference)
+            case ControlMode.TORQUE:
+                return self._torque_requests(reference)
+            case mode:  # never a default: an unknown mode is an error
+                raise ValueError(f"unknown control mode {mode!r}")
 
     def _position_requests(self, ref: State) -> list[Request]:
         motor_deg = self.transmission.motor_deg(ref.position)

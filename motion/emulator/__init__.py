@@ -25,8 +25,8 @@ from motion.emulator.attach import (
     VirtualCanAttachment,
 )
 from motion.emulator.core import DEFAULT_STEP_S, Emulator, Exchange, Outgoing
-from motion.emulator.drive import ControlMode, EmulatedDrive, RunState, Setpoint
-from motion.emulator.faults import Corruption, Fault, FaultKind, parse_fault
+from motion.emulator.drive import DriveLoop, EmulatedDrive, RunState, Setpoint
+from motion.emulator.faults import Corruption, Fault, InjectedFault, parse_fault
 from motion.emulator.framelog import FrameLog
 from motion.emulator.model import DriveModel, LoadModel
 from motion.emulator.plant import IndependentLoads, Plant
@@ -37,16 +37,16 @@ __all__ = [
     "DEFAULT_STEP_S",
     "Attachment",
     "AttachmentStats",
-    "ControlMode",
     "Corruption",
+    "DriveLoop",
     "DriveModel",
     "EmulatedDrive",
     "Emulator",
     "Exchange",
     "Fault",
-    "FaultKind",
     "FrameLog",
     "IndependentLoads",
+    "InjectedFault",
     "LoadModel",
     "Outgoing",
     "Plant",

@@ -24,7 +24,7 @@ from typing import Final, Generic, TypeVar
 import numpy as np
 
 from motion.emulator.drive import EmulatedDrive
-from motion.emulator.faults import Corruption, Fault, FaultKind, corrupt_can, corrupt_rs485
+from motion.emulator.faults import Corruption, Fault, InjectedFault, corrupt_can, corrupt_rs485
 from motion.emulator.model import DriveModel, LoadModel
 from motion.emulator.plant import IndependentLoads, Plant
 from motion.errors import ConfigError
@@ -42,7 +42,7 @@ MAX_CATCH_UP_S: Final = 0.25
 _OVER_TEMPERATURE_MARGIN_C: Final = 10.0
 _UNDER_VOLTAGE_MARGIN_V: Final = 6.0
 _DEFAULT_DELAY_MS: Final = 10.0
-_LINK_KINDS: Final = (FaultKind.SILENT, FaultKind.DROP, FaultKind.DELAY, FaultKind.CORRUPT)
+_LINK_KINDS: Final = (InjectedFault.SILENT, InjectedFault.DROP, InjectedFault.DELAY, InjectedFault.CORRUPT)
 
 W = TypeVar("W")
 
@@ -252,9 +252,9 @@ class Emulator:
         for f in self._faults:
             if f.motor_id != motor_id or not f.active(now):
                 continue
-            if f.kind is FaultKind.UNDER_VOLTAGE:
+            if f.kind is InjectedFault.UNDER_VOLTAGE:
                 volts.append(f.value if f.value is not None else drive.model.low_voltage_v - _UNDER_VOLTAGE_MARGIN_V)
-            elif f.kind is FaultKind.OVER_TEMPERATURE:
+            elif f.kind is InjectedFault.OVER_TEMPERATURE:
                 default_c = drive.model.over_temperature_c + _OVER_TEMPERATURE_MARGIN_C
                 floors.append(f.value if f.value is not None else default_c)
         drive.voltage_override_v = max(0.0, min(volts)) if volts else None
@@ -268,12 +268,12 @@ class Emulator:
         for f in self._faults:
             if f.motor_id != motor_id or f.kind not in _LINK_KINDS or not f.active(now):
                 continue
-            if f.kind is FaultKind.SILENT:
+            if f.kind is InjectedFault.SILENT:
                 lost = f"silent ({f.describe()})"
-            elif f.kind is FaultKind.DROP:
+            elif f.kind is InjectedFault.DROP:
                 if self._rng.random() < (1.0 if f.value is None else f.value):
                     lost = f"request dropped ({f.describe()})"
-            elif f.kind is FaultKind.DELAY:
+            elif f.kind is InjectedFault.DELAY:
                 delay_s += (_DEFAULT_DELAY_MS if f.value is None else f.value) / 1000.0
             else:
                 corruption = f.corruption

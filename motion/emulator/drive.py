@@ -105,7 +105,7 @@ class RunState(Enum):
     RUNNING = "running"  #: executing the last control command
 
 
-class ControlMode(Enum):
+class DriveLoop(Enum):
     """Which loop the last control command closes."""
 
     OPEN_LOOP = "open_loop"  #: 0xA0: a fraction of the supply voltage
@@ -127,7 +127,7 @@ class Setpoint:
     """
 
     command: Command
-    mode: ControlMode
+    mode: DriveLoop
     value: float
     max_speed_dps: float = 0.0
 
@@ -307,11 +307,11 @@ class EmulatedDrive:
         setpoint = self.setpoint
         assert setpoint is not None  # RUNNING always has one
         mode = setpoint.mode
-        if mode is ControlMode.POSITION:
+        if mode is DriveLoop.POSITION:
             return self._position(setpoint.value, setpoint.max_speed_dps, dt_s)
-        if mode is ControlMode.SPEED:
+        if mode is DriveLoop.SPEED:
             return self._speed_pi(self._slew(_clamp(setpoint.value, self.model.max_speed_dps), dt_s), dt_s)
-        if mode is ControlMode.TORQUE:
+        if mode is DriveLoop.TORQUE:
             return setpoint.value
         return (setpoint.value / _OPEN_LOOP_FULL_SCALE * volts - back_emf_v) / self.model.winding_resistance_ohm
 
@@ -356,7 +356,7 @@ class EmulatedDrive:
         """Start executing a control command (bumpless when a speed-loop mode takes over)."""
         if self.errors:
             return  # protection keeps the power stage off; the reply still reports the state
-        closed = (ControlMode.SPEED, ControlMode.POSITION)
+        closed = (DriveLoop.SPEED, DriveLoop.POSITION)
         was_closed = self.state is RunState.STOPPED or (
             self.state is RunState.RUNNING and self.setpoint is not None and self.setpoint.mode in closed
         )
@@ -414,7 +414,7 @@ class EmulatedDrive:
             if self.state is RunState.RUNNING:
                 self.state = RunState.STOPPED
                 self._hold_deg = None
-                if self.setpoint is not None and self.setpoint.mode not in (ControlMode.SPEED, ControlMode.POSITION):
+                if self.setpoint is not None and self.setpoint.mode not in (DriveLoop.SPEED, DriveLoop.POSITION):
                     self._speed_ref = self._speed_dps
                     self._speed_integral = _clamp(self.iq_a, self.model.current_limit_a)
         elif command is Command.MOTOR_RUN:
@@ -429,14 +429,14 @@ class EmulatedDrive:
         """The setpoint of a control command, targets converted to shaft angles; None for other requests."""
         here = self._shaft_deg
         frame_zero = self._ref_counts * self._deg_per_count  # shaft angle where the drive's angle is 0
-        position = ControlMode.POSITION
+        position = DriveLoop.POSITION
         top = self.model.max_speed_dps
         if isinstance(message, OpenLoopControl):
-            return Setpoint(command, ControlMode.OPEN_LOOP, message.power)
+            return Setpoint(command, DriveLoop.OPEN_LOOP, message.power)
         if isinstance(message, TorqueControl):
-            return Setpoint(command, ControlMode.TORQUE, message.iq_a)
+            return Setpoint(command, DriveLoop.TORQUE, message.iq_a)
         if isinstance(message, SpeedControl):
-            return Setpoint(command, ControlMode.SPEED, message.speed_dps)
+            return Setpoint(command, DriveLoop.SPEED, message.speed_dps)
         if isinstance(message, MultiTurnPosition):
             return Setpoint(command, position, frame_zero + message.angle_deg, top)
         if isinstance(message, MultiTurnPositionSpeed):
@@ -485,7 +485,7 @@ class EmulatedDrive:
             return self._phase_currents(temperature if transport is WireProtocol.RS485 else None)
         if cls is OpenLoopState:
             setpoint = self.setpoint if self.state is RunState.RUNNING else None
-            power = int(setpoint.value) if setpoint is not None and setpoint.mode is ControlMode.OPEN_LOOP else 0
+            power = int(setpoint.value) if setpoint is not None and setpoint.mode is DriveLoop.OPEN_LOOP else 0
             return OpenLoopState(temperature, power, self._speed_reply(), self._field(self.encoder))
         if cls is ProductInfo:
             m = self.model

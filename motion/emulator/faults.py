@@ -34,7 +34,7 @@ from motion.protocol.rs485_frame import HEADER_BYTES, checksum
 from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN
 
 
-class FaultKind(Enum):
+class InjectedFault(Enum):
     """What goes wrong (see the module docstring for the parameter of each)."""
 
     OVER_TEMPERATURE = "over_temperature"  #: temperature held above a floor; error bit 3
@@ -54,17 +54,17 @@ class Corruption(Enum):
 
 
 #: Kinds whose parameter is a number, with its unit and the check it must pass.
-_NUMERIC: dict[FaultKind, tuple[str, str]] = {
-    FaultKind.OVER_TEMPERATURE: ("degC", "a temperature in -40..127 degC"),
-    FaultKind.UNDER_VOLTAGE: ("V", "a voltage in 0..6553 V"),
-    FaultKind.DELAY: ("ms", "a delay >= 0 ms"),
-    FaultKind.DROP: ("", "a probability in 0..1"),
+_NUMERIC: dict[InjectedFault, tuple[str, str]] = {
+    InjectedFault.OVER_TEMPERATURE: ("degC", "a temperature in -40..127 degC"),
+    InjectedFault.UNDER_VOLTAGE: ("V", "a voltage in 0..6553 V"),
+    InjectedFault.DELAY: ("ms", "a delay >= 0 ms"),
+    InjectedFault.DROP: ("", "a probability in 0..1"),
 }
-_NUMERIC_RANGES: dict[FaultKind, tuple[float, float]] = {
-    FaultKind.OVER_TEMPERATURE: (-40.0, 127.0),
-    FaultKind.UNDER_VOLTAGE: (0.0, 6553.0),
-    FaultKind.DELAY: (0.0, math.inf),
-    FaultKind.DROP: (0.0, 1.0),
+_NUMERIC_RANGES: dict[InjectedFault, tuple[float, float]] = {
+    InjectedFault.OVER_TEMPERATURE: (-40.0, 127.0),
+    InjectedFault.UNDER_VOLTAGE: (0.0, 6553.0),
+    InjectedFault.DELAY: (0.0, math.inf),
+    InjectedFault.DROP: (0.0, 1.0),
 }
 
 
@@ -84,7 +84,7 @@ class Fault:
         ValueError: a field is out of range or a parameter does not belong to the kind.
     """
 
-    kind: FaultKind
+    kind: InjectedFault
     motor_id: int
     start_s: float
     end_s: float | None = None
@@ -114,7 +114,7 @@ class Fault:
         """The fault in command-line syntax."""
         window = f"{self.start_s:g}" + (f"-{self.end_s:g}" if self.end_s is not None else "")
         param = ""
-        if self.kind is FaultKind.CORRUPT:
+        if self.kind is InjectedFault.CORRUPT:
             param = f":{self.corruption.value}"
         elif self.value is not None:
             param = f":{self.value:g}"
@@ -128,12 +128,12 @@ def parse_fault(spec: str) -> Fault:
         ValueError: with a message naming the part that is wrong and the expected form.
     """
     form = "KIND:MOTOR@START[-END][:PARAM], e.g. over_temperature:2@5-20:95"
-    kinds = ", ".join(k.value for k in FaultKind)
+    kinds = ", ".join(k.value for k in InjectedFault)
     head, sep, rest = spec.strip().partition(":")
     if not sep:
         raise ValueError(f"fault {spec!r}: expected {form}")
     try:
-        kind = FaultKind(head.strip().lower())
+        kind = InjectedFault(head.strip().lower())
     except ValueError:
         raise ValueError(f"fault {spec!r}: unknown kind {head!r}; kinds: {kinds}") from None
     target, at, when = rest.partition("@")
@@ -153,7 +153,7 @@ def parse_fault(spec: str) -> Fault:
     value: float | None = None
     corruption = Corruption.PAYLOAD
     if param:
-        if kind is FaultKind.CORRUPT:
+        if kind is InjectedFault.CORRUPT:
             try:
                 corruption = Corruption(param.strip().lower())
             except ValueError:

@@ -4,12 +4,11 @@ from __future__ import annotations
 
 from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.supervisor import HaltRecord, Supervisor
-from motion.safety.watchdog import HaltPolicy, SafetySettings, Watchdog
+from motion.safety.watchdog import SafetySettings, Watchdog
 
 __all__ = [
     "ArmEvent",
     "ArmState",
-    "HaltPolicy",
     "HaltRecord",
     "InvalidTransition",
     "SafetySettings",

@@ -1,6 +1,6 @@
 """The guarded control cycle: a fault anywhere halts every axis in the cycle it is detected.
 
-Reaction (:class:`~motion.safety.watchdog.HaltPolicy`): ``stop`` sends 0x81 and ``off`` 0x80 to every axis at once
+Reaction (:class:`~motion.config.schema.HaltPolicy`): ``stop`` sends 0x81 and ``off`` 0x80 to every axis at once
 (in the same cycle, before any other command), re-sent to the drives that did not acknowledge until they do or
 ``halt_retry_s`` passes; ``hold`` replaces the reference with a jerk-limited stop and keeps streaming (position or
 torque) to hold where it ends — only while communication is healthy: faults of the bus, of a drive, or of our own
@@ -26,11 +26,12 @@ import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from motion.config.schema import HaltPolicy
 from motion.control.controller import Controller
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Bare, Command, MotorState, Status1
 from motion.safety.states import ArmEvent, ArmState, StateMachine
-from motion.safety.watchdog import HaltPolicy, SafetySettings, Watchdog
+from motion.safety.watchdog import SafetySettings, Watchdog
 from motion.trajectory import State
 from motion.transmission import FloatArray
 from motion.transport import Reply, Request

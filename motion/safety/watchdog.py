@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import collections
 from dataclasses import dataclass
-from enum import Enum
 
 import numpy as np
 
+from motion.config.schema import HaltPolicy
 from motion.control.controller import Controller
 from motion.errors import FaultKind, MotionFault
 from motion.protocol import ErrorFlags, MotorState, Status1
@@ -25,14 +25,6 @@ from motion.transport import Reply
 POSITION_LIMIT_TOLERANCE_DEG = 0.1
 # Window of the corrupt-frame count, s.
 CORRUPT_WINDOW_S = 1.0
-
-
-class HaltPolicy(Enum):
-    """What every axis does on a fault."""
-
-    STOP = "stop"  #: 0x81: the drives brake and hold (keeping their mode)
-    OFF = "off"  #: 0x80: torque off (an arm under gravity falls unless braked)
-    HOLD = "hold"  #: jerk-limited stop of the reference, then hold; only while communication is healthy
 
 
 @dataclass(frozen=True, slots=True)

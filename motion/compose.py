@@ -1,4 +1,7 @@
-"""Build the running parts of an arm from its configuration: bus, controller, and matching emulated drives.
+"""Composition: the one place that builds the running parts of an arm from its configuration — bus, controller, rate
+check, supervisor, and matching emulated drives (in simulated time or on a wire). The API, the CLI, the tests' rig and
+the bench all assemble an arm through these functions, so they agree on every condition (which feed-forward, which
+wire protocol, which safety settings).
 
 The same :class:`~motion.config.ArmConfig` describes the real arm and its emulation: :func:`emulator_for` gives
 every configured joint an emulated drive with the joint's motor id, gear ratio, torque constant, encoder, current
@@ -10,15 +13,13 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable, Mapping
 
-from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, HaltPolicy, JointConfig
+from motion.config.schema import ArmConfig, CanBusConfig, JointConfig
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
-from motion.control.controller import ControlMode as LoopMode
 from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
 from motion.emulator import DriveModel, Emulator, Fault, LoadModel, Plant
 from motion.protocol import WireProtocol
-from motion.safety import HaltPolicy as Halt
 from motion.safety import SafetySettings
 from motion.trajectory import JointLimits
 from motion.transport import Transport, open_transport
@@ -59,8 +60,7 @@ def wire_protocol(config: ArmConfig) -> WireProtocol:
 
 def controller_options(config: ArmConfig) -> ControllerOptions:
     """Loop settings from ``control:``."""
-    mode = LoopMode.TORQUE if config.control.mode is ControlMode.TORQUE else LoopMode.POSITION
-    return ControllerOptions(mode=mode, rate_hz=config.control.rate_hz, protocol=wire_protocol(config))
+    return ControllerOptions(mode=config.control.mode, rate_hz=config.control.rate_hz, protocol=wire_protocol(config))
 
 
 def open_bus(config: ArmConfig, **overrides: object) -> Transport:
@@ -168,7 +168,7 @@ def safety_settings(config: ArmConfig) -> SafetySettings:
     safety = config.safety
     period = config.control.period_s
     return SafetySettings(
-        halt_policy=Halt(HaltPolicy(config.control.halt_policy).value),
+        halt_policy=config.control.halt_policy,
         temperature_limit_c=tuple(j.temperature_limit_c for j in config.joints),
         min_voltage_v=safety.min_voltage_v,
         following_error_deg=safety.following_error_deg,
