@@ -45,8 +45,7 @@ from typing import IO, Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from kinematics import build_arm, feedforward
-from motion.compose import build_controller, open_bus
+from motion.compose import build_controller, feedforward_for, open_bus
 from motion.config import ArmConfig, parse_config
 from motion.config.schema import ControlMode
 from motion.control.controller import Controller, Feedforward
@@ -275,9 +274,7 @@ def make_cpu_case(n_axes: int, mode: ControlMode, rate_hz: float) -> CpuCase:
     hand to the transport are never reached (the loopback answers at once anyway) and the reference always moves.
     """
     config = synthetic_config(n_axes, mode=mode, rate_hz=rate_hz)
-    ff: Feedforward | None = None
-    if mode is ControlMode.TORQUE:
-        ff = feedforward(build_arm(config), gravity=True, inertia=config.control.inertia_feedforward)
+    ff = feedforward_for(config)  # torque mode: gravity and inertia; position mode: none
     controller = build_controller(config, loopback_transport(), feedforward=ff)
     controller.read_positions()
     follower = controller.follower

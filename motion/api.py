@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from motion.compose import build_controller, check_rate, open_bus, safety_settings
+from motion.compose import build_controller, check_rate, feedforward_for, open_bus, safety_settings
 from motion.config import ArmConfig, load_config_or_example
 from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
@@ -282,8 +282,6 @@ class Arm:
             TransportError: the bus cannot be opened or a drive does not answer.
             RateError: the configured rate cannot be held on this host and bus (a ConfigError; nothing moved).
         """
-        from kinematics import build_arm, feedforward  # noqa: PLC0415 - Pinocchio is loaded only when an arm connects
-
         try:
             if self._telemetry_options is not None:
                 # Entered first, so closed last: the files are written once the loop and the bus have ended.
@@ -300,13 +298,9 @@ class Arm:
                 self.bus = self._stack.enter_context(open_bus(self.config, **self._overrides))
             if self.telemetry is not None:
                 self.telemetry.tap(self.bus)
-            control = self.config.control
-            ff = None
-            if control.mode.value == "torque" and (control.gravity_feedforward or control.inertia_feedforward):
-                ff = feedforward(
-                    build_arm(self.config), gravity=control.gravity_feedforward, inertia=control.inertia_feedforward
-                )
-            self.controller = build_controller(self.config, self.bus, feedforward=ff, clock=clock)
+            self.controller = build_controller(
+                self.config, self.bus, feedforward=feedforward_for(self.config), clock=clock
+            )
             self.rate_check = check_rate(self.controller, self.config)
             self.controller.read_positions()
             self.supervisor = Supervisor(self.controller, safety_settings(self.config))

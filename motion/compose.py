@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable, Mapping
 
-from motion.config.schema import ArmConfig, CanBusConfig, JointConfig
+from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, JointConfig
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
@@ -74,6 +74,18 @@ def open_bus(config: ArmConfig, **overrides: object) -> Transport:
         settings: dict[str, object] = {"interface": bus.interface, "channel": bus.channel, "bitrate": bus.bitrate}
         return open_transport("can", **(settings | overrides))
     return open_transport("rs485", **({"port": bus.port, "baudrate": bus.baudrate} | overrides))
+
+
+def feedforward_for(config: ArmConfig) -> Feedforward | None:
+    """The feed-forward the configuration asks for: in torque mode, gravity and/or inertia from the Pinocchio model
+    (``control.gravity_feedforward``, ``control.inertia_feedforward``); in position mode none (the drive closes the
+    loop)."""
+    control = config.control
+    if control.mode is not ControlMode.TORQUE or not (control.gravity_feedforward or control.inertia_feedforward):
+        return None
+    from kinematics import build_arm, feedforward  # noqa: PLC0415 - Pinocchio only where an arm needs it
+
+    return feedforward(build_arm(config), gravity=control.gravity_feedforward, inertia=control.inertia_feedforward)
 
 
 def build_controller(

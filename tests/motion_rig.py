@@ -18,10 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kinematics import build_arm, feedforward
 from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
-from motion.compose import build_controller, open_bus, safety_settings
+from motion.compose import build_controller, feedforward_for, open_bus, safety_settings
 from motion.config import ArmConfig, load_config
 from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
@@ -98,9 +97,7 @@ def emulated_arm(
             link = tmp_path / f"rs485-{uuid.uuid4().hex[:8]}"
             stack.enter_context(Rs485Attachment(emulator, link, frame_log=log))
             bus = stack.enter_context(open_bus(config, port=str(link)))
-        ff = None
-        if use_feedforward and config.control.gravity_feedforward:
-            ff = feedforward(build_arm(config), gravity=True, inertia=config.control.inertia_feedforward)
+        ff = feedforward_for(config) if use_feedforward else None
         controller = build_controller(config, bus, feedforward=ff, clock=clock)
         controller.read_positions()
         starts: list[float] = []
