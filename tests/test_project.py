@@ -143,6 +143,20 @@ def test_one_definition_per_concept(concept: str, home: str) -> None:
     assert not aliased, f"{concept} imported under another name in {aliased}"
 
 
+def test_protocol_limits_are_written_only_in_the_protocol_package() -> None:
+    # the table's ranges reach the rest through table.field_range / field_names (and scales for the current)
+    copies = re.compile(r"\b(65535|2147483647|4294967295|42949672\.95|35999)\b|1 << 31|1 << 32")
+    found = [
+        f"{path.relative_to(ROOT)}:{number}: {line.strip()}"
+        for package in ("motion", "kinematics")
+        for path in sorted((ROOT / package).rglob("*.py"))
+        if "protocol" not in path.relative_to(ROOT).parts
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if copies.search(line)
+    ]
+    assert not found, "\n".join(found)
+
+
 def test_protocol_core_is_stdlib_only() -> None:
     allowed = {"__future__", "collections", "dataclasses", "enum", "fractions", "math", "sys", "typing", "motion"}
     for path in (ROOT / "motion" / "protocol").rglob("*.py"):

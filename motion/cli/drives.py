@@ -42,7 +42,7 @@ from motion.protocol import (
     ProductInfo,
     Status1,
 )
-from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN
+from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, Direction, WireProtocol, field_names, field_range
 from motion.transport import Request, Transport
 
 #: Scan: the reply window of the whole CAN batch (the drives answer in parallel), s.
@@ -51,10 +51,12 @@ SCAN_CAN_S: Final = 0.1
 SCAN_RS485_PER_ID_S: Final = 0.03
 #: ``hold``: the drive's speed cap while holding, as a share of the joint's velocity limit.
 HOLD_SPEED_SHARE: Final = 0.1
-#: The PI gains in the order ``pid set`` takes them.
-PID_FIELDS: Final = ("angle_kp", "angle_ki", "speed_kp", "speed_ki", "iq_kp", "iq_ki")
-#: The largest acceleration limit the protocol carries (int32), motor deg/s².
-ACCELERATION_MAX_DPS2: Final = (1 << 31) - 1
+#: The PI gains in the order ``pid set`` takes them (the frame's order).
+PID_FIELDS: Final = field_names(Command.WRITE_PID_RAM, Direction.REQUEST, WireProtocol.CAN)
+#: The largest acceleration limit the protocol carries, motor deg/s².
+ACCELERATION_MAX_DPS2: Final = int(
+    field_range(Command.WRITE_ACCELERATION_RAM, Direction.REQUEST, WireProtocol.CAN, "acceleration_dps2")[1]
+)
 #: Why ROM writes need ``--yes``.
 FLASH_WARNING: Final = (
     "it writes the drive's flash (ROM), which wears with every write (a limited number of write cycles)"

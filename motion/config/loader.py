@@ -24,6 +24,7 @@ from motion.config import schema
 from motion.config.urdf import revolute_joints
 from motion.errors import ConfigError
 from motion.protocol import WireProtocol
+from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN
 from motion.transmission import IQ_LIMIT_A
 
 _T = TypeVar("_T")
@@ -303,7 +304,7 @@ def _joint(node: _Node, mode: schema.ControlMode) -> schema.JointConfig:
     torque_mode = mode is schema.ControlMode.TORQUE
     joint = schema.JointConfig(
         name=node.text("name"),
-        motor_id=node.integer("motor_id", _Range(1, 32)),
+        motor_id=node.integer("motor_id", _Range(MOTOR_ID_MIN, MOTOR_ID_MAX)),
         gear_ratio=node.number("gear_ratio", _POSITIVE),
         direction=node.integer("direction", _OneOf((1, -1))),
         zero_offset_deg=node.number("zero_offset_deg"),

@@ -37,7 +37,7 @@ from motion.protocol import (
     WireProtocol,
 )
 from motion.protocol.scales import iq_amps
-from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS
+from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, Direction, field_range
 from motion.trajectory import Follower, JointLimits, Path, Planner, State
 from motion.transmission import ArmTransmission, FloatArray
 from motion.transport.base import Reply, Request, Transport
@@ -53,8 +53,11 @@ def _never() -> bool:
     return False
 
 
-# CAN 0xA4 carries max speed in whole dps (uint16); RS485 in 0.01 dps (uint32).
-_MAX_SPEED_DPS = {WireProtocol.CAN: 65535.0, WireProtocol.RS485: 42949672.95}
+# The largest max speed 0xA4 carries on each wire (CAN: whole dps in uint16; RS485: 0.01 dps in uint32).
+_MAX_SPEED_DPS = {
+    wire: field_range(Command.MULTI_TURN_POSITION_SPEED, Direction.REQUEST, wire, "max_speed_dps")[1]
+    for wire in WireProtocol
+}
 
 
 @dataclass(frozen=True, slots=True)

@@ -63,7 +63,7 @@ from motion.protocol.messages import (
     TorqueControl,
 )
 from motion.protocol.scales import CENTIDEGREE
-from motion.protocol.table import COMMANDS, Direction, WireProtocol, command_of
+from motion.protocol.table import COMMANDS, Direction, WireProtocol, command_of, field_range
 
 _RAD_PER_DEG: Final = math.pi / 180.0
 _DEG_PER_RAD: Final = 180.0 / math.pi
@@ -78,11 +78,8 @@ _THIRD_TURN_RAD: Final = 2.0 * math.pi / 3.0
 
 
 def _field_limits(command: Command, direction: Direction, name: str) -> tuple[float, float]:
-    """Smallest and largest physical value of a field, from the command table (the CAN layout)."""
-    layout = COMMANDS[command].layout(WireProtocol.CAN, direction)
-    assert layout is not None
-    spec = next(f for f in layout.fields if f.name == name)
-    return spec.physical(spec.lo), spec.physical(spec.hi)
+    """Smallest and largest physical value of a field (the CAN layout: both transports carry the same values)."""
+    return field_range(command, direction, WireProtocol.CAN, name)
 
 
 #: Reply values saturate at what their fields carry (a drive cannot report more), instead of failing to encode.

@@ -18,6 +18,15 @@ from typing import Final
 
 from motion.errors import ConfigError
 from motion.protocol.messages import Command, PidGains
+from motion.protocol.table import Direction, WireProtocol, field_range
+
+#: What the drive's registers hold is what the protocol carries (the table's ranges).
+_ACCELERATION_MAX: Final = field_range(
+    Command.WRITE_ACCELERATION_RAM, Direction.REQUEST, WireProtocol.CAN, "acceleration_dps2"
+)[1]
+_ENCODER_OFFSET_MAX: Final = field_range(
+    Command.WRITE_ENCODER_OFFSET, Direction.REQUEST, WireProtocol.CAN, "encoder_offset"
+)[1]
 
 #: Position loop: proportional gain in 1/s per unit of ``angle_kp`` (speed reference = gain × angle error).
 ANGLE_KP_PER_S: Final = 0.5
@@ -124,13 +133,13 @@ class DriveModel:
                     0 < self.current_limit_a <= HARDWARE_CURRENT_LIMIT_A,
                 ),
                 ("max_speed_dps", "> 0", _positive(self.max_speed_dps)),
-                ("acceleration_dps2", "0..2147483647", 0 <= self.acceleration_dps2 < 1 << 31),
+                ("acceleration_dps2", f"0..{_ACCELERATION_MAX:g}", 0 <= self.acceleration_dps2 <= _ACCELERATION_MAX),
                 ("tuned_inertia_kgm2", "None or > 0", self.tuned_inertia_kgm2 is None or self.tuned_inertia_kgm2 > 0),
                 ("supply_voltage_v", ">= 0", _non_negative(self.supply_voltage_v)),
                 ("thermal_resistance_k_per_w", "> 0", _positive(self.thermal_resistance_k_per_w)),
                 ("thermal_time_constant_s", "> 0", _positive(self.thermal_time_constant_s)),
                 ("shaft_zero_deg", "a finite number", math.isfinite(self.shaft_zero_deg)),
-                ("encoder_offset", "0..65535", 0 <= self.encoder_offset <= 0xFFFF),
+                ("encoder_offset", f"0..{_ENCODER_OFFSET_MAX:g}", 0 <= self.encoder_offset <= _ENCODER_OFFSET_MAX),
             ),
             self,
         )

@@ -38,7 +38,15 @@ from motion.protocol.messages import (
     TorqueControl,
 )
 from motion.protocol.rs485_frame import Rs485Frame, Rs485Parser
-from motion.protocol.table import COMMANDS, CommandSpec, Direction, WireProtocol, raw_values
+from motion.protocol.table import (
+    COMMANDS,
+    CommandSpec,
+    Direction,
+    WireProtocol,
+    field_names,
+    field_range,
+    raw_values,
+)
 
 __all__ = [
     "COMMANDS",
@@ -76,6 +84,8 @@ __all__ = [
     "TorqueControl",
     "WireProtocol",
     "can_frame",
+    "field_names",
+    "field_range",
     "raw_values",
     "rs485_frame",
 ]

@@ -528,6 +528,46 @@ def check_motor_id(motor_id: int) -> int:
     return motor_id
 
 
+def field_spec(command: Command, direction: Direction, transport: WireProtocol, field: str) -> Field:
+    """The declaration of one field of a command's frame (the one place its type, scale and range are written).
+
+    Raises:
+        KeyError: the transport lacks the command in that direction, or its frame has no such field.
+    """
+    layout = COMMANDS[command].layout(transport, direction)
+    if layout is None:
+        raise KeyError(f"0x{command:02X} has no {direction.value} on {transport.value}")
+    for spec in layout.fields:
+        if spec.name == field:
+            return spec
+    raise KeyError(f"the {direction.value} of 0x{command:02X} on {transport.value} has no field {field!r}")
+
+
+def field_range(command: Command, direction: Direction, transport: WireProtocol, field: str) -> tuple[float, float]:
+    """Smallest and largest value of a field in physical units (deg, dps, A, ...), as the table declares them.
+
+    Limits that the controller, the CLI, the configuration loader and the emulator need come from here, never from a
+    copy of the number.
+
+    Raises:
+        KeyError: see :func:`field_spec`.
+    """
+    spec = field_spec(command, direction, transport, field)
+    return spec.physical(spec.lo), spec.physical(spec.hi)
+
+
+def field_names(command: Command, direction: Direction, transport: WireProtocol) -> tuple[str, ...]:
+    """The names of a frame's fields in wire order (a message class's physical fields).
+
+    Raises:
+        KeyError: the transport lacks the command in that direction.
+    """
+    layout = COMMANDS[command].layout(transport, direction)
+    if layout is None:
+        raise KeyError(f"0x{command:02X} has no {direction.value} on {transport.value}")
+    return tuple(spec.name for spec in layout.fields)
+
+
 def layout_for(message: Message, transport: WireProtocol, direction: Direction) -> Layout:
     """The layout that carries ``message`` on ``transport`` in ``direction``.
 
