@@ -17,6 +17,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import TypeAlias
 
 import numpy as np
 
@@ -87,12 +88,35 @@ class ControllerOptions:
 
 
 @dataclass(frozen=True, slots=True)
-class _Pending:
-    kind: str  # "move" | "path" | "play" | "stop"
-    target: FloatArray | None
-    waypoints: FloatArray | None
+class MoveCommand:
+    """Queued: a coordinated move to ``target_deg`` (joint order)."""
+
+    target_deg: FloatArray
     speed_scale: float
-    path: Path | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class PathCommand:
+    """Queued: a path through ``waypoints_deg`` (one row per waypoint)."""
+
+    waypoints_deg: FloatArray
+    speed_scale: float
+
+
+@dataclass(frozen=True, slots=True)
+class PlayCommand:
+    """Queued: a path planned elsewhere, played as it is."""
+
+    path: Path
+
+
+@dataclass(frozen=True, slots=True)
+class StopCommand:
+    """Queued: a jerk-limited stop of the current motion (not a fault)."""
+
+
+#: A motion command waiting for the next cycle (a tagged union: each kind is its own class).
+Pending: TypeAlias = MoveCommand | PathCommand | PlayCommand | StopCommand
 
 
 class Controller:
@@ -134,7 +158,7 @@ class Controller:
         self.kp = np.array([s.kp_nm_per_deg for s in self.specs])
         self.kd = np.array([s.kd_nm_per_dps for s in self.specs])
         self.ids = tuple(s.motor_id for s in self.specs)
-        self._pending: _Pending | None = None
+        self._pending: Pending | None = None
         self.rejected: PlanningError | None = None
         self._lock = threading.Lock()
         self._idle = threading.Event()
@@ -200,7 +224,7 @@ class Controller:
 
     # ------------------------------------------------------------------------------------------------ commands
 
-    def _queue(self, pending: _Pending) -> None:
+    def _queue(self, pending: Pending) -> None:
         if self.follower is None:
             raise MotionError("read_positions() must run before motion commands")
         with self._lock:
@@ -215,22 +239,22 @@ class Controller:
         """
         target = np.asarray(target_deg, dtype=np.float64)
         self.planner.move(State.at_rest(target), target, speed_scale=speed_scale)  # validates vector and limits
-        self._queue(_Pending("move", target, None, speed_scale))
+        self._queue(MoveCommand(target, speed_scale))
 
     def follow(self, waypoints_deg: Sequence[Sequence[float]] | FloatArray, speed_scale: float = 1.0) -> None:
         """Queue a waypoint path from the current reference."""
         points = np.asarray(waypoints_deg, dtype=np.float64)
         for i, point in enumerate(points):
             self.planner.check_positions(f"waypoints[{i}]", point)
-        self._queue(_Pending("path", None, points, speed_scale))
+        self._queue(PathCommand(points, speed_scale))
 
     def play(self, path: Path) -> None:
         """Queue a path planned elsewhere; it must start at the reference of the cycle that applies it."""
-        self._queue(_Pending("play", None, None, 1.0, path))
+        self._queue(PlayCommand(path))
 
     def stop_motion(self) -> None:
         """Queue a jerk-limited stop; the arm then holds where the stop ends."""
-        self._queue(_Pending("stop", None, None, 1.0))
+        self._queue(StopCommand())
 
     def wait_idle(self, timeout_s: float | None = None) -> bool:
         """Wait until the queued motion has ended; returns False on timeout."""
@@ -271,16 +295,21 @@ class Controller:
             if not self.follower.moving:
                 self._idle.set()
 
-    def _plan_pending(self, pending: _Pending, t_s: float) -> None:
-        assert self.follower is not None
-        if pending.kind == "move" and pending.target is not None:
-            self.follower.move_to(t_s, pending.target, speed_scale=pending.speed_scale)
-        elif pending.kind == "path" and pending.waypoints is not None:
-            self.follower.follow(t_s, pending.waypoints, speed_scale=pending.speed_scale)
-        elif pending.kind == "play" and pending.path is not None:
-            self.follower.play(pending.path, t_s)
-        else:
-            self.follower.stop(t_s)
+    def _plan_pending(self, pending: Pending, t_s: float) -> None:
+        follower = self.follower
+        if follower is None:
+            raise MotionError("read_positions() must run before the loop starts")
+        match pending:
+            case MoveCommand(target, speed_scale):
+                follower.move_to(t_s, target, speed_scale=speed_scale)
+            case PathCommand(waypoints, speed_scale):
+                follower.follow(t_s, waypoints, speed_scale=speed_scale)
+            case PlayCommand(path):
+                follower.play(path, t_s)
+            case StopCommand():
+                follower.stop(t_s)
+            case other:  # never a default: an unknown command is an error
+                raise TypeError(f"unknown motion command {other!r}")
 
     def build_requests(self, reference: State) -> list[Request]:
         """The cycle's batch for a reference state (pure apart from recording the torque and limiting)."""
