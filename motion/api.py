@@ -37,6 +37,7 @@ from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.control.ratecheck import RateCheck, measure_rate
 from motion.control.scheduler import LoopStatistics
+from motion.control.snapshot import MotionProgress
 from motion.emulator import FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
@@ -205,6 +206,15 @@ class MotionHandle:
     def done(self) -> bool:
         """True when the motion ended (or was halted)."""
         return self._supervisor.controller.wait_idle(0) or self._supervisor.state.faulted
+
+    def progress(self) -> MotionProgress:
+        """How far the arm's motion has come, from the snapshot the loop published last (never waits on the loop)."""
+        snapshot = self._supervisor.controller.snapshot
+        if not snapshot.moving:
+            return MotionProgress(0.0, 0.0, done=self.done)
+        duration = snapshot.motion_end_s - snapshot.motion_start_s
+        elapsed = min(duration, max(0.0, snapshot.time_s - snapshot.motion_start_s))
+        return MotionProgress(elapsed, duration, done=self.done)
 
 
 class Arm:
@@ -440,17 +450,16 @@ class Arm:
         """Measured and reference state of every joint, the arm state and the loop statistics."""
         supervisor = self._guard()
         controller = supervisor.controller
-        axes = controller.axes
-        ref = controller.reference.position
+        snapshot = controller.snapshot  # published by the loop: one consistent cycle, read without a lock
         joints = tuple(
             JointStatus(
                 name=spec.name,
                 motor_id=spec.motor_id,
-                position_deg=float(axes.q_deg[i]),
-                velocity_dps=float(axes.qd_dps[i]),
-                reference_deg=float(ref[i]),
-                iq_a=float(axes.iq_a[i]),
-                temperature_c=float(axes.temperature_c[i]),
+                position_deg=float(snapshot.position_deg[i]),
+                velocity_dps=float(snapshot.velocity_dps[i]),
+                reference_deg=float(snapshot.reference_deg[i]),
+                iq_a=float(snapshot.iq_a[i]),
+                temperature_c=float(snapshot.temperature_c[i]),
             )
             for i, spec in enumerate(controller.specs)
         )

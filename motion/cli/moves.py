@@ -66,17 +66,14 @@ def wait_with_progress(arm: Arm, handle: MotionHandle, label: str) -> float:
     Raises:
         MotionFault: a fault halted every axis.
     """
-    controller = arm.controller
-    assert controller is not None  # connected
     progress = Progress(label, sys.stderr)
     start = time.monotonic()
     outcome = "ended"
     try:
         while not handle.wait(POLL_S):
-            path, follower = controller.reference_path(), controller.follower
-            if path is not None and follower is not None:
-                total = path.duration_s
-                progress.update(controller.clock.now() - (follower.end_time() - total), total)
+            now = handle.progress()
+            if now.duration_s > 0:
+                progress.update(now.elapsed_s, now.duration_s)
         outcome = f"done in {time.monotonic() - start:.2f} s"
     except KeyboardInterrupt:
         outcome = "interrupted"

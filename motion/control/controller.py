@@ -13,6 +13,7 @@ that instant, so a new target never steps the reference's velocity or accelerati
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -25,6 +26,7 @@ from motion.config.schema import ControlMode
 from motion.control.axes import AxisSpec, AxisStates
 from motion.control.clock import Clock, MonotonicClock, is_simulated
 from motion.control.scheduler import CycleFn, FixedRateLoop, LoopStatistics
+from motion.control.snapshot import JOINT_ROWS, CycleSnapshot, frozen
 from motion.errors import MotionError, PlanningError, TransportError
 from motion.protocol import (
     Bare,
@@ -165,6 +167,9 @@ class Controller:
         self._idle.set()
         self._stop_loop = False
         self.last_command: list[Message] = []
+        self._stack = np.zeros((len(JOINT_ROWS), len(self.specs)))
+        #: The arm after the latest cycle (replaced, never changed: any thread may read it without a lock).
+        self.snapshot = CycleSnapshot(0, math.nan, frozen(self._stack.copy()), np.zeros(len(self.specs), bool), False)
         self.torque_nm = np.zeros(len(self.specs))
         self.limited = np.zeros(len(self.specs), dtype=bool)
         self.cycle_hooks: list[Callable[[Controller, float, list[Reply]], None]] = []
@@ -220,6 +225,7 @@ class Controller:
         q = self.axes.positions()
         self.follower = Follower(self.planner, q)
         self.reference = State.at_rest(q)
+        self._publish(0, now, False)  # what was read, before the first cycle
         return q
 
     # ------------------------------------------------------------------------------------------------ commands
@@ -395,11 +401,35 @@ class Controller:
         replies = self.bus.transact(requests, start_s + self.options.reply_budget * (deadline_s - start_s))
         self.absorb(replies)
         self.last_command = [r.message for r in requests]
+        self._publish(self.loop.cycles + 1, start_s, command)  # (the loop counts the cycle once it has ended)
         for hook in self.cycle_hooks:
             hook(self, start_s, replies)
         if not follower.moving and self._pending is None:
             self._idle.set()
         return replies
+
+    def _publish(self, cycle: int, start_s: float, commanded: bool) -> None:
+        """Replace :attr:`snapshot` with this cycle's (one stacked copy: the loop never waits on a reader)."""
+        axes, stack = self.axes, self._stack
+        stack[0] = axes.q_deg
+        stack[1] = axes.qd_dps
+        stack[2] = self.reference.position
+        stack[3] = axes.iq_a
+        stack[4] = axes.temperature_c
+        follower = self.follower
+        path = follower.path if follower is not None else None
+        end = follower.end_time() if follower is not None and path is not None else math.nan
+        fresh = axes.fresh.copy()
+        fresh.flags.writeable = False
+        self.snapshot = CycleSnapshot(
+            cycle,
+            start_s,
+            frozen(stack.copy()),
+            fresh,
+            commanded,
+            end - path.duration_s if path is not None else math.nan,
+            end,
+        )
 
     def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
         """One unguarded control cycle (the scheduler calls it at ``start_s``); see :mod:`motion.safety` for the

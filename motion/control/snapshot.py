@@ -1,0 +1,103 @@
+"""What the control loop publishes after every cycle: an immutable picture of the arm that any thread may read.
+
+The loop replaces :attr:`Controller.snapshot <motion.control.controller.Controller.snapshot>` with a new object at
+the end of each cycle (one reference assignment, atomic in Python); nothing in a published snapshot ever changes, so
+a reader (``Arm.status()``, the CLI's progress, a live view) needs no lock and never sees half a cycle, and the loop
+never waits for a reader.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+#: Rows of :attr:`CycleSnapshot.joints`, in this order.
+JOINT_ROWS = ("position_deg", "velocity_dps", "reference_deg", "iq_a", "temperature_c")
+
+
+@dataclass(frozen=True, slots=True)
+class CycleSnapshot:
+    """The arm after one control cycle (controller clock; joint order; read-only arrays).
+
+    Attributes:
+        cycle: cycles run so far, this one included.
+        time_s: the cycle's scheduled start, s.
+        joints: one row per :data:`JOINT_ROWS` entry, one column per joint.
+        fresh: per joint, whether this cycle brought a reply with its state.
+        commanded: set-points were sent in this cycle (False while halted: reads only).
+        motion_start_s: start of the motion being played, s (NaN when none is).
+        motion_end_s: its end, s (NaN when none is).
+    """
+
+    cycle: int
+    time_s: float
+    joints: NDArray[np.float64]
+    fresh: NDArray[np.bool_]
+    commanded: bool
+    motion_start_s: float = math.nan
+    motion_end_s: float = math.nan
+
+    @property
+    def position_deg(self) -> NDArray[np.float64]:
+        """Measured joint angles, deg."""
+        return self._row(0)
+
+    @property
+    def velocity_dps(self) -> NDArray[np.float64]:
+        """Measured joint speeds, deg/s."""
+        return self._row(1)
+
+    @property
+    def reference_deg(self) -> NDArray[np.float64]:
+        """The reference the cycle sent set-points for, deg."""
+        return self._row(2)
+
+    @property
+    def iq_a(self) -> NDArray[np.float64]:
+        """Measured torque currents, A."""
+        return self._row(3)
+
+    @property
+    def temperature_c(self) -> NDArray[np.float64]:
+        """Motor temperatures, °C."""
+        return self._row(4)
+
+    def _row(self, index: int) -> NDArray[np.float64]:
+        row: NDArray[np.float64] = self.joints[index]
+        return row
+
+    @property
+    def moving(self) -> bool:
+        """True while a motion is being played."""
+        return not math.isnan(self.motion_end_s)
+
+
+def frozen(array: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``array`` made read-only (it belongs to a published snapshot)."""
+    array.flags.writeable = False
+    return array
+
+
+@dataclass(frozen=True, slots=True)
+class MotionProgress:
+    """How far a motion has come (controller clock).
+
+    Attributes:
+        elapsed_s: time since it started, s (at most its duration).
+        duration_s: its planned duration, s.
+        done: it has ended (reached its end, was stopped, or a fault halted the arm).
+    """
+
+    elapsed_s: float
+    duration_s: float
+    done: bool
+
+    @property
+    def fraction(self) -> float:
+        """Share of the motion done, 0..1 (1 once it has ended)."""
+        if self.done or self.duration_s <= 0.0:
+            return 1.0
+        return min(1.0, max(0.0, self.elapsed_s / self.duration_s))

@@ -1,0 +1,55 @@
+"""The snapshot the loop publishes every cycle: immutable, one cycle's consistent picture, what status and progress
+read (simulated time)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from motion.api import Arm
+from motion.control.snapshot import CycleSnapshot
+from tests.motion_rig import arm_config
+
+
+def test_every_cycle_publishes_a_new_immutable_snapshot() -> None:
+    with Arm(arm_config("arm2.yaml", rate_hz=200), emulate=True) as arm:
+        controller = arm.controller
+        assert controller is not None
+        first = controller.snapshot  # the start-up reads, before the first cycle
+        assert first.cycle == 0 and not first.commanded and first.fresh.all()
+        assert np.allclose(first.position_deg, first.reference_deg)
+        arm.move_to({"shoulder": 20.0}, wait=False)
+        arm.sleep(0.1)
+        later = controller.snapshot
+        assert later is not first and later.cycle == controller.loop.cycles
+        assert 0.1 - 0.005 <= later.time_s - first.time_s <= 0.1 + 0.005  # the latest cycle of the 0.1 s
+        for array in (later.joints, later.fresh, later.position_deg):
+            with pytest.raises(ValueError, match="read-only"):
+                array[0] = 1.0
+        kept = later.position_deg.copy()
+        arm.sleep(0.1)  # the arm moved on; what a reader holds did not
+        assert np.array_equal(later.position_deg, kept)
+        assert not np.array_equal(controller.snapshot.position_deg, kept)
+        # status reads the published cycle, all fields from the same one
+        status = arm.status()
+        snapshot: CycleSnapshot = controller.snapshot
+        assert [j.position_deg for j in status.joints] == list(snapshot.position_deg)
+        assert [j.reference_deg for j in status.joints] == list(snapshot.reference_deg)
+        assert snapshot.commanded and snapshot.fresh.all()
+
+
+def test_motion_handle_progress_runs_from_zero_to_done() -> None:
+    with Arm(arm_config("arm2.yaml", rate_hz=200), emulate=True) as arm:
+        handle = arm.move_to({"shoulder": 40.0, "elbow": -30.0}, speed_scale=0.5, wait=False)
+        seen = []
+        while not handle.done:
+            seen.append(handle.progress())
+            arm.sleep(0.05)
+        assert len(seen) > 5
+        durations = {round(p.duration_s, 9) for p in seen[1:]}
+        assert len(durations) == 1 and durations.pop() > 0.5  # one planned motion
+        fractions = [p.fraction for p in seen[1:]]
+        assert fractions == sorted(fractions) and fractions[0] < 0.2 and fractions[-1] > 0.8
+        assert all(not p.done for p in seen)
+        end = handle.progress()
+        assert end.done and end.fraction == 1.0
