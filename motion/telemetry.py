@@ -81,7 +81,6 @@ from numpy.typing import NDArray
 
 from motion.config.schema import ArmConfig, CanBusConfig, ControlMode
 from motion.control.controller import Controller
-from motion.protocol import MultiMotorTorque, MultiTurnPositionSpeed, TorqueControl
 from motion.transmission import FloatArray
 from motion.transport.base import Reply, Transport
 
@@ -318,20 +317,14 @@ class Recorder:
         chunk["iq_a"][row] = axes.iq_a
         chunk["temperature_c"][row] = axes.temperature_c
         chunk["fresh"][row] = axes.fresh
-        # The set-points lead the batch (one 0xA4 per joint in joint order, or the torque frames); a halted cycle
-        # sends only status reads.
-        command = controller.last_command
-        if self._position_mode:
-            if command and isinstance(command[0], MultiTurnPositionSpeed):
-                angle, speed = chunk["cmd_angle_deg"][row], chunk["cmd_speed_dps"][row]
-                for i in range(self._joints):
-                    message = command[i]
-                    if isinstance(message, MultiTurnPositionSpeed):
-                        angle[i] = message.angle_deg
-                        speed[i] = message.max_speed_dps
-        elif command and isinstance(command[0], (TorqueControl, MultiMotorTorque)):
-            chunk["cmd_torque_nm"][row] = controller.torque_nm
-            chunk["limited"][row] = controller.limited
+        setpoints = controller.setpoints
+        if setpoints.commanded:  # a halted cycle sends only status reads
+            if self._position_mode:
+                chunk["cmd_angle_deg"][row] = setpoints.motor_angle_deg
+                chunk["cmd_speed_dps"][row] = setpoints.max_speed_dps
+            else:
+                chunk["cmd_torque_nm"][row] = setpoints.torque_nm
+                chunk["limited"][row] = setpoints.limited
         self._prev_chunk, self._prev_row = chunk, row
         self._row = row + 1
 

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from typing import TypeAlias
 
 import numpy as np
+from numpy.typing import NDArray
 
 from motion.config.schema import ControlMode
 from motion.control.axes import AxisSpec, AxisStates
@@ -31,7 +32,6 @@ from motion.errors import MotionError, PlanningError, TransportError
 from motion.protocol import (
     Bare,
     Command,
-    Message,
     MotorState,
     MultiMotorTorque,
     MultiTurnAngle,
@@ -117,6 +117,34 @@ class StopCommand:
     """Queued: a jerk-limited stop of the current motion (not a fault)."""
 
 
+@dataclass(slots=True)
+class Setpoints:
+    """What the latest cycle commanded, per joint in joint order (a typed record of the batch's set-points).
+
+    The builders update the arrays in place (no allocation per cycle); they are read in the loop's thread (cycle
+    hooks, telemetry). Other threads read the published snapshot instead.
+
+    Attributes:
+        commanded: the latest cycle sent set-points (False while halted: reads only).
+        motor_angle_deg: position mode: the 0xA4 targets, motor side, deg.
+        max_speed_dps: position mode: their speed caps, motor side, deg/s.
+        torque_nm: torque mode: the joint torque asked for (feed-forward + PD), before the current limit, N·m.
+        limited: torque mode: the joints whose current was limited.
+    """
+
+    commanded: bool
+    motor_angle_deg: FloatArray
+    max_speed_dps: FloatArray
+    torque_nm: FloatArray
+    limited: NDArray[np.bool_]
+
+    @classmethod
+    def zeros(cls, n_joints: int) -> Setpoints:
+        """Nothing commanded yet."""
+        nan = np.full(n_joints, np.nan)
+        return cls(False, nan.copy(), nan.copy(), np.zeros(n_joints), np.zeros(n_joints, dtype=bool))
+
+
 #: A motion command waiting for the next cycle (a tagged union: each kind is its own class).
 Pending: TypeAlias = MoveCommand | PathCommand | PlayCommand | StopCommand
 
@@ -166,12 +194,11 @@ class Controller:
         self._idle = threading.Event()
         self._idle.set()
         self._stop_loop = False
-        self.last_command: list[Message] = []
+        #: The set-points of the latest cycle (updated in place).
+        self.setpoints = Setpoints.zeros(len(self.specs))
         self._stack = np.zeros((len(JOINT_ROWS), len(self.specs)))
         #: The arm after the latest cycle (replaced, never changed: any thread may read it without a lock).
         self.snapshot = CycleSnapshot(0, math.nan, frozen(self._stack.copy()), np.zeros(len(self.specs), bool), False)
-        self.torque_nm = np.zeros(len(self.specs))
-        self.limited = np.zeros(len(self.specs), dtype=bool)
         self.cycle_hooks: list[Callable[[Controller, float, list[Reply]], None]] = []
         # The 0x280 frame commands motors 1..4 whether they belong to the arm or not, so it is used only when all
         # four are joints of this arm: a foreign drive on the bus is never switched into torque mode.
@@ -327,14 +354,27 @@ class Controller:
             case mode:  # never a default: an unknown mode is an error
                 raise ValueError(f"unknown control mode {mode!r}")
 
+    @property
+    def torque_nm(self) -> FloatArray:
+        """Torque mode: the joint torque the latest cycle asked for, N·m (see :class:`Setpoints`)."""
+        return self.setpoints.torque_nm
+
+    @property
+    def limited(self) -> NDArray[np.bool_]:
+        """Torque mode: the joints whose current the latest cycle limited."""
+        return self.setpoints.limited
+
     def _position_requests(self, ref: State) -> list[Request]:
-        motor_deg = self.transmission.motor_deg(ref.position)
-        speed = np.abs(self.transmission.motor_rate(ref.velocity))
-        speed = speed * self.options.speed_headroom + self._speed_floor_dps
-        ceiling = self._speed_ceiling_dps
+        record = self.setpoints
+        motor_deg = record.motor_angle_deg
+        motor_deg[:] = self.transmission.motor_deg(ref.position)
+        speed = record.max_speed_dps
+        speed[:] = np.abs(self.transmission.motor_rate(ref.velocity))
+        speed *= self.options.speed_headroom
+        speed += self._speed_floor_dps
+        np.minimum(speed, self._speed_ceiling_dps, out=speed)
         return [
-            Request(mid, MultiTurnPositionSpeed(float(motor_deg[i]), float(min(speed[i], ceiling))))
-            for i, mid in enumerate(self.ids)
+            Request(mid, MultiTurnPositionSpeed(float(motor_deg[i]), float(speed[i]))) for i, mid in enumerate(self.ids)
         ]
 
     def _torque_requests(self, ref: State) -> list[Request]:
@@ -342,8 +382,9 @@ class Controller:
         tau = self.kp * (ref.position - axes.q_deg) + self.kd * (ref.velocity - axes.qd_dps)
         if self.feedforward is not None:
             tau += self.feedforward(axes.q_deg, ref.velocity, ref.acceleration)
-        self.torque_nm = tau
-        raw, self.limited = self.transmission.iq_raw_limited(tau)
+        record = self.setpoints
+        record.torque_nm[:] = tau
+        raw, record.limited[:] = self.transmission.iq_raw_limited(tau)
         self._iq_raw = raw
         requests = [Request(self.ids[i], TorqueControl(iq_amps(int(raw[i])))) for i in self._single]
         if self._multi:
@@ -397,10 +438,10 @@ class Controller:
         if check is not None:
             check(ref)
         requests = self.build_requests(ref) if command else []
+        self.setpoints.commanded = command
         requests.extend(extra)
         replies = self.bus.transact(requests, start_s + self.options.reply_budget * (deadline_s - start_s))
         self.absorb(replies)
-        self.last_command = [r.message for r in requests]
         self._publish(self.loop.cycles + 1, start_s, command)  # (the loop counts the cycle once it has ended)
         for hook in self.cycle_hooks:
             hook(self, start_s, replies)
