@@ -55,7 +55,6 @@ from motion.protocol import Bare, CanFrame, Command, Message, MotorState, MultiT
 from motion.protocol.table import CAN_ID_BASE, CAN_MULTI_TORQUE_ID, MULTI_TORQUE_MOTOR_IDS
 from motion.trajectory import State
 from motion.transport.base import MotorCounters, Reply, Transport
-from motion.transport.can_endpoint import CanEndpoint
 from motion.transport.can_transport import CanTransport
 
 AXES = (1, 2, 4, 6, 12)
@@ -224,12 +223,9 @@ class LoopbackEndpoint:
 
 def loopback_transport() -> CanTransport:
     """The real CAN transport (encoding, slot matching, decoding) on an instantaneous loopback instead of a bus."""
-    transport = CanTransport("virtual", "bench-loopback")
-    transport._endpoint.close()
-    # The only seam between CanTransport and python-can is its endpoint; swapping it keeps every line of the
+    # The only seam between CanTransport and python-can is its port; injecting a loopback keeps every line of the
     # transport's own code in the measurement.
-    transport._endpoint = cast(CanEndpoint, LoopbackEndpoint())
-    return transport
+    return CanTransport.over(LoopbackEndpoint())
 
 
 def _percentile_us(values_ns: Sequence[int] | NDArray[np.int64], q: float) -> float:
@@ -539,7 +535,7 @@ def slcan_host_costs(bus: Transport, n_axes: int, repeats: int = 7) -> tuple[flo
 
     Sends one status read (0x9C) per drive, waits until every reply has surely arrived, then times taking them in.
     """
-    endpoint = cast(CanTransport, bus)._endpoint
+    endpoint = cast(CanTransport, bus).port
     frames = [can_frame.encode_request(Bare(Command.READ_STATUS_2), m) for m in range(1, n_axes + 1)]
     sends: list[float] = []
     reads: list[float] = []

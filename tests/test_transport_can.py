@@ -107,6 +107,21 @@ def test_replies_are_matched_by_motor_and_command_in_any_order(channel: str) -> 
     assert transport.bus_counters.cycles == 1
 
 
+def test_a_transport_over_an_injected_port_uses_it_and_closes_it(channel: str) -> None:
+    drives = CanDrives(channel)
+    drives.start()
+    try:
+        port = CanEndpoint("virtual", channel)
+        with CanTransport.over(port) as transport:
+            assert transport.port is port and transport.describe() == f"can virtual:{channel}"
+            replies = transport.transact([status2(1), status2(2)], transport.clock() + 0.5)
+            assert [r.motor_id for r in replies] == [1, 2] and all(r.ok for r in replies)
+        with pytest.raises(TransportError):  # closing the transport released the injected port
+            port.send(CanFrame(0x141, bytes(8)), 0.1)
+    finally:
+        drives.stop()
+
+
 def test_missing_reply_is_reported_explicitly_by_the_deadline(channel: str) -> None:
     with rig(channel, {2: Script(silent=True)}) as (transport, _):
         start = transport.clock()

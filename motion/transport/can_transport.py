@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from typing import Any
+from typing import Any, Protocol
 
 from motion.errors import DecodeError
 from motion.protocol import CanFrame, can_frame
@@ -39,6 +39,23 @@ def take_in_can_frame(transport: Transport, frame: CanFrame) -> None:
     transport._offer(motor_id, message)
 
 
+class CanPort(Protocol):
+    """What :class:`CanTransport` needs of the bus: the seam where it meets python-can (:class:`CanEndpoint`), and
+    where another link (a loopback for a benchmark, a test double of an adapter) can be given instead."""
+
+    interface: str
+    channel: str
+
+    def send(self, frame: CanFrame, timeout_s: float | None = None) -> None:
+        """Queue one frame for transmission (raise TransportError when it cannot be)."""
+
+    def recv(self, timeout_s: float | None) -> tuple[CanFrame, float] | None:
+        """The next received frame and its time, or None after ``timeout_s``."""
+
+    def close(self) -> None:
+        """Release the port."""
+
+
 #: Shortest time a frame may take to enter the interface's transmit queue before the bus counts as failed, s.
 SEND_TIMEOUT_MIN_S = 0.1
 
@@ -53,6 +70,8 @@ class CanTransport(Transport):
         clock: time source of the deadlines (see :class:`~motion.transport.base.Transport`).
         **bus_kwargs: passed to :class:`can.Bus` unchanged.
 
+    Use :meth:`over` for a port that is already open (injected instead of opened here).
+
     Raises:
         TransportError: the bus could not be opened.
     """
@@ -66,9 +85,24 @@ class CanTransport(Transport):
         clock: Callable[[], float] = time.monotonic,
         **bus_kwargs: Any,
     ) -> None:
+        self._adopt(CanEndpoint(interface, channel, bitrate, **bus_kwargs), clock)
+
+    @classmethod
+    def over(cls, port: CanPort, *, clock: Callable[[], float] = time.monotonic) -> CanTransport:
+        """The transport over ``port``, already open (closing the transport closes it)."""
+        transport = cls.__new__(cls)
+        transport._adopt(port, clock)
+        return transport
+
+    def _adopt(self, port: CanPort, clock: Callable[[], float]) -> None:
         super().__init__(clock=clock)
-        self._endpoint = CanEndpoint(interface, channel, bitrate, **bus_kwargs)
+        self._endpoint: CanPort = port
         self._frames: list[CanFrame] = []
+
+    @property
+    def port(self) -> CanPort:
+        """The port the frames go through (a :class:`CanEndpoint` unless one was given to :meth:`over`)."""
+        return self._endpoint
 
     def describe(self) -> str:
         """``"can INTERFACE:CHANNEL"``."""
