@@ -196,9 +196,9 @@ class Controller:
         self._stop_loop = False
         #: The set-points of the latest cycle (updated in place).
         self.setpoints = Setpoints.zeros(len(self.specs))
-        self._stack = np.zeros((len(JOINT_ROWS), len(self.specs)))
+        n = len(self.specs)
         #: The arm after the latest cycle (replaced, never changed: any thread may read it without a lock).
-        self.snapshot = CycleSnapshot(0, math.nan, frozen(self._stack.copy()), np.zeros(len(self.specs), bool), False)
+        self.snapshot = CycleSnapshot(0, math.nan, frozen([np.zeros(n)] * len(JOINT_ROWS)), False)
         self.cycle_hooks: list[Callable[[Controller, float, list[Reply]], None]] = []
         # The 0x280 frame commands motors 1..4 whether they belong to the arm or not, so it is used only when all
         # four are joints of this arm: a foreign drive on the bus is never switched into torque mode.
@@ -451,22 +451,13 @@ class Controller:
 
     def _publish(self, cycle: int, start_s: float, commanded: bool) -> None:
         """Replace :attr:`snapshot` with this cycle's (one stacked copy: the loop never waits on a reader)."""
-        axes, stack = self.axes, self._stack
-        stack[0] = axes.q_deg
-        stack[1] = axes.qd_dps
-        stack[2] = self.reference.position
-        stack[3] = axes.iq_a
-        stack[4] = axes.temperature_c
-        follower = self.follower
+        axes, follower = self.axes, self.follower
         path = follower.path if follower is not None else None
         end = follower.end_time() if follower is not None and path is not None else math.nan
-        fresh = axes.fresh.copy()
-        fresh.flags.writeable = False
         self.snapshot = CycleSnapshot(
             cycle,
             start_s,
-            frozen(stack.copy()),
-            fresh,
+            frozen((axes.q_deg, axes.qd_dps, self.reference.position, axes.iq_a, axes.temperature_c, axes.fresh)),
             commanded,
             end - path.duration_s if path is not None else math.nan,
             end,

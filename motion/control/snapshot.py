@@ -9,24 +9,26 @@ never waits for a reader.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-#: Rows of :attr:`CycleSnapshot.joints`, in this order.
-JOINT_ROWS = ("position_deg", "velocity_dps", "reference_deg", "iq_a", "temperature_c")
+#: Rows of :attr:`CycleSnapshot.joints`, in this order (``fresh`` as 1.0 / 0.0).
+JOINT_ROWS = ("position_deg", "velocity_dps", "reference_deg", "iq_a", "temperature_c", "fresh")
 
 
-@dataclass(frozen=True, slots=True)
-class CycleSnapshot:
-    """The arm after one control cycle (controller clock; joint order; read-only arrays).
+class CycleSnapshot(NamedTuple):
+    """The arm after one control cycle (controller clock; joint order; a read-only array).
+
+    A named tuple rather than a frozen dataclass: it is built every cycle, and a tuple is built in a third of the time.
 
     Attributes:
         cycle: cycles run so far, this one included.
         time_s: the cycle's scheduled start, s.
-        joints: one row per :data:`JOINT_ROWS` entry, one column per joint.
-        fresh: per joint, whether this cycle brought a reply with its state.
+        joints: one row per :data:`JOINT_ROWS` entry, one column per joint (read-only).
         commanded: set-points were sent in this cycle (False while halted: reads only).
         motion_start_s: start of the motion being played, s (NaN when none is).
         motion_end_s: its end, s (NaN when none is).
@@ -35,10 +37,15 @@ class CycleSnapshot:
     cycle: int
     time_s: float
     joints: NDArray[np.float64]
-    fresh: NDArray[np.bool_]
     commanded: bool
     motion_start_s: float = math.nan
     motion_end_s: float = math.nan
+
+    @property
+    def fresh(self) -> NDArray[np.bool_]:
+        """Per joint, whether this cycle brought a reply with its state."""
+        fresh: NDArray[np.bool_] = self.joints[5] != 0.0
+        return fresh
 
     @property
     def position_deg(self) -> NDArray[np.float64]:
@@ -75,8 +82,9 @@ class CycleSnapshot:
         return not math.isnan(self.motion_end_s)
 
 
-def frozen(array: NDArray[np.float64]) -> NDArray[np.float64]:
-    """``array`` made read-only (it belongs to a published snapshot)."""
+def frozen(rows: Sequence[NDArray[Any]]) -> NDArray[np.float64]:
+    """A read-only copy of ``rows`` stacked (it belongs to a published snapshot)."""
+    array = np.array(rows, dtype=np.float64)
     array.flags.writeable = False
     return array
 
