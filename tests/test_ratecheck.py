@@ -52,6 +52,7 @@ def test_simulated_slow_drives_refuse_500_hz_and_name_the_rate_that_holds(tmp_pa
     highest = check.highest_rate_hz
     assert highest == pytest.approx(0.8 / (check.round_trip_p99_s * 1.5) // 5 * 5)
     assert f"highest rate that holds is {highest:g} Hz" in str(error) and "control.rate_hz" in str(error)
+    assert f"set control.rate_hz to {check.recommended_rate_hz:g} Hz or lower" in str(error)
     sent = [line for line in (tmp_path / "frames.log").read_text().splitlines() if " IN " in line]
     assert sent and all(": 9c " in line or ": 9a " in line for line in sent)  # reads only: nothing moved
     # at the proposed rate the check passes
@@ -86,8 +87,9 @@ def test_rate_check_arithmetic() -> None:
     check = RateCheck(
         rate_hz=200, reply_budget=0.8, margin=1.5, round_trip_p99_s=0.002, host_p99_s=0.001, samples=10, simulated=False
     )
-    # bounds: 0.8 / 0.003 = 266.7 Hz and 1 / 0.0045 = 222.2 Hz -> 220 Hz
+    # bounds: 0.8 / 0.003 = 266.7 Hz and 1 / 0.0045 = 222.2 Hz -> 220 Hz; recommended 0.8 x 220 = 176 -> 175 Hz
     assert check.highest_rate_hz == 220.0 and check.holds
+    assert check.recommended_rate_hz == 175.0
     assert not dataclasses.replace(check, rate_hz=225).holds
     assert "holds" in check.summary()
 
@@ -133,9 +135,10 @@ def test_cli_move_at_a_rate_the_bus_cannot_hold_exits_2_before_moving(tmp_path: 
         assert checked.returncode == 2 and "does not hold" in checked.stdout
         if highest < MIN_RATE_HZ:  # so slow or busy a host that no rate a configuration allows holds: refused is right
             return
-        # Well under the figure just measured: a p99 of a few dozen exchanges on a shared host moves by tens of
-        # per cent from one measurement to the next.
-        rate = max(MIN_RATE_HZ, min(200.0, 5.0 * round(0.6 * highest / 5.0)))
+        # the rate the message recommends (room for the spread between measurements), at most 200 Hz
+        recommended = float(result.stderr.split("set control.rate_hz to ")[1].split(" Hz")[0])
+        assert recommended < highest
+        rate = max(MIN_RATE_HZ, min(200.0, recommended))
         config.write_text(config.read_text().replace("rate_hz: 500", f"rate_hz: {rate:g}"))
         result = _cli("move", "--config", config, *bus, "shoulder=5")
         skip_if_rate_refused(result)

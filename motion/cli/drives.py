@@ -375,6 +375,7 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
             f"{c.round_trip_p99_s * 1e3:.2f} ms",
             f"{c.host_p99_s * 1e3:.2f} ms",
             f"{c.highest_rate_hz:g} Hz",
+            f"{c.recommended_rate_hz:g} Hz",
             "holds" if c.holds else "does not hold",
         )
         for mode, c in checks.items()
@@ -392,6 +393,7 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
                         "round_trip_p99_s": c.round_trip_p99_s,
                         "host_p99_s": c.host_p99_s,
                         "highest_rate_hz": c.highest_rate_hz,
+                        "recommended_rate_hz": c.recommended_rate_hz,
                         "holds": c.holds,
                     }
                     for mode, c in checks.items()
@@ -403,7 +405,15 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
             f"{len(config.joints)} joints on {where}; configured control.rate_hz {config.control.rate_hz:g} Hz "
             f"({config.control.mode.value} mode), margin {config.control.rate_margin:g}"
         )
-        print_table(("mode", "round trip p99", "host work p99", "highest rate", f"{config.control.rate_hz:g} Hz"), rows)
+        header = (
+            "mode",
+            "round trip p99",
+            "host work p99",
+            "highest rate",
+            "recommended",
+            f"{config.control.rate_hz:g} Hz",
+        )
+        print_table(header, rows)
     if configured.holds:
         return EXIT_OK
     warn(str(RateError(config.source, configured)))

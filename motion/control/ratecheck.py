@@ -16,6 +16,11 @@ A rate holds when, with the margin, the round trip fits the share of the period 
 
 The highest rate that holds is the smaller of the two bounds, rounded down to a whole 5 Hz. The p99 of each figure
 is used, so a host that is slow one cycle in a hundred is judged by that cycle.
+
+A p99 of a few dozen exchanges on a shared host moves by several per cent from one measurement to the next (two
+checks a minute apart on one machine: 125 Hz, then 120 Hz). A rate set to exactly the highest one measured may
+therefore be refused by the next connect; the *recommended* rate leaves :data:`RECOMMENDED_SHARE` of it, and is what
+the messages tell a user to set.
 """
 
 from __future__ import annotations
@@ -42,6 +47,8 @@ SIMULATED_SAMPLES: Final = 3
 DEFAULT_MARGIN: Final = 1.5
 #: Rates are proposed in steps of this many Hz.
 RATE_STEP_HZ: Final = 5.0
+#: Share of the highest rate that holds which is recommended (room for the spread between measurements).
+RECOMMENDED_SHARE: Final = 0.8
 #: Time each measuring exchange may take before its reads count as unanswered, s.
 _EXCHANGE_TIMEOUT_S: Final = 0.1
 
@@ -82,6 +89,15 @@ class RateCheck:
         return math.floor(min(bounds) / RATE_STEP_HZ) * RATE_STEP_HZ
 
     @property
+    def recommended_rate_hz(self) -> float:
+        """:data:`RECOMMENDED_SHARE` of :attr:`highest_rate_hz`, rounded down to :data:`RATE_STEP_HZ`: a rate the
+        next measurement will very likely accept too."""
+        highest = self.highest_rate_hz
+        if not math.isfinite(highest):
+            return highest
+        return math.floor(highest * RECOMMENDED_SHARE / RATE_STEP_HZ) * RATE_STEP_HZ
+
+    @property
     def holds(self) -> bool:
         """True when the configured rate holds with the margin."""
         period = 1.0 / self.rate_hz
@@ -96,8 +112,8 @@ class RateCheck:
         return (
             f"{clock}: round trip p99 {self.round_trip_p99_s * 1e3:.2f} ms, host work p99 "
             f"{self.host_p99_s * 1e3:.2f} ms per cycle ({self.samples} exchanges); highest rate with margin "
-            f"{self.margin:g}: {self.highest_rate_hz:g} Hz; configured {self.rate_hz:g} Hz "
-            + ("holds" if self.holds else "does NOT hold")
+            f"{self.margin:g}: {self.highest_rate_hz:g} Hz (recommended {self.recommended_rate_hz:g} Hz); configured "
+            f"{self.rate_hz:g} Hz " + ("holds" if self.holds else "does NOT hold")
         )
 
 
@@ -113,7 +129,8 @@ class RateError(ConfigError):
             f" ms (p99) and this host's work {check.host_p99_s * 1e3:.2f} ms, against a period of "
             f"{1e3 / check.rate_hz:.2f} ms ({check.reply_budget:.0%} of it for the replies) with a margin of "
             f"{check.margin:g}; the highest rate that holds is {check.highest_rate_hz:g} Hz (set control.rate_hz to "
-            "it or lower, or accept a smaller margin with control.rate_margin)",
+            f"{check.recommended_rate_hz:g} Hz or lower, which leaves room for the spread between measurements, or "
+            "accept a smaller margin with control.rate_margin)",
         )
 
 
