@@ -148,7 +148,7 @@ def test_fast_path_builds_equal_frames_and_messages() -> None:
     assert (motor_id, decoded) == (3, reply)
     assert hash(decoded) == hash(reply)
     with pytest.raises(dataclasses.FrozenInstanceError):
-        decoded.encoder = 3  # type: ignore[misc]
+        decoded.encoder = 3  # type: ignore[attr-defined]
     wire = rs485_frame.encode_request(MultiTurnPositionSpeed(90.0, 360.0), 1)
     assert rs485_frame.decode_request(wire) == (1, MultiTurnPositionSpeed(90.0, 360.0))
 
@@ -159,7 +159,7 @@ def test_fast_path_builds_equal_frames_and_messages() -> None:
         (MultiTurnPositionSpeed(math.nan, 10.0), "angle_deg"),
         (MultiTurnPositionSpeed(1.0, math.inf), "max_speed_dps"),
         (MultiTurnPositionSpeed(1.0, 65535.6), "max_speed_dps"),
-        (MultiTurnPositionSpeed(True, 1.0), "angle_deg"),  # type: ignore[arg-type]
+        (MultiTurnPositionSpeed(True, 1.0), "angle_deg"),
         (TorqueControl(32.01), "iq_a"),
         (MultiMotorTorque(0.0, 0.0, -40.0, 0.0), "iq3_a"),
     ],
