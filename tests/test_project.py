@@ -158,7 +158,8 @@ def test_protocol_limits_are_written_only_in_the_protocol_package() -> None:
 
 
 def test_protocol_core_is_stdlib_only() -> None:
-    allowed = {"__future__", "collections", "dataclasses", "enum", "fractions", "math", "sys", "typing", "motion"}
+    allowed = {"__future__", "collections", "dataclasses", "enum", "fractions", "math", "struct", "sys", "typing"}
+    allowed.add("motion")
     for path in (ROOT / "motion" / "protocol").rglob("*.py"):
         for imported in _imports(path, "motion.protocol." + path.stem):
             assert imported.split(".")[0] in allowed, f"{path.name} imports {imported}"

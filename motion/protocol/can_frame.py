@@ -8,9 +8,12 @@ direction.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Final
 
 from motion.errors import DecodeError
+from motion.protocol.compiled import CODECS, FALLBACK_ERRORS, MULTI_TORQUE_DECODE, Encoder, frozen_builder
 from motion.protocol.messages import Command, Message, MultiMotorTorque
 from motion.protocol.table import (
     CAN_ID_BASE,
@@ -46,7 +49,32 @@ class CanRequest:
     message: Message
 
 
-def _encode(message: Message, motor_id: int, direction: Direction) -> CanFrame:
+_new_frame = frozen_builder(CanFrame)
+_new_request = frozen_builder(CanRequest)
+_REQUEST_CODEC = CODECS[WireProtocol.CAN, Direction.REQUEST]
+_REPLY_CODEC = CODECS[WireProtocol.CAN, Direction.REPLY]
+_REQUEST_ENCODER = _REQUEST_CODEC.encoders.get
+_REPLY_ENCODER = _REPLY_CODEC.encoders.get
+_FIRST_ID: Final = CAN_ID_BASE + MOTOR_ID_MIN
+_LAST_ID: Final = CAN_ID_BASE + MOTOR_ID_MAX
+
+
+def _encode(message: Message, motor_id: int, encoders: Callable[[type[Message]], Encoder | None]) -> CanFrame | None:
+    """The fast path (:mod:`motion.protocol.compiled`): the frame, or None to take the checked path, which gives the
+    same frame or raises the error."""
+    encoder = encoders(message.__class__)
+    if encoder is None or motor_id.__class__ is not int or not MOTOR_ID_MIN <= motor_id <= MOTOR_ID_MAX:
+        return None
+    try:
+        data = encoder(message)
+    except FALLBACK_ERRORS:
+        return None
+    if data is None:
+        return None
+    return _new_frame(CAN_MULTI_TORQUE_ID if message.__class__ is MultiMotorTorque else CAN_ID_BASE + motor_id, data)
+
+
+def _encode_checked(message: Message, motor_id: int, direction: Direction) -> CanFrame:
     layout = layout_for(message, WireProtocol.CAN, direction)
     data = bytearray(CAN_PAYLOAD_BYTES)
     if isinstance(message, MultiMotorTorque):
@@ -70,7 +98,17 @@ def encode_request(message: Message, motor_id: int = MOTOR_ID_MIN) -> CanFrame:
     Raises:
         EncodeError: a bad motor id, a value out of range, or a message CAN cannot carry as a request.
     """
-    return _encode(message, motor_id, Direction.REQUEST)
+    # _encode inlined: this is the control cycle's hot path.
+    encoder = _REQUEST_ENCODER(message.__class__)
+    if encoder is not None and motor_id.__class__ is int and MOTOR_ID_MIN <= motor_id <= MOTOR_ID_MAX:
+        try:
+            data = encoder(message)
+        except FALLBACK_ERRORS:
+            data = None
+        if data is not None:
+            multi = message.__class__ is MultiMotorTorque
+            return _new_frame(CAN_MULTI_TORQUE_ID if multi else CAN_ID_BASE + motor_id, data)
+    return _encode_checked(message, motor_id, Direction.REQUEST)
 
 
 def encode_reply(message: Message, motor_id: int) -> CanFrame:
@@ -79,7 +117,7 @@ def encode_reply(message: Message, motor_id: int) -> CanFrame:
     Raises:
         EncodeError: a bad motor id, a value out of range, or a message CAN cannot carry as a reply.
     """
-    return _encode(message, motor_id, Direction.REPLY)
+    return _encode(message, motor_id, _REPLY_ENCODER) or _encode_checked(message, motor_id, Direction.REPLY)
 
 
 def _check_frame(arbitration_id: int, data: bytes) -> None:
@@ -96,6 +134,12 @@ def _check_frame(arbitration_id: int, data: bytes) -> None:
 
 
 def _decode(data: bytes, direction: Direction) -> Message:
+    decoder = (_REQUEST_CODEC if direction is Direction.REQUEST else _REPLY_CODEC).decoders[data[0]]
+    message = decoder(data) if decoder is not None else None
+    return message if message is not None else _decode_checked(data, direction)
+
+
+def _decode_checked(data: bytes, direction: Direction) -> Message:
     code = data[0]
     spec = COMMANDS.get(Command(code)) if code in Command._value2member_map_ else None
     layout = spec.layout(WireProtocol.CAN, direction) if spec is not None else None
@@ -113,7 +157,10 @@ def decode_request(arbitration_id: int, data: bytes) -> CanRequest:
     data = bytes(data)
     _check_frame(arbitration_id, data)
     if arbitration_id == CAN_MULTI_TORQUE_ID:
-        return CanRequest(None, unpack_fields(MULTI_TORQUE_LAYOUT, data, None, first=0, check_reserved=True))
+        multi = MULTI_TORQUE_DECODE.decode(data) if MULTI_TORQUE_DECODE is not None else None
+        if multi is None:
+            multi = unpack_fields(MULTI_TORQUE_LAYOUT, data, None, first=0, check_reserved=True)
+        return _new_request(None, multi)
     return CanRequest(arbitration_id - CAN_ID_BASE, _decode(data, Direction.REQUEST))
 
 
@@ -123,8 +170,13 @@ def decode_reply(arbitration_id: int, data: bytes) -> tuple[int, Message]:
     Raises:
         DecodeError: wrong length, id outside 0x141..0x160, unknown command or bad field.
     """
-    data = bytes(data)
+    if data.__class__ is not bytes:
+        data = bytes(data)
+    if len(data) == CAN_PAYLOAD_BYTES and arbitration_id.__class__ is int and _FIRST_ID <= arbitration_id <= _LAST_ID:
+        decoder = _REPLY_CODEC.decoders[data[0]]
+        if decoder is not None and (message := decoder(data)) is not None:
+            return arbitration_id - CAN_ID_BASE, message
     _check_frame(arbitration_id, data)
     if arbitration_id == CAN_MULTI_TORQUE_ID:
         raise DecodeError("ID 0x280 carries requests only; drives reply on 0x140 + id", data)
-    return arbitration_id - CAN_ID_BASE, _decode(data, Direction.REPLY)
+    return arbitration_id - CAN_ID_BASE, _decode_checked(data, Direction.REPLY)

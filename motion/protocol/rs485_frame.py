@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Final
 
 from motion.errors import DecodeError
+from motion.protocol.compiled import CODECS, FALLBACK_ERRORS
 from motion.protocol.messages import Command, Message
 from motion.protocol.table import (
     COMMANDS,
@@ -59,6 +60,16 @@ class Rs485Frame:
 
 
 def _encode(message: Message, motor_id: int, direction: Direction) -> bytes:
+    # Fast path (motion.protocol.compiled); anything unusual takes the checked path below (same bytes or the error).
+    encoder = CODECS[WireProtocol.RS485, direction].encoders.get(message.__class__)
+    if encoder is not None and motor_id.__class__ is int and MOTOR_ID_MIN <= motor_id <= MOTOR_ID_MAX:
+        try:
+            payload = encoder(message)
+        except FALLBACK_ERRORS:
+            payload = None
+        if payload is not None:
+            command = message.command  # type: ignore[attr-defined]  # every RS485 message class has one
+            return Rs485Frame(command, motor_id, payload).to_bytes()
     layout = layout_for(message, WireProtocol.RS485, direction)
     check_motor_id(motor_id)
     command = command_of(message)
@@ -119,6 +130,11 @@ def decode_frame(frame: Rs485Frame, direction: Direction) -> Message:
         DecodeError: unknown command, wrong data length for the command, bad field, set reserved byte.
     """
     code = frame.command
+    compiled = CODECS[WireProtocol.RS485, direction].layouts[code] if 0 <= code <= 0xFF else None
+    if compiled is not None and len(frame.data) == compiled.size:
+        message = compiled.decode(frame.data)
+        if message is not None:
+            return message
     spec = COMMANDS.get(Command(code)) if code in Command._value2member_map_ else None
     layout = spec.layout(WireProtocol.RS485, direction) if spec is not None else None
     if spec is None or layout is None:

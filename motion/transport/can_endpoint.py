@@ -17,6 +17,19 @@ import can
 
 from motion.errors import TransportError
 from motion.protocol import CanFrame
+from motion.protocol.compiled import frozen_builder
+
+_new_frame = frozen_builder(CanFrame)
+
+
+def _open_slcan_shim(channel: str, kwargs: dict[str, Any]) -> can.BusABC | None:
+    """python-can's slcan reads one byte per system call (python-can issue 2027): while the installed release lacks
+    the fix, open the bus through :mod:`motion.transport.slcan_shim`; None means "use python-can's own"."""
+    # Imported here: it imports pyserial, which a CAN bus of another interface never needs.
+    from motion.transport import slcan_shim  # noqa: PLC0415
+
+    return slcan_shim.SlcanShimBus(channel, **kwargs) if slcan_shim.needs_shim() else None
+
 
 #: Reads without a frame that one recv call takes in before it gives up (bounds the call when the descriptor keeps
 #: signalling input that never completes a frame).
@@ -41,7 +54,10 @@ class CanEndpoint:
         if bitrate is not None:
             kwargs["bitrate"] = bitrate
         try:
-            self._bus = can.Bus(interface=interface, channel=channel, **kwargs)
+            shim = _open_slcan_shim(channel, kwargs) if interface == "slcan" else None
+            self._bus: can.BusABC = (
+                shim if shim is not None else can.Bus(interface=interface, channel=channel, **kwargs)
+            )
         except (can.CanError, OSError, ValueError, ImportError) as exc:
             raise TransportError(f"cannot open CAN interface {interface!r} channel {channel!r}: {exc}") from exc
         self.interface = interface
@@ -56,6 +72,8 @@ class CanEndpoint:
                 self._fd = self._bus.fileno()
             except (NotImplementedError, io.UnsupportedOperation, OSError, ValueError):
                 self._fd = None
+        # A bus that buffers input itself (the slcan shim) says so: select must not wait while it holds a frame.
+        self._pending_input = getattr(self._bus, "pending_input", None)
 
     def send(self, frame: CanFrame, timeout_s: float | None = None) -> None:
         """Send one frame.
@@ -87,7 +105,8 @@ class CanEndpoint:
             remaining = None if end is None else max(0.0, end - time.monotonic())
             try:
                 if self._fd is not None:
-                    if not select.select([self._fd], [], [], remaining)[0]:
+                    buffered = self._pending_input is not None and self._pending_input()
+                    if not buffered and not select.select([self._fd], [], [], remaining)[0]:
                         return None
                     remaining = 0.0
                 message = self._bus.recv(timeout=remaining)
@@ -101,7 +120,7 @@ class CanEndpoint:
                     continue
                 return None
             if not (message.is_error_frame or message.is_remote_frame or message.is_extended_id):
-                return CanFrame(message.arbitration_id, bytes(message.data)), float(message.timestamp)
+                return _new_frame(message.arbitration_id, bytes(message.data)), float(message.timestamp)
 
     def close(self) -> None:
         """Release the bus; safe to call more than once."""

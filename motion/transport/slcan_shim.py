@@ -1,0 +1,119 @@
+"""A stop-gap for python-can's slcan interface: read every waiting byte at once, not one byte per system call.
+
+python-can 4.6.1 (the newest release when this was written) takes in slcan input with one ``serial.read(1)`` per
+byte: a 22-byte frame line costs 22 system calls, about 120 µs of CPU per received frame on a 2-vCPU machine,
+several times the cost of a whole control cycle. python-can issue 2027 reports it; pull request 2028 (merged
+upstream, not yet released) reads everything that is waiting at once. This module does the same in a subclass of
+python-can's own ``slcanBus`` (our code, written for this project; only ``_read`` and ``_recv_internal`` differ):
+
+- ``_read`` takes a complete line (``\\r`` or ``\\a`` ends it) from its buffer if there is one; otherwise it reads
+  all bytes the port holds in one call, and when there are none it waits on the port's descriptor (or one
+  ``read(1)`` where there is no descriptor) until the timeout. Partial lines stay buffered for the next call.
+- ``_recv_internal`` drops a garbled line (python-can's parser raises ValueError on one, which would end a control
+  loop) and counts it in :attr:`SlcanShimBus.garbled_lines`: the transport then counts the missing reply as a
+  timeout, as it would for a frame lost on the wire.
+- :meth:`SlcanShimBus.pending_input` says whether a complete line is buffered: a caller that waits on the port's
+  descriptor with ``select`` must not wait while lines it has not taken are already in this buffer.
+
+:class:`motion.transport.can_endpoint.CanEndpoint` uses it for ``interface: slcan`` only while
+:func:`needs_shim` says the installed python-can lacks the fix. **Exit plan**: once a python-can release carries
+pull request 2028, raise :data:`LAST_RELEASE_WITHOUT_FIX` no further, check that the upstream ``slcanBus`` does not
+hide buffered lines from a ``select`` on ``fileno()`` (``CanEndpoint.recv`` relies on that), then delete this
+module, its use in ``can_endpoint.py`` and ``tests/test_slcan_shim.py``.
+"""
+
+from __future__ import annotations
+
+import io
+import re
+import select
+import time
+from importlib.metadata import PackageNotFoundError, version
+from typing import Any, Final
+
+import can
+from can.interfaces.slcan import slcanBus
+
+#: The newest python-can release whose slcan reads one byte per call (python-can issue 2027, fixed by PR 2028).
+LAST_RELEASE_WITHOUT_FIX: Final = (4, 6, 1)
+
+_LINE_END: Final = re.compile(rb"[\r\a]")
+_RELEASE: Final = re.compile(r"(\d+)(?:\.(\d+))?(?:\.(\d+))?")
+
+
+def needs_shim(installed: str | None = None) -> bool:
+    """True when the python-can release ``installed`` (default: the installed one) lacks the slcan read fix.
+
+    Versions are compared by their release numbers: any release up to :data:`LAST_RELEASE_WITHOUT_FIX` (its
+    pre-releases included) lacks the fix; a later one has it. An unreadable version counts as lacking it.
+    """
+    if installed is None:
+        try:
+            installed = version("python-can")
+        except PackageNotFoundError:
+            return True
+    match = _RELEASE.match(installed)
+    if match is None:
+        return True
+    release = tuple(int(part) if part is not None else 0 for part in match.groups())
+    return release <= LAST_RELEASE_WITHOUT_FIX
+
+
+class SlcanShimBus(slcanBus):
+    """python-can's ``slcanBus`` reading every waiting byte at once (see the module docstring).
+
+    Takes the arguments of ``can.interfaces.slcan.slcanBus``.
+    """
+
+    def __init__(self, channel: Any, **kwargs: Any) -> None:
+        #: Lines that were neither a frame nor a reply python-can knows, dropped.
+        self.garbled_lines = 0
+        self._fd: int | None = None
+        super().__init__(channel, **kwargs)
+        try:
+            self._fd = self.serialPortOrig.fileno()
+        except (AttributeError, io.UnsupportedOperation, OSError, ValueError):
+            self._fd = None
+
+    def pending_input(self) -> bool:
+        """True when a complete line is buffered (read from the port, not yet returned)."""
+        return _LINE_END.search(self._buffer) is not None
+
+    def _take_line(self) -> str | None:
+        found = _LINE_END.search(self._buffer)
+        if found is None:
+            return None
+        end = found.end()
+        line = self._buffer[:end].decode(errors="replace")
+        del self._buffer[:end]
+        return line
+
+    def _read(self, timeout: float | None) -> str | None:
+        port = self.serialPortOrig
+        deadline = None if timeout is None else time.monotonic() + timeout
+        try:
+            while True:
+                line = self._take_line()
+                if line is not None:
+                    return line
+                waiting = port.in_waiting
+                if waiting:
+                    self._buffer += port.read(waiting)
+                    continue
+                remaining = None if deadline is None else deadline - time.monotonic()
+                if remaining is not None and remaining <= 0.0:
+                    return None
+                if self._fd is not None:
+                    select.select([self._fd], [], [], remaining)
+                else:  # no descriptor: block in the port's own read, for at most its timeout
+                    self._buffer += port.read(1)
+        except (OSError, ValueError) as exc:  # what pyserial raises (SerialException is an OSError)
+            raise can.CanOperationError(f"Could not read from serial device: {exc}") from exc
+
+    def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        try:
+            return super()._recv_internal(timeout)
+        except (ValueError, IndexError):
+            # A garbled line (noise on the adapter's serial link): drop it, like a frame lost on the wire.
+            self.garbled_lines += 1
+            return None, False

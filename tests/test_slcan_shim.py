@@ -1,0 +1,130 @@
+"""The slcan shim (motion.transport.slcan_shim) on a real pseudo-terminal with real python-can and pyserial."""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import pytest
+
+from motion.protocol import CanFrame
+from motion.transport.can_endpoint import CanEndpoint
+from motion.transport.slcan_shim import SlcanShimBus, needs_shim
+
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="pseudo-terminals are POSIX")
+
+FRAME_A = b"t1418A40068012823000000\r"  # 0x141, a4 00 68 01 28 23 00 00
+FRAME_B = b"t1428A40000000000000000\r"
+
+
+@pytest.fixture
+def pty_bus() -> Iterator[tuple[int, SlcanShimBus]]:
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    bus = SlcanShimBus(os.ttyname(slave), bitrate=1_000_000, sleep_after_open=0)
+    os.read(master, 4096)  # the open sequence python-can wrote (close, bit rate, open)
+    try:
+        yield master, bus
+    finally:
+        bus.shutdown()
+        os.close(master)
+        os.close(slave)
+
+
+def _frames(bus: SlcanShimBus, count: int, timeout_s: float = 1.0) -> list[tuple[int, bytes]]:
+    got: list[tuple[int, bytes]] = []
+    end = time.monotonic() + timeout_s
+    while len(got) < count and time.monotonic() < end:
+        message = bus.recv(0.05)
+        if message is not None:
+            got.append((message.arbitration_id, bytes(message.data)))
+    return got
+
+
+def test_joined_lines_come_out_one_by_one_from_one_read(pty_bus: tuple[int, SlcanShimBus]) -> None:
+    master, bus = pty_bus
+    port = bus.serialPortOrig
+    reads: list[Any] = []
+    real_read = port.read
+
+    def counting_read(size: int = 1) -> bytes:
+        reads.append(size)
+        data: bytes = real_read(size)
+        return data
+
+    port.read = counting_read
+    os.write(master, b"z\r" + FRAME_A + b"z\r" + FRAME_B * 5)
+    time.sleep(0.05)
+    frames = _frames(bus, 6)
+    assert frames[0] == (0x141, bytes.fromhex("a4 00 68 01 28 23 00 00"))
+    assert frames[1:] == [(0x142, bytes.fromhex("a4") + bytes(7))] * 5
+    assert len(reads) == 1 and reads[0] == len(FRAME_A) * 6 + 4  # every waiting byte in one call
+    assert not bus.pending_input()
+
+
+def test_a_line_split_across_writes_is_reassembled(pty_bus: tuple[int, SlcanShimBus]) -> None:
+    master, bus = pty_bus
+    for cut in (1, 5, len(FRAME_A) - 1):
+        os.write(master, FRAME_A[:cut])
+        time.sleep(0.01)
+        assert bus.recv(0.0) is None  # only part of a line so far
+        os.write(master, FRAME_A[cut:])
+        assert _frames(bus, 1) == [(0x141, bytes.fromhex("a4 00 68 01 28 23 00 00"))]
+
+
+def test_garbage_lines_are_dropped_and_counted(pty_bus: tuple[int, SlcanShimBus]) -> None:
+    master, bus = pty_bus
+    os.write(master, b"tXYZ8\r" + FRAME_A + b"x12\r\a" + b"t14\r" + FRAME_B + b"\xff\xfe\r")
+    assert _frames(bus, 2) == [(0x141, bytes.fromhex("a4 00 68 01 28 23 00 00")), (0x142, b"\xa4" + bytes(7))]
+    assert bus.garbled_lines >= 3
+    assert bus.recv(0.01) is None
+
+
+def test_recv_waits_for_its_timeout_and_no_longer(pty_bus: tuple[int, SlcanShimBus]) -> None:
+    _, bus = pty_bus
+    start = time.monotonic()
+    assert bus.recv(0.02) is None
+    assert 0.015 <= time.monotonic() - start < 0.5
+
+
+def test_endpoint_uses_the_shim_while_python_can_lacks_the_fix() -> None:
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        with CanEndpoint("slcan", os.ttyname(slave), 1_000_000, sleep_after_open=0) as endpoint:
+            assert isinstance(endpoint._bus, SlcanShimBus) is needs_shim()
+            os.write(master, FRAME_A + FRAME_B)
+            time.sleep(0.02)
+            first, second = endpoint.recv(0.5), endpoint.recv(0.0)  # the second is buffered: no select wait
+            assert first is not None and second is not None
+            assert (first[0], second[0]) == (
+                CanFrame(0x141, bytes.fromhex("a4 00 68 01 28 23 00 00")),
+                CanFrame(0x142, b"\xa4" + bytes(7)),
+            )
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+@pytest.mark.parametrize(
+    ("installed", "expected"),
+    [
+        ("4.6.1", True),
+        ("4.5.0", True),
+        ("4.6.1rc1", True),
+        ("3.3.4", True),
+        ("4.6.2", False),
+        ("5.0.0", False),
+        ("4.7", False),
+        ("garbage", True),
+    ],
+)
+def test_needs_shim_by_release(installed: str, expected: bool) -> None:
+    assert needs_shim(installed) is expected
