@@ -92,3 +92,10 @@ class ArmPlant:
         self._q += self._v * dt_s
         self._export()
         return self._p, self._pd
+
+    def hold(self, index: int, position_rad: float) -> None:
+        """Put the joint of emulator index ``index`` at ``position_rad`` (emulator coordinate) at rest."""
+        m = int(np.flatnonzero(self._emu_index == index)[0])
+        self._q[m] = self._sign[m] * position_rad + self._offset_rad[m]
+        self._v[m] = 0.0
+        self._export()

@@ -84,7 +84,7 @@ class FaultKind(StrEnum):
     """What halted the arm (:attr:`MotionFault.kind`); compares equal to its value, e.g. ``"no_reply"``."""
 
     # seen by the watchdog in the cycle's replies
-    FOLLOWING_ERROR = "following_error"  #: |reference - measured| beyond ``safety.following_error_deg``
+    FOLLOWING_ERROR = "following_error"  #: |expected - measured| beyond ``safety.following_error_deg``
     POSITION_LIMIT = "position_limit"  #: a measured angle beyond its joint limit
     SETPOINT_LIMIT = "setpoint_limit"  #: a planned set-point beyond its joint limit (it was not sent)
     TEMPERATURE = "temperature"  #: motor temperature at or above the joint's ``temperature_limit_c``

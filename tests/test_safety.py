@@ -188,16 +188,18 @@ def test_missing_and_corrupt_replies(kind: InjectedFault, expected: str, cycles:
 
 
 def test_following_error_with_hold_policy(tmp_path: Path) -> None:
-    # position mode: the drive's own loop lags the stream; a tight threshold makes a fast move fault
-    config = _config(HaltPolicy.HOLD, following_error_deg=0.5)
+    # position mode: the shoulder is blocked mid-move (the drive's own lag alone never faults: issue 18)
+    config = _config(HaltPolicy.HOLD)
     with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None
-        supervisor.move_to([80.0, -100.0])
+        supervisor.move_to([60.0, -100.0], speed_scale=0.6)
+        rig.sleep(0.3)
+        _inject(rig, InjectedFault.BLOCKED, 1, duration_s=0.2)
         with pytest.raises(MotionFault) as info:
             supervisor.wait(5.0)
-        assert info.value.kind == "following_error"
-        assert info.value.value is not None and info.value.value > 0.5
+        assert info.value.kind == "following_error" and info.value.joint == "shoulder"
+        assert info.value.value is not None and info.value.value > config.safety.following_error_deg
         halt = supervisor.halts[0]
         assert halt.policy == "hold" and halt.halt_sent_s - halt.detected_s < rig.controller.period_s
         assert not received(rig, Command.MOTOR_STOP)  # hold streams a stop ramp instead of 0x81

@@ -28,6 +28,7 @@ from motion.control.axes import AxisSpec, AxisStates
 from motion.control.clock import Clock, MonotonicClock, is_simulated
 from motion.control.scheduler import CycleFn, FixedRateLoop, LoopStatistics
 from motion.control.snapshot import JOINT_ROWS, CycleSnapshot, frozen
+from motion.control.tracking import ExpectedTracking
 from motion.errors import MotionError, PlanningError, TransportError
 from motion.protocol import (
     Bare,
@@ -187,6 +188,8 @@ class Controller:
         self.reference = State.at_rest(np.zeros(len(self.specs)))
         self.kp = np.array([s.kp_nm_per_deg for s in self.specs])
         self.kd = np.array([s.kd_nm_per_dps for s in self.specs])
+        #: Where each joint should be at the latest measurement (the drives' or the PD loop's lag modelled).
+        self.tracking = ExpectedTracking(options.mode, transmission, self.kp, self.kd)
         self.ids = tuple(s.motor_id for s in self.specs)
         self._pending: Pending | None = None
         self.rejected: PlanningError | None = None
@@ -252,6 +255,8 @@ class Controller:
         q = self.axes.positions()
         self.follower = Follower(self.planner, q)
         self.reference = State.at_rest(q)
+        self.tracking.read_drive_loops(self.bus, self.ids, self.clock.now() + timeout_s)
+        self.tracking.reset(q, self.axes.qd_dps)
         self._publish(0, now, False)  # what was read, before the first cycle
         return q
 
@@ -442,12 +447,23 @@ class Controller:
         requests.extend(extra)
         replies = self.bus.transact(requests, start_s + self.options.reply_budget * (deadline_s - start_s))
         self.absorb(replies)
+        self._track(start_s, ref, command)
         self._publish(self.loop.cycles + 1, start_s, command)  # (the loop counts the cycle once it has ended)
         for hook in self.cycle_hooks:
             hook(self, start_s, replies)
         if not follower.moving and self._pending is None:
             self._idle.set()
         return replies
+
+    def _track(self, start_s: float, ref: State, commanded: bool) -> None:
+        """The expected angles at this cycle's measurement, then the model takes this cycle's set-points."""
+        tracking, axes = self.tracking, self.axes
+        tracking.advance(start_s, axes.q_deg, axes.qd_dps)
+        if not commanded:
+            tracking.stop_commanding()
+            return
+        caps = self.setpoints.max_speed_dps if self.options.mode is ControlMode.POSITION else None
+        tracking.command(start_s, ref.position, ref.velocity, ref.acceleration, caps)
 
     def _publish(self, cycle: int, start_s: float, commanded: bool) -> None:
         """Replace :attr:`snapshot` with this cycle's (one stacked copy: the loop never waits on a reader)."""

@@ -142,6 +142,8 @@ class Emulator:
         #: Times sync() gave up catching up and let simulation time slip behind the wall clock.
         self.overruns = 0
         self._faults: list[Fault] = []
+        #: Blocked joints (emulator index -> where they are held, rad).
+        self._blocked: dict[int, float] = {}
         self._events: list[tuple[float, int]] = []  # (sim time, motor id) where a physical fault begins or ends
         for fault in faults:
             self.add_fault(fault)
@@ -211,6 +213,10 @@ class Emulator:
         for n, drive in enumerate(self._order):
             torques[n] = drive.control(dt, float(positions[n]), float(velocities[n]))
         self._positions, self._velocities = self.plant.step(dt, torques)
+        if self._blocked:
+            for n, position in self._blocked.items():
+                self.plant.hold(n, position)
+            self._positions, self._velocities = self.plant.state()
         self._steps += 1
 
     def _observe_all(self) -> None:
@@ -249,15 +255,19 @@ class Emulator:
     def _refresh_physical_faults(self, motor_id: int) -> None:
         drive, now = self.drives[motor_id], self.time_s
         volts, floors = [], []
-        for f in self._faults:
-            if f.motor_id != motor_id or not f.active(now):
-                continue
+        active = [f for f in self._faults if f.motor_id == motor_id and f.active(now)]
+        for f in active:
             if f.kind is InjectedFault.UNDER_VOLTAGE:
                 volts.append(f.value if f.value is not None else drive.model.low_voltage_v - _UNDER_VOLTAGE_MARGIN_V)
             elif f.kind is InjectedFault.OVER_TEMPERATURE:
                 default_c = drive.model.over_temperature_c + _OVER_TEMPERATURE_MARGIN_C
                 floors.append(f.value if f.value is not None else default_c)
         drive.voltage_override_v = max(0.0, min(volts)) if volts else None
+        n = self._index[motor_id]
+        if any(f.kind is InjectedFault.BLOCKED for f in active):
+            self._blocked.setdefault(n, float(self._positions[n]))
+        else:
+            self._blocked.pop(n, None)
         drive.temperature_floor_c = max(floors) if floors else None
         if floors:
             drive.temperature_c = max(drive.temperature_c, *floors)

@@ -18,9 +18,11 @@ Command-line syntax (``--fault``), also accepted by :func:`parse_fault`::
   checksum for frames without data). ``id`` - CAN: reply on 0x100 + id, outside the reply ids; RS485: motor id 0 with
   a valid header checksum. ``length`` - CAN: 7-byte payload; RS485: the last byte missing.
 - ``drop[:probability]``: each request is lost with probability PARAM (default 1): not executed, not answered.
+- ``blocked``: the joint is held where it is at START (a mechanical obstruction: zero speed whatever the torque)
+  until END; the drive keeps driving against it.
 
 Examples: ``over_temperature:2@5-20:95``, ``delay:1@0:15``, ``silent:3@10``, ``drop:4@2-3:0.5``,
-``corrupt:1@1:length``.
+``corrupt:1@1:length``, ``blocked:2@1.5``.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ class InjectedFault(Enum):
     DELAY = "delay"  #: replies late by a number of milliseconds
     CORRUPT = "corrupt"  #: replies corrupted
     DROP = "drop"  #: requests lost with a probability
+    BLOCKED = "blocked"  #: the joint held where it is (an obstruction)
 
 
 class Corruption(Enum):

@@ -46,6 +46,10 @@ class Plant(Protocol):
         """Apply ``torques_nm`` (joint side, N·m) for ``dt_s`` seconds; return ``(positions_rad, velocities_rad_s)``."""
         ...
 
+    def hold(self, index: int, position_rad: float) -> None:
+        """Put joint ``index`` at ``position_rad`` at rest (an obstruction: the emulator calls it after each step)."""
+        ...
+
 
 class IndependentLoads:
     """Each drive turns its own load (no coupling, no gravity apart from a constant load torque).
@@ -117,3 +121,8 @@ class IndependentLoads:
         np.multiply(self._v, dt_s, out=tmp)
         self._q += tmp
         return self._q, self._v
+
+    def hold(self, index: int, position_rad: float) -> None:
+        """Put joint ``index`` at ``position_rad`` at rest."""
+        self._q[index] = position_rad
+        self._v[index] = 0.0

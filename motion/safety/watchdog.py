@@ -25,6 +25,8 @@ from motion.transport import Reply
 POSITION_LIMIT_TOLERANCE_DEG = 0.1
 # Window of the corrupt-frame count, s.
 CORRUPT_WINDOW_S = 1.0
+# Expected joint speed above which a joint counts as moving for the following-error check, deg/s.
+_MOVING_DPS = 1.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -35,7 +37,8 @@ class SafetySettings:
         halt_policy: the reaction to a fault.
         temperature_limit_c: per joint, °C.
         min_voltage_v: supply voltage below which the arm faults, V.
-        following_error_deg: largest |reference - measured| joint angle, deg.
+        following_error_deg: largest |expected - measured| joint angle, deg (expected: where the joint should be
+            now under its control loop, :mod:`motion.control.tracking`).
         reply_timeout_s: longest time without a good reply from a drive, s (on top of the missed-reply count).
         max_missed_replies: consecutive cycles with a missing reply tolerated per drive.
         max_corrupt_frames: corrupt frames per drive tolerated within one second.
@@ -78,7 +81,11 @@ class Watchdog:
         self._overruns_seen = 0
         self._overrun_streak = 0
         self._counters = [controller.bus.motor_counters(motor_id) for motor_id in self.ids]
-        self.previous_reference: FloatArray | None = None
+        # Following error: work arrays, and whether a cycle has run since start() (the first has no expectation).
+        self._following = False
+        self._error = np.zeros(n)
+        self._slip = np.zeros(n)
+        self._moving = np.zeros(n, dtype=bool)
 
     def start(self, now_s: float) -> None:
         """Reset the reply clocks (at loop start or after a clear)."""
@@ -91,7 +98,9 @@ class Watchdog:
             self._corrupt[i].clear()
         self._overruns_seen = self.controller.loop.overruns
         self._overrun_streak = 0
-        self.previous_reference = None
+        self._following = False
+        controller = self.controller
+        controller.tracking.reset(controller.axes.q_deg, controller.axes.qd_dps, controller.reference.position)
 
     def check_setpoint(self, reference: State) -> None:
         """Refuse to send a planned set-point outside the joint limits.
@@ -156,19 +165,9 @@ class Watchdog:
         self._check_corrupt(now_s)
         q = self.controller.axes.q_deg
         self._check_limits(q, FaultKind.POSITION_LIMIT, "measured position beyond the limit")
-        previous = self.previous_reference
-        if previous is not None:
-            error = np.abs(previous - q)
-            worst = int(np.argmax(error))
-            if error[worst] > settings.following_error_deg:
-                raise self._fault(
-                    FaultKind.FOLLOWING_ERROR,
-                    worst,
-                    float(error[worst]),
-                    settings.following_error_deg,
-                    "|reference - q|",
-                )
-        self.previous_reference = self.controller.reference.position
+        if self._following:
+            self._check_following(q)
+        self._following = True
         overruns = self.controller.loop.overruns
         self._overrun_streak = self._overrun_streak + 1 if overruns > self._overruns_seen else 0
         self._overruns_seen = overruns
@@ -179,6 +178,31 @@ class Watchdog:
                 float(self._overrun_streak),
                 float(settings.max_overrun_streak),
                 "consecutive overruns",
+            )
+
+    def _check_following(self, q: FloatArray) -> None:
+        """|expected - measured| against the threshold; a joint slower than expected also loses the lag it was
+        expected to have (a joint that stops while it should move is as far from the reference as it is), so that a
+        blocked joint is caught as soon as the raw reference-minus-measured error would catch it."""
+        tracking, qd = self.controller.tracking, self.controller.axes.qd_dps
+        error, slip = self._error, self._slip
+        expected_dps = tracking.expected_dps
+        moving = self._moving
+        np.abs(expected_dps, out=error)
+        np.greater(error, _MOVING_DPS, out=moving)
+        np.subtract(expected_dps, qd, out=slip)
+        np.divide(slip, expected_dps, out=slip, where=moving)
+        np.clip(slip, 0.0, 1.0, out=slip)
+        slip *= moving
+        slip *= tracking.lag_deg
+        np.subtract(tracking.expected_deg, q, out=error)
+        error += slip
+        np.abs(error, out=error)
+        worst = int(np.argmax(error))
+        limit = self.settings.following_error_deg
+        if error[worst] > limit:
+            raise self._fault(
+                FaultKind.FOLLOWING_ERROR, worst, float(error[worst]), limit, "|expected - q| (+ lag lost by slipping)"
             )
 
     def _check_status(self, i: int, status: Status1) -> None:

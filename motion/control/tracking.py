@@ -1,0 +1,284 @@
+"""Where each joint should be now: a model of how the drives follow the stream, for the following-error check.
+
+The reference is where the planner wants the arm; no real joint is there. In position mode the drive's own position
+loop trails the 0xA4 stream (by speed / loop gain at low speed, and by the braking distance of its acceleration limit,
+``speed² / (2 a)``, at high speed); in torque mode the controller's PD loop trails a reference whose inertia is not fed
+forward. :class:`ExpectedTracking` runs a small per-joint model of that loop alongside the real one, driven by the
+same commands, and gives the *expected* joint angle; the watchdog compares the measured angle with it, so that a fault
+threshold means "this far from where the arm should be now" whatever the speed and the drive's tuning.
+
+Position mode (per joint, joint side, the drive's loop as the documents and the drives describe it): the speed the
+drive asks for is ``min(angle_gain × |error|, sqrt(2 a |error|), max_speed)`` toward the 0xA4 target, slewed at the
+acceleration limit ``a`` (0x33, 0 = none), where ``angle_gain`` comes from the angle-loop gain read with 0x30
+(:data:`ANGLE_GAIN_PER_S_PER_UNIT` per unit: the documents give no scale, so it is a prior that identification
+replaces, see :func:`identify_position_loop`) and ``max_speed`` is the cap the controller sent. The speed loop under
+it is taken as ideal.
+
+Torque mode: the controller's own law (PD on the reference for the set-point instant, plus the share of the
+inertia the feed-forward covers) applied to a rigid joint of the given inertia, gravity cancelled by the feed-forward,
+the torque held over the period as the drives hold it. Without an inertia the model expects the reference.
+
+The model steps from one cycle's start to the next with the command that cycle sent (skipped cycles are integrated
+over); it is reset to the measured state whenever no set-points are streamed (halted) and at every (re)start. All
+arrays are preallocated: a cycle allocates nothing.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from motion.config.schema import ControlMode
+from motion.protocol import Acceleration, Bare, Command, PidGains
+from motion.transmission import ArmTransmission, FloatArray
+from motion.transport.base import Request, Transport
+
+#: Angle-loop gain per unit of the 0x30 ``angle_kp``: speed asked for (deg/s) per degree of angle error, 1/s. The
+#: documents give no physical scale; this is the one the project's emulated drives use, a prior for real drives.
+ANGLE_GAIN_PER_S_PER_UNIT = 0.5
+#: Longest integration step of the position-loop model, s (the drive's loop runs much faster than the stream).
+MAX_STEP_S = 0.001
+_RAD_PER_DEG = math.pi / 180.0
+_DEG_PER_RAD = 180.0 / math.pi
+#: A drive whose acceleration limit reads 0 has none; the model then uses this (deg/s², joint side).
+_NO_LIMIT = 1e12
+
+
+@dataclass(frozen=True, slots=True)
+class PositionLoop:
+    """The position loop of one drive, joint side.
+
+    Attributes:
+        angle_gain_per_s: speed asked for per degree of angle error, 1/s.
+        acceleration_dps2: the drive's acceleration limit, joint side, deg/s² (``inf``: none).
+    """
+
+    angle_gain_per_s: float
+    acceleration_dps2: float
+
+    @classmethod
+    def from_drive(cls, gains: PidGains, acceleration: Acceleration | None, gear_ratio: float) -> PositionLoop:
+        """The prior from the drive's 0x30 gains and 0x33 acceleration (motor side; converted through the gear)."""
+        accel = acceleration.acceleration_dps2 if acceleration is not None else 0
+        return cls(
+            angle_gain_per_s=max(gains.angle_kp, 1) * ANGLE_GAIN_PER_S_PER_UNIT,
+            acceleration_dps2=accel / gear_ratio if accel > 0 else math.inf,
+        )
+
+
+class ExpectedTracking:
+    """The expected joint angles of one arm under its control loop (see the module docstring).
+
+    Args:
+        mode: the control mode (position: the drives' loops; torque: the controller's PD).
+        transmission: the joints' transmissions (gear ratios and torque limits).
+        kp_nm_per_deg: torque mode: the PD stiffness per joint.
+        kd_nm_per_dps: torque mode: the PD damping per joint.
+
+    Attributes:
+        expected_deg: where each joint should be at the latest cycle's measurement, deg (read-only between cycles).
+        expected_dps: its expected speed, deg/s.
+        lag_deg: the model's lag behind the reference of the previous cycle at that instant, deg.
+        enabled: False expects the reference itself (no lag: the check as it was before the model).
+    """
+
+    def __init__(
+        self,
+        mode: ControlMode,
+        transmission: ArmTransmission,
+        kp_nm_per_deg: FloatArray,
+        kd_nm_per_dps: FloatArray,
+    ) -> None:
+        n = len(transmission)
+        self.mode = mode
+        self.n = n
+        self.gear_ratio = np.array([abs(t.gear_ratio) for t in transmission.transmissions])
+        self.kp = np.asarray(kp_nm_per_deg, dtype=np.float64).copy()
+        self.kd = np.asarray(kd_nm_per_dps, dtype=np.float64).copy()
+        self.torque_limit_nm = np.array(
+            [abs(t.nm_per_a) * t.current_limit_a for t in transmission.transmissions], dtype=np.float64
+        )
+        self.expected_deg = np.zeros(n)
+        self.expected_dps = np.zeros(n)
+        self.lag_deg = np.zeros(n)
+        self.enabled = True
+        # Position loop parameters (prior: the emulated drives' factory gains until read or identified).
+        self.angle_gain_per_s = np.full(n, 100 * ANGLE_GAIN_PER_S_PER_UNIT)
+        self.acceleration_dps2 = np.full(n, math.inf)
+        self._accel = np.full(n, _NO_LIMIT)
+        # Torque mode: joint inertia (None until given: the model then expects the reference) and fed-forward share.
+        self.inertia_kgm2: FloatArray | None = None
+        self.inertia_feedforward = False
+        # State and the command in force since the last step.
+        self._x = np.zeros(n)
+        self._v = np.zeros(n)
+        self._target = np.zeros(n)  # position: the 0xA4 target; torque: the reference position
+        self._cap = np.full(n, np.inf)  # position: the 0xA4 max speed, joint side
+        self._ref_v = np.zeros(n)
+        self._ref_a = np.zeros(n)
+        self._tau = np.zeros(n)
+        self._commanded = False
+        self._t_s = math.nan
+        self._previous_ref = np.zeros(n)
+        # Work buffers.
+        self._e = np.zeros(n)
+        self._s = np.zeros(n)
+        self._w = np.zeros(n)
+
+    # ------------------------------------------------------------------------------------------------ parameters
+
+    def set_position_loops(self, loops: Sequence[PositionLoop]) -> None:
+        """Use these position-loop parameters (joint order)."""
+        self.angle_gain_per_s[:] = [loop.angle_gain_per_s for loop in loops]
+        self.acceleration_dps2[:] = [loop.acceleration_dps2 for loop in loops]
+        np.copyto(self._accel, np.where(np.isfinite(self.acceleration_dps2), self.acceleration_dps2, _NO_LIMIT))
+
+    def position_loops(self) -> tuple[PositionLoop, ...]:
+        """The position-loop parameters in use (joint order)."""
+        return tuple(
+            PositionLoop(float(g), float(a)) for g, a in zip(self.angle_gain_per_s, self.acceleration_dps2, strict=True)
+        )
+
+    def set_inertia(self, inertia_kgm2: Sequence[float] | FloatArray, *, fed_forward: bool) -> None:
+        """Torque mode: the joints' inertia (joint side, rotor included), kg·m², and whether the feed-forward covers
+        it (then only the sampling and the torque limit make the joint trail the reference)."""
+        self.inertia_kgm2 = np.asarray(inertia_kgm2, dtype=np.float64).copy()
+        self.inertia_feedforward = fed_forward
+
+    def read_drive_loops(self, bus: Transport, ids: Sequence[int], deadline_s: float) -> bool:
+        """Read every drive's angle-loop gain (0x30) and acceleration limit (0x33) and use them as the prior.
+
+        Returns:
+            True when every drive answered both (drives that did not keep the current parameters).
+        """
+        requests = [Request(i, Bare(c)) for i in ids for c in (Command.READ_PID, Command.READ_ACCELERATION)]
+        gains: dict[int, PidGains] = {}
+        accels: dict[int, Acceleration] = {}
+        for reply in bus.transact(requests, deadline_s):
+            if isinstance(reply.message, PidGains):
+                gains[reply.motor_id] = reply.message
+            elif isinstance(reply.message, Acceleration):
+                accels[reply.motor_id] = reply.message
+        loops = list(self.position_loops())
+        for j, motor_id in enumerate(ids):
+            if motor_id in gains:
+                loops[j] = PositionLoop.from_drive(gains[motor_id], accels.get(motor_id), float(self.gear_ratio[j]))
+        self.set_position_loops(loops)
+        return all(i in gains and i in accels for i in ids)
+
+    # ------------------------------------------------------------------------------------------------ the cycle
+
+    def reset(self, q_deg: FloatArray, qd_dps: FloatArray, reference_deg: FloatArray | None = None) -> None:
+        """Start again from the measured state (at start, after a halt or a clear): the expected angle is the
+        measured one and nothing is commanded until :meth:`command`."""
+        np.copyto(self._x, q_deg)
+        np.copyto(self._v, qd_dps)
+        np.copyto(self.expected_deg, q_deg)
+        np.copyto(self.expected_dps, qd_dps)
+        np.copyto(self._previous_ref, q_deg if reference_deg is None else reference_deg)
+        self.lag_deg[:] = 0.0
+        self._commanded = False
+        self._t_s = math.nan
+
+    def advance(self, t_s: float, q_deg: FloatArray, qd_dps: FloatArray) -> None:
+        """Bring the model to ``t_s`` (this cycle's start: its measurement instant) under the command in force,
+        and publish :attr:`expected_deg`. Without a command in force the model follows the measurement."""
+        if not self._commanded or math.isnan(self._t_s):
+            np.copyto(self._x, q_deg)
+            np.copyto(self._v, qd_dps)
+        elif not self.enabled:
+            np.copyto(self._x, self._target)  # the reference itself: no lag expected
+            np.copyto(self._v, self._ref_v)
+        else:
+            dt = t_s - self._t_s
+            if dt > 0:
+                if self.mode is ControlMode.POSITION:
+                    self._position_step(dt)
+                else:
+                    self._torque_step(dt)
+        self._t_s = t_s
+        np.copyto(self.expected_deg, self._x)
+        np.copyto(self.expected_dps, self._v)
+        np.subtract(self._previous_ref, self._x, out=self.lag_deg)
+
+    def command(
+        self,
+        t_s: float,
+        reference_deg: FloatArray,
+        reference_dps: FloatArray,
+        reference_dps2: FloatArray,
+        max_speed_motor_dps: FloatArray | None,
+    ) -> None:
+        """The set-points this cycle sent (at ``t_s``, after :meth:`advance`): the reference for the next instant
+        and, in position mode, the 0xA4 speed caps (motor side)."""
+        np.copyto(self._previous_ref, reference_deg)
+        np.copyto(self._target, reference_deg)
+        np.copyto(self._ref_v, reference_dps)
+        np.copyto(self._ref_a, reference_dps2)
+        if max_speed_motor_dps is not None:
+            np.divide(max_speed_motor_dps, self.gear_ratio, out=self._cap)
+        if self.mode is ControlMode.TORQUE and self.inertia_kgm2 is not None:
+            self._torque_law()
+        self._commanded = True
+        self._t_s = t_s
+
+    def stop_commanding(self) -> None:
+        """No set-points go out (halted): the model follows the measurement until the next command."""
+        self._commanded = False
+
+    # ------------------------------------------------------------------------------------------------ models
+
+    def _position_step(self, dt: float) -> None:
+        steps = max(1, math.ceil(dt / MAX_STEP_S - 1e-9))
+        h = dt / steps
+        x, v, e, s, w = self._x, self._v, self._e, self._s, self._w
+        accel = self._accel
+        for _ in range(steps):
+            np.subtract(self._target, x, out=e)
+            np.abs(e, out=s)
+            np.multiply(s, 2.0, out=w)
+            w *= accel
+            np.sqrt(w, out=w)  # braking curve: sqrt(2 a |e|)
+            s *= self.angle_gain_per_s
+            np.minimum(s, w, out=s)
+            np.minimum(s, self._cap, out=s)
+            np.copysign(s, e, out=s)  # the speed the drive asks for
+            np.subtract(s, v, out=w)
+            np.multiply(accel, h, out=e)
+            np.clip(w, -e, e, out=w)  # slewed at the acceleration limit
+            v += w
+            np.multiply(v, h, out=w)
+            x += w
+
+    def _torque_law(self) -> None:
+        """The controller's torque on the model joint, held until the next cycle (as the drives hold it)."""
+        tau, e = self._tau, self._e
+        np.subtract(self._target, self._x, out=e)
+        np.multiply(self.kp, e, out=tau)
+        np.subtract(self._ref_v, self._v, out=e)
+        e *= self.kd
+        tau += e
+        if self.inertia_feedforward and self.inertia_kgm2 is not None:
+            np.multiply(self.inertia_kgm2, self._ref_a, out=e)
+            e *= _RAD_PER_DEG
+            tau += e
+        np.clip(tau, -self.torque_limit_nm, self.torque_limit_nm, out=tau)
+
+    def _torque_step(self, dt: float) -> None:
+        x, v = self._x, self._v
+        if self.inertia_kgm2 is None:
+            np.copyto(x, self._target)  # no inertia known: the reference is the expectation
+            np.copyto(v, self._ref_v)
+            return
+        a = self._w
+        np.divide(self._tau, self.inertia_kgm2, out=a)
+        a *= _DEG_PER_RAD
+        np.multiply(v, dt, out=self._e)
+        x += self._e
+        np.multiply(a, 0.5 * dt * dt, out=self._e)
+        x += self._e
+        np.multiply(a, dt, out=self._e)
+        v += self._e
