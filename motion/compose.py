@@ -11,7 +11,10 @@ limit and rotor inertia, so a program tested on the emulator talks to the same i
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterable, Mapping
+import math
+from collections.abc import Callable, Iterable, Mapping
+
+import numpy as np
 
 from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, JointConfig
 from motion.control.axes import AxisSpec
@@ -22,6 +25,7 @@ from motion.emulator import DriveModel, Emulator, Fault, LoadModel, Plant
 from motion.protocol import WireProtocol
 from motion.safety import SafetySettings
 from motion.trajectory import JointLimits
+from motion.transmission import FloatArray
 from motion.transport import Transport, open_transport
 
 logger = logging.getLogger("motion.config")
@@ -88,11 +92,35 @@ def feedforward_for(config: ArmConfig) -> Feedforward | None:
     return feedforward(build_arm(config), gravity=control.gravity_feedforward, inertia=control.inertia_feedforward)
 
 
+def inertia_for(config: ArmConfig) -> Callable[[FloatArray], FloatArray] | None:
+    """Torque mode: the arm's mass matrix as a function of the joint angles, kg·m², for the model of the PD loop's
+    tracking (:mod:`motion.control.tracking`); None in position mode.
+
+    The links' share comes from the arm's model; the rotors', ``gear_ratio² × rotor inertia`` on the diagonal, from
+    the joints' ``emulation.rotor_inertia_kgm2``, the one place the configuration states the motor's rotor (on a
+    light wrist joint it is most of the inertia the PD loop moves).
+    """
+    if config.control.mode is not ControlMode.TORQUE:
+        return None
+    from kinematics import build_arm, mass_matrix  # noqa: PLC0415 - Pinocchio only where an arm needs it
+
+    arm = build_arm(config)
+    per_deg = math.pi / 180.0  # mass_matrix is in N·m per deg/s²
+    rotors = np.diag([j.gear_ratio**2 * j.emulation.rotor_inertia_kgm2 for j in config.joints])
+
+    def inertia(q_deg: FloatArray) -> FloatArray:
+        mass: FloatArray = mass_matrix(arm, q_deg) / per_deg + rotors
+        return mass
+
+    return inertia
+
+
 def build_controller(
     config: ArmConfig, bus: Transport, *, feedforward: Feedforward | None = None, clock: Clock | None = None
 ) -> Controller:
-    """A controller for ``config`` on ``bus`` (call ``read_positions()`` before moving)."""
-    return Controller(
+    """A controller for ``config`` on ``bus`` (call ``read_positions()`` before moving). In torque mode with a
+    feed-forward, the tracking model learns the joints' inertia from the arm's model."""
+    controller = Controller(
         axis_specs(config),
         config.transmission(),
         joint_limits(config),
@@ -101,6 +129,10 @@ def build_controller(
         feedforward=feedforward,
         clock=clock,
     )
+    inertia = inertia_for(config) if feedforward is not None else None
+    if inertia is not None:
+        controller.tracking.set_inertia(inertia, fed_forward=config.control.inertia_feedforward)
+    return controller
 
 
 def check_rate(controller: Controller, config: ArmConfig) -> RateCheck:

@@ -26,7 +26,7 @@ arrays are preallocated: a cycle allocates nothing.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -112,6 +112,7 @@ class ExpectedTracking:
         # Torque mode: joint inertia (None until given: the model then expects the reference) and fed-forward share.
         self.inertia_kgm2: FloatArray | None = None
         self.inertia_feedforward = False
+        self._inertia_of: Callable[[FloatArray], FloatArray] | None = None
         # State and the command in force since the last step.
         self._x = np.zeros(n)
         self._v = np.zeros(n)
@@ -120,6 +121,7 @@ class ExpectedTracking:
         self._ref_v = np.zeros(n)
         self._ref_a = np.zeros(n)
         self._tau = np.zeros(n)
+        self._accel_dps2 = np.zeros(n)
         self._commanded = False
         self._t_s = math.nan
         self._previous_ref = np.zeros(n)
@@ -142,11 +144,32 @@ class ExpectedTracking:
             PositionLoop(float(g), float(a)) for g, a in zip(self.angle_gain_per_s, self.acceleration_dps2, strict=True)
         )
 
-    def set_inertia(self, inertia_kgm2: Sequence[float] | FloatArray, *, fed_forward: bool) -> None:
-        """Torque mode: the joints' inertia (joint side, rotor included), kg·m², and whether the feed-forward covers
-        it (then only the sampling and the torque limit make the joint trail the reference)."""
-        self.inertia_kgm2 = np.asarray(inertia_kgm2, dtype=np.float64).copy()
+    def set_inertia(
+        self,
+        inertia_kgm2: Sequence[float] | FloatArray | Callable[[FloatArray], FloatArray],
+        *,
+        fed_forward: bool,
+    ) -> None:
+        """Torque mode: the arm's inertia, kg·m² (joint side, rotors included): per joint (independent joints), an
+        N×N mass matrix, or a function of the joint angles (deg, evaluated at each cycle's reference) giving either;
+        and whether the feed-forward covers it (then only the sampling and the torque limit make the joints trail
+        the reference)."""
+        if callable(inertia_kgm2):
+            self._inertia_of = inertia_kgm2
+            self._set_mass(inertia_kgm2(self._x))
+        else:
+            self._inertia_of = None
+            self._set_mass(np.asarray(inertia_kgm2, dtype=np.float64))
         self.inertia_feedforward = fed_forward
+
+    def _set_mass(self, inertia: FloatArray) -> None:
+        if self.inertia_kgm2 is None:
+            self.inertia_kgm2 = np.zeros((self.n, self.n))
+        if inertia.ndim == 1:
+            self.inertia_kgm2[:] = 0.0
+            np.fill_diagonal(self.inertia_kgm2, inertia)
+        else:
+            np.copyto(self.inertia_kgm2, inertia)
 
     def read_drive_loops(self, bus: Transport, ids: Sequence[int], deadline_s: float) -> bool:
         """Read every drive's angle-loop gain (0x30) and acceleration limit (0x33) and use them as the prior.
@@ -221,6 +244,8 @@ class ExpectedTracking:
         if max_speed_motor_dps is not None:
             np.divide(max_speed_motor_dps, self.gear_ratio, out=self._cap)
         if self.mode is ControlMode.TORQUE and self.inertia_kgm2 is not None:
+            if self._inertia_of is not None:
+                self._set_mass(self._inertia_of(reference_deg))
             self._torque_law()
         self._commanded = True
         self._t_s = t_s
@@ -254,18 +279,23 @@ class ExpectedTracking:
             x += w
 
     def _torque_law(self) -> None:
-        """The controller's torque on the model joint, held until the next cycle (as the drives hold it)."""
+        """The controller's torque on the model arm (PD, plus M·qdd_ref where the feed-forward covers the inertia;
+        gravity is cancelled by the feed-forward), limited, and the acceleration it gives, held until the next cycle
+        (as the drives hold the torque)."""
+        mass = self.inertia_kgm2
+        assert mass is not None
         tau, e = self._tau, self._e
         np.subtract(self._target, self._x, out=e)
         np.multiply(self.kp, e, out=tau)
         np.subtract(self._ref_v, self._v, out=e)
         e *= self.kd
         tau += e
-        if self.inertia_feedforward and self.inertia_kgm2 is not None:
-            np.multiply(self.inertia_kgm2, self._ref_a, out=e)
-            e *= _RAD_PER_DEG
-            tau += e
+        if self.inertia_feedforward:
+            np.multiply(self._ref_a, _RAD_PER_DEG, out=e)
+            tau += mass @ e
         np.clip(tau, -self.torque_limit_nm, self.torque_limit_nm, out=tau)
+        self._accel_dps2[:] = np.linalg.solve(mass, tau)
+        self._accel_dps2 *= _DEG_PER_RAD
 
     def _torque_step(self, dt: float) -> None:
         x, v = self._x, self._v
@@ -273,12 +303,10 @@ class ExpectedTracking:
             np.copyto(x, self._target)  # no inertia known: the reference is the expectation
             np.copyto(v, self._ref_v)
             return
-        a = self._w
-        np.divide(self._tau, self.inertia_kgm2, out=a)
-        a *= _DEG_PER_RAD
-        np.multiply(v, dt, out=self._e)
-        x += self._e
-        np.multiply(a, 0.5 * dt * dt, out=self._e)
-        x += self._e
-        np.multiply(a, dt, out=self._e)
-        v += self._e
+        a, step = self._accel_dps2, self._e
+        np.multiply(v, dt, out=step)
+        x += step
+        np.multiply(a, 0.5 * dt * dt, out=step)
+        x += step
+        np.multiply(a, dt, out=step)
+        v += step
