@@ -10,9 +10,11 @@ limit and rotor inertia, so a program tested on the emulator talks to the same i
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections.abc import Callable, Iterable, Mapping
+from dataclasses import fields
 
 import numpy as np
 
@@ -21,7 +23,7 @@ from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
 from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
-from motion.emulator import DriveModel, Emulator, Fault, LoadModel, Plant
+from motion.emulator import DEFAULT_PID, DriveModel, Emulator, Fault, LoadModel, Plant
 from motion.protocol import WireProtocol
 from motion.safety import SafetySettings
 from motion.trajectory import JointLimits
@@ -158,8 +160,16 @@ def check_rate(controller: Controller, config: ArmConfig) -> RateCheck:
 
 
 def drive_model(joint: JointConfig, supply_voltage_v: float = 24.0) -> DriveModel:
-    """The emulated drive of one joint, on a supply of ``supply_voltage_v``."""
+    """The emulated drive of one joint, on a supply of ``supply_voltage_v``, tuned as its ``emulation`` says."""
+    emulation = joint.emulation
+    gains = {f.name: getattr(emulation.pid, f.name) for f in fields(emulation.pid)}
+    pid = dataclasses.replace(DEFAULT_PID, **{k: v for k, v in gains.items() if v is not None})
+    factory = DriveModel()
     return DriveModel(
+        pid=pid,
+        acceleration_dps2=factory.acceleration_dps2
+        if emulation.acceleration_dps2 is None
+        else emulation.acceleration_dps2,
         supply_voltage_v=supply_voltage_v,
         gear_ratio=joint.gear_ratio,
         torque_constant_nm_per_a=joint.torque_constant_nm_per_a,

@@ -26,6 +26,7 @@ from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.emulator import Emulator, FrameLog, Rs485Attachment, SlcanAttachment, VirtualCanAttachment
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
+from motion.emulator.timing import TimingModel
 from motion.protocol import Message, MultiTurnPositionSpeed, WireProtocol, can_frame, rs485_frame
 from motion.safety import Supervisor
 from motion.transport import Transport
@@ -65,18 +66,26 @@ def arm_config(name: str, *, mode: ControlMode | None = None, rate_hz: float | N
 
 @contextmanager
 def emulated_arm(
-    config: ArmConfig, attachment: str, tmp_path: Path, *, use_feedforward: bool = True, supervised: bool = False
+    config: ArmConfig,
+    attachment: str,
+    tmp_path: Path,
+    *,
+    use_feedforward: bool = True,
+    supervised: bool = False,
+    latency_s: float | None = None,
 ) -> Iterator[Rig]:
     """Run ``config`` on emulated drives over ``attachment`` (``sim``: the simulated bus of the configured protocol,
     in simulated time; or in real time on an in-process attachment: virtual | slcan | rs485); the controller is
-    started, under a safety :class:`Supervisor` if ``supervised``."""
+    started, under a safety :class:`Supervisor` if ``supervised``. ``latency_s``: the drives' reply latency in
+    simulated time (default the emulator's)."""
     emulator, plant = arm_emulator(config)
     log_path = tmp_path / f"frames-{uuid.uuid4().hex[:8]}.log"
     clock = None
     with ExitStack() as stack:
         if attachment == "sim":
             wire = WireProtocol.CAN if isinstance(config.bus, CanBusConfig) else WireProtocol.RS485
-            simulation = Simulation(emulator, wire)
+            timing = TimingModel(latency_s=latency_s) if latency_s is not None else None
+            simulation = Simulation(emulator, wire, timing=timing)
             log = stack.enter_context(FrameLog(log_path, clock=simulation.now))
             simulation.frame_log = log
             bus: Transport = stack.enter_context(SimulatedBus(simulation))

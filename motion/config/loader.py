@@ -293,10 +293,14 @@ def _safety(node: _Node) -> schema.SafetyConfig:
 
 
 def _emulation(node: _Node) -> schema.EmulationConfig:
+    pid = node.child("pid", schema.EmulatedPidConfig)
+    gain = _Range(0, 255)
     return schema.EmulationConfig(
         rotor_inertia_kgm2=node.number("rotor_inertia_kgm2", _NON_NEGATIVE),
         viscous_friction_nm_per_dps=node.number("viscous_friction_nm_per_dps", _NON_NEGATIVE),
         coulomb_friction_nm=node.number("coulomb_friction_nm", _NON_NEGATIVE),
+        pid=schema.EmulatedPidConfig(**{f.name: pid.integer(f.name, gain) for f in fields(schema.EmulatedPidConfig)}),
+        acceleration_dps2=node.integer("acceleration_dps2", _Range(0, 2**31 - 1)),
     )
 
 

@@ -165,6 +165,27 @@ class ModelConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class EmulatedPidConfig:
+    """The PI gains (0x30 units, 0..255) an emulated drive has in ROM at first power-on; None: the factory value.
+
+    Attributes:
+        angle_kp: position loop proportional gain.
+        angle_ki: position loop integral gain.
+        speed_kp: speed loop proportional gain.
+        speed_ki: speed loop integral gain.
+        iq_kp: current loop proportional gain.
+        iq_ki: current loop integral gain.
+    """
+
+    angle_kp: int | None = None
+    angle_ki: int | None = None
+    speed_kp: int | None = None
+    speed_ki: int | None = None
+    iq_kp: int | None = None
+    iq_ki: int | None = None
+
+
+@dataclass(frozen=True, slots=True)
 class EmulationConfig:
     """Plant parameters for the emulated drive of a joint (used only by the emulator).
 
@@ -172,11 +193,16 @@ class EmulationConfig:
         rotor_inertia_kgm2: motor rotor inertia, motor side, in kg·m² (reflected: gear_ratio² times this).
         viscous_friction_nm_per_dps: joint-side viscous friction in N·m per deg/s.
         coulomb_friction_nm: joint-side Coulomb friction in N·m.
+        pid: the drive's tuning (softer or stiffer loops than the factory's).
+        acceleration_dps2: the drive's acceleration limit at power-on, motor side, in deg/s² (0: none; None: the
+            factory value).
     """
 
     rotor_inertia_kgm2: float = 3.0e-5
     viscous_friction_nm_per_dps: float = 2.0e-4
     coulomb_friction_nm: float = 0.05
+    pid: EmulatedPidConfig = field(default_factory=EmulatedPidConfig)
+    acceleration_dps2: int | None = None
 
 
 @dataclass(frozen=True, slots=True)

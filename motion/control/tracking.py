@@ -122,6 +122,8 @@ class ExpectedTracking:
         self._ref_a = np.zeros(n)
         self._tau = np.zeros(n)
         self._accel_dps2 = np.zeros(n)
+        self._x_law = np.zeros(n)  # torque mode: the state the controller's law sees (one cycle old)
+        self._v_law = np.zeros(n)
         self._commanded = False
         self._t_s = math.nan
         self._previous_ref = np.zeros(n)
@@ -212,11 +214,16 @@ class ExpectedTracking:
         if not self._commanded or math.isnan(self._t_s):
             np.copyto(self._x, q_deg)
             np.copyto(self._v, qd_dps)
+            np.copyto(self._x_law, q_deg)
+            np.copyto(self._v_law, qd_dps)
         elif not self.enabled:
             np.copyto(self._x, self._target)  # the reference itself: no lag expected
             np.copyto(self._v, self._ref_v)
         else:
             dt = t_s - self._t_s
+            # The controller's next torque is computed from the measurement before this cycle's replies.
+            np.copyto(self._x_law, self._x)
+            np.copyto(self._v_law, self._v)
             if dt > 0:
                 if self.mode is ControlMode.POSITION:
                     self._position_step(dt)
@@ -285,9 +292,9 @@ class ExpectedTracking:
         mass = self.inertia_kgm2
         assert mass is not None
         tau, e = self._tau, self._e
-        np.subtract(self._target, self._x, out=e)
+        np.subtract(self._target, self._x_law, out=e)
         np.multiply(self.kp, e, out=tau)
-        np.subtract(self._ref_v, self._v, out=e)
+        np.subtract(self._ref_v, self._v_law, out=e)
         e *= self.kd
         tau += e
         if self.inertia_feedforward:

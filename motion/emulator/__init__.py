@@ -28,12 +28,13 @@ from motion.emulator.core import DEFAULT_STEP_S, Emulator, Exchange, Outgoing
 from motion.emulator.drive import DriveLoop, EmulatedDrive, RunState, Setpoint
 from motion.emulator.faults import Corruption, Fault, InjectedFault, parse_fault
 from motion.emulator.framelog import FrameLog
-from motion.emulator.model import DriveModel, LoadModel
+from motion.emulator.model import DEFAULT_PID, DriveModel, LoadModel
 from motion.emulator.plant import IndependentLoads, Plant
 from motion.emulator.slcan import SlcanDevice
 from motion.emulator.timing import TimingModel, can_frame_bits
 
 __all__ = [
+    "DEFAULT_PID",
     "DEFAULT_STEP_S",
     "Attachment",
     "AttachmentStats",
