@@ -1,8 +1,9 @@
 """Plots of a telemetry log (:mod:`motion.telemetry`): one PNG with a row per joint and a row of loop timing.
 
-Per joint, four panels on a shared time axis: position (reference and measured), velocity (reference and
-measured), torque current (measured, with the cycles where the current limit clipped the command marked) and the
-following error (:meth:`~motion.telemetry.TelemetryLog.following_error_deg`, with the configured limit). The last
+Per joint, four panels on a shared time axis: position (reference, measured and expected: where the joint should be
+under its control loop), velocity (reference and measured), torque current (measured, with the cycles where the
+current limit clipped the command marked) and the following error (expected minus measured,
+:meth:`~motion.telemetry.TelemetryLog.following_error_deg`, with the configured limit). The last
 row shows every cycle's wake-up jitter and busy time against the period. Faults are vertical lines on every panel
 (the ``close`` halt at the end of a run is not a fault and is left out).
 
@@ -25,6 +26,7 @@ from motion.telemetry import TelemetryLog, load_log
 PANELS = (("position", "deg"), ("velocity", "deg/s"), ("torque current", "A"), ("following error", "deg"))
 _REFERENCE: dict[str, Any] = {"color": "0.45", "linestyle": "--", "linewidth": 1.0, "label": "reference"}
 _MEASURED: dict[str, Any] = {"color": "tab:blue", "linewidth": 1.0, "label": "measured"}
+_EXPECTED: dict[str, Any] = {"color": "tab:orange", "linewidth": 0.8, "linestyle": ":", "label": "expected"}
 _FAULT: dict[str, Any] = {"color": "tab:red", "linewidth": 1.0, "alpha": 0.8}
 _DPI = 90
 
@@ -32,9 +34,9 @@ _DPI = 90
 def figure(log: TelemetryLog) -> Figure:
     """Draw ``log`` (see the module docstring); the figure is not attached to any window or pyplot state.
 
-    Data lines come first in each panel, in this order: position and velocity panels ``[reference, measured]``,
-    current ``[measured]``, following error ``[error]``, timing ``[jitter, busy]`` (µs); limit and fault lines
-    follow them.
+    Data lines come first in each panel, in this order: position ``[reference, measured, expected]``, velocity
+    ``[reference, measured]``, current ``[measured]``, following error ``[error]``, timing ``[jitter, busy]`` (µs);
+    limit and fault lines follow them.
     """
     names = log.joint_names
     rows = len(names) + 1
@@ -54,13 +56,14 @@ def figure(log: TelemetryLog) -> Figure:
         position, velocity, current, following = axes
         position.plot(t_ref, log["q_ref_deg"][:, j], **_REFERENCE)
         position.plot(t, log["q_deg"][:, j], **_MEASURED)
+        position.plot(t, log["q_exp_deg"][:, j], **_EXPECTED)
         velocity.plot(t_ref, log["qd_ref_dps"][:, j], **_REFERENCE)
         velocity.plot(t, log["qd_dps"][:, j], **_MEASURED)
         current.plot(t, log["iq_a"][:, j], **_MEASURED)
         clipped = log["limited"][:, j]
         if clipped.any():
             current.scatter(t[clipped], log["iq_a"][clipped, j], s=6, color="tab:orange", label="current limited")
-        following.plot(t, error[:, j], color="tab:purple", linewidth=1.0, label="reference - measured")
+        following.plot(t, error[:, j], color="tab:purple", linewidth=1.0, label="expected - measured")
         if limit is not None:
             for sign in (1.0, -1.0):
                 following.axhline(sign * float(limit), color="0.6", linestyle=":", linewidth=1.0)

@@ -7,14 +7,15 @@ is formatted, logged or written until :meth:`TelemetrySession.close`. Memory gro
 per cycle for the log (arm6 at 250 Hz: 135 kB/s) and 30 bytes per CAN frame for the trace (arm6: 13 frames per
 cycle, 100 kB/s), so record runs of minutes, not days.
 
-The per-cycle log (``.npz``, schema ``rmd-motion-telemetry`` version 2)
+The per-cycle log (``.npz``, schema ``rmd-motion-telemetry`` version 3)
 ------------------------------------------------------------------------
 A :func:`numpy.savez_compressed` archive: one array per column, plus ``meta``, a JSON document in a 0-d string
 array. ``numpy.load(path)`` reads it without pickles; :func:`load_log` returns a :class:`TelemetryLog`. ``N`` is
 the number of recorded cycles, ``J`` the number of joints (configuration order, named in ``meta["joints"]``), ``F``
 the number of faults. Times are seconds since ``meta["t0_s"]`` (controller clock: simulated time in a simulated run,
 where every array is reproducible to the bit; ``meta["t0_wall_unix_s"]`` is the host's wall-clock Unix time at that
-instant, the time base of the bus trace). Version 2 renamed version 1's ``t0_unix_s``.
+instant, the time base of the bus trace). Version 2 renamed version 1's ``t0_unix_s``; version 3 added ``q_exp_deg``
+(:func:`load_log` reads a version 2 log with that column NaN).
 
 =================  =====  =======  ==============================================================================
 column             shape  dtype    meaning (unit)
@@ -28,6 +29,8 @@ column             shape  dtype    meaning (unit)
 ``qd_ref_dps``     N×J    float64  reference velocity (deg/s)
 ``qdd_ref_dps2``   N×J    float64  reference acceleration (deg/s²)
 ``q_deg``          N×J    float64  measured joint position after the cycle's replies (deg)
+``q_exp_deg``      N×J    float64  expected position at the measurement: where the joint should be under its control
+                                   loop (:mod:`motion.control.tracking`); the following error is ``q_exp - q`` (deg)
 ``qd_dps``         N×J    float64  measured joint velocity (deg/s)
 ``iq_a``           N×J    float64  measured torque current (A)
 ``temperature_c``  N×J    float64  measured motor temperature (°C)
@@ -89,7 +92,7 @@ if TYPE_CHECKING:
     from motion.safety.supervisor import HaltRecord
 
 SCHEMA: Final = "rmd-motion-telemetry"
-VERSION: Final = 2
+VERSION: Final = 3
 #: Rows per chunk of the per-cycle log (16 s at 250 Hz).
 CHUNK_ROWS: Final = 4096
 #: Frames per chunk of the bus trace.
@@ -106,6 +109,7 @@ CYCLE_COLUMNS: Final[Mapping[str, tuple[bool, type[np.generic], str]]] = {
     "qd_ref_dps": (True, np.float64, "deg/s"),
     "qdd_ref_dps2": (True, np.float64, "deg/s^2"),
     "q_deg": (True, np.float64, "deg"),
+    "q_exp_deg": (True, np.float64, "deg"),
     "qd_dps": (True, np.float64, "deg/s"),
     "iq_a": (True, np.float64, "A"),
     "temperature_c": (True, np.float64, "degC"),
@@ -198,12 +202,22 @@ class TelemetryLog:
         return t < halts.min() if len(halts) else np.ones(len(t), dtype=np.bool_)
 
     def following_error_deg(self) -> FloatArray:
-        """Reference minus measured position at each cycle's measurement instant, deg (N×J).
+        """Expected minus measured position at each cycle's measurement, deg (N×J): what the watchdog compares with
+        ``safety.following_error_deg`` (it adds the lag a joint slower than expected loses). A version 2 log has no
+        expected positions: there it is :meth:`lag_deg`."""
+        q_exp, q = self.columns["q_exp_deg"], self.columns["q_deg"]
+        if len(q) and np.isnan(q_exp).all():
+            return self.lag_deg()
+        error: FloatArray = q_exp - q
+        return error
+
+    def lag_deg(self) -> FloatArray:
+        """Reference minus measured position at each cycle's measurement instant, deg (N×J): how far the joints
+        trail the reference (the drives' own lag and the PD loop's, which the expected position models).
 
         Row *k* of ``q_ref_deg`` is the set-point for ``t_s[k] + period_s`` and row *k* of ``q_deg`` was measured
         at about ``t_s[k]``, so the reference is interpolated to the measurement instants (which also handles
-        skipped cycles). This is the drives' tracking lag; the watchdog's following-error monitor compares row *k*
-        with row *k* and so adds up to one period of reference motion (velocity × period) to it.
+        skipped cycles).
         """
         t, q_ref, q = self.columns["t_s"], self.columns["q_ref_deg"], self.columns["q_deg"]
         error = np.empty_like(q)
@@ -244,6 +258,8 @@ def load_log(path: str | os.PathLike[str]) -> TelemetryLog:
         raise ValueError(f"{os.fspath(path)}: not a telemetry log (schema {meta.get('schema')!r})")
     if int(meta.get("version", 0)) > VERSION:
         raise ValueError(f"{os.fspath(path)}: telemetry log version {meta['version']} is newer than {VERSION}")
+    if int(meta.get("version", 0)) < 3 and "q_exp_deg" not in arrays and "q_deg" in arrays:
+        arrays["q_exp_deg"] = np.full_like(arrays["q_deg"], np.nan)  # before the expected position was recorded
     missing = [name for name in (*CYCLE_COLUMNS, *FAULT_COLUMNS) if name not in arrays]
     if missing:
         raise ValueError(f"{os.fspath(path)}: telemetry log without column(s) {', '.join(missing)}")
@@ -313,6 +329,7 @@ class Recorder:
         chunk["qd_ref_dps"][row] = reference.velocity
         chunk["qdd_ref_dps2"][row] = reference.acceleration
         chunk["q_deg"][row] = axes.q_deg
+        chunk["q_exp_deg"][row] = controller.tracking.expected_deg
         chunk["qd_dps"][row] = axes.qd_dps
         chunk["iq_a"][row] = axes.iq_a
         chunk["temperature_c"][row] = axes.temperature_c

@@ -160,6 +160,9 @@ def test_log_timing_commands_and_faults(position_run: PositionRun) -> None:
     assert log["fresh"][active].mean() > 0.95  # a reply now and then misses its cycle
     error = np.abs(log.following_error_deg()[active])
     assert 0.0 < error.max() < 4.0
+    # the expected position is recorded; the drives trail the reference by more than they trail it (issue 18)
+    assert np.array_equal(log.following_error_deg(), log["q_exp_deg"] - log["q_deg"])
+    assert np.abs(log.lag_deg()[active]).max() > 3 * error.max()
 
 
 def test_candump_trace_is_read_by_python_can_and_holds_the_0xa4_stream(position_run: PositionRun) -> None:
@@ -236,6 +239,7 @@ def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:
         assert np.array_equal(position.lines[0].get_xdata(), log["t_s"] + log.period_s)
         assert np.array_equal(position.lines[0].get_ydata(), log["q_ref_deg"][:, j])
         assert np.array_equal(position.lines[1].get_ydata(), log["q_deg"][:, j])
+        assert np.array_equal(position.lines[2].get_ydata(), log["q_exp_deg"][:, j])
         assert np.array_equal(velocity.lines[1].get_ydata(), log["qd_dps"][:, j])
         assert np.array_equal(current.lines[0].get_ydata(), log["iq_a"][:, j])
         assert np.array_equal(following.lines[0].get_ydata(), error[:, j])
@@ -255,6 +259,16 @@ def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:
     other = TelemetryLog({**log.columns, "q_deg": log["q_deg"] + 5.0}, log.meta)
     plot_log(other, tmp_path / "other.png")
     assert not np.array_equal(imread(tmp_path / "other.png"), image)
+
+
+def test_a_version_2_log_loads_without_expected_positions(position_run: PositionRun, tmp_path: Path) -> None:
+    log = position_run.log
+    columns = {name: array for name, array in log.columns.items() if name != "q_exp_deg"}
+    TelemetryLog(columns, {**log.meta, "version": 2}).save(tmp_path / "v2.npz")
+    old = load_log(tmp_path / "v2.npz")
+    assert np.isnan(old["q_exp_deg"]).all() and old["q_exp_deg"].shape == log["q_deg"].shape
+    assert np.array_equal(old.following_error_deg(), log.lag_deg())  # what version 2 called the following error
+    plot_log(old, tmp_path / "v2.png")
 
 
 def test_empty_and_invalid_logs(tmp_path: Path) -> None:
