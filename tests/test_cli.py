@@ -10,7 +10,8 @@ accepts runs without a fault. So the commands that move use a copy of the config
 half the highest rate ``rmd-motion check`` measures on this host (at most 200 Hz; a 500 Hz torque loop over a slcan
 pseudo-terminal to another Python process is no premise for a test on a loaded 2-vCPU machine). On a host so slow or
 busy that no rate the configuration allows (50 Hz and up) holds, they are skipped, saying so: there ``move`` refuses
-with exit 2 before anything moves, which ``tests/test_ratecheck.py`` asserts.
+with exit 2 before anything moves, which ``tests/test_ratecheck.py`` asserts. They are skipped too below the rate at
+which arm2's torque loop is stable (100 Hz): the following-error check runs at the configured threshold (issue 18).
 """
 
 from __future__ import annotations
@@ -43,6 +44,10 @@ ARM2 = ROOT / "configs" / "arm2.yaml"
 ARM2_RS485 = ROOT / "configs" / "arm2_rs485.yaml"
 #: The lowest control.rate_hz a configuration allows.
 MIN_RATE_HZ = 50.0
+#: The lowest rate at which arm2's torque-mode PD gains make a stable loop (in simulated time: at 75 Hz the elbow
+#: trails by 6.5 deg more than expected, at 50 Hz it oscillates by +-50 deg; at 100 Hz it stays within 1.3 deg of
+#: where it should be).
+MIN_TORQUE_RATE_HZ = 100.0
 #: Share of the rate check's highest rate the moving tests run at.
 RATE_SHARE = 0.5
 #: Generous bound of one CLI run, s.
@@ -160,15 +165,19 @@ def rate_that_holds(config: Path, emulated: Emulated, tmp: Path, ceiling_hz: flo
     highest = float(data["modes"][data["mode"]]["highest_rate_hz"]) * RATE_SHARE
     if highest < MIN_RATE_HZ:
         pytest.skip(f"this host holds no control rate {config.name} allows (rate check: {highest:g} Hz)")
+    if data["mode"] == "torque" and highest < MIN_TORQUE_RATE_HZ:
+        pytest.skip(
+            f"this host holds {highest:g} Hz, below the {MIN_TORQUE_RATE_HZ:g} Hz at which {config.name}'s torque "
+            "loop is stable (slower, the elbow oscillates and the following-error check faults, rightly)"
+        )
     text = config.read_text()
     configured = f"rate_hz: {data['rate_hz']:g}"
     assert configured in text
     path = tmp / config.name
     text = text.replace(configured, f"rate_hz: {min(round(highest), ceiling_hz):g}")
-    # Torque-mode PD tracking loosens at the lower rates a busy host holds (5.3-5.7 deg on the elbow at ~100 Hz):
-    # until the lag-aware following-error check (issue 18) these tests, which are about the command line, allow more.
-    assert "following_error_deg: 5.0" in text
-    path.write_text(text.replace("following_error_deg: 5.0", "following_error_deg: 15.0"))
+    # The configured following-error threshold: the check expects the PD loop's looser tracking at the lower rates
+    # a busy host holds (issue 18; the raw reference - measured error reaches 5.3-5.7 deg on the elbow at ~100 Hz).
+    path.write_text(text)
     return path
 
 
