@@ -31,13 +31,23 @@ from typing import Any
 
 import numpy as np
 
-from motion.compose import build_controller, check_rate, feedforward_for, open_bus, safety_settings
+from motion.compose import (
+    apply_stored_tracking,
+    build_controller,
+    check_rate,
+    feedforward_for,
+    identify_position_loops,
+    open_bus,
+    safety_settings,
+    store_tracking,
+)
 from motion.config import ArmConfig, load_config_or_example
 from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.control.ratecheck import RateCheck, measure_rate
 from motion.control.scheduler import LoopStatistics
 from motion.control.snapshot import MotionProgress
+from motion.control.tracking import PositionLoopFit
 from motion.emulator import FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
@@ -256,6 +266,10 @@ class Arm:
         self._initial = initial_deg
         self._emulator_log = emulator_log
         self._telemetry_options = telemetry
+        #: Joints whose stored position-loop identification was applied at connect (hardware only).
+        self.tracking_applied: list[str] = []
+        #: The file :meth:`identify_tracking` stored the identification in.
+        self.tracking_file: Path | None = None
         #: The recording of the current run (with ``telemetry=``); its ``result`` is the log once the arm closed.
         self.telemetry: TelemetrySession | None = None
         self._stack = ExitStack()
@@ -313,6 +327,8 @@ class Arm:
             )
             self.rate_check = check_rate(self.controller, self.config)
             self.controller.read_positions()
+            if not self.emulate:  # an identification belongs to the drives it was made on
+                self.tracking_applied = apply_stored_tracking(self.config, self.controller)
             self.supervisor = Supervisor(self.controller, safety_settings(self.config))
             if self.telemetry is not None:
                 self.telemetry.attach(self.controller, self.supervisor)
@@ -425,6 +441,21 @@ class Arm:
         In simulated emulation this is how time passes: the control cycles run in this call. Otherwise it sleeps.
         """
         self._guard().controller.pause(duration_s)
+
+    def identify_tracking(self, *, store: bool = True) -> dict[str, PositionLoopFit]:
+        """Identify every joint's position loop with a short full-speed move out and back, one joint at a time (see
+        :func:`motion.compose.identify_position_loops`); the following-error check uses the result from now on and,
+        with ``store`` (on hardware), in every later connection while the drives keep their gains.
+
+        Raises:
+            MotionError: not in position mode.
+            MotionFault: a fault halted the arm during a move.
+        """
+        supervisor = self._guard()
+        fits = identify_position_loops(supervisor, self.config)
+        if store and not self.emulate:
+            self.tracking_file = store_tracking(self.config, supervisor.controller, fits)
+        return fits
 
     def hold(self) -> None:
         """Jerk-limited stop of the current motion; the arm holds where it ends (not a fault)."""

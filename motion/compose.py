@@ -11,10 +11,13 @@ limit and rotor inertia, so a program tested on the emulator talks to the same i
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import math
+import os
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import fields
+from pathlib import Path
 
 import numpy as np
 
@@ -23,12 +26,14 @@ from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
 from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
+from motion.control.tracking import MoveRecord, PositionLoop, PositionLoopFit, fit_position_loop
 from motion.emulator import DEFAULT_PID, DriveModel, Emulator, Fault, LoadModel, Plant
+from motion.errors import MotionError
 from motion.protocol import WireProtocol
-from motion.safety import SafetySettings
+from motion.safety import SafetySettings, Supervisor
 from motion.trajectory import JointLimits
 from motion.transmission import FloatArray
-from motion.transport import Transport, open_transport
+from motion.transport import Reply, Transport, open_transport
 
 logger = logging.getLogger("motion.config")
 
@@ -229,3 +234,134 @@ def safety_settings(config: ArmConfig) -> SafetySettings:
         reply_timeout_s=safety.reply_timeout_ms / 1000.0 + (safety.max_missed_replies + 1) * period,
         max_missed_replies=safety.max_missed_replies,
     )
+
+
+# ---------------------------------------------------------------------------------------------- position-loop identity
+
+#: What a stored identification is (the file's ``schema`` and ``version``).
+TRACKING_SCHEMA = "rmd-motion-tracking"
+TRACKING_VERSION = 1
+#: Environment variable naming the folder of stored identifications (default ``$XDG_STATE_HOME/rmd-motion``).
+STATE_DIR_ENV = "RMD_MOTION_STATE_DIR"
+#: An identification move goes this far from where the joint is, deg (at most a quarter of the joint's range).
+IDENTIFY_MOVE_DEG = 60.0
+
+
+def tracking_store(config: ArmConfig) -> Path:
+    """Where the identified position loops of ``config``'s arm are stored (one file per arm name)."""
+    folder = os.environ.get(STATE_DIR_ENV)
+    if folder is None:
+        state = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+        folder = str(Path(state) / "rmd-motion")
+    return Path(folder) / f"{config.name}-tracking.json"
+
+
+def identify_position_loops(supervisor: Supervisor, config: ArmConfig) -> dict[str, PositionLoopFit]:
+    """Move each joint alone out and back at full speed (:data:`IDENTIFY_MOVE_DEG`, toward the side with more room)
+    and fit its position loop to what was measured (:func:`~motion.control.tracking.fit_position_loop`); the
+    controller's tracking model uses the result from then on.
+
+    Raises:
+        MotionError: the arm is not in position mode.
+        MotionFault: a fault halted the arm during a move.
+    """
+    controller = supervisor.controller
+    if config.control.mode is not ControlMode.POSITION:
+        raise MotionError("identification moves need position mode (the drive's own loop is what is identified)")
+    tracking = controller.tracking
+    ratios = tracking.gear_ratio
+    rows: list[tuple[float, FloatArray, FloatArray, FloatArray, FloatArray]] = []
+
+    def record(c: Controller, start_s: float, _replies: list[Reply]) -> None:
+        caps = c.setpoints.max_speed_dps / ratios
+        rows.append((start_s, c.reference.position.copy(), caps, c.axes.q_deg.copy(), c.axes.qd_dps.copy()))
+
+    fits: dict[str, PositionLoopFit] = {}
+    loops = list(tracking.position_loops())
+    for j, joint in enumerate(config.joints):
+        home = controller.reference.position.copy()
+        room_up, room_down = joint.position_max_deg - home[j], home[j] - joint.position_min_deg
+        step = min(IDENTIFY_MOVE_DEG, 0.25 * (joint.position_max_deg - joint.position_min_deg))
+        out = home.copy()
+        out[j] += step if room_up >= room_down else -step
+        rows.clear()
+        controller.cycle_hooks.append(record)
+        try:
+            for target in (out, home):
+                supervisor.move_to(target, 1.0)
+                supervisor.wait()
+        finally:
+            controller.cycle_hooks.remove(record)
+        t, target_deg, cap, q, qd = (np.array([row[i] for row in rows]) for i in range(5))
+        move = MoveRecord(t, target_deg[:, j], cap[:, j], q[:, j], qd[:, j])
+        fits[joint.name] = fit = fit_position_loop(move, loops[j])
+        loops[j] = fit.loop
+    tracking.set_position_loops(loops)
+    return fits
+
+
+def store_tracking(config: ArmConfig, controller: Controller, fits: Mapping[str, PositionLoopFit]) -> Path:
+    """Write the identified loops with the drive settings they were identified under; returns the file."""
+    path = tracking_store(config)
+    settings = controller.tracking.drive_settings
+    joints = []
+    for j, joint in enumerate(config.joints):
+        fit = fits.get(joint.name)
+        if fit is None or settings[j] is None:
+            continue
+        angle_kp, accel = settings[j] or (0, None)
+        joints.append(
+            {
+                "name": joint.name,
+                "motor_id": joint.motor_id,
+                "drive_angle_kp": angle_kp,
+                "drive_acceleration_dps2": accel,
+                "angle_gain_per_s": fit.loop.angle_gain_per_s,
+                "acceleration_dps2": fit.loop.acceleration_dps2,
+                "rms_prior_deg": fit.rms_prior_deg,
+                "rms_deg": fit.rms_deg,
+            }
+        )
+    document = {"schema": TRACKING_SCHEMA, "version": TRACKING_VERSION, "config": config.name, "joints": joints}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(document, indent=2) + "\n")
+    return path
+
+
+def apply_stored_tracking(config: ArmConfig, controller: Controller) -> list[str]:
+    """Use the stored identification of ``config``'s arm for every joint whose drive still has the gain and the
+    acceleration it was identified under (after ``read_positions``, which reads them); returns those joints.
+
+    A missing or unreadable file changes nothing (logged); a joint whose drive was retuned keeps the prior.
+    """
+    path = tracking_store(config)
+    if not path.exists():
+        return []
+    try:
+        document = json.loads(path.read_text())
+        if document.get("schema") != TRACKING_SCHEMA or document.get("version") != TRACKING_VERSION:
+            raise ValueError(f"not a {TRACKING_SCHEMA} version {TRACKING_VERSION} file")
+        stored = {entry["name"]: entry for entry in document["joints"]}
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        logger.warning("%s: stored position loops ignored (%s)", path, exc)
+        return []
+    tracking = controller.tracking
+    loops = list(tracking.position_loops())
+    applied = []
+    for j, joint in enumerate(config.joints):
+        entry = stored.get(joint.name)
+        settings = tracking.drive_settings[j]
+        if entry is None or settings is None:
+            continue
+        if (entry.get("motor_id"), entry.get("drive_angle_kp"), entry.get("drive_acceleration_dps2")) != (
+            joint.motor_id,
+            *settings,
+        ):
+            logger.warning("%s: %s was identified under other drive settings; its prior is used", path, joint.name)
+            continue
+        loops[j] = PositionLoop(float(entry["angle_gain_per_s"]), float(entry["acceleration_dps2"]))
+        applied.append(joint.name)
+    tracking.set_position_loops(loops)
+    if applied:
+        logger.info("%s: identified position loops for %s", path, ", ".join(applied))
+    return applied

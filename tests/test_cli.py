@@ -280,6 +280,7 @@ def test_move_then_status_shows_the_joints_there(can_arm: Emulated, arm2_200hz: 
         (["pid", "set", "--rom", "--config", ARM2, "elbow", "1", "2", "3", "4", "5", "6"], "without --yes"),
         (["pid", "set", "--config", ARM2, "elbow", "1", "2", "3", "4", "5", "256"], "not a gain 0..255"),
         (["accel", "get", "--config", ARM2, "wrist"], "unknown joint 'wrist'"),
+        (["check", "--config", ARM2, "--identify"], "identification needs position mode"),
     ],
 )
 def test_refused_commands_exit_2_and_send_nothing(

@@ -20,6 +20,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from motion.compose import (
+    STATE_DIR_ENV,
+    apply_stored_tracking,
+    identify_position_loops,
+    store_tracking,
+    tracking_store,
+)
 from motion.config import ArmConfig
 from motion.config.schema import ControlMode, EmulatedPidConfig
 from motion.control.controller import Controller
@@ -217,3 +224,39 @@ def test_the_model_keeps_no_memory_per_cycle(mode: ControlMode, tmp_path: Path) 
     # no buffer per cycle: 49 cycles leave nothing behind and never hold more than a few small temporaries (torque
     # mode: the solve of the mass matrix)
     assert current < 1024 and peak < 2048, (current, peak)
+
+
+def test_identification_finds_a_drive_whose_gain_scale_is_not_the_prior(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a drive from another maker: the same 0x30 reading, but a loop 2.5x softer and a 3x lower acceleration than
+    # the prior makes of it (the documents give no scale): the prior's expectation is off, identification finds it
+    config = arm_config("arm2.yaml", mode=ControlMode.POSITION, rate_hz=200)
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        tracking = rig.controller.tracking
+        true = tracking.position_loops()
+        tracking.set_position_loops(
+            [PositionLoop(loop.angle_gain_per_s * 2.5, loop.acceleration_dps2 * 3) for loop in true]
+        )
+        fits = identify_position_loops(supervisor, config)
+        for (name, fit), loop in zip(fits.items(), true, strict=True):
+            assert fit.loop.angle_gain_per_s == pytest.approx(loop.angle_gain_per_s, rel=0.2), name
+            assert fit.loop.acceleration_dps2 == pytest.approx(loop.acceleration_dps2, rel=0.3), name
+            assert fit.rms_deg < 0.2 * fit.rms_prior_deg and fit.max_deg < 0.5, (name, fit)
+        assert tracking.position_loops() == tuple(fit.loop for fit in fits.values())  # in use from now on
+
+        # stored with the drive settings read at connect; applied while they hold, not after a retune
+        monkeypatch.setenv(STATE_DIR_ENV, str(tmp_path / "state"))
+        path = store_tracking(config, rig.controller, fits)
+        assert path == tracking_store(config) and path.parent == tmp_path / "state"
+        tracking.set_position_loops(true)
+        assert apply_stored_tracking(config, rig.controller) == ["shoulder", "elbow"]
+        assert tracking.position_loops() == tuple(fit.loop for fit in fits.values())
+        tracking.set_position_loops(true)
+        tracking.drive_settings[1] = (80, 36_000)  # the elbow's angle gain was changed with 0x31 since
+        assert apply_stored_tracking(config, rig.controller) == ["shoulder"]
+        assert tracking.position_loops()[1] == true[1]
+        path.write_text("{")
+        assert apply_stored_tracking(config, rig.controller) == []

@@ -185,15 +185,20 @@ def build_parser() -> argparse.ArgumentParser:
     scan.add_argument("--ids", type=_ids_arg, metavar="IDS", help="ids to try: 1-6, 1,3,5 (default 1-32)")
     _json(scan)
     _json(_command(sub, "status", drives.status, "read every joint's state without moving anything"))
-    _json(
-        _command(
-            sub,
-            "check",
-            drives.check,
-            "measure what this host and bus hold in real time (reads only): the highest control rate per mode; "
-            "exit 0 when control.rate_hz holds, 2 when it does not",
-        )
+    check = _command(
+        sub,
+        "check",
+        drives.check,
+        "measure what this host and bus hold in real time (reads only): the highest control rate per mode; "
+        "exit 0 when control.rate_hz holds, 2 when it does not",
     )
+    check.add_argument(
+        "--identify",
+        action="store_true",
+        help="then MOVE each joint alone out and back at full speed (position mode) to identify its position loop "
+        "for the following-error check, and store it",
+    )
+    _json(check)
 
     move = _command(sub, "move", moves.move, "move joints to targets (degrees); the others keep their position")
     move.add_argument("targets", nargs="+", metavar="JOINT=DEG")

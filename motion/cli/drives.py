@@ -10,7 +10,8 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 from dataclasses import asdict, replace
-from typing import Any, Final
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Final
 
 from motion.cli.common import (
     EXIT_COMMUNICATION,
@@ -27,7 +28,9 @@ from motion.cli.common import (
 )
 from motion.compose import build_controller
 from motion.config import CanBusConfig, JointConfig
+from motion.config.schema import ControlMode
 from motion.control.ratecheck import RateError
+from motion.control.tracking import PositionLoopFit
 from motion.errors import FaultKind, MotionFault
 from motion.protocol import (
     Acceleration,
@@ -44,6 +47,9 @@ from motion.protocol import (
 )
 from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, Direction, WireProtocol, field_names, field_range
 from motion.transport import Request, Transport
+
+if TYPE_CHECKING:
+    from motion.api import Arm
 
 #: Scan: the reply window of the whole CAN batch (the drives answer in parallel), s.
 SCAN_CAN_S: Final = 0.1
@@ -357,18 +363,37 @@ def zero(args: argparse.Namespace, interrupts: Interrupts) -> int:
 
 
 def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
-    """``check``: what this host and bus hold in real time, per control mode, for the configured joints.
+    """``check``: what this host and bus hold in real time, per control mode, for the configured joints; with
+    ``--identify`` (position mode, when the configured rate holds) also each joint's position loop, identified from a
+    full-speed move out and back (:meth:`motion.api.Arm.identify_tracking`) and stored for later connections.
 
-    Sends reads only. Exit 0 when the configured rate holds in the configured mode, 2 when it does not.
+    Without ``--identify`` it sends reads only. Exit 0 when the configured rate holds in the configured mode, 2 when it
+    does not; with ``--identify``: 1 when a fault halted the identification.
     """
     from motion.api import measure_modes  # noqa: PLC0415 - Pinocchio only when checking
 
     session = Session.from_args(args)
     config = session.config
+    if args.identify and config.control.mode is not ControlMode.POSITION:
+        mode = config.control.mode.value
+        raise UsageError(f"--identify: {config.source} runs in {mode} mode; identification needs position mode")
     with session.open_bus() as bus:
         checks = measure_modes(config, bus)
         where = bus.describe()
     configured = checks[config.control.mode.value]
+    fits: dict[str, PositionLoopFit] = {}
+    stored: Path | None = None
+    if args.identify and configured.holds:
+        from motion.cli.moves import with_arm  # noqa: PLC0415 - the moving commands' arm handling
+
+        def identify(arm: Arm) -> int:
+            nonlocal stored
+            fits.update(arm.identify_tracking())
+            stored = arm.tracking_file
+            return EXIT_OK
+
+        args.log = args.trace = None
+        with_arm(args, session, interrupts, identify)
     rows = [
         (
             mode,
@@ -381,25 +406,27 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
         for mode, c in checks.items()
     ]
     if args.json:
-        print_json(
-            {
-                "bus": where,
-                "rate_hz": config.control.rate_hz,
-                "mode": config.control.mode.value,
-                "margin": config.control.rate_margin,
-                "holds": configured.holds,
-                "modes": {
-                    mode: {
-                        "round_trip_p99_s": c.round_trip_p99_s,
-                        "host_p99_s": c.host_p99_s,
-                        "highest_rate_hz": c.highest_rate_hz,
-                        "recommended_rate_hz": c.recommended_rate_hz,
-                        "holds": c.holds,
-                    }
-                    for mode, c in checks.items()
-                },
-            }
-        )
+        document: dict[str, object] = {
+            "bus": where,
+            "rate_hz": config.control.rate_hz,
+            "mode": config.control.mode.value,
+            "margin": config.control.rate_margin,
+            "holds": configured.holds,
+            "modes": {
+                mode: {
+                    "round_trip_p99_s": c.round_trip_p99_s,
+                    "host_p99_s": c.host_p99_s,
+                    "highest_rate_hz": c.highest_rate_hz,
+                    "recommended_rate_hz": c.recommended_rate_hz,
+                    "holds": c.holds,
+                }
+                for mode, c in checks.items()
+            },
+        }
+        if args.identify:
+            document["identified"] = {name: _fit_dict(fit) for name, fit in fits.items()}
+            document["stored"] = str(stored) if stored is not None else None
+        print_json(document)
     else:
         print(
             f"{len(config.joints)} joints on {where}; configured control.rate_hz {config.control.rate_hz:g} Hz "
@@ -414,7 +441,36 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
             f"{config.control.rate_hz:g} Hz",
         )
         print_table(header, rows)
+        if fits:
+            print("position loops (expected tracking of the following-error check), identified from a move:")
+            print_table(
+                ("joint", "angle gain", "acceleration", "rms error: prior", "identified"),
+                [
+                    (
+                        name,
+                        f"{fit.loop.angle_gain_per_s:.1f} /s",
+                        f"{fit.loop.acceleration_dps2:.0f} deg/s²",
+                        f"{fit.rms_prior_deg:.3f} deg",
+                        f"{fit.rms_deg:.3f} deg",
+                    )
+                    for name, fit in fits.items()
+                ],
+            )
+            if stored is not None:
+                print(f"stored in {stored}: used at every connection while the drives keep their gains")
     if configured.holds:
         return EXIT_OK
     warn(str(RateError(config.source, configured)))
+    if args.identify:
+        warn("--identify: nothing moved (the configured rate does not hold)")
     return EXIT_USAGE
+
+
+def _fit_dict(fit: PositionLoopFit) -> dict[str, float]:
+    return {
+        "angle_gain_per_s": fit.loop.angle_gain_per_s,
+        "acceleration_dps2": fit.loop.acceleration_dps2,
+        "rms_prior_deg": fit.rms_prior_deg,
+        "rms_deg": fit.rms_deg,
+        "max_deg": fit.max_deg,
+    }

@@ -109,6 +109,8 @@ class ExpectedTracking:
         self.angle_gain_per_s = np.full(n, 100 * ANGLE_GAIN_PER_S_PER_UNIT)
         self.acceleration_dps2 = np.full(n, math.inf)
         self._accel = np.full(n, _NO_LIMIT)
+        #: Per joint: the drive's 0x30 angle_kp and 0x33 acceleration as read at connect (None: not read).
+        self.drive_settings: list[tuple[int, int | None] | None] = [None] * n
         # Torque mode: joint inertia (None until given: the model then expects the reference) and fed-forward share.
         self.inertia_kgm2: FloatArray | None = None
         self.inertia_feedforward = False
@@ -129,8 +131,8 @@ class ExpectedTracking:
         self._previous_ref = np.zeros(n)
         # Work buffers.
         self._e = np.zeros(n)
-        self._s = np.zeros(n)
         self._w = np.zeros(n)
+        self._work = (np.zeros(n), np.zeros(n), np.zeros(n))
 
     # ------------------------------------------------------------------------------------------------ parameters
 
@@ -190,7 +192,9 @@ class ExpectedTracking:
         loops = list(self.position_loops())
         for j, motor_id in enumerate(ids):
             if motor_id in gains:
-                loops[j] = PositionLoop.from_drive(gains[motor_id], accels.get(motor_id), float(self.gear_ratio[j]))
+                accel = accels.get(motor_id)
+                loops[j] = PositionLoop.from_drive(gains[motor_id], accel, float(self.gear_ratio[j]))
+                self.drive_settings[j] = (gains[motor_id].angle_kp, accel.acceleration_dps2 if accel else None)
         self.set_position_loops(loops)
         return all(i in gains and i in accels for i in ids)
 
@@ -264,26 +268,16 @@ class ExpectedTracking:
     # ------------------------------------------------------------------------------------------------ models
 
     def _position_step(self, dt: float) -> None:
-        steps = max(1, math.ceil(dt / MAX_STEP_S - 1e-9))
-        h = dt / steps
-        x, v, e, s, w = self._x, self._v, self._e, self._s, self._w
-        accel = self._accel
-        for _ in range(steps):
-            np.subtract(self._target, x, out=e)
-            np.abs(e, out=s)
-            np.multiply(s, 2.0, out=w)
-            w *= accel
-            np.sqrt(w, out=w)  # braking curve: sqrt(2 a |e|)
-            s *= self.angle_gain_per_s
-            np.minimum(s, w, out=s)
-            np.minimum(s, self._cap, out=s)
-            np.copysign(s, e, out=s)  # the speed the drive asks for
-            np.subtract(s, v, out=w)
-            np.multiply(accel, h, out=e)
-            np.clip(w, -e, e, out=w)  # slewed at the acceleration limit
-            v += w
-            np.multiply(v, h, out=w)
-            x += w
+        chase(
+            self._x,
+            self._v,
+            dt,
+            target=self._target,
+            cap=self._cap,
+            gain=self.angle_gain_per_s,
+            accel=self._accel,
+            work=self._work,
+        )
 
     def _torque_law(self) -> None:
         """The controller's torque on the model arm (PD, plus M·qdd_ref where the feed-forward covers the inertia;
@@ -317,3 +311,120 @@ class ExpectedTracking:
         x += step
         np.multiply(a, dt, out=step)
         v += step
+
+
+def chase(
+    x: FloatArray,
+    v: FloatArray,
+    dt: float,
+    *,
+    target: FloatArray,
+    cap: FloatArray,
+    gain: FloatArray,
+    accel: FloatArray,
+    work: tuple[FloatArray, FloatArray, FloatArray],
+) -> None:
+    """The position-loop model over ``dt`` seconds, in place: angles ``x`` (deg) and speeds ``v`` (deg/s) chase
+    ``target`` at ``min(gain |e|, sqrt(2 accel |e|), cap)``, the speed slewed at ``accel`` (arrays of one shape, one
+    entry per joint or per candidate of :func:`fit_position_loop`; ``work``: three arrays of that shape)."""
+    steps = max(1, math.ceil(dt / MAX_STEP_S - 1e-9))
+    h = dt / steps
+    e, s, w = work
+    for _ in range(steps):
+        np.subtract(target, x, out=e)
+        np.abs(e, out=s)
+        np.multiply(s, 2.0, out=w)
+        w *= accel
+        np.sqrt(w, out=w)  # braking curve: sqrt(2 a |e|)
+        s *= gain
+        np.minimum(s, w, out=s)
+        np.minimum(s, cap, out=s)
+        np.copysign(s, e, out=s)  # the speed the drive asks for
+        np.subtract(s, v, out=w)
+        np.multiply(accel, h, out=e)
+        np.clip(w, -e, e, out=w)  # slewed at the acceleration limit
+        v += w
+        np.multiply(v, h, out=w)
+        x += w
+
+
+@dataclass(frozen=True, slots=True)
+class PositionLoopFit:
+    """What :func:`fit_position_loop` found for one joint.
+
+    Attributes:
+        loop: the identified parameters.
+        rms_prior_deg: RMS of expected - measured with the prior, deg.
+        rms_deg: the same with the identified parameters, deg.
+        max_deg: largest |expected - measured| with the identified parameters, deg.
+    """
+
+    loop: PositionLoop
+    rms_prior_deg: float
+    rms_deg: float
+    max_deg: float
+
+
+#: The fit's search: factors of the prior, 2^-SPAN .. 2^SPAN, in POINTS steps, then a finer pass around the best.
+_FIT_SPAN = 2.0
+_FIT_POINTS = 17
+_FIT_ACCEL_FALLBACK_DPS2 = 3600.0
+
+
+@dataclass(frozen=True, slots=True)
+class MoveRecord:
+    """One joint's recorded move, per cycle: what was sent and what was measured.
+
+    Attributes:
+        t_s: each cycle's start (its measurement instant), s.
+        target_deg: the 0xA4 target the cycle sent, joint side, deg.
+        cap_dps: the 0xA4 max speed the cycle sent, joint side, deg/s.
+        q_deg: the position measured in the cycle, deg.
+        qd_dps: the speed measured in the cycle, deg/s.
+    """
+
+    t_s: FloatArray
+    target_deg: FloatArray
+    cap_dps: FloatArray
+    q_deg: FloatArray
+    qd_dps: FloatArray
+
+
+def _replay(record: MoveRecord, gains: FloatArray, accels: FloatArray) -> FloatArray:
+    """expected - measured at every recorded cycle (rows) for every candidate (columns)."""
+    m = len(gains)
+    x, v = np.full(m, record.q_deg[0]), np.full(m, record.qd_dps[0])
+    target, cap = np.zeros(m), np.zeros(m)
+    work = (np.zeros(m), np.zeros(m), np.zeros(m))
+    t = record.t_s
+    errors = np.zeros((len(t), m))
+    for k in range(1, len(t)):
+        target[:] = record.target_deg[k - 1]
+        cap[:] = record.cap_dps[k - 1]
+        chase(x, v, float(t[k] - t[k - 1]), target=target, cap=cap, gain=gains, accel=accels, work=work)
+        errors[k] = x - record.q_deg[k]
+    return errors
+
+
+def fit_position_loop(record: MoveRecord, prior: PositionLoop) -> PositionLoopFit:
+    """Identify one joint's position loop from a recorded move: the angle gain and acceleration limit whose model,
+    replayed against the commands sent, stays closest (least squares) to what was measured. The search is centred
+    on ``prior`` (the parameters from 0x30 / 0x33) and spans a factor of 4 either way."""
+    base_accel = prior.acceleration_dps2 if math.isfinite(prior.acceleration_dps2) else _FIT_ACCEL_FALLBACK_DPS2
+    best_gain, best_accel, span = prior.angle_gain_per_s, base_accel, _FIT_SPAN
+    for _ in range(2):  # coarse, then fine around the best
+        factors = 2.0 ** np.linspace(-span, span, _FIT_POINTS)
+        grid_gain, grid_accel = np.meshgrid(best_gain * factors, best_accel * factors)
+        gains, accels = grid_gain.ravel(), grid_accel.ravel()
+        cost = np.mean(_replay(record, gains, accels) ** 2, axis=0)
+        k = int(np.argmin(cost))
+        best_gain, best_accel = float(gains[k]), float(accels[k])
+        span = 2.0 * span / (_FIT_POINTS - 1)
+    accel_prior = prior.acceleration_dps2 if math.isfinite(prior.acceleration_dps2) else _NO_LIMIT
+    replayed = _replay(record, np.array([prior.angle_gain_per_s, best_gain]), np.array([accel_prior, best_accel]))
+    return PositionLoopFit(
+        PositionLoop(best_gain, best_accel),
+        float(np.sqrt(np.mean(replayed[:, 0] ** 2))),
+        float(np.sqrt(np.mean(replayed[:, 1] ** 2))),
+        float(np.abs(replayed[:, 1]).max()),
+    )
