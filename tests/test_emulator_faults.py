@@ -30,6 +30,7 @@ from motion.protocol import (
         ("delay:1@0:15", Fault(InjectedFault.DELAY, 1, 0.0, None, 15.0)),
         ("corrupt:3@2-3:length", Fault(InjectedFault.CORRUPT, 3, 2.0, 3.0, corruption=Corruption.LENGTH)),
         ("DROP:4@0.5:0.25", Fault(InjectedFault.DROP, 4, 0.5, None, 0.25)),
+        ("blocked:2@1.5-2", Fault(InjectedFault.BLOCKED, 2, 1.5, 2.0)),
     ],
 )
 def test_fault_specs_parse_and_describe_themselves(spec: str, fault: Fault) -> None:
@@ -80,6 +81,20 @@ def test_silent_drive_keeps_running_its_last_command() -> None:
     emulator.advance(0.5)
     assert emulator.request(1, Bare(Command.MOTOR_OFF)) == []
     assert emulator.drives[1].speed_dps == pytest.approx(200.0, rel=0.05)
+
+
+def test_blocked_joint_stays_where_it_was_until_the_fault_ends() -> None:
+    emulator = Emulator([1, 2], faults=[parse_fault("blocked:1@0.3-0.6")])
+    for motor_id in (1, 2):
+        emulator.request(motor_id, SpeedControl(200.0))
+    emulator.advance(0.31)
+    held = emulator.drives[1].angle_deg
+    emulator.advance(0.19)
+    assert emulator.drives[1].angle_deg == held and emulator.drives[1].speed_dps == 0.0
+    assert emulator.drives[2].speed_dps == pytest.approx(200.0, rel=0.05)  # the other joint is free
+    assert abs(emulator.drives[1].iq_a) > 1.0  # its drive pushes against the block
+    emulator.advance(0.4)
+    assert emulator.drives[1].speed_dps == pytest.approx(200.0, rel=0.05)  # free again
 
 
 def test_dropped_requests_are_not_executed_and_a_probability_drops_some() -> None:

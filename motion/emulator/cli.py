@@ -187,7 +187,7 @@ def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = Fal
         type=_fault_arg,
         metavar="KIND:MOTOR@START[-END][:PARAM]",
         help="inject a fault at simulation time START s (until END s): over_temperature[:degC], "
-        "under_voltage[:V], silent, delay[:ms], corrupt[:payload|id|length], drop[:probability]; "
+        "under_voltage[:V], silent, delay[:ms], corrupt[:payload|id|length], drop[:probability], blocked; "
         "repeatable",
     )
     parser.add_argument(
