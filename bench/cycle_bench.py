@@ -50,8 +50,19 @@ from motion.config import ArmConfig, parse_config
 from motion.config.schema import ControlMode
 from motion.control.controller import Controller, Feedforward
 from motion.control.scheduler import LoopStatistics
+from motion.emulator import DEFAULT_PID, DriveModel
 from motion.emulator.timing import DEFAULT_LATENCY_S, can_frame_bits, rs485_frame_time_s
-from motion.protocol import Bare, CanFrame, Command, Message, MotorState, MultiTurnAngle, can_frame, rs485_frame
+from motion.protocol import (
+    Acceleration,
+    Bare,
+    CanFrame,
+    Command,
+    Message,
+    MotorState,
+    MultiTurnAngle,
+    can_frame,
+    rs485_frame,
+)
 from motion.protocol.table import CAN_ID_BASE, CAN_MULTI_TORQUE_ID, MULTI_TORQUE_MOTOR_IDS
 from motion.trajectory import State
 from motion.transport.base import MotorCounters, Reply, Transport
@@ -186,9 +197,15 @@ def _replies_to(frame: CanFrame) -> tuple[CanFrame, ...]:
         return tuple(can_frame.encode_reply(_reply_state(Command.TORQUE, m), m) for m in MULTI_TORQUE_MOTOR_IDS)
     motor_id = frame.arbitration_id - CAN_ID_BASE
     command = Command(frame.data[0])
-    reply: Message = (
-        MultiTurnAngle(0.0) if command is Command.READ_MULTI_TURN_ANGLE else _reply_state(command, motor_id)
-    )
+    reply: Message
+    if command is Command.READ_MULTI_TURN_ANGLE:
+        reply = MultiTurnAngle(0.0)
+    elif command is Command.READ_PID:  # read at connect for the following-error check's model
+        reply = DEFAULT_PID
+    elif command is Command.READ_ACCELERATION:
+        reply = Acceleration(command, DriveModel().acceleration_dps2)
+    else:
+        reply = _reply_state(command, motor_id)
     return (can_frame.encode_reply(reply, motor_id),)
 
 

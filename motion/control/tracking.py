@@ -119,6 +119,7 @@ class ExpectedTracking:
         self.inertia_feedforward = False
         self._inertia_of: Callable[[FloatArray], FloatArray] | None = None
         self._inertia_at = np.zeros(n)  # the joint angles the mass matrix was evaluated at, deg
+        self._mass_inv = np.zeros((n, n))
         # State and the command in force since the last step.
         self._x = np.zeros(n)
         self._v = np.zeros(n)
@@ -132,7 +133,6 @@ class ExpectedTracking:
         self._v_law = np.zeros(n)
         self._commanded = False
         self._t_s = math.nan
-        self._previous_ref = np.zeros(n)
         # Work buffers.
         self._e = np.zeros(n)
         self._w = np.zeros(n)
@@ -179,6 +179,7 @@ class ExpectedTracking:
             np.fill_diagonal(self.inertia_kgm2, inertia)
         else:
             np.copyto(self.inertia_kgm2, inertia)
+        np.copyto(self._mass_inv, np.linalg.inv(self.inertia_kgm2))  # once per evaluation, not per cycle
 
     def read_drive_loops(self, bus: Transport, ids: Sequence[int], deadline_s: float) -> bool:
         """Read every drive's angle-loop gain (0x30) and acceleration limit (0x33) and use them as the prior.
@@ -212,7 +213,7 @@ class ExpectedTracking:
         np.copyto(self._v, qd_dps)
         np.copyto(self.expected_deg, q_deg)
         np.copyto(self.expected_dps, qd_dps)
-        np.copyto(self._previous_ref, q_deg if reference_deg is None else reference_deg)
+        np.copyto(self._target, q_deg if reference_deg is None else reference_deg)
         self.lag_deg[:] = 0.0
         self._commanded = False
         self._t_s = math.nan
@@ -230,9 +231,10 @@ class ExpectedTracking:
             np.copyto(self._v, self._ref_v)
         else:
             dt = t_s - self._t_s
-            # The controller's next torque is computed from the measurement before this cycle's replies.
-            np.copyto(self._x_law, self._x)
-            np.copyto(self._v_law, self._v)
+            if self.mode is ControlMode.TORQUE:
+                # The controller's next torque is computed from the measurement before this cycle's replies.
+                np.copyto(self._x_law, self._x)
+                np.copyto(self._v_law, self._v)
             if dt > 0:
                 if self.mode is ControlMode.POSITION:
                     self._position_step(dt)
@@ -241,7 +243,7 @@ class ExpectedTracking:
         self._t_s = t_s
         np.copyto(self.expected_deg, self._x)
         np.copyto(self.expected_dps, self._v)
-        np.subtract(self._previous_ref, self._x, out=self.lag_deg)
+        np.subtract(self._target, self._x, out=self.lag_deg)  # the target in force is the previous reference
 
     def command(
         self,
@@ -253,13 +255,12 @@ class ExpectedTracking:
     ) -> None:
         """The set-points this cycle sent (at ``t_s``, after :meth:`advance`): the reference for the next instant
         and, in position mode, the 0xA4 speed caps (motor side)."""
-        np.copyto(self._previous_ref, reference_deg)
         np.copyto(self._target, reference_deg)
         np.copyto(self._ref_v, reference_dps)
-        np.copyto(self._ref_a, reference_dps2)
         if max_speed_motor_dps is not None:
             np.divide(max_speed_motor_dps, self.gear_ratio, out=self._cap)
         if self.mode is ControlMode.TORQUE and self.inertia_kgm2 is not None:
+            np.copyto(self._ref_a, reference_dps2)
             if self._inertia_of is not None:
                 # The mass matrix changes slowly with the pose: evaluated again once a joint moved by
                 # INERTIA_STEP_DEG (the arm model's work is most of this method's cost).
@@ -305,9 +306,10 @@ class ExpectedTracking:
         tau += e
         if self.inertia_feedforward:
             np.multiply(self._ref_a, _RAD_PER_DEG, out=e)
-            tau += mass @ e
+            np.dot(mass, e, out=self._w)
+            tau += self._w
         np.clip(tau, -self.torque_limit_nm, self.torque_limit_nm, out=tau)
-        self._accel_dps2[:] = np.linalg.solve(mass, tau)
+        np.dot(self._mass_inv, tau, out=self._accel_dps2)
         self._accel_dps2 *= _DEG_PER_RAD
 
     def _torque_step(self, dt: float) -> None:
@@ -380,6 +382,7 @@ class PositionLoopFit:
 #: The fit's search: factors of the prior, 2^-SPAN .. 2^SPAN, in POINTS steps, then a finer pass around the best.
 _FIT_SPAN = 2.0
 _FIT_POINTS = 17
+#: Where the acceleration search is centred for a drive that reports no acceleration limit, deg/s² (joint side).
 _FIT_ACCEL_FALLBACK_DPS2 = 3600.0
 
 
