@@ -18,7 +18,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TypeAlias
+from typing import Final, TypeAlias
 
 import numpy as np
 from numpy.typing import NDArray
@@ -39,6 +39,7 @@ from motion.protocol import (
     TorqueControl,
     WireProtocol,
 )
+from motion.protocol.compiled import frozen_builder
 from motion.protocol.scales import iq_amps
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, Direction, field_range
 from motion.trajectory import Follower, JointLimits, Path, Planner, State
@@ -115,6 +116,12 @@ class PlayCommand:
 @dataclass(frozen=True, slots=True)
 class StopCommand:
     """Queued: a jerk-limited stop of the current motion (not a fault)."""
+
+
+# Constructors of the messages built every cycle that set the slots directly (a frozen dataclass's own __init__ goes
+# through object.__setattr__ for each field, several times slower); same objects, same equality.
+_NEW_REQUEST: Final = frozen_builder(Request)
+_NEW_POSITION: Final = frozen_builder(MultiTurnPositionSpeed)
 
 
 @dataclass(slots=True)
@@ -373,8 +380,10 @@ class Controller:
         speed *= self.options.speed_headroom
         speed += self._speed_floor_dps
         np.minimum(speed, self._speed_ceiling_dps, out=speed)
+        new_request, new_position = _NEW_REQUEST, _NEW_POSITION
         return [
-            Request(mid, MultiTurnPositionSpeed(float(motor_deg[i]), float(speed[i]))) for i, mid in enumerate(self.ids)
+            new_request(mid, new_position(angle, cap))
+            for mid, angle, cap in zip(self.ids, motor_deg.tolist(), speed.tolist(), strict=True)
         ]
 
     def _torque_requests(self, ref: State) -> list[Request]:

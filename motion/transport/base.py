@@ -50,6 +50,7 @@ from typing import Final, Self
 
 from motion.errors import TransportError
 from motion.protocol import Command, Message, MultiMotorTorque
+from motion.protocol.compiled import frozen_builder
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, command_of
 
 #: ``tap(time_s, received, arbitration_id, data)``: called with every frame a backend sends (``received`` False) or
@@ -98,6 +99,10 @@ class Reply:
     def ok(self) -> bool:
         """True when a reply arrived in time."""
         return self.message is not None
+
+
+# Replies are built for every expected reply of every cycle: the slot-setting constructor (see frozen_builder).
+_NEW_REPLY: Final = frozen_builder(Reply)
 
 
 @dataclass(slots=True)
@@ -377,8 +382,9 @@ class Transport(ABC):
                 state[slot] = _EXPIRED
                 self.motor_counters(self._slot_motor[slot]).timeouts += 1
                 self.bus_counters.skipped_requests += 1
+        new_reply = _NEW_REPLY
         return [
-            Reply(motor_id, request, message, received_s)
+            new_reply(motor_id, request, message, received_s)
             for motor_id, request, message, received_s in zip(
                 self._slot_motor, self._slot_request, self._slot_message, self._slot_time, strict=True
             )
