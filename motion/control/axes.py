@@ -54,6 +54,8 @@ class AxisStates:
         self.index = {spec.motor_id: i for i, spec in enumerate(specs)}
         # The encoder fields are uint16: wider encoders report their top 16 bits (docs/protocol.md).
         self.counts_per_rev = np.array([float(1 << min(s.encoder_bits, ENCODER_FIELD_BITS)) for s in specs])
+        self._counts = self.counts_per_rev.tolist()
+        self._transmissions = transmission.transmissions
         self.motor_deg = np.zeros(n)  # unwrapped multi-turn rotor angle
         self.motor_speed_dps = np.zeros(n)
         self.encoder = np.zeros(n, dtype=np.int64)
@@ -72,25 +74,32 @@ class AxisStates:
 
     def update(self, i: int, state: MotorState, received_s: float) -> None:
         """Take one 0x9C / 0xA1..0xA8 reply of axis ``i``."""
-        half = self.counts_per_rev[i] / 2
-        delta = state.encoder - int(self.encoder[i])
-        if delta > half:
-            delta -= int(self.counts_per_rev[i])
-        elif delta < -half:
-            delta += int(self.counts_per_rev[i])
-        self.encoder[i] = state.encoder
-        self.motor_deg[i] += delta * 360.0 / self.counts_per_rev[i]
-        self.motor_speed_dps[i] = state.speed_dps
+        # Python floats and ints throughout (a numpy scalar costs several times as much per operation), with the
+        # same operations in the same order as the arrays would do them: the same float64 results.
+        counts = self._counts[i]
+        encoder = state.encoder
+        delta = encoder - self.encoder.item(i)
+        if delta > counts / 2:
+            delta -= int(counts)
+        elif delta < -counts / 2:
+            delta += int(counts)
+        self.encoder[i] = encoder
+        motor_deg = self.motor_deg.item(i) + delta * 360.0 / counts
+        self.motor_deg[i] = motor_deg
+        speed_dps = float(state.speed_dps)
+        self.motor_speed_dps[i] = speed_dps
         self.iq_a[i] = state.iq_a
         self.temperature_c[i] = state.temperature_c
         self.last_reply_s[i] = received_s
         self.fresh[i] = True
-        self._refresh_joint(i)
+        t = self._transmissions[i]
+        self.q_deg[i] = t.joint_deg(motor_deg)
+        self.qd_dps[i] = t.joint_rate(speed_dps)
 
     def _refresh_joint(self, i: int) -> None:
-        t = self.transmission.transmissions[i]
-        self.q_deg[i] = t.joint_deg(float(self.motor_deg[i]))
-        self.qd_dps[i] = t.joint_rate(float(self.motor_speed_dps[i]))
+        t = self._transmissions[i]
+        self.q_deg[i] = t.joint_deg(self.motor_deg.item(i))
+        self.qd_dps[i] = t.joint_rate(self.motor_speed_dps.item(i))
 
     def positions(self) -> FloatArray:
         """A copy of the joint positions, degrees."""

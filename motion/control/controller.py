@@ -220,10 +220,31 @@ class Controller:
         )
         self._single = [i for i in range(len(self.specs)) if i not in self._multi]
         self._iq_raw = np.zeros(len(self.specs), dtype=np.int64)
-        self._speed_ceiling_dps = _MAX_SPEED_DPS[options.protocol]
         self._multi_slot = {i: MULTI_TORQUE_MOTOR_IDS.index(self.ids[i]) for i in self._multi}
+        # Constant per cycle, looked up once: the 0xA4 speed cap's terms, per joint (motor id, motor deg per joint
+        # deg, zero offset, floor), and the builder of the mode's batch.
         velocity_limit = np.abs(transmission.motor_rate(np.array(limits.velocity_dps)))
         self._speed_floor_dps = velocity_limit * options.speed_floor_share
+        self._speed_ceiling_dps = float(_MAX_SPEED_DPS[options.protocol])
+        self._speed_headroom = options.speed_headroom
+        self._position_axes = tuple(
+            zip(
+                self.ids,
+                [t.direction * t.gear_ratio for t in transmission.transmissions],  # as ArmTransmission has them
+                [t.zero_offset_deg for t in transmission.transmissions],
+                self._speed_floor_dps.tolist(),
+                strict=True,
+            )
+        )
+        self._reply_budget = options.reply_budget
+        self._build: Callable[[State], list[Request]]
+        match options.mode:
+            case ControlMode.POSITION:
+                self._build = self._position_requests
+            case ControlMode.TORQUE:
+                self._build = self._torque_requests
+            case mode:  # never a default: an unknown mode is an error
+                raise ValueError(f"unknown control mode {mode!r}")
 
     # ------------------------------------------------------------------------------------------------ start-up
 
@@ -352,14 +373,8 @@ class Controller:
                 raise TypeError(f"unknown motion command {other!r}")
 
     def build_requests(self, reference: State) -> list[Request]:
-        """The cycle's batch for a reference state (pure apart from recording the torque and limiting)."""
-        match self.options.mode:
-            case ControlMode.POSITION:
-                return self._position_requests(reference)
-            case ControlMode.TORQUE:
-                return self._torque_requests(reference)
-            case mode:  # never a default: an unknown mode is an error
-                raise ValueError(f"unknown control mode {mode!r}")
+        """The cycle's batch for a reference state (pure apart from recording the set-points)."""
+        return self._build(reference)
 
     @property
     def torque_nm(self) -> FloatArray:
@@ -372,19 +387,25 @@ class Controller:
         return self.setpoints.limited
 
     def _position_requests(self, ref: State) -> list[Request]:
-        record = self.setpoints
-        motor_deg = record.motor_angle_deg
-        motor_deg[:] = self.transmission.motor_deg(ref.position)
-        speed = record.max_speed_dps
-        speed[:] = np.abs(self.transmission.motor_rate(ref.velocity))
-        speed *= self.options.speed_headroom
-        speed += self._speed_floor_dps
-        np.minimum(speed, self._speed_ceiling_dps, out=speed)
+        # Python floats per joint: for a few joints a numpy call costs more than the arithmetic. The operations and
+        # their order are those of ArmTransmission.motor_deg / motor_rate, so the results are the same float64s.
+        headroom, ceiling = self._speed_headroom, self._speed_ceiling_dps
         new_request, new_position = _NEW_REQUEST, _NEW_POSITION
-        return [
-            new_request(mid, new_position(angle, cap))
-            for mid, angle, cap in zip(self.ids, motor_deg.tolist(), speed.tolist(), strict=True)
-        ]
+        angles: list[float] = []
+        caps: list[float] = []
+        requests: list[Request] = []
+        for (motor_id, motor_per_joint, offset_deg, floor_dps), q_deg, qd_dps in zip(
+            self._position_axes, ref.position.tolist(), ref.velocity.tolist(), strict=True
+        ):
+            angle = (q_deg - offset_deg) * motor_per_joint
+            cap = min(abs(qd_dps * motor_per_joint) * headroom + floor_dps, ceiling)
+            angles.append(angle)
+            caps.append(cap)
+            requests.append(new_request(motor_id, new_position(angle, cap)))
+        record = self.setpoints
+        record.motor_angle_deg[:] = angles
+        record.max_speed_dps[:] = caps
+        return requests
 
     def _torque_requests(self, ref: State) -> list[Request]:
         axes = self.axes
@@ -446,10 +467,11 @@ class Controller:
         self.reference = ref = follower.sample(deadline_s)
         if check is not None:
             check(ref)
-        requests = self.build_requests(ref) if command else []
+        requests = self._build(ref) if command else []
         self.setpoints.commanded = command
-        requests.extend(extra)
-        replies = self.bus.transact(requests, start_s + self.options.reply_budget * (deadline_s - start_s))
+        if extra:
+            requests.extend(extra)
+        replies = self.bus.transact(requests, start_s + self._reply_budget * (deadline_s - start_s))
         self.absorb(replies)
         self._publish(self.loop.cycles + 1, start_s, command)  # (the loop counts the cycle once it has ended)
         for hook in self.cycle_hooks:
