@@ -8,7 +8,7 @@ missed reply: 18 000 deg/s rotor speed, above any RMD drive's rated speed).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,8 +54,11 @@ class AxisStates:
         self.index = {spec.motor_id: i for i, spec in enumerate(specs)}
         # The encoder fields are uint16: wider encoders report their top 16 bits (docs/protocol.md).
         self.counts_per_rev = np.array([float(1 << min(s.encoder_bits, ENCODER_FIELD_BITS)) for s in specs])
-        self._counts = self.counts_per_rev.tolist()
-        self._transmissions = transmission.transmissions
+        # Per axis, for absorb: counts per revolution, and the joint's motor -> joint conversions.
+        self._terms = tuple(
+            (counts, t.joint_deg, t.joint_rate)
+            for counts, t in zip(self.counts_per_rev.tolist(), transmission.transmissions, strict=True)
+        )
         self.motor_deg = np.zeros(n)  # unwrapped multi-turn rotor angle
         self.motor_speed_dps = np.zeros(n)
         self.encoder = np.zeros(n, dtype=np.int64)
@@ -74,30 +77,47 @@ class AxisStates:
 
     def update(self, i: int, state: MotorState, received_s: float) -> None:
         """Take one 0x9C / 0xA1..0xA8 reply of axis ``i``."""
-        # Python floats and ints throughout (a numpy scalar costs several times as much per operation), with the
-        # same operations in the same order as the arrays would do them: the same float64 results.
-        counts = self._counts[i]
-        encoder = state.encoder
-        delta = encoder - self.encoder.item(i)
-        if delta > counts / 2:
-            delta -= int(counts)
-        elif delta < -counts / 2:
-            delta += int(counts)
-        self.encoder[i] = encoder
-        motor_deg = self.motor_deg.item(i) + delta * 360.0 / counts
-        self.motor_deg[i] = motor_deg
-        speed_dps = float(state.speed_dps)
-        self.motor_speed_dps[i] = speed_dps
-        self.iq_a[i] = state.iq_a
-        self.temperature_c[i] = state.temperature_c
-        self.last_reply_s[i] = received_s
-        self.fresh[i] = True
-        t = self._transmissions[i]
-        self.q_deg[i] = t.joint_deg(motor_deg)
-        self.qd_dps[i] = t.joint_rate(speed_dps)
+        self.absorb(((self.specs[i].motor_id, None, state, received_s),), keep_fresh=True)
+
+    def absorb(self, replies: Iterable[tuple[int, object, object, float | None]], *, keep_fresh: bool = False) -> None:
+        """Take a cycle's replies (:class:`~motion.transport.Reply` tuples: motor id, request, message, time).
+
+        Every :class:`MotorState` that arrived for an axis refreshes it; :attr:`fresh` then marks those axes (and
+        only those, unless ``keep_fresh``). Anything else is ignored.
+        """
+        # The control cycle's hot path: arrays and per-axis terms are looked up once, and the arithmetic is done in
+        # Python floats and ints (a numpy scalar costs several times as much per operation), with the same operations
+        # in the same order as the arrays would do them, so the results are the same float64s.
+        fresh, index, terms = self.fresh, self.index, self._terms
+        encoders, motor_degs, speeds, iqs = self.encoder, self.motor_deg, self.motor_speed_dps, self.iq_a
+        temperatures, last_reply_s, q_deg, qd_dps = self.temperature_c, self.last_reply_s, self.q_deg, self.qd_dps
+        if not keep_fresh:
+            fresh[:] = False
+        for motor_id, _request, state, received_s in replies:
+            i = index.get(motor_id)
+            if i is None or received_s is None or not isinstance(state, MotorState):
+                continue
+            counts, joint_deg, joint_rate = terms[i]
+            encoder = state.encoder
+            delta = encoder - encoders.item(i)
+            if delta > counts / 2:
+                delta -= int(counts)
+            elif delta < -counts / 2:
+                delta += int(counts)
+            encoders[i] = encoder
+            motor_deg = motor_degs.item(i) + delta * 360.0 / counts
+            motor_degs[i] = motor_deg
+            speed_dps = float(state.speed_dps)
+            speeds[i] = speed_dps
+            iqs[i] = state.iq_a
+            temperatures[i] = state.temperature_c
+            last_reply_s[i] = received_s
+            fresh[i] = True
+            q_deg[i] = joint_deg(motor_deg)
+            qd_dps[i] = joint_rate(speed_dps)
 
     def _refresh_joint(self, i: int) -> None:
-        t = self._transmissions[i]
+        t = self.transmission.transmissions[i]
         self.q_deg[i] = t.joint_deg(self.motor_deg.item(i))
         self.qd_dps[i] = t.joint_rate(self.motor_speed_dps.item(i))
 

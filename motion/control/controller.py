@@ -426,14 +426,7 @@ class Controller:
 
     def absorb(self, replies: Sequence[Reply]) -> None:
         """Update the axis states from a cycle's replies."""
-        axes = self.axes
-        axes.fresh[:] = False
-        index = axes.index
-        for reply in replies:
-            message = reply.message
-            i = index.get(reply.motor_id)
-            if i is not None and isinstance(message, MotorState) and reply.received_s is not None:
-                axes.update(i, message, reply.received_s)
+        self.axes.absorb(replies)
 
     def step(
         self,
