@@ -14,7 +14,8 @@ from typing import Any, Final, Protocol
 
 from motion.errors import DecodeError
 from motion.protocol import CanFrame, can_frame
-from motion.protocol.table import CAN_ID_BASE, MOTOR_ID_MAX, MOTOR_ID_MIN
+from motion.protocol.compiled import CODECS
+from motion.protocol.table import CAN_ID_BASE, CAN_PAYLOAD_BYTES, MOTOR_ID_MAX, MOTOR_ID_MIN, Direction, WireProtocol
 from motion.transport.base import Request, Transport
 from motion.transport.can_endpoint import CanEndpoint
 
@@ -32,16 +33,23 @@ def take_in_can_frame(transport: Transport, frame: CanFrame) -> None:
         # Other devices may share the bus; their frames are not drive replies, nor are 0x280 frames.
         transport.bus_counters.unknown_id_frames += 1
         return
-    try:
-        message = _decode_reply(arbitration_id, frame.data)[1]
-    except DecodeError:
-        transport.motor_counters(motor_id).bad_frames += 1
-        return
+    # The codec's fast path straight away (an unpack and a message); can_frame.decode_reply for anything it does not
+    # take, which gives the same message or the DecodeError.
+    data = frame.data
+    decoder = _REPLY_DECODERS[data[0]] if len(data) == CAN_PAYLOAD_BYTES else None
+    message = decoder(data) if decoder is not None else None
+    if message is None:
+        try:
+            message = _decode_reply(arbitration_id, data)[1]
+        except DecodeError:
+            transport.motor_counters(motor_id).bad_frames += 1
+            return
     transport._offer(motor_id, message)
 
 
 # Looked up once, not for every frame.
 _decode_reply: Final = can_frame.decode_reply
+_REPLY_DECODERS: Final = CODECS[WireProtocol.CAN, Direction.REPLY].decoders
 _FIRST_MOTOR_ID: Final = MOTOR_ID_MIN
 _LAST_MOTOR_ID: Final = MOTOR_ID_MAX
 
