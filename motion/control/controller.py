@@ -122,6 +122,8 @@ class StopCommand:
 # through object.__setattr__ for each field, several times slower); same objects, same equality.
 _NEW_REQUEST: Final = frozen_builder(Request)
 _NEW_POSITION: Final = frozen_builder(MultiTurnPositionSpeed)
+_NEW_TORQUE: Final = frozen_builder(TorqueControl)
+_NEW_MULTI_TORQUE: Final = frozen_builder(MultiMotorTorque)
 
 
 @dataclass(slots=True)
@@ -219,7 +221,6 @@ class Controller:
             else []
         )
         self._single = [i for i in range(len(self.specs)) if i not in self._multi]
-        self._iq_raw = np.zeros(len(self.specs), dtype=np.int64)
         self._multi_slot = {i: MULTI_TORQUE_MOTOR_IDS.index(self.ids[i]) for i in self._multi}
         # Constant per cycle, looked up once: the 0xA4 speed cap's terms, per joint (motor id, motor deg per joint
         # deg, zero offset, floor), and the builder of the mode's batch.
@@ -408,20 +409,36 @@ class Controller:
         return requests
 
     def _torque_requests(self, ref: State) -> list[Request]:
+        # Python floats per joint, as for the set-points of position mode: the same operations in the same order as
+        # the arrays would do them (PD, plus the feed-forward), so the torques are the same float64s.
         axes = self.axes
-        tau = self.kp * (ref.position - axes.q_deg) + self.kd * (ref.velocity - axes.qd_dps)
+        torques = [
+            kp * (q_ref - q) + kd * (qd_ref - qd)
+            for kp, kd, q_ref, q, qd_ref, qd in zip(
+                self.kp.tolist(),
+                self.kd.tolist(),
+                ref.position.tolist(),
+                axes.q_deg.tolist(),
+                ref.velocity.tolist(),
+                axes.qd_dps.tolist(),
+                strict=True,
+            )
+        ]
         if self.feedforward is not None:
-            tau += self.feedforward(axes.q_deg, ref.velocity, ref.acceleration)
+            feedforward = self.feedforward(axes.q_deg, ref.velocity, ref.acceleration).tolist()
+            torques = [tau + ff for tau, ff in zip(torques, feedforward, strict=True)]
         record = self.setpoints
-        record.torque_nm[:] = tau
-        raw, record.limited[:] = self.transmission.iq_raw_limited(tau)
-        self._iq_raw = raw
-        requests = [Request(self.ids[i], TorqueControl(iq_amps(int(raw[i])))) for i in self._single]
+        record.torque_nm[:] = torques
+        raw, limited = self.transmission.iq_raw_limited_list(torques)
+        record.limited[:] = limited
+        amps = [iq_amps(r) for r in raw]
+        new_request, new_torque = _NEW_REQUEST, _NEW_TORQUE
+        requests = [new_request(self.ids[i], new_torque(amps[i])) for i in self._single]
         if self._multi:
             currents = [0.0, 0.0, 0.0, 0.0]
             for i, slot in self._multi_slot.items():
-                currents[slot] = iq_amps(int(raw[i]))
-            requests.append(Request(MULTI_TORQUE_MOTOR_IDS[0], MultiMotorTorque(*currents)))
+                currents[slot] = amps[i]
+            requests.append(new_request(MULTI_TORQUE_MOTOR_IDS[0], _NEW_MULTI_TORQUE(*currents)))
         return requests
 
     def absorb(self, replies: Sequence[Reply]) -> None:
