@@ -13,6 +13,7 @@ that instant, so a new target never steps the reference's velocity or accelerati
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
@@ -123,6 +124,10 @@ class StopCommand:
 _NEW_REQUEST: Final = frozen_builder(Request)
 _NEW_POSITION: Final = frozen_builder(MultiTurnPositionSpeed)
 _NEW_TORQUE: Final = frozen_builder(TorqueControl)
+# The snapshot from its six fields in one tuple (what the named tuple's own constructor does, minus a call).
+_new_snapshot: Final[Callable[[tuple[int, float, NDArray[np.float64], bool, float, float]], CycleSnapshot]] = (
+    functools.partial(tuple.__new__, CycleSnapshot)
+)
 _NEW_MULTI_TORQUE: Final = frozen_builder(MultiMotorTorque)
 
 
@@ -486,8 +491,8 @@ class Controller:
         self._publish(self.loop.cycles + 1, start_s, command)  # (the loop counts the cycle once it has ended)
         for hook in self.cycle_hooks:
             hook(self, start_s, replies)
-        if not follower.moving and self._pending is None:
-            self._idle.set()
+        if not follower.moving and self._pending is None and not self._idle.is_set():
+            self._idle.set()  # (Event.set takes a lock and notifies: not again every cycle of a hold)
         return replies
 
     def _publish(self, cycle: int, start_s: float, commanded: bool) -> None:
@@ -495,13 +500,15 @@ class Controller:
         axes, follower = self.axes, self.follower
         path = follower.path if follower is not None else None
         end = follower.end_time() if follower is not None and path is not None else math.nan
-        self.snapshot = CycleSnapshot(
-            cycle,
-            start_s,
-            frozen((axes.q_deg, axes.qd_dps, self.reference.position, axes.iq_a, axes.temperature_c, axes.fresh)),
-            commanded,
-            end - path.duration_s if path is not None else math.nan,
-            end,
+        self.snapshot = _new_snapshot(
+            (
+                cycle,
+                start_s,
+                frozen((axes.q_deg, axes.qd_dps, self.reference.position, axes.iq_a, axes.temperature_c, axes.fresh)),
+                commanded,
+                end - path.duration_s if path is not None else math.nan,
+                end,
+            )
         )
 
     def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
