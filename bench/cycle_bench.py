@@ -215,6 +215,15 @@ def _best_ns(statement: str, names: dict[str, object], number: int, repeat: int)
     return min(timeit.repeat(statement, globals=names, number=number, repeat=repeat)) / number * 1e9
 
 
+#: Part 0's frames: the control cycle's requests and replies (and a reply with an enum of flags).
+CODEC_CASES: tuple[tuple[str, Direction, Message], ...] = (
+    ("encode 0xA4 request (position)", Direction.REQUEST, MultiTurnPositionSpeed(123.45, 270.0)),
+    ("encode 0xA1 request (torque)", Direction.REQUEST, TorqueControl(1.25)),
+    ("decode 0xA4 reply (state)", Direction.REPLY, MotorState(Command.MULTI_TURN_POSITION_SPEED, 31, 0.416, -12, 1234)),
+    ("decode 0x9A reply (status 1)", Direction.REPLY, Status1(Command.READ_STATUS_1, 35, 24.1, ErrorFlags.NONE)),
+)
+
+
 def run_codec(number: int = 20_000, repeat: int = 7) -> list[CodecRow]:
     """Part 0: ``can_frame.encode_request`` / ``decode_reply`` of the control cycle's frames against a bare
     precompiled ``struct.Struct`` packing the same raw values into the same bytes / unpacking the same bytes.
@@ -223,51 +232,33 @@ def run_codec(number: int = 20_000, repeat: int = 7) -> list[CodecRow]:
     frame around it) is timed as well. Every statement is timed the same way (``timeit``, best of ``repeat``).
     """
     rows: list[CodecRow] = []
-    requests: list[tuple[str, Message]] = [
-        ("encode 0xA4 request (position)", MultiTurnPositionSpeed(123.45, 270.0)),
-        ("encode 0xA1 request (torque)", TorqueControl(1.25)),
-    ]
-    for what, message in requests:
-        frame = can_frame.encode_request(message, 3)
-        layout = CODECS[WireProtocol.CAN, Direction.REQUEST].layouts[frame.data[0]]
+    for what, direction, message in CODEC_CASES:
+        request = direction is Direction.REQUEST
+        frame = (can_frame.encode_request if request else can_frame.encode_reply)(message, 3)
+        layout = CODECS[WireProtocol.CAN, direction].layouts[frame.data[0]]
         assert layout is not None
         bare = struct.Struct(layout.packer.format)  # the same layout, built here: the baseline
         raw = bare.unpack(frame.data)
         assert bare.pack(*raw) == frame.data
-        names = {"encode": can_frame.encode_request, "fast": layout.encode, "m": message, "pack": bare.pack, "raw": raw}
-        rows.append(
-            CodecRow(
-                what,
-                _best_ns("encode(m, 3)", names, number, repeat),
-                _best_ns("fast(m)", names, number, repeat),
-                _best_ns("pack(*raw)", names, number, repeat),
-            )
-        )
-    replies: list[tuple[str, Message]] = [
-        ("decode 0xA4 reply (state)", MotorState(Command.MULTI_TURN_POSITION_SPEED, 31, 0.42, -12, 1234)),
-        ("decode 0x9A reply (status 1)", Status1(Command.READ_STATUS_1, 35, 24.1, ErrorFlags.NONE)),
-    ]
-    for what, message in replies:
-        frame = can_frame.encode_reply(message, 3)
-        layout = CODECS[WireProtocol.CAN, Direction.REPLY].layouts[frame.data[0]]
-        assert layout is not None
-        bare = struct.Struct(layout.packer.format)
-        assert can_frame.encode_reply(can_frame.decode_reply(frame.arbitration_id, frame.data)[1], 3) == frame
+        assert can_frame.decode_reply(frame.arbitration_id, frame.data)[1] == message or request
         names = {
+            "encode": can_frame.encode_request,
             "decode": can_frame.decode_reply,
-            "fast": layout.decode,
+            "fast_encode": layout.encode,
+            "fast_decode": layout.decode,
+            "m": message,
             "i": frame.arbitration_id,
             "d": frame.data,
+            "pack": bare.pack,
             "unpack": bare.unpack,
+            "raw": raw,
         }
-        rows.append(
-            CodecRow(
-                what,
-                _best_ns("decode(i, d)", names, number, repeat),
-                _best_ns("fast(d)", names, number, repeat),
-                _best_ns("unpack(d)", names, number, repeat),
-            )
+        statements = (
+            ("encode(m, 3)", "fast_encode(m)", "pack(*raw)")
+            if request
+            else ("decode(i, d)", "fast_decode(d)", "unpack(d)")
         )
+        rows.append(CodecRow(what, *(_best_ns(statement, names, number, repeat) for statement in statements)))
     return rows
 
 

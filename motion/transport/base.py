@@ -320,6 +320,16 @@ class Transport(ABC):
             plan.slot_counters[slot].sent += 1
             self._open_slots += 1
 
+    def _sent_first(self, count: int) -> None:
+        """Requests ``0 .. count - 1`` went out, none of them before: open their slots (once for a batch sent back
+        to back, instead of :meth:`_sent` for each)."""
+        plan = self._slots
+        end = plan.first_slot[count]
+        self._slot_state[:end] = plan.all_open[:end]
+        for counters in plan.slot_counters[:end]:
+            counters.sent += 1
+        self._open_slots += end
+
     def _answered(self, index: int) -> bool:
         """True when no slot of request ``index`` is still open."""
         state, first = self._slot_state, self._slots.first_slot
@@ -406,6 +416,7 @@ class _Plan:
         slot_counters: per slot, its motor's counters.
         one_each: every request has exactly one slot (request i has slot i).
         not_sent, no_messages, no_times: a cycle's initial slot states, messages and reply times (copied).
+        all_open: every slot open.
     """
 
     first_slot: tuple[int, ...]
@@ -419,11 +430,12 @@ class _Plan:
     not_sent: list[int]
     no_messages: list[Message | None]
     no_times: list[float | None]
+    all_open: tuple[int, ...]
 
     @classmethod
     def empty(cls) -> _Plan:
         """The plan of an empty batch."""
-        return cls((0,), (), (), (), (), {}, (), True, [], [], [])
+        return cls((0,), (), (), (), (), {}, (), True, [], [], [], ())
 
     @classmethod
     def build(
@@ -469,4 +481,5 @@ class _Plan:
             not_sent=[_NOT_SENT] * n,
             no_messages=[None] * n,
             no_times=[None] * n,
+            all_open=(_OPEN,) * n,
         )

@@ -140,12 +140,15 @@ class CanTransport(Transport):
         # SEND_TIMEOUT_MIN_S, not just what is left of the cycle: pyserial (slcan) raises a write timeout once the
         # timeout has passed even when every byte was written, which a descheduled thread hits on a loaded machine.
         send_timeout_s = max(deadline_s - clock(), SEND_TIMEOUT_MIN_S)
-        send, sent, tap = endpoint.send, self._sent, self.frame_tap
-        for index, frame in enumerate(self._frames):
-            send(frame, send_timeout_s)
-            sent(index)
-            if tap is not None:
-                tap(clock(), False, frame.arbitration_id, frame.data)
+        send, tap, sent = endpoint.send, self.frame_tap, 0
+        try:
+            for frame in self._frames:
+                send(frame, send_timeout_s)
+                sent += 1
+                if tap is not None:
+                    tap(clock(), False, frame.arbitration_id, frame.data)
+        finally:
+            self._sent_first(sent)  # the requests that went out, also when a send failed
         while self._open_slots:
             remaining_s = deadline_s - clock()
             if remaining_s <= 0.0:
