@@ -255,7 +255,8 @@ class Transport(ABC):
     @abstractmethod
     def _exchange(self, deadline_s: float) -> None:
         """Send the prepared requests and feed received replies to :meth:`_offer` until all slots are closed or
-        ``deadline_s`` passes. Call :meth:`_sent` after each request went out.
+        ``deadline_s`` passes. Call :meth:`_sent` after each request went out (or :meth:`_sent_first` once for a batch
+        sent back to back).
 
         Raises:
             TransportError: the bus failed.
