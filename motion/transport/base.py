@@ -46,7 +46,7 @@ import types
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Final, Self
+from typing import Final, NamedTuple, Self
 
 from motion.errors import TransportError
 from motion.protocol import Command, Message, MultiMotorTorque
@@ -99,6 +99,30 @@ class Reply:
     def ok(self) -> bool:
         """True when a reply arrived in time."""
         return self.message is not None
+
+
+# Batch shapes whose slot layout is kept (a control loop uses a handful: its batch plus each round-robin read).
+_MAX_PLANS: Final = 64
+
+
+class _Plan(NamedTuple):
+    """The slot layout of one batch shape (shared by every cycle of that shape; never changed once made)."""
+
+    request_first_slot: list[int]
+    slot_motor: list[int]
+    slot_key: list[int]
+    slot_next: list[int]
+    first_slot_of_key: dict[int, int]
+    slot_counters: list[MotorCounters]
+
+
+def _key_of(request: Request) -> int:
+    """The reply key a request expects (motor id << 8 | command byte; -1 for the 0x280 frame, -2 for no command)."""
+    message = request.message
+    if isinstance(message, MultiMotorTorque):
+        return -1
+    command = command_of(message)
+    return -2 if command is None else request.motor_id << 8 | command
 
 
 # Replies are built for every expected reply of every cycle: the slot-setting constructor (see frozen_builder).
@@ -177,7 +201,11 @@ class Transport(ABC):
         self._slot_message: list[Message | None] = []
         self._slot_time: list[float | None] = []
         self._slot_next: list[int] = []
+        self._slot_counters: list[MotorCounters] = []
         self._first_slot_of_key: dict[int, int] = {}
+        # Plans of the batch shapes seen (a control loop sends the same few shapes every cycle): the slot layout,
+        # keyed by the requests' (motor id, command) sequence, is laid out once per shape.
+        self._plans: dict[tuple[int, ...], _Plan] = {}
         self._last_slot_of_key: dict[int, int] = {}
         self._open_slots = 0
 
@@ -274,44 +302,76 @@ class Transport(ABC):
         return counters
 
     def _plan(self, requests: Sequence[Request]) -> None:
-        """Lay out the cycle's expected replies (slots) in the reused containers."""
-        for container in (
+        """Lay out the cycle's expected replies (slots): from the plan of this batch shape, made on its first use."""
+        shape = tuple([_key_of(request) for request in requests])
+        plan = self._plans.get(shape)
+        if plan is None:
+            plan = self._make_plan(requests, shape)
+        (
             self._request_first_slot,
             self._slot_motor,
             self._slot_key,
-            self._slot_request,
-            self._slot_state,
-            self._slot_message,
-            self._slot_time,
             self._slot_next,
-        ):
-            container.clear()
-        self._first_slot_of_key.clear()
-        self._last_slot_of_key.clear()
+            self._first_slot_of_key,
+            self._slot_counters,
+        ) = plan
+        n = len(plan.slot_motor)
+        self._slot_request = [r.message for r in requests] if n == len(requests) else self._expand(requests)
+        self._slot_state = [_NOT_SENT] * n
+        self._slot_message = [None] * n
+        self._slot_time = [None] * n
         self._ambiguous.clear()
         self._open_slots = 0
+
+    @staticmethod
+    def _expand(requests: Sequence[Request]) -> list[Message]:
+        """The request of every slot (a 0x280 request has four)."""
+        slots: list[Message] = []
         for request in requests:
-            self._request_first_slot.append(len(self._slot_motor))
+            message = request.message
+            slots.extend(
+                [message] * len(MULTI_TORQUE_MOTOR_IDS) if isinstance(message, MultiMotorTorque) else [message]
+            )
+        return slots
+
+    def _make_plan(self, requests: Sequence[Request], shape: tuple[int, ...]) -> _Plan:
+        # New containers: the current ones may belong to the plan of another shape.
+        first_slot: list[int] = []
+        self._request_first_slot = first_slot
+        self._slot_motor, self._slot_key, self._slot_next, self._slot_counters = [], [], [], []
+        self._first_slot_of_key = {}
+        self._last_slot_of_key.clear()
+        for request in requests:
+            first_slot.append(len(self._slot_motor))
             message = request.message
             if isinstance(message, MultiMotorTorque):
                 for motor_id in MULTI_TORQUE_MOTOR_IDS:
-                    self._add_slot(motor_id, Command.TORQUE, message)
+                    self._add_slot(motor_id, Command.TORQUE)
             else:
                 command = command_of(message)
                 # _prepare already rejected messages without a command byte.
                 assert command is not None
-                self._add_slot(request.motor_id, command, message)
-        self._request_first_slot.append(len(self._slot_motor))
+                self._add_slot(request.motor_id, command)
+        first_slot.append(len(self._slot_motor))
+        plan = _Plan(
+            first_slot,
+            self._slot_motor,
+            self._slot_key,
+            self._slot_next,
+            self._first_slot_of_key,
+            self._slot_counters,
+        )
+        if len(self._plans) >= _MAX_PLANS:  # a program sending ever new shapes: keep memory bounded
+            self._plans.clear()
+        self._plans[shape] = plan
+        return plan
 
-    def _add_slot(self, motor_id: int, command: int, request: Message) -> None:
+    def _add_slot(self, motor_id: int, command: int) -> None:
         slot, key = len(self._slot_motor), motor_id << 8 | command
         self._slot_motor.append(motor_id)
         self._slot_key.append(key)
-        self._slot_request.append(request)
-        self._slot_state.append(_NOT_SENT)
-        self._slot_message.append(None)
-        self._slot_time.append(None)
         self._slot_next.append(-1)
+        self._slot_counters.append(self.motor_counters(motor_id))
         # Chain the slots of each key in request order, so that replies fill them first-in, first-out.
         last = self._last_slot_of_key.get(key)
         if last is None:
@@ -322,10 +382,11 @@ class Transport(ABC):
 
     def _sent(self, index: int) -> None:
         """Request ``index`` went out: open its slots."""
+        state, counters = self._slot_state, self._slot_counters
         for slot in range(self._request_first_slot[index], self._request_first_slot[index + 1]):
-            self._slot_state[slot] = _OPEN
+            state[slot] = _OPEN
             self._open_slots += 1
-            self.motor_counters(self._slot_motor[slot]).sent += 1
+            counters[slot].sent += 1
 
     def _answered(self, index: int) -> bool:
         """True when no slot of request ``index`` is still open."""
@@ -334,7 +395,7 @@ class Transport(ABC):
 
     def _offer(self, motor_id: int, message: Message) -> None:
         """Take in one decoded reply: fill the first open slot with its key, or count it stale."""
-        counters = self.motor_counters(motor_id)
+        counters = self._counters.get(motor_id) or self.motor_counters(motor_id)
         command = command_of(message)
         if command is None:
             counters.bad_frames += 1
@@ -368,7 +429,7 @@ class Transport(ABC):
     def _expire_slot(self, slot: int) -> None:
         self._slot_state[slot] = _EXPIRED
         self._open_slots -= 1
-        self.motor_counters(self._slot_motor[slot]).timeouts += 1
+        self._slot_counters[slot].timeouts += 1
         key = self._slot_key[slot]
         if key not in self._ambiguous:
             self._outstanding.add(key)
@@ -380,7 +441,7 @@ class Transport(ABC):
                 self._expire_slot(slot)
             elif state[slot] == _NOT_SENT:
                 state[slot] = _EXPIRED
-                self.motor_counters(self._slot_motor[slot]).timeouts += 1
+                self._slot_counters[slot].timeouts += 1
                 self.bus_counters.skipped_requests += 1
         new_reply = _NEW_REPLY
         return [
