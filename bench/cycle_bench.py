@@ -51,7 +51,17 @@ from motion.config.schema import ControlMode
 from motion.control.controller import Controller, Feedforward
 from motion.control.scheduler import LoopStatistics
 from motion.emulator.timing import DEFAULT_LATENCY_S, can_frame_bits, rs485_frame_time_s
-from motion.protocol import Bare, CanFrame, Command, Message, MotorState, MultiTurnAngle, can_frame, rs485_frame
+from motion.protocol import (
+    Bare,
+    CanFrame,
+    Command,
+    Message,
+    MotorState,
+    MultiTurnAngle,
+    MultiTurnPositionSpeed,
+    can_frame,
+    rs485_frame,
+)
 from motion.protocol.table import CAN_ID_BASE, CAN_MULTI_TORQUE_ID, MULTI_TORQUE_MOTOR_IDS
 from motion.trajectory import State
 from motion.transport.base import MotorCounters, Reply, Transport
@@ -422,6 +432,12 @@ def print_cpu(cases: Sequence[CpuCase]) -> None:
             fixed, per_axis = _fit_per_axis(mine, stage)
             ratio = _percentile_us(mine[-1].stages[stage], 50) / _percentile_us(mine[0].stages[stage], 50)
             print(f"| {mode.value} | {stage} | {fixed:.1f} | {per_axis:.1f} | {ratio:.1f}x |")
+    print("\ncycle() p50 as a share of the wire time of the cycle's frames (the physical limit of the bus):\n")
+    print("| axes | mode | cycle() p50, µs | wire time, µs | share |")
+    print("|---:|---|---:|---:|---:|")
+    for c in cases:
+        p50 = _percentile_us(c.stages["cycle"], 50)
+        print(f"| {c.n_axes} | {c.mode.value} | {p50:.0f} | {c.wire_us:.0f} | {p50 / c.wire_us:.0%} |")
     torque = {c.n_axes: c for c in cases if c.mode is ControlMode.TORQUE}
     position = {c.n_axes: c for c in cases if c.mode is ControlMode.POSITION}
     ratios = ", ".join(f"{n}: {_p50_ratio(torque[n], position[n], 'controller'):.1f}x" for n in AXES)
@@ -648,16 +664,68 @@ def print_live(results: Sequence[LiveResult]) -> None:
         )
     print("\nHost cost of python-can's slcan per frame, measured after each CAN run (medians):\n")
     print(
-        "| link | axes | target Hz | send, µs wall (tcdrain waits for the emulator to read) | read one reply, µs CPU |"
+        "| link | axes | target Hz | send, µs wall (tcdrain waits for the emulator to read) | read one reply, µs CPU "
+        "| reply's wire time @ 1 Mbit/s, µs | read / wire |"
     )
-    print("|---|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|")
+    reply_wire_us = can_frame_bits(CAN_ID_BASE + 1, bytes(8)) / 1e6 * 1e6  # one 8-byte reply frame, µs at 1 Mbit/s
     for r in results:
         if r.case.link == "slcan":
-            print(f"| {r.case.label} | {r.case.n_axes} | {r.case.rate_hz:g} | {r.send_us:.0f} | {r.read_us:.0f} |")
+            print(
+                f"| {r.case.label} | {r.case.n_axes} | {r.case.rate_hz:g} | {r.send_us:.0f} | {r.read_us:.0f} "
+                f"| {reply_wire_us:.0f} | {r.read_us / reply_wire_us:.0%} |"
+            )
     print("\nEmulator's own counts (stderr at exit), and the error that ended a loop early:")
     for r in results:
         ended = f" **loop ended by {r.error}**" if r.error else ""
         print(f"- {r.case.label}, {r.case.n_axes} axes @ {r.case.rate_hz:g} Hz: {r.emulator_report or '(none)'}{ended}")
+
+
+# ---------------------------------------------------------------------------------------------------- part 0
+
+
+def _per_call_ns(call: Any, calls: int) -> float:
+    """Median over 5 runs of the time of one call, ns."""
+    runs = []
+    for _ in range(5):
+        start = time.perf_counter_ns()
+        for _ in range(calls):
+            call()
+        runs.append((time.perf_counter_ns() - start) / calls)
+    return float(np.median(runs))
+
+
+def print_codec(calls: int = 20_000) -> None:
+    """Part 0: the codec per frame against the bare ``struct`` baseline of the same bytes, in this run."""
+    import struct
+
+    position = MultiTurnPositionSpeed(angle_deg=123.45, max_speed_dps=360.0)
+    state = MotorState(Command.MULTI_TURN_POSITION_SPEED, temperature_c=30, iq_a=1.25, speed_dps=42, encoder=1234)
+    request = can_frame.encode_request(position, 1)
+    reply = can_frame.encode_reply(state, 1)
+    a4_request = struct.Struct("<BBHi")  # command, reserved, max speed, angle (what 0xA4 carries on CAN)
+    a4_reply = struct.Struct("<BbhhH")  # command, temperature, iq, speed, encoder
+    a4_raw = (0xA4, 0, 360, 12345)
+    rows = [
+        ("CAN encode 0xA4 request", lambda: can_frame.encode_request(position, 1), lambda: a4_request.pack(*a4_raw)),
+        (
+            "CAN decode 0xA4 reply",
+            lambda: can_frame.decode_reply(reply.arbitration_id, reply.data),
+            lambda: a4_reply.unpack(reply.data),
+        ),
+        (
+            "RS485 encode 0xA4 request",
+            lambda: rs485_frame.encode_request(position, 1),
+            lambda: a4_request.pack(*a4_raw),
+        ),
+    ]
+    print("\n### 0. Codec per frame against the bare struct baseline (same run), ns\n")
+    print("| frame | codec | bare struct | ratio |")
+    print("|---|---:|---:|---:|")
+    assert request.data[0] == 0xA4
+    for label, codec, bare in rows:
+        ours, base = _per_call_ns(codec, calls), _per_call_ns(bare, calls)
+        print(f"| {label} | {ours:.0f} | {base:.0f} | {ours / base:.1f}x |")
 
 
 # ---------------------------------------------------------------------------------------------------- main
@@ -690,7 +758,9 @@ def _machine() -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the benchmark and print its tables; returns the exit code."""
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
-    parser.add_argument("--part", choices=("all", "cpu", "live"), default="all", help="what to run (default all)")
+    parser.add_argument(
+        "--part", choices=("all", "codec", "cpu", "live"), default="all", help="what to run (default all)"
+    )
     parser.add_argument("--cycles", type=int, default=4000, help="timed cycles per case in part 1 (default 4000)")
     parser.add_argument("--rounds", type=int, default=20, help="interleaved rounds in part 1 (default 20)")
     parser.add_argument("--seconds", type=float, default=5.0, help="loop run time per case in part 2 (default 5)")
@@ -700,6 +770,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     print(f"## rmd-motion cycle benchmark\n\n{_machine()}")
     print(f"perf_counter_ns overhead (median of back-to-back calls): {_timer_overhead_ns():.0f} ns")
+    if args.part in ("all", "codec"):
+        print_codec()
     if args.part in ("all", "cpu"):
         started = time.monotonic()
         cases = run_cpu(args.cycles, args.rounds)
