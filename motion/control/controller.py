@@ -166,6 +166,7 @@ class Controller:
         self._stop_loop = False
         self.last_command: list[Message] = []
         self.torque_nm = np.zeros(len(self.specs))
+        self._zero = np.zeros(len(self.specs))
         self.limited = np.zeros(len(self.specs), dtype=bool)
         self.cycle_hooks: list[Callable[[Controller, float, list[Reply]], None]] = []
         # The 0x280 frame commands motors 1..4 whether they belong to the arm or not, so it is used only when all
@@ -336,6 +337,11 @@ class Controller:
         tau = self.kp * (ref.position - axes.q_deg) + self.kd * (ref.velocity - axes.qd_dps)
         if self.feedforward is not None:
             tau += self.feedforward(axes.q_deg, ref.velocity, ref.acceleration)
+        return self.torque_frames(tau)
+
+    def torque_frames(self, tau: FloatArray) -> list[Request]:
+        """The torque-current requests (0xA1, and 0x280 where it applies) for joint torques ``tau`` (N·m), limited
+        per joint; records the torque and the limiting."""
         self.torque_nm = tau
         raw, self.limited = self.transmission.iq_raw_limited(tau)
         self._iq_raw = raw
@@ -392,14 +398,44 @@ class Controller:
             check(ref)
         requests = self.build_requests(ref) if command else []
         requests.extend(extra)
+        replies = self._exchange(requests, start_s, deadline_s)
+        if not follower.moving and self._pending is None:
+            self._idle.set()
+        return replies
+
+    def _exchange(self, requests: list[Request], start_s: float, deadline_s: float) -> list[Reply]:
         replies = self.bus.transact(requests, start_s + self.options.reply_budget * (deadline_s - start_s))
         self.absorb(replies)
         self.last_command = [r.message for r in requests]
         for hook in self.cycle_hooks:
             hook(self, start_s, replies)
-        if not follower.moving and self._pending is None:
-            self._idle.set()
         return replies
+
+    def comply_step(
+        self, start_s: float, deadline_s: float, gravity: Feedforward, *, extra: Sequence[Request] = ()
+    ) -> list[Reply]:
+        """A cycle that yields (torque mode, the ``comply`` reaction to a collision): gravity compensation alone,
+        ``g(q)`` at the measured angles with zero gains, so that the arm holds itself up and a push moves it. The
+        reference is the measured position at rest (the stop path is dropped), where a ``clear()`` holds the arm.
+
+        Args:
+            start_s: the cycle's scheduled start.
+            deadline_s: the next cycle's start.
+            gravity: ``(q_deg, qd_dps, qdd_dps2) -> tau_nm``, gravity alone.
+            extra: requests appended to the batch (status reads).
+
+        Raises:
+            MotionError: the controller is not in torque mode (a position stream cannot yield).
+        """
+        if self.options.mode is not ControlMode.TORQUE:
+            raise MotionError("comply needs torque mode")
+        axes = self.axes
+        self.reference = State.at_rest(axes.q_deg.copy())
+        if self.follower is not None:
+            self.follower.hold_at(self.reference.position)
+        requests = self.torque_frames(gravity(axes.q_deg, self._zero, self._zero))
+        requests.extend(extra)
+        return self._exchange(requests, start_s, deadline_s)
 
     def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
         """One unguarded control cycle (the scheduler calls it at ``start_s``); see :mod:`motion.safety` for the
