@@ -105,7 +105,8 @@ def nominal_run(
         watchdog = supervisor.watchdog
 
         def record(*_: object) -> None:
-            np.fmax(peak, np.abs(watchdog.collision_signal_nm), out=peak)
+            if watchdog.collision_armed:
+                np.fmax(peak, np.abs(watchdog.collision_signal_nm), out=peak)
 
         arm.controller.cycle_hooks.append(record)
         start = arm.controller.clock.now()

@@ -551,3 +551,33 @@ def load_config(path: str | os.PathLike[str]) -> schema.ArmConfig:
     """
     file = Path(path)
     return parse_config(read_yaml(file), source=str(file), base_dir=file.parent)
+
+
+def write_joint_values(
+    source: str | os.PathLike[str], target: str | os.PathLike[str], key: str, values: Mapping[str, float]
+) -> schema.ArmConfig:
+    """Write a copy of the configuration ``source`` to ``target`` with ``key`` set on the named joints (e.g. the
+    proposed ``collision_threshold_nm``), and return the copy validated. The copy is written by the YAML library:
+    the values are kept, the comments are not; a relative ``model.urdf`` is rewritten to stay valid from the
+    copy's directory.
+
+    Raises:
+        ConfigError: the source is invalid, a joint is not in it, or the copy does not validate.
+        OSError: the copy cannot be written.
+    """
+    source_path, target_path = Path(source), Path(target)
+    load_config(source_path)  # the source itself is valid
+    data = read_yaml(source_path)
+    joints = {str(j.get("name")): j for j in data["joints"]}
+    for name, value in values.items():
+        if name not in joints:
+            raise ConfigError(str(source_path), "joints", f"no joint {name!r}")
+        joints[name][key] = float(value)
+    model = data.get("model", {})
+    if isinstance(model, dict) and "urdf" in model:
+        urdf = (source_path.parent / str(model["urdf"])).resolve()
+        model["urdf"] = os.path.relpath(urdf, target_path.resolve().parent)
+    text = yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
+    parse_config(yaml.safe_load(text), str(target_path), target_path.resolve().parent)
+    target_path.write_text(text, encoding="utf-8")
+    return load_config(target_path)

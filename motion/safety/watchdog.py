@@ -17,7 +17,9 @@ difference: a torque constant or friction 20 % off (the residual carries 20 % of
 joint that holds its link against gravity can be as large as the collision to detect), and in position mode the bias
 of sampling the drives' current once per set-point (it ripples with every 0xA4 step, and the reply samples it at the
 step; the bias grows with the speed). A contact that builds up more slowly than the window is left to the following
-error.
+error. The check is armed :data:`COLLISION_SETTLE_CYCLES` plus the window after the observer (re)starts (loop start,
+``clear()``): there the drives take up their whole load at once, and any model error of that load is a step of the
+residual.
 """
 
 from __future__ import annotations
@@ -42,6 +44,9 @@ from motion.transport import Reply
 POSITION_LIMIT_TOLERANCE_DEG = 0.1
 # Window of the corrupt-frame count, s.
 CORRUPT_WINDOW_S = 1.0
+#: Observer steps after a (re)start before collisions are checked, on top of the window: the residual of the
+#: drives taking up their load settles (at the default gain, 1 - 0.5**5 = 97 %).
+COLLISION_SETTLE_CYCLES = 5
 
 
 class CollisionObserver(Protocol):
@@ -136,6 +141,8 @@ class Watchdog:
         self.collision_signal_nm = np.full(n, np.nan)
         self._history = np.zeros((max(settings.collision_window_cycles, 1), n))
         self._slot = 0
+        self._steps = 0  # observer steps since its (re)start
+        self._armed_at = COLLISION_SETTLE_CYCLES + settings.collision_window_cycles
         #: The loop cycle count of the cycle that computed :attr:`residual_nm` (-1: none yet).
         self.residual_cycle = -1
 
@@ -222,7 +229,7 @@ class Watchdog:
         self._check_corrupt(now_s)
         q = self.controller.axes.q_deg
         self._check_limits(q, FaultKind.POSITION_LIMIT, "measured position beyond the limit")
-        if self.observer is not None and self._observe(now_s) and not complying:
+        if self.observer is not None and self._observe(now_s) and not complying and self.collision_armed:
             self._check_collision()
         previous = None if complying else self.previous_reference
         if previous is not None:
@@ -261,6 +268,7 @@ class Watchdog:
             observer.reset(axes.q_deg, axes.qd_dps)
             residual[:] = 0.0
             self._history[:] = 0.0
+            self._steps = 0
         else:
             tau = self.controller.transmission.joint_torque_nm(axes.iq_a, out=self._tau_motor)
             residual[:] = observer.update(axes.q_deg, axes.qd_dps, tau, now_s - self._observed_s)
@@ -271,8 +279,15 @@ class Watchdog:
         else:
             signal[:] = residual
         self._observed_s = now_s
+        self._steps += 1
         self.residual_cycle = self.controller.loop.cycles
         return True
+
+    @property
+    def collision_armed(self) -> bool:
+        """Whether the latest collision signal was (or would have been) held against the thresholds: the observer
+        has settled since its (re)start (calibration looks only at these cycles)."""
+        return self._steps > self._armed_at
 
     def _check_collision(self) -> None:
         residual, threshold, over = self.collision_signal_nm, self.collision_threshold, self._over
