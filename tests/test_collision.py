@@ -4,6 +4,7 @@ here a representative subset, in simulated time (exact cycles)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import subprocess
@@ -17,6 +18,7 @@ from kinematics.observer import momentum_observer
 from motion.api import Arm
 from motion.config import load_config, parse_config, read_yaml
 from motion.config.schema import ControlMode, HaltPolicy
+from motion.control.ratecheck import RateError
 from motion.emulator import Emulator, Fault, InjectedFault, parse_fault
 from motion.errors import ConfigError, FaultKind, MotionFault
 from motion.protocol import Command
@@ -29,12 +31,17 @@ from tests.collision_trials import (
     nominal_run,
     torque_move,
     torque_variant,
+    with_thresholds,
 )
 from tests.motion_rig import CONFIGS
 
 ARM6 = CONFIGS / "arm6.yaml"
 RS485 = CONFIGS / "arm2_rs485.yaml"
 RS485_PATH = ((60.0, -90.0), (-45.0, 60.0), (20.0, -30.0))
+#: arm2_rs485's thresholds from `collision-calibrate --margin 3` on RS485_PATH at scale 0.5 in simulated time (margin 3:
+#: on the half-duplex line the joints' speeds are sampled 2.9 ms apart, so a push on one joint shows in the other's
+#: residual too). Not in the example file: in real time over a pty on a loaded host they tripped (host jitter).
+RS485_THRESHOLDS_NM = (1.125, 0.6)
 
 
 def _arm6():
@@ -192,7 +199,7 @@ def test_torque_step_detected_torque_mode(joint: int) -> None:
 
 @pytest.mark.parametrize("joint", [0, 1])
 def test_rs485_example_at_its_rate(joint: int) -> None:
-    config = load_config(RS485)
+    config = with_thresholds(load_config(RS485), RS485_THRESHOLDS_NM)
     motion = _rs485_path
     assert nominal_run(config, motion).fault is None
     for k, onset in enumerate((0.8, 2.6)):
@@ -315,7 +322,11 @@ def test_emulate_command_takes_a_collision_fault(tmp_path: Path) -> None:
     assert config.bus.transport.value == "can" and config.control.mode is ControlMode.TORQUE
     fault = Fault(InjectedFault.COLLISION, 2, 2.5, 3.0, -0.2 * config.joints[1].peak_torque_nm)
     arm = Arm(config, emulate="realtime", faults=[fault])
-    with arm:
+    try:
+        arm.connect()
+    except RateError as exc:
+        pytest.skip(f"the rate check refused the rate on this host just now: {exc}")
+    with contextlib.closing(arm):
         supervisor = arm.supervisor
         assert supervisor is not None
         with pytest.raises(MotionFault, match="collision") as info:
