@@ -31,10 +31,12 @@ import platform
 import select
 import shutil
 import signal
+import struct
 import subprocess
 import sys
 import tempfile
 import time
+import timeit
 from collections import deque
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
@@ -60,10 +62,21 @@ from motion.protocol import (
     Message,
     MotorState,
     MultiTurnAngle,
+    MultiTurnPositionSpeed,
+    Status1,
+    TorqueControl,
     can_frame,
     rs485_frame,
 )
-from motion.protocol.table import CAN_ID_BASE, CAN_MULTI_TORQUE_ID, MULTI_TORQUE_MOTOR_IDS
+from motion.protocol.compiled import CODECS
+from motion.protocol.messages import ErrorFlags
+from motion.protocol.table import (
+    CAN_ID_BASE,
+    CAN_MULTI_TORQUE_ID,
+    MULTI_TORQUE_MOTOR_IDS,
+    Direction,
+    WireProtocol,
+)
 from motion.trajectory import State
 from motion.transport.base import MotorCounters, Reply, Transport
 from motion.transport.can_transport import CanTransport
@@ -181,6 +194,83 @@ def synthetic_config(
         n_axes, mode=mode, rate_hz=rate_hz, gear_ratio=gear_ratio, bus=bus if bus is not None else can_bus_mapping()
     )
     return parse_config(mapping, source=f"<bench arm of {n_axes} axes>")
+
+
+# ---------------------------------------------------------------------------------------------------- part 0
+
+
+@dataclass(frozen=True)
+class CodecRow:
+    """One frame through the codec against the bare struct of the same bytes, ns per call (best of the repeats)."""
+
+    what: str
+    codec_ns: float
+    fast_path_ns: float
+    bare_ns: float
+
+    @property
+    def ratio(self) -> float:
+        return self.codec_ns / self.bare_ns
+
+
+def _best_ns(statement: str, names: dict[str, object], number: int, repeat: int) -> float:
+    return min(timeit.repeat(statement, globals=names, number=number, repeat=repeat)) / number * 1e9
+
+
+#: Part 0's frames: the control cycle's requests and replies (and a reply with an enum of flags).
+CODEC_CASES: tuple[tuple[str, Direction, Message], ...] = (
+    ("encode 0xA4 request (position)", Direction.REQUEST, MultiTurnPositionSpeed(123.45, 270.0)),
+    ("encode 0xA1 request (torque)", Direction.REQUEST, TorqueControl(1.25)),
+    ("decode 0xA4 reply (state)", Direction.REPLY, MotorState(Command.MULTI_TURN_POSITION_SPEED, 31, 0.416, -12, 1234)),
+    ("decode 0x9A reply (status 1)", Direction.REPLY, Status1(Command.READ_STATUS_1, 35, 24.1, ErrorFlags.NONE)),
+)
+
+
+def run_codec(number: int = 20_000, repeat: int = 7) -> list[CodecRow]:
+    """Part 0: ``can_frame.encode_request`` / ``decode_reply`` of the control cycle's frames against a bare
+    precompiled ``struct.Struct`` packing the same raw values into the same bytes / unpacking the same bytes.
+
+    The codec's own fast path (the compiled encoder / decoder of :mod:`motion.protocol.compiled`, without the
+    frame around it) is timed as well. Every statement is timed the same way (``timeit``, best of ``repeat``).
+    """
+    rows: list[CodecRow] = []
+    for what, direction, message in CODEC_CASES:
+        request = direction is Direction.REQUEST
+        frame = (can_frame.encode_request if request else can_frame.encode_reply)(message, 3)
+        layout = CODECS[WireProtocol.CAN, direction].layouts[frame.data[0]]
+        assert layout is not None
+        bare = struct.Struct(layout.packer.format)  # the same layout, built here: the baseline
+        raw = bare.unpack(frame.data)
+        assert bare.pack(*raw) == frame.data
+        assert can_frame.decode_reply(frame.arbitration_id, frame.data)[1] == message or request
+        names = {
+            "encode": can_frame.encode_request,
+            "decode": can_frame.decode_reply,
+            "fast_encode": layout.encode,
+            "fast_decode": layout.decode,
+            "m": message,
+            "i": frame.arbitration_id,
+            "d": frame.data,
+            "pack": bare.pack,
+            "unpack": bare.unpack,
+            "raw": raw,
+        }
+        statements = (
+            ("encode(m, 3)", "fast_encode(m)", "pack(*raw)")
+            if request
+            else ("decode(i, d)", "fast_decode(d)", "unpack(d)")
+        )
+        rows.append(CodecRow(what, *(_best_ns(statement, names, number, repeat) for statement in statements)))
+    return rows
+
+
+def print_codec(rows: Sequence[CodecRow]) -> None:
+    """Print the part 0 table (Markdown)."""
+    print("\n### 0. One CAN frame through the codec against the bare `struct` of the same bytes, ns per call\n")
+    print("| frame | `can_frame` codec | its compiled fast path alone | bare `struct.Struct` | **codec / bare** |")
+    print("|---|---:|---:|---:|---:|")
+    for r in rows:
+        print(f"| {r.what} | {r.codec_ns:.0f} | {r.fast_path_ns:.0f} | {r.bare_ns:.0f} | **{r.ratio:.1f}x** |")
 
 
 # ---------------------------------------------------------------------------------------------------- part 1
@@ -414,9 +504,10 @@ def print_cpu(cases: Sequence[CpuCase]) -> None:
     print("\n### 1. CPU time of one control cycle, µs (no bus: nothing is waited for)\n")
     print(
         "| axes | mode | frames out / in | wire time @ 1 Mbit/s | sample | build | (FF alone) | encode | absorb "
-        "| **controller p50 / p99** | CPU mean | transact() alone | **cycle() p50 / p99** | CPU mean |"
+        "| **controller p50 / p99** | CPU mean | transact() alone | **cycle() p50 / p99** | CPU mean "
+        "| **cycle() p50 / wire time** |"
     )
-    print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for c in cases:
         s = c.stages
         ff = f"{_percentile_us(s['feedforward'], 50):.1f}" if s["feedforward"] else "-"
@@ -428,7 +519,8 @@ def print_cpu(cases: Sequence[CpuCase]) -> None:
             f"| {_percentile_us(s['encode'], 50):.1f} | {_percentile_us(s['absorb'], 50):.1f} "
             f"| **{_percentile_us(s['controller'], 50):.0f} / {_percentile_us(s['controller'], 99):.0f}** "
             f"| {cpu_ctrl:.0f} | {_percentile_us(s['transact'], 50):.0f} "
-            f"| **{_percentile_us(s['cycle'], 50):.0f} / {_percentile_us(s['cycle'], 99):.0f}** | {cpu_cycle:.0f} |"
+            f"| **{_percentile_us(s['cycle'], 50):.0f} / {_percentile_us(s['cycle'], 99):.0f}** | {cpu_cycle:.0f} "
+            f"| **{_percentile_us(s['cycle'], 50) / c.wire_us * 100:.1f} %** |"
         )
     print("\nStage columns are p50. Cost per axis: least-squares fit of the p50 over N; 12-axis / 1-axis ratio:\n")
     print("| mode | measured | fixed, µs | per axis, µs | 12 axes / 1 axis |")
@@ -547,10 +639,27 @@ def _live_wire_ms(controller: Controller, case: LiveCase) -> float:
     return seconds * 1e3
 
 
-def slcan_host_costs(bus: Transport, n_axes: int, repeats: int = 7) -> tuple[float, float]:
-    """What python-can's slcan costs this process per frame: (send wall time, read CPU time), µs, medians.
+#: Time a 0x9C reply (the frame slcan_host_costs reads) occupies a 1 Mbit/s CAN bus, stuff bits included, µs.
+SLCAN_REPLY_WIRE_US = (
+    can_frame_bits(CAN_ID_BASE + 1, can_frame.encode_reply(_reply_state(Command.READ_STATUS_2, 1), 1).data)
+    / CAN_BITRATE
+    * 1e6
+)
 
-    Sends one status read (0x9C) per drive, waits until every reply has surely arrived, then times taking them in.
+
+def _slcan_reader() -> str:
+    """Which slcan reader this process uses (the project's shim while python-can lacks the fix, see slcan_shim)."""
+    from motion.transport import slcan_shim  # here: it imports pyserial, which only the live part needs
+
+    release = version("python-can")
+    return f"the slcan shim, python-can {release}" if slcan_shim.needs_shim() else f"python-can {release}'s own"
+
+
+def slcan_host_costs(bus: Transport, n_axes: int, repeats: int = 7) -> tuple[float, float]:
+    """What slcan costs this process per frame: (send wall time, read CPU time), µs, medians.
+
+    Sends one status read (0x9C) per drive, waits until every reply has surely arrived, then times taking them in
+    (``CanEndpoint.recv``: the slcan reader, python-can's parsing, the frame).
     """
     endpoint = cast(CanTransport, bus).port
     frames = [can_frame.encode_request(Bare(Command.READ_STATUS_2), m) for m in range(1, n_axes + 1)]
@@ -644,6 +753,16 @@ def live_cases() -> list[LiveCase]:
     return cases
 
 
+def parse_case(text: str) -> LiveCase:
+    """``LINK:AXES@HZ`` with an optional ``+bus-time`` (``slcan:6@500``, ``rs485:2@100+bus-time``)."""
+    spec, plus, extra = text.partition("+")
+    link, _, rest = spec.partition(":")
+    axes, _, rate = rest.partition("@")
+    if link not in ("slcan", "rs485") or not axes.isdigit() or not rate or (plus and extra != "bus-time"):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected LINK:AXES@HZ[+bus-time], LINK slcan or rs485")
+    return LiveCase(link, int(axes), float(rate), bool(plus))
+
+
 def print_live(results: Sequence[LiveResult]) -> None:
     """Print the part 2 table (Markdown)."""
     print("\n### 2. Achieved rate and jitter against `rmd-motion emulate` in another process (position hold)\n")
@@ -663,14 +782,21 @@ def print_live(results: Sequence[LiveResult]) -> None:
             f"| {s.overruns} ({s.skipped_cycles}) | {t.sent} / {t.replied} | {t.timeouts} | {t.stale_frames} "
             f"| {r.complete_share * 100:.1f} % | {r.host_cpu_share * 100:.0f} % / {r.emulator_cpu_share * 100:.0f} % |"
         )
-    print("\nHost cost of python-can's slcan per frame, measured after each CAN run (medians):\n")
     print(
-        "| link | axes | target Hz | send, µs wall (tcdrain waits for the emulator to read) | read one reply, µs CPU |"
+        f"\nHost cost of slcan per frame ({_slcan_reader()}), measured after each CAN run (medians), against the "
+        f"time the reply occupies a 1 Mbit/s bus ({SLCAN_REPLY_WIRE_US:.0f} µs):\n"
     )
-    print("|---|---:|---:|---:|---:|")
+    print(
+        "| link | axes | target Hz | send, µs wall (tcdrain waits for the emulator to read) | read one reply, µs CPU "
+        "| **read CPU / wire time** |"
+    )
+    print("|---|---:|---:|---:|---:|---:|")
     for r in results:
         if r.case.link == "slcan":
-            print(f"| {r.case.label} | {r.case.n_axes} | {r.case.rate_hz:g} | {r.send_us:.0f} | {r.read_us:.0f} |")
+            print(
+                f"| {r.case.label} | {r.case.n_axes} | {r.case.rate_hz:g} | {r.send_us:.0f} | {r.read_us:.0f} "
+                f"| **{r.read_us / SLCAN_REPLY_WIRE_US * 100:.0f} %** |"
+            )
     print("\nEmulator's own counts (stderr at exit), and the error that ended a loop early:")
     for r in results:
         ended = f" **loop ended by {r.error}**" if r.error else ""
@@ -707,16 +833,31 @@ def _machine() -> str:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the benchmark and print its tables; returns the exit code."""
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
-    parser.add_argument("--part", choices=("all", "cpu", "live"), default="all", help="what to run (default all)")
+    parser.add_argument(
+        "--part", choices=("all", "codec", "cpu", "live"), default="all", help="what to run (default all)"
+    )
     parser.add_argument("--cycles", type=int, default=4000, help="timed cycles per case in part 1 (default 4000)")
     parser.add_argument("--rounds", type=int, default=20, help="interleaved rounds in part 1 (default 20)")
     parser.add_argument("--seconds", type=float, default=5.0, help="loop run time per case in part 2 (default 5)")
+    parser.add_argument(
+        "--case",
+        type=parse_case,
+        action="append",
+        metavar="LINK:AXES@HZ[+bus-time]",
+        help="run only these cases in part 2 (repeatable), e.g. slcan:6@500",
+    )
     args = parser.parse_args(argv)
     if args.cycles < args.rounds or args.rounds < 1 or args.seconds <= 0:
         parser.error("need --cycles >= --rounds >= 1 and --seconds > 0")
 
     print(f"## rmd-motion cycle benchmark\n\n{_machine()}")
     print(f"perf_counter_ns overhead (median of back-to-back calls): {_timer_overhead_ns():.0f} ns")
+    codec: list[CodecRow] = []
+    cases: list[CpuCase] = []
+    results: list[LiveResult] = []
+    if args.part in ("all", "codec"):
+        codec = run_codec()
+        print_codec(codec)
     if args.part in ("all", "cpu"):
         started = time.monotonic()
         cases = run_cpu(args.cycles, args.rounds)
@@ -724,13 +865,36 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"\n(part 1 took {time.monotonic() - started:.0f} s)")
     if args.part in ("all", "live"):
         started = time.monotonic()
-        results = []
-        for case in live_cases():
+        for case in args.case or live_cases():
             print(f"  running {case.label}, {case.n_axes} axes @ {case.rate_hz:g} Hz ...", file=sys.stderr, flush=True)
             results.append(run_live_case(case, args.seconds))
         print_live(results)
         print(f"\n(part 2 took {time.monotonic() - started:.0f} s)")
+    print_ratios(codec, cases, results)
     return 0
+
+
+def print_ratios(codec: Sequence[CodecRow], cases: Sequence[CpuCase], results: Sequence[LiveResult]) -> None:
+    """The ratios of this run that issue 12 sets targets for (codec vs bare struct, host time vs wire time)."""
+    print("\n### Ratios of this run\n")
+    for row in codec:
+        print(
+            f"- codec, {row.what}: {row.codec_ns:.0f} ns = **{row.ratio:.1f}x** the bare struct ({row.bare_ns:.0f} ns)"
+        )
+    for c in cases:
+        if c.n_axes in (6, 12):
+            p50 = _percentile_us(c.stages["cycle"], 50)
+            print(
+                f"- cycle() p50, {c.n_axes} axes {c.mode.value}: {p50:.0f} µs = **{p50 / c.wire_us * 100:.1f} %** "
+                f"of the {c.wire_us:.0f} µs its frames occupy a 1 Mbit/s bus"
+            )
+    for r in results:
+        if r.case.link == "slcan" and not math.isnan(r.read_us):
+            print(
+                f"- slcan, after {r.case.label} {r.case.n_axes} axes @ {r.case.rate_hz:g} Hz: "
+                f"{r.read_us:.0f} µs host CPU per received frame = **{r.read_us / SLCAN_REPLY_WIRE_US * 100:.0f} %** "
+                f"of its {SLCAN_REPLY_WIRE_US:.0f} µs on the wire; {r.complete_share * 100:.1f} % of cycles complete"
+            )
 
 
 if __name__ == "__main__":

@@ -32,13 +32,13 @@ from typing import Any
 import numpy as np
 
 from motion.compose import (
-    apply_stored_tracking,
     build_controller,
+    build_supervisor,
     check_rate,
     feedforward_for,
     identify_position_loops,
+    offer_stored_tracking,
     open_bus,
-    safety_settings,
     store_tracking,
 )
 from motion.config import ArmConfig, load_config_or_example
@@ -48,7 +48,7 @@ from motion.control.ratecheck import RateCheck, measure_rate
 from motion.control.scheduler import LoopStatistics
 from motion.control.snapshot import MotionProgress
 from motion.control.tracking import PositionLoopFit
-from motion.emulator import FrameLog
+from motion.emulator import Fault, FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
 from motion.protocol import WireProtocol
@@ -78,7 +78,11 @@ def _end_process(process: subprocess.Popen[str]) -> None:
 
 @contextmanager
 def emulator_process(
-    config: ArmConfig, *, log: str | os.PathLike[str] | None = None, latency_ms: float | None = None
+    config: ArmConfig,
+    *,
+    log: str | os.PathLike[str] | None = None,
+    latency_ms: float | None = None,
+    faults: Sequence[Fault] = (),
 ) -> Iterator[dict[str, object]]:
     """The drives of ``config``'s file, emulated in real time in a process of their own (``rmd-motion emulate``) on
     a slcan (CAN) or RS485 pseudo-terminal; yields the bus overrides that reach them. Ended on exit.
@@ -99,6 +103,8 @@ def emulator_process(
         command += ["--log", os.fspath(log)]
     if latency_ms is not None:
         command += ["--latency-ms", f"{latency_ms:g}"]
+    for fault in faults:  # the emulator's own clock: seconds since it started
+        command += ["--fault", fault.describe()]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         if process.stdout is None:
@@ -242,6 +248,10 @@ class Arm:
         emulator_log: write every frame the emulated drives receive and send to this file (emulation only).
         telemetry: record the run: a per-cycle log and/or a bus trace, written when the arm closes (see
             :mod:`motion.telemetry`); the files are created at :meth:`connect`, before anything moves.
+        observe_collisions: run the collision observer (and record its residuals) even where no joint has a
+            ``collision_threshold_nm`` (it always runs where one has), e.g. to calibrate thresholds.
+        faults: emulated faults to schedule (emulation only; e.g. ``Fault(InjectedFault.COLLISION, ...)``, an
+            external torque on a joint).
     """
 
     def __init__(
@@ -253,8 +263,12 @@ class Arm:
         initial_deg: Sequence[float] | None = None,
         emulator_log: str | os.PathLike[str] | None = None,
         telemetry: TelemetryOptions | None = None,
+        observe_collisions: bool = False,
+        faults: Sequence[Fault] = (),
     ) -> None:
         self.config = config
+        self._observe = observe_collisions
+        self._faults = tuple(faults)
         if emulate not in _EMULATE_CHOICES:
             raise ConfigError(
                 config.source, "<emulate>", f"{emulate!r} is not one of False, True, 'simulated', 'realtime'"
@@ -266,8 +280,9 @@ class Arm:
         self._initial = initial_deg
         self._emulator_log = emulator_log
         self._telemetry_options = telemetry
-        #: Joints whose stored position-loop identification was applied at connect (hardware only).
-        self.tracking_applied: list[str] = []
+        #: Joints with a stored position-loop identification, used while their drives keep its settings (hardware
+        #: only; ``controller.tracking.identified`` says which are in use).
+        self.tracking_offered: list[str] = []
         #: The file :meth:`identify_tracking` stored the identification in.
         self.tracking_file: Path | None = None
         #: The recording of the current run (with ``telemetry=``); its ``result`` is the log once the arm closed.
@@ -328,8 +343,8 @@ class Arm:
             self.rate_check = check_rate(self.controller, self.config)
             self.controller.read_positions()
             if not self.emulate:  # an identification belongs to the drives it was made on
-                self.tracking_applied = apply_stored_tracking(self.config, self.controller)
-            self.supervisor = Supervisor(self.controller, safety_settings(self.config))
+                self.tracking_offered = offer_stored_tracking(self.config, self.controller)
+            self.supervisor = build_supervisor(self.config, self.controller, observe=self._observe)
             if self.telemetry is not None:
                 self.telemetry.attach(self.controller, self.supervisor)
             self.supervisor.start()
@@ -341,7 +356,7 @@ class Arm:
     def _start_simulation(self) -> tuple[Transport, SimulatedClock]:
         from kinematics.emulation import arm_emulator  # noqa: PLC0415 - as above
 
-        self.emulator, self.plant = arm_emulator(self.config, initial_deg=self._initial)
+        self.emulator, self.plant = arm_emulator(self.config, initial_deg=self._initial, faults=self._faults)
         bus_config = self.config.bus
         if isinstance(bus_config, CanBusConfig):
             simulation = Simulation(self.emulator, WireProtocol.CAN, bitrate=bus_config.bitrate or DEFAULT_BITRATE)
@@ -356,7 +371,9 @@ class Arm:
     def _start_emulator_process(self) -> None:
         if self._initial is not None:
             raise MotionError("initial_deg applies to simulated emulation only (emulate=True)")
-        self._overrides = self._stack.enter_context(emulator_process(self.config, log=self._emulator_log))
+        self._overrides = self._stack.enter_context(
+            emulator_process(self.config, log=self._emulator_log, faults=self._faults)
+        )
 
     def close(self) -> None:
         """Halt every axis (0x81), end the loop, release the bus and write the telemetry; safe to call twice."""

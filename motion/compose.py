@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, JointConfig
+from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, HaltPolicy, JointConfig
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
@@ -31,6 +31,7 @@ from motion.emulator import DEFAULT_PID, DriveModel, Emulator, Fault, LoadModel,
 from motion.errors import MotionError
 from motion.protocol import WireProtocol
 from motion.safety import SafetySettings, Supervisor
+from motion.safety.watchdog import CollisionObserver
 from motion.trajectory import JointLimits
 from motion.transmission import FloatArray
 from motion.transport import Reply, Transport, open_transport
@@ -104,8 +105,8 @@ def inertia_for(config: ArmConfig) -> Callable[[FloatArray], FloatArray] | None:
     tracking (:mod:`motion.control.tracking`); None in position mode.
 
     The links' share comes from the arm's model; the rotors', ``gear_ratio² × rotor inertia`` on the diagonal, from
-    the joints' ``emulation.rotor_inertia_kgm2``, the one place the configuration states the motor's rotor (on a
-    light wrist joint it is most of the inertia the PD loop moves).
+    the joints' ``rotor_inertia_kgm2`` (on a light wrist joint it is most of the inertia the PD loop
+    moves).
     """
     if config.control.mode is not ControlMode.TORQUE:
         return None
@@ -113,13 +114,33 @@ def inertia_for(config: ArmConfig) -> Callable[[FloatArray], FloatArray] | None:
 
     arm = build_arm(config)
     per_deg = math.pi / 180.0  # mass_matrix is in N·m per deg/s²
-    rotors = np.diag([j.gear_ratio**2 * j.emulation.rotor_inertia_kgm2 for j in config.joints])
+    rotors = np.diag([j.gear_ratio**2 * j.rotor_inertia_kgm2 for j in config.joints])
 
     def inertia(q_deg: FloatArray) -> FloatArray:
         mass: FloatArray = mass_matrix(arm, q_deg) / per_deg + rotors
         return mass
 
     return inertia
+
+
+def collision_observer_for(config: ArmConfig, *, always: bool = False) -> CollisionObserver | None:
+    """The momentum observer of the arm's Pinocchio model (friction, rotor inertia and gain from the configuration)
+    when a joint has a ``collision_threshold_nm``, or ``always`` (to record residuals, e.g. to calibrate thresholds);
+    else None."""
+    if not (always or config.collision_watched):
+        return None
+    from kinematics.observer import momentum_observer  # noqa: PLC0415 - Pinocchio only where an arm needs it
+
+    return momentum_observer(config)
+
+
+def gravity_for(config: ArmConfig) -> Feedforward | None:
+    """Gravity compensation alone, g(q), for the ``comply`` reaction to a collision (torque mode); else None."""
+    if config.collision_reaction is not HaltPolicy.COMPLY:
+        return None
+    from kinematics import build_arm, feedforward  # noqa: PLC0415 - as above
+
+    return feedforward(build_arm(config), gravity=True, inertia=False)
 
 
 def build_controller(
@@ -177,7 +198,7 @@ def drive_model(joint: JointConfig, supply_voltage_v: float = 24.0) -> DriveMode
         else emulation.acceleration_dps2,
         supply_voltage_v=supply_voltage_v,
         gear_ratio=joint.gear_ratio,
-        torque_constant_nm_per_a=joint.torque_constant_nm_per_a,
+        torque_constant_nm_per_a=joint.emulation.torque_constant_nm_per_a or joint.torque_constant_nm_per_a,
         rotor_inertia_kgm2=joint.emulation.rotor_inertia_kgm2,
         encoder_bits=joint.encoder_bits,
         current_limit_a=joint.current_limit_a,
@@ -219,7 +240,8 @@ def emulator_for(
 
 
 def safety_settings(config: ArmConfig) -> SafetySettings:
-    """Fault thresholds and halt policy from ``safety:``, ``control.halt_policy`` and the joints.
+    """Fault thresholds and halt policy from ``safety:``, ``control.halt_policy`` and the joints (a joint without a
+    ``collision_threshold_nm`` gets inf: not watched).
 
     A drive counts as lost when it misses more than ``max_missed_replies`` consecutive cycles, or when nothing good
     came from it for ``reply_timeout_ms`` plus ``max_missed_replies + 1`` control periods.
@@ -233,6 +255,23 @@ def safety_settings(config: ArmConfig) -> SafetySettings:
         following_error_deg=safety.following_error_deg,
         reply_timeout_s=safety.reply_timeout_ms / 1000.0 + (safety.max_missed_replies + 1) * period,
         max_missed_replies=safety.max_missed_replies,
+        collision_threshold_nm=tuple(
+            math.inf if j.collision_threshold_nm is None else j.collision_threshold_nm for j in config.joints
+        ),
+        collision_reaction=config.collision_reaction,
+        collision_window_cycles=safety.collision_window_cycles,
+    )
+
+
+def build_supervisor(config: ArmConfig, controller: Controller, *, observe: bool = False) -> Supervisor:
+    """The safety supervisor of ``controller`` (after ``read_positions()``): the thresholds of ``config``, the
+    collision observer when a joint has a threshold (or ``observe``: residuals recorded, e.g. to calibrate), and
+    gravity compensation for the ``comply`` reaction."""
+    return Supervisor(
+        controller,
+        safety_settings(config),
+        observer=collision_observer_for(config, always=observe),
+        gravity=gravity_for(config),
     )
 
 
@@ -328,11 +367,12 @@ def store_tracking(config: ArmConfig, controller: Controller, fits: Mapping[str,
     return path
 
 
-def apply_stored_tracking(config: ArmConfig, controller: Controller) -> list[str]:
-    """Use the stored identification of ``config``'s arm for every joint whose drive still has the gain and the
-    acceleration it was identified under (after ``read_positions``, which reads them); returns those joints.
+def offer_stored_tracking(config: ArmConfig, controller: Controller) -> list[str]:
+    """Offer the stored identification of ``config``'s arm to the controller's tracking model: each joint's is used
+    once its drive is read (in the loop's first cycles) with the gain and acceleration it was identified under, the
+    prior otherwise (a retuned drive). Returns the joints that have one.
 
-    A missing or unreadable file changes nothing (logged); a joint whose drive was retuned keeps the prior.
+    A missing file offers nothing; an unreadable one is logged and offers nothing.
     """
     path = tracking_store(config)
     if not path.exists():
@@ -342,26 +382,19 @@ def apply_stored_tracking(config: ArmConfig, controller: Controller) -> list[str
         if document.get("schema") != TRACKING_SCHEMA or document.get("version") != TRACKING_VERSION:
             raise ValueError(f"not a {TRACKING_SCHEMA} version {TRACKING_VERSION} file")
         stored = {entry["name"]: entry for entry in document["joints"]}
+        offered = []
+        for j, joint in enumerate(config.joints):
+            entry = stored.get(joint.name)
+            if entry is None or entry.get("motor_id") != joint.motor_id:
+                continue
+            accel = entry["drive_acceleration_dps2"]
+            settings = (int(entry["drive_angle_kp"]), None if accel is None else int(accel))
+            loop = PositionLoop(float(entry["angle_gain_per_s"]), float(entry["acceleration_dps2"]))
+            controller.tracking.offer_identified(j, settings, loop)
+            offered.append(joint.name)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         logger.warning("%s: stored position loops ignored (%s)", path, exc)
         return []
-    tracking = controller.tracking
-    loops = list(tracking.position_loops())
-    applied = []
-    for j, joint in enumerate(config.joints):
-        entry = stored.get(joint.name)
-        settings = tracking.drive_settings[j]
-        if entry is None or settings is None:
-            continue
-        if (entry.get("motor_id"), entry.get("drive_angle_kp"), entry.get("drive_acceleration_dps2")) != (
-            joint.motor_id,
-            *settings,
-        ):
-            logger.warning("%s: %s was identified under other drive settings; its prior is used", path, joint.name)
-            continue
-        loops[j] = PositionLoop(float(entry["angle_gain_per_s"]), float(entry["acceleration_dps2"]))
-        applied.append(joint.name)
-    tracking.set_position_loops(loops)
-    if applied:
-        logger.info("%s: identified position loops for %s", path, ", ".join(applied))
-    return applied
+    if offered:
+        logger.info("%s: identified position loops for %s", path, ", ".join(offered))
+    return offered

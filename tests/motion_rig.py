@@ -20,7 +20,7 @@ import pytest
 
 from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
-from motion.compose import build_controller, feedforward_for, open_bus, safety_settings
+from motion.compose import build_controller, build_supervisor, feedforward_for, open_bus
 from motion.config import ArmConfig, load_config
 from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
@@ -72,12 +72,14 @@ def emulated_arm(
     *,
     use_feedforward: bool = True,
     supervised: bool = False,
+    observe: bool = False,
     latency_s: float | None = None,
 ) -> Iterator[Rig]:
     """Run ``config`` on emulated drives over ``attachment`` (``sim``: the simulated bus of the configured protocol,
     in simulated time; or in real time on an in-process attachment: virtual | slcan | rs485); the controller is
-    started, under a safety :class:`Supervisor` if ``supervised``. ``latency_s``: the drives' reply latency in
-    simulated time (default the emulator's)."""
+    started, under a safety :class:`Supervisor` if ``supervised`` (with the collision observer where the configuration
+    sets thresholds, or ``observe``). ``latency_s``: the drives' reply latency in simulated time (default the
+    emulator's)."""
     emulator, plant = arm_emulator(config)
     log_path = tmp_path / f"frames-{uuid.uuid4().hex[:8]}.log"
     clock = None
@@ -111,7 +113,7 @@ def emulated_arm(
         controller.read_positions()
         starts: list[float] = []
         controller.cycle_hooks.append(lambda _controller, start_s, _replies: starts.append(start_s))
-        supervisor = Supervisor(controller, safety_settings(config)) if supervised else None
+        supervisor = build_supervisor(config, controller, observe=observe) if supervised else None
         if supervisor is not None:
             supervisor.start()
         else:

@@ -232,10 +232,10 @@ def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:
     log = position_run.log
     fig = figure(log)
     joints = len(log.joint_names)
-    assert len(fig.axes) == 4 * joints + 1
+    assert len(fig.axes) == 5 * joints + 1
     error = log.following_error_deg()
     for j in range(joints):
-        position, velocity, current, following = fig.axes[4 * j : 4 * j + 4]
+        position, velocity, current, following, collision = fig.axes[5 * j : 5 * j + 5]
         assert np.array_equal(position.lines[0].get_xdata(), log["t_s"] + log.period_s)
         assert np.array_equal(position.lines[0].get_ydata(), log["q_ref_deg"][:, j])
         assert np.array_equal(position.lines[1].get_ydata(), log["q_deg"][:, j])
@@ -246,6 +246,8 @@ def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:
         # the following-error limit, then the E-stop
         assert [np.asarray(line.get_ydata())[0] for line in following.lines[1:3]] == [4.0, -4.0]
         assert np.asarray(following.lines[3].get_xdata())[0] == log["fault_t_s"][0]
+        assert np.array_equal(collision.lines[0].get_ydata(), log["collision_signal_nm"][:, j], equal_nan=True)
+        assert np.array_equal(collision.lines[1].get_ydata(), log["residual_nm"][:, j], equal_nan=True)
     timing = fig.axes[-1]
     assert np.array_equal(timing.lines[0].get_ydata(), log["jitter_s"] * 1e6)
 
@@ -261,14 +263,14 @@ def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:
     assert not np.array_equal(imread(tmp_path / "other.png"), image)
 
 
-def test_a_version_2_log_loads_without_expected_positions(position_run: PositionRun, tmp_path: Path) -> None:
+def test_a_version_3_log_loads_without_expected_positions(position_run: PositionRun, tmp_path: Path) -> None:
     log = position_run.log
     columns = {name: array for name, array in log.columns.items() if name != "q_exp_deg"}
-    TelemetryLog(columns, {**log.meta, "version": 2}).save(tmp_path / "v2.npz")
-    old = load_log(tmp_path / "v2.npz")
+    TelemetryLog(columns, {**log.meta, "version": 3}).save(tmp_path / "v3.npz")
+    old = load_log(tmp_path / "v3.npz")
     assert np.isnan(old["q_exp_deg"]).all() and old["q_exp_deg"].shape == log["q_deg"].shape
-    assert np.array_equal(old.following_error_deg(), log.lag_deg())  # what version 2 called the following error
-    plot_log(old, tmp_path / "v2.png")
+    assert np.array_equal(old.following_error_deg(), log.lag_deg())  # what version 3 called the following error
+    plot_log(old, tmp_path / "v3.png")
 
 
 def test_empty_and_invalid_logs(tmp_path: Path) -> None:

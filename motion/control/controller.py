@@ -13,12 +13,13 @@ that instant, so a new target never steps the reference's velocity or accelerati
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TypeAlias
+from typing import Final, TypeAlias
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,6 +41,7 @@ from motion.protocol import (
     TorqueControl,
     WireProtocol,
 )
+from motion.protocol.compiled import frozen_builder
 from motion.protocol.scales import iq_amps
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, Direction, field_range
 from motion.trajectory import Follower, JointLimits, Path, Planner, State
@@ -118,6 +120,18 @@ class StopCommand:
     """Queued: a jerk-limited stop of the current motion (not a fault)."""
 
 
+# Constructors of the messages built every cycle that set the slots directly (a frozen dataclass's own __init__ goes
+# through object.__setattr__ for each field, several times slower); same objects, same equality.
+_NEW_REQUEST: Final = frozen_builder(Request)
+_NEW_POSITION: Final = frozen_builder(MultiTurnPositionSpeed)
+_NEW_TORQUE: Final = frozen_builder(TorqueControl)
+# The snapshot from its six fields in one tuple (what the named tuple's own constructor does, minus a call).
+_new_snapshot: Final[Callable[[tuple[int, float, NDArray[np.float64], bool, float, float]], CycleSnapshot]] = (
+    functools.partial(tuple.__new__, CycleSnapshot)
+)
+_NEW_MULTI_TORQUE: Final = frozen_builder(MultiMotorTorque)
+
+
 @dataclass(slots=True)
 class Setpoints:
     """What the latest cycle commanded, per joint in joint order (a typed record of the batch's set-points).
@@ -188,9 +202,9 @@ class Controller:
         self.reference = State.at_rest(np.zeros(len(self.specs)))
         self.kp = np.array([s.kp_nm_per_deg for s in self.specs])
         self.kd = np.array([s.kd_nm_per_dps for s in self.specs])
-        #: Where each joint should be at the latest measurement (the drives' or the PD loop's lag modelled).
-        self.tracking = ExpectedTracking(options.mode, transmission, self.kp, self.kd)
         self.ids = tuple(s.motor_id for s in self.specs)
+        #: Where each joint should be at the latest measurement (the drives' or the PD loop's lag modelled).
+        self.tracking = ExpectedTracking(options.mode, transmission, self.kp, self.kd, self.ids)
         self._pending: Pending | None = None
         self.rejected: PlanningError | None = None
         self._lock = threading.Lock()
@@ -199,6 +213,7 @@ class Controller:
         self._stop_loop = False
         #: The set-points of the latest cycle (updated in place).
         self.setpoints = Setpoints.zeros(len(self.specs))
+        self._zero = np.zeros(len(self.specs))
         n = len(self.specs)
         #: The arm after the latest cycle (replaced, never changed: any thread may read it without a lock).
         self.snapshot = CycleSnapshot(0, math.nan, frozen([np.zeros(n)] * len(JOINT_ROWS)), False)
@@ -215,11 +230,31 @@ class Controller:
             else []
         )
         self._single = [i for i in range(len(self.specs)) if i not in self._multi]
-        self._iq_raw = np.zeros(len(self.specs), dtype=np.int64)
-        self._speed_ceiling_dps = _MAX_SPEED_DPS[options.protocol]
         self._multi_slot = {i: MULTI_TORQUE_MOTOR_IDS.index(self.ids[i]) for i in self._multi}
+        # Constant per cycle, looked up once: the 0xA4 speed cap's terms, per joint (motor id, motor deg per joint
+        # deg, zero offset, floor), and the builder of the mode's batch.
         velocity_limit = np.abs(transmission.motor_rate(np.array(limits.velocity_dps)))
         self._speed_floor_dps = velocity_limit * options.speed_floor_share
+        self._speed_ceiling_dps = float(_MAX_SPEED_DPS[options.protocol])
+        self._speed_headroom = options.speed_headroom
+        self._position_axes = tuple(
+            zip(
+                self.ids,
+                [t.direction * t.gear_ratio for t in transmission.transmissions],  # as ArmTransmission has them
+                [t.zero_offset_deg for t in transmission.transmissions],
+                self._speed_floor_dps.tolist(),
+                strict=True,
+            )
+        )
+        self._reply_budget = options.reply_budget
+        self._build: Callable[[State], list[Request]]
+        match options.mode:
+            case ControlMode.POSITION:
+                self._build = self._position_requests
+            case ControlMode.TORQUE:
+                self._build = self._torque_requests
+            case mode:  # never a default: an unknown mode is an error
+                raise ValueError(f"unknown control mode {mode!r}")
 
     # ------------------------------------------------------------------------------------------------ start-up
 
@@ -255,7 +290,10 @@ class Controller:
         q = self.axes.positions()
         self.follower = Follower(self.planner, q)
         self.reference = State.at_rest(q)
-        self.tracking.read_drive_loops(self.bus, self.ids, self.clock.now() + timeout_s)
+        if self.options.protocol is WireProtocol.RS485:
+            # An RS485 exchange takes as long as a set-point's: no room in a cycle's batch (on CAN the reads ride at
+            # the end of the first cycles' batches, a quarter of a millisecond each, and connecting takes no longer).
+            self.tracking.read_now(self.bus, self.clock.now() + timeout_s)
         self.tracking.reset(q, self.axes.qd_dps)
         self._publish(0, now, False)  # what was read, before the first cycle
         return q
@@ -350,14 +388,8 @@ class Controller:
                 raise TypeError(f"unknown motion command {other!r}")
 
     def build_requests(self, reference: State) -> list[Request]:
-        """The cycle's batch for a reference state (pure apart from recording the torque and limiting)."""
-        match self.options.mode:
-            case ControlMode.POSITION:
-                return self._position_requests(reference)
-            case ControlMode.TORQUE:
-                return self._torque_requests(reference)
-            case mode:  # never a default: an unknown mode is an error
-                raise ValueError(f"unknown control mode {mode!r}")
+        """The cycle's batch for a reference state (pure apart from recording the set-points)."""
+        return self._build(reference)
 
     @property
     def torque_nm(self) -> FloatArray:
@@ -370,45 +402,67 @@ class Controller:
         return self.setpoints.limited
 
     def _position_requests(self, ref: State) -> list[Request]:
+        # Python floats per joint: for a few joints a numpy call costs more than the arithmetic. The operations and
+        # their order are those of ArmTransmission.motor_deg / motor_rate, so the results are the same float64s.
+        headroom, ceiling = self._speed_headroom, self._speed_ceiling_dps
+        new_request, new_position = _NEW_REQUEST, _NEW_POSITION
+        angles: list[float] = []
+        caps: list[float] = []
+        requests: list[Request] = []
+        for (motor_id, motor_per_joint, offset_deg, floor_dps), q_deg, qd_dps in zip(
+            self._position_axes, ref.position.tolist(), ref.velocity.tolist(), strict=True
+        ):
+            angle = (q_deg - offset_deg) * motor_per_joint
+            cap = min(abs(qd_dps * motor_per_joint) * headroom + floor_dps, ceiling)
+            angles.append(angle)
+            caps.append(cap)
+            requests.append(new_request(motor_id, new_position(angle, cap)))
         record = self.setpoints
-        motor_deg = record.motor_angle_deg
-        motor_deg[:] = self.transmission.motor_deg(ref.position)
-        speed = record.max_speed_dps
-        speed[:] = np.abs(self.transmission.motor_rate(ref.velocity))
-        speed *= self.options.speed_headroom
-        speed += self._speed_floor_dps
-        np.minimum(speed, self._speed_ceiling_dps, out=speed)
-        return [
-            Request(mid, MultiTurnPositionSpeed(float(motor_deg[i]), float(speed[i]))) for i, mid in enumerate(self.ids)
-        ]
+        record.motor_angle_deg[:] = angles
+        record.max_speed_dps[:] = caps
+        return requests
 
     def _torque_requests(self, ref: State) -> list[Request]:
+        # Python floats per joint, as for the set-points of position mode: the same operations in the same order as
+        # the arrays would do them (PD, plus the feed-forward), so the torques are the same float64s.
         axes = self.axes
-        tau = self.kp * (ref.position - axes.q_deg) + self.kd * (ref.velocity - axes.qd_dps)
+        torques = [
+            kp * (q_ref - q) + kd * (qd_ref - qd)
+            for kp, kd, q_ref, q, qd_ref, qd in zip(
+                self.kp.tolist(),
+                self.kd.tolist(),
+                ref.position.tolist(),
+                axes.q_deg.tolist(),
+                ref.velocity.tolist(),
+                axes.qd_dps.tolist(),
+                strict=True,
+            )
+        ]
         if self.feedforward is not None:
-            tau += self.feedforward(axes.q_deg, ref.velocity, ref.acceleration)
+            feedforward = self.feedforward(axes.q_deg, ref.velocity, ref.acceleration).tolist()
+            torques = [tau + ff for tau, ff in zip(torques, feedforward, strict=True)]
+        return self.torque_frames(torques)
+
+    def torque_frames(self, torques: Sequence[float]) -> list[Request]:
+        """The torque-current requests (0xA1, and 0x280 where it applies) for joint torques (N·m, joint order),
+        limited per joint; records the torque and the limiting."""
         record = self.setpoints
-        record.torque_nm[:] = tau
-        raw, record.limited[:] = self.transmission.iq_raw_limited(tau)
-        self._iq_raw = raw
-        requests = [Request(self.ids[i], TorqueControl(iq_amps(int(raw[i])))) for i in self._single]
+        record.torque_nm[:] = torques
+        raw, limited = self.transmission.iq_raw_limited_list(torques)
+        record.limited[:] = limited
+        amps = [iq_amps(r) for r in raw]
+        new_request, new_torque = _NEW_REQUEST, _NEW_TORQUE
+        requests = [new_request(self.ids[i], new_torque(amps[i])) for i in self._single]
         if self._multi:
             currents = [0.0, 0.0, 0.0, 0.0]
             for i, slot in self._multi_slot.items():
-                currents[slot] = iq_amps(int(raw[i]))
-            requests.append(Request(MULTI_TORQUE_MOTOR_IDS[0], MultiMotorTorque(*currents)))
+                currents[slot] = amps[i]
+            requests.append(new_request(MULTI_TORQUE_MOTOR_IDS[0], _NEW_MULTI_TORQUE(*currents)))
         return requests
 
     def absorb(self, replies: Sequence[Reply]) -> None:
         """Update the axis states from a cycle's replies."""
-        axes = self.axes
-        axes.fresh[:] = False
-        index = axes.index
-        for reply in replies:
-            message = reply.message
-            i = index.get(reply.motor_id)
-            if i is not None and isinstance(message, MotorState) and reply.received_s is not None:
-                axes.update(i, message, reply.received_s)
+        self.axes.absorb(replies)
 
     def step(
         self,
@@ -442,17 +496,26 @@ class Controller:
         self.reference = ref = follower.sample(deadline_s)
         if check is not None:
             check(ref)
-        requests = self.build_requests(ref) if command else []
+        requests = self._build(ref) if command else []
         self.setpoints.commanded = command
-        requests.extend(extra)
-        replies = self.bus.transact(requests, start_s + self.options.reply_budget * (deadline_s - start_s))
+        if extra:
+            requests.extend(extra)
+        if self.tracking.unread:  # the drives' loop settings, last in the first cycles' batches
+            requests.extend(self.tracking.next_reads())
+        replies = self._exchange(requests, start_s, deadline_s, command)
+        if not follower.moving and self._pending is None and not self._idle.is_set():
+            self._idle.set()  # (Event.set takes a lock and notifies: not again every cycle of a hold)
+        return replies
+
+    def _exchange(self, requests: list[Request], start_s: float, deadline_s: float, commanded: bool) -> list[Reply]:
+        replies = self.bus.transact(requests, start_s + self._reply_budget * (deadline_s - start_s))
+        if self.tracking.unread:
+            replies = self.tracking.take_replies(replies)
         self.absorb(replies)
-        self._track(start_s, ref, command)
-        self._publish(self.loop.cycles + 1, start_s, command)  # (the loop counts the cycle once it has ended)
+        self._track(start_s, self.reference, commanded)
+        self._publish(self.loop.cycles + 1, start_s, commanded)  # (the loop counts the cycle once it has ended)
         for hook in self.cycle_hooks:
             hook(self, start_s, replies)
-        if not follower.moving and self._pending is None:
-            self._idle.set()
         return replies
 
     def _track(self, start_s: float, ref: State, commanded: bool) -> None:
@@ -465,18 +528,47 @@ class Controller:
         caps = self.setpoints.max_speed_dps if self.options.mode is ControlMode.POSITION else None
         tracking.command(start_s, ref.position, ref.velocity, ref.acceleration, caps)
 
+    def comply_step(
+        self, start_s: float, deadline_s: float, gravity: Feedforward, *, extra: Sequence[Request] = ()
+    ) -> list[Reply]:
+        """A cycle that yields (torque mode, the ``comply`` reaction to a collision): gravity compensation alone,
+        ``g(q)`` at the measured angles with zero gains, so that the arm holds itself up and a push moves it. The
+        reference is the measured position at rest (the stop path is dropped), where a ``clear()`` holds the arm.
+
+        Args:
+            start_s: the cycle's scheduled start.
+            deadline_s: the next cycle's start.
+            gravity: ``(q_deg, qd_dps, qdd_dps2) -> tau_nm``, gravity alone.
+            extra: requests appended to the batch (status reads).
+
+        Raises:
+            MotionError: the controller is not in torque mode (a position stream cannot yield).
+        """
+        if self.options.mode is not ControlMode.TORQUE:
+            raise MotionError("comply needs torque mode")
+        axes = self.axes
+        self.reference = State.at_rest(axes.q_deg.copy())
+        if self.follower is not None:
+            self.follower.hold_at(self.reference.position)
+        requests = self.torque_frames(gravity(axes.q_deg, self._zero, self._zero).tolist())
+        self.setpoints.commanded = True
+        requests.extend(extra)
+        return self._exchange(requests, start_s, deadline_s, True)
+
     def _publish(self, cycle: int, start_s: float, commanded: bool) -> None:
         """Replace :attr:`snapshot` with this cycle's (one stacked copy: the loop never waits on a reader)."""
         axes, follower = self.axes, self.follower
         path = follower.path if follower is not None else None
         end = follower.end_time() if follower is not None and path is not None else math.nan
-        self.snapshot = CycleSnapshot(
-            cycle,
-            start_s,
-            frozen((axes.q_deg, axes.qd_dps, self.reference.position, axes.iq_a, axes.temperature_c, axes.fresh)),
-            commanded,
-            end - path.duration_s if path is not None else math.nan,
-            end,
+        self.snapshot = _new_snapshot(
+            (
+                cycle,
+                start_s,
+                frozen((axes.q_deg, axes.qd_dps, self.reference.position, axes.iq_a, axes.temperature_c, axes.fresh)),
+                commanded,
+                end - path.duration_s if path is not None else math.nan,
+                end,
+            )
         )
 
     def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:

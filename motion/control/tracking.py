@@ -34,7 +34,7 @@ import numpy as np
 from motion.config.schema import ControlMode
 from motion.protocol import Acceleration, Bare, Command, PidGains
 from motion.transmission import ArmTransmission, FloatArray
-from motion.transport.base import Request, Transport
+from motion.transport.base import Reply, Request, Transport
 
 #: Angle-loop gain per unit of the 0x30 ``angle_kp``: speed asked for (deg/s) per degree of angle error, 1/s. The
 #: documents give no physical scale; this is the one the project's emulated drives use, a prior for real drives.
@@ -42,6 +42,9 @@ ANGLE_GAIN_PER_S_PER_UNIT = 0.5
 #: Longest integration step of the position-loop model, s (2 ms would halve the cost and raise the model's error on
 #: arm6 at full speed from 0.42 to 0.65 deg at most, and bias the identification).
 MAX_STEP_S = 0.001
+#: Times a drive is asked for its loop settings (0x30, 0x33) before the prior is kept.
+READ_ATTEMPTS = 3
+_READS = (Command.READ_PID, Command.READ_ACCELERATION)
 #: Torque mode: the mass matrix is evaluated again once a joint has moved this far, deg.
 INERTIA_STEP_DEG = 5.0
 _RAD_PER_DEG = math.pi / 180.0
@@ -94,6 +97,7 @@ class ExpectedTracking:
         transmission: ArmTransmission,
         kp_nm_per_deg: FloatArray,
         kd_nm_per_dps: FloatArray,
+        ids: Sequence[int],
     ) -> None:
         n = len(transmission)
         self.mode = mode
@@ -112,8 +116,18 @@ class ExpectedTracking:
         self.angle_gain_per_s = np.full(n, 100 * ANGLE_GAIN_PER_S_PER_UNIT)
         self.acceleration_dps2 = np.full(n, math.inf)
         self._accel = np.full(n, _NO_LIMIT)
-        #: Per joint: the drive's 0x30 angle_kp and 0x33 acceleration as read at connect (None: not read).
+        #: Per joint: the drive's 0x30 angle_kp and 0x33 acceleration as read (None: not read yet).
         self.drive_settings: list[tuple[int, int | None] | None] = [None] * n
+        #: Per joint: whether the position loop in use is an identified one (see :meth:`offer_identified`).
+        self.identified = [False] * n
+        self._joint_of = {motor_id: j for j, motor_id in enumerate(ids)}
+        self._reads = [[Request(i, Bare(c)) for c in _READS] for i in ids]
+        self._unread = list(range(n))
+        self._read_turn = 0
+        self._attempts = [0] * n
+        self._gains: list[PidGains | None] = [None] * n
+        self._accels: list[Acceleration | None] = [None] * n
+        self._offered: list[tuple[tuple[int, int | None], PositionLoop] | None] = [None] * n
         # Torque mode: joint inertia (None until given: the model then expects the reference) and fed-forward share.
         self.inertia_kgm2: FloatArray | None = None
         self.inertia_feedforward = False
@@ -181,28 +195,81 @@ class ExpectedTracking:
             np.copyto(self.inertia_kgm2, inertia)
         np.copyto(self._mass_inv, np.linalg.inv(self.inertia_kgm2))  # once per evaluation, not per cycle
 
-    def read_drive_loops(self, bus: Transport, ids: Sequence[int], deadline_s: float) -> bool:
-        """Read every drive's angle-loop gain (0x30) and acceleration limit (0x33) and use them as the prior.
+    # ------------------------------------------------------------------------------------------------ drive reads
 
-        Returns:
-            True when every drive answered both (drives that did not keep the current parameters).
-        """
-        requests = [Request(i, Bare(c)) for i in ids for c in (Command.READ_PID, Command.READ_ACCELERATION)]
-        gains: dict[int, PidGains] = {}
-        accels: dict[int, Acceleration] = {}
-        for reply in bus.transact(requests, deadline_s):
+    @property
+    def unread(self) -> bool:
+        """Whether a drive's angle-loop gain (0x30) and acceleration limit (0x33) are still to be read."""
+        return bool(self._unread)
+
+    def next_reads(self) -> list[Request]:
+        """The reads of the next drive in turn (0x30 and 0x33), to append to a cycle's batch: one drive per cycle,
+        so that the first cycles after connect carry them at the end of their batches (the set-points and their
+        replies keep their timing), each drive asked at most :data:`READ_ATTEMPTS` times (then the prior stays)."""
+        j = self._unread[self._read_turn % len(self._unread)]
+        self._read_turn += 1
+        self._attempts[j] += 1
+        return self._reads[j]
+
+    def take_replies(self, replies: list[Reply]) -> list[Reply]:
+        """Take the replies to :meth:`next_reads` out of a cycle's replies (answered or not: a drive that does not
+        know 0x30 is no lost drive) and use what they carry; returns the others (the same list when none was
+        there)."""
+        keep: list[Reply] = []
+        for reply in replies:
+            request = reply.request
+            if not (isinstance(request, Bare) and request.command in _READS):
+                keep.append(reply)
+                continue
+            j = self._joint_of.get(reply.motor_id)
+            if j is None:
+                continue
             if isinstance(reply.message, PidGains):
-                gains[reply.motor_id] = reply.message
+                self._gains[j] = reply.message
             elif isinstance(reply.message, Acceleration):
-                accels[reply.motor_id] = reply.message
+                self._accels[j] = reply.message
+        if len(keep) == len(replies):
+            return replies
+        for j in list(self._unread):
+            gains = self._gains[j]
+            if gains is not None:
+                self._use_drive(j, gains, self._accels[j])
+                self._unread.remove(j)
+            elif self._attempts[j] >= READ_ATTEMPTS:
+                self._unread.remove(j)  # the prior stays
+        return keep
+
+    def read_now(self, bus: Transport, deadline_s: float) -> None:
+        """Read every unread drive's loop settings in one exchange (at connect, where a cycle's batch has no room
+        for them: RS485, where an exchange takes as long as a set-point's)."""
+        requests = [request for j in self._unread for request in self._reads[j]]
+        for j in self._unread:
+            self._attempts[j] = READ_ATTEMPTS
+        self.take_replies(bus.transact(requests, deadline_s))
+
+    def offer_identified(self, j: int, settings: tuple[int, int | None], loop: PositionLoop) -> None:
+        """An identified position loop for joint ``j``, to use once the drive is read with these settings
+        (``(angle_kp, acceleration)``, as :attr:`drive_settings` holds them) instead of the prior."""
+        self._offered[j] = (settings, loop)
+        if self.drive_settings[j] == settings:
+            self._set_loop(j, loop)
+            self.identified[j] = True
+
+    def _use_drive(self, j: int, gains: PidGains, accel: Acceleration | None) -> None:
+        settings = (gains.angle_kp, accel.acceleration_dps2 if accel is not None else None)
+        self.drive_settings[j] = settings
+        offered = self._offered[j]
+        if offered is not None and offered[0] == settings:
+            self._set_loop(j, offered[1])
+            self.identified[j] = True
+        else:
+            self._set_loop(j, PositionLoop.from_drive(gains, accel, float(self.gear_ratio[j])))
+            self.identified[j] = False
+
+    def _set_loop(self, j: int, loop: PositionLoop) -> None:
         loops = list(self.position_loops())
-        for j, motor_id in enumerate(ids):
-            if motor_id in gains:
-                accel = accels.get(motor_id)
-                loops[j] = PositionLoop.from_drive(gains[motor_id], accel, float(self.gear_ratio[j]))
-                self.drive_settings[j] = (gains[motor_id].angle_kp, accel.acceleration_dps2 if accel else None)
+        loops[j] = loop
         self.set_position_loops(loops)
-        return all(i in gains and i in accels for i in ids)
 
     # ------------------------------------------------------------------------------------------------ the cycle
 

@@ -3,15 +3,34 @@
 Sources, in the order they are checked: drive error flags (0x9A, read round-robin so every drive's flags are at
 most ``n_axes`` cycles old, and every 0x9B reply), motor temperature in every reply, supply voltage, missing replies
 (consecutive misses and time since the last good reply), corrupt frames, measured position beyond the joint limits,
-following error, and scheduler overrun streaks. The planned set-point is checked before it is sent.
+collisions (the momentum observer's residual per joint against its threshold), following error, and scheduler
+overrun streaks. The planned set-point is checked before it is sent.
+
+The collision observer is injected (:class:`CollisionObserver`; :func:`motion.compose.collision_observer_for` builds
+it on the arm's Pinocchio model): this package never imports the model. It is updated in every evaluated cycle in
+which every joint's state reply arrived, from the measured angles, speeds and torque currents of the cycle.
+
+What is held against a joint's threshold is the *collision signal*: the residual's change over the last
+``collision_window_cycles`` observer steps (with 0, the residual itself). A collision is a torque step, which the
+residual takes up within a few cycles; what the model gets wrong changes slowly along the motion and cancels in the
+difference: a torque constant or friction 20 % off (the residual carries 20 % of the joint's torque, which for a
+joint that holds its link against gravity can be as large as the collision to detect), and in position mode the bias
+of sampling the drives' current once per set-point (it ripples with every 0xA4 step, and the reply samples it at the
+step; the bias grows with the speed). A contact that builds up more slowly than the window is left to the following
+error. The check is armed :data:`COLLISION_SETTLE_CYCLES` plus the window after the observer (re)starts (loop start,
+``clear()``): there the drives take up their whole load at once, and any model error of that load is a step of the
+residual.
 """
 
 from __future__ import annotations
 
 import collections
+import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from motion.config.schema import HaltPolicy
 from motion.control.controller import Controller
@@ -27,6 +46,22 @@ POSITION_LIMIT_TOLERANCE_DEG = 0.1
 CORRUPT_WINDOW_S = 1.0
 # Expected joint speed above which a joint counts as moving for the following-error check, deg/s.
 _MOVING_DPS = 1.0
+#: Observer steps after a (re)start before collisions are checked, on top of the window: the residual of the
+#: drives taking up their load settles (at the default gain, 1 - 0.5**5 = 97 %).
+COLLISION_SETTLE_CYCLES = 5
+
+
+class CollisionObserver(Protocol):
+    """An estimate of the external joint torques (``kinematics.observer.MomentumObserver``)."""
+
+    def reset(self, q_deg: ArrayLike, qd_dps: ArrayLike) -> None:
+        """Start (again) from this state: the residual is zero."""
+        ...
+
+    def update(self, q_deg: ArrayLike, qd_dps: ArrayLike, tau_motor_nm: ArrayLike, dt_s: float) -> FloatArray:
+        """One step with the measured state and the joint torques of the measured currents; returns the residual
+        per joint, N·m (the observer's array, overwritten by the next step)."""
+        ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -44,6 +79,12 @@ class SafetySettings:
         max_corrupt_frames: corrupt frames per drive tolerated within one second.
         max_overrun_streak: consecutive overrunning cycles tolerated.
         halt_retry_s: how long unacknowledged halt frames are re-sent, s.
+        collision_threshold_nm: per joint, the observer residual that faults the arm (``collision``), N·m; inf for
+            a joint that is not watched; empty: no joint is.
+        collision_reaction: the reaction to a collision (None: ``halt_policy``; ``hold`` reacts with 0x81, a
+            collision is not holdable; ``comply``: gravity compensation, torque mode).
+        collision_window_cycles: the collision signal is the residual's change over this many observer steps (0:
+            the residual itself).
     """
 
     halt_policy: HaltPolicy
@@ -55,14 +96,21 @@ class SafetySettings:
     max_corrupt_frames: int = 3
     max_overrun_streak: int = 3
     halt_retry_s: float = 0.2
+    collision_threshold_nm: tuple[float, ...] = ()
+    collision_reaction: HaltPolicy | None = None
+    collision_window_cycles: int = 0
 
 
 class Watchdog:
     """Evaluates the monitors once per cycle (called from the control thread only)."""
 
-    def __init__(self, controller: Controller, settings: SafetySettings) -> None:
+    def __init__(
+        self, controller: Controller, settings: SafetySettings, observer: CollisionObserver | None = None
+    ) -> None:
         self.controller = controller
         self.settings = settings
+        #: The collision observer (None: none runs, no residual is recorded).
+        self.observer = observer
         specs = controller.specs
         n = len(specs)
         self.names = tuple(s.name for s in specs)
@@ -86,6 +134,24 @@ class Watchdog:
         self._error = np.zeros(n)
         self._slip = np.zeros(n)
         self._moving = np.zeros(n, dtype=bool)
+        thresholds = settings.collision_threshold_nm
+        self.collision_threshold = np.array(thresholds, dtype=np.float64) if thresholds else np.full(n, np.inf)
+        if self.collision_threshold.shape != (n,):
+            raise ValueError(f"collision_threshold_nm: expected {n} values (one per joint), got {len(thresholds)}")
+        self._tau_motor = np.zeros(n)
+        self._over = np.zeros(n, dtype=bool)
+        self._share = np.zeros(n)
+        self._observed_s = math.nan  # when the observer last stepped; NaN: reset it at the next step
+        #: The latest residual per joint, N·m (NaN before the first observer step).
+        self.residual_nm = np.full(n, np.nan)
+        #: The latest collision signal per joint (the residual's change over the window), N·m.
+        self.collision_signal_nm = np.full(n, np.nan)
+        self._history = np.zeros((max(settings.collision_window_cycles, 1), n))
+        self._slot = 0
+        self._steps = 0  # observer steps since its (re)start
+        self._armed_at = COLLISION_SETTLE_CYCLES + settings.collision_window_cycles
+        #: The loop cycle count of the cycle that computed :attr:`residual_nm` (-1: none yet).
+        self.residual_cycle = -1
 
     def start(self, now_s: float) -> None:
         """Reset the reply clocks (at loop start or after a clear)."""
@@ -98,9 +164,8 @@ class Watchdog:
             self._corrupt[i].clear()
         self._overruns_seen = self.controller.loop.overruns
         self._overrun_streak = 0
-        self._following = False
-        controller = self.controller
-        controller.tracking.reset(controller.axes.q_deg, controller.axes.qd_dps, controller.reference.position)
+        self._observed_s = math.nan
+        self._restart_following()
 
     def check_setpoint(self, reference: State) -> None:
         """Refuse to send a planned set-point outside the joint limits.
@@ -129,13 +194,22 @@ class Watchdog:
             detail=detail,
         )
 
-    def evaluate(self, replies: list[Reply], now_s: float) -> None:
+    def evaluate(self, replies: list[Reply], now_s: float, *, complying: bool = False) -> None:
         """Check one cycle's replies and the controller's state.
 
+        Args:
+            replies: the cycle's replies.
+            now_s: the time they were taken in.
+            complying: the arm yields to a collision (``comply``): the observer runs but does not fault, and there
+                is no reference to follow.
+
         Raises:
-            MotionFault: the first violated limit.
+            MotionFault: the first violated limit that cannot be held (communication, a drive's flags, a limit, a
+                collision), else the first one that can (temperature, voltage, following error, overrun). Every
+                monitor runs in every cycle: a fault the hold is for must not hide one it is not for.
         """
         settings = self.settings
+        held: MotionFault | None = None
         self._missing[:] = False
         self._answered[:] = False
         index = self.index
@@ -153,9 +227,14 @@ class Watchdog:
             if i is None or message is None:
                 continue
             if isinstance(message, Status1):
-                self._check_status(i, message)
+                try:
+                    self._check_status(i, message)
+                except MotionFault as fault:
+                    if not fault.kind.holdable:
+                        raise
+                    held = held or fault
             elif isinstance(message, MotorState) and message.temperature_c >= self.temperature_limit[i]:
-                raise self._fault(
+                held = held or self._fault(
                     FaultKind.TEMPERATURE,
                     i,
                     message.temperature_c,
@@ -165,22 +244,84 @@ class Watchdog:
         self._check_corrupt(now_s)
         q = self.controller.axes.q_deg
         self._check_limits(q, FaultKind.POSITION_LIMIT, "measured position beyond the limit")
-        if self._following:
-            self._check_following(q)
-        self._following = True
+        if self.observer is not None and self._observe(now_s) and not complying and self.collision_armed:
+            self._check_collision()
+        if complying:  # no reference to follow, so no expectation either until the arm follows one again
+            self._restart_following()
+        else:
+            if self._following:
+                held = held or self._following_fault(q)
+            self._following = True
         overruns = self.controller.loop.overruns
         self._overrun_streak = self._overrun_streak + 1 if overruns > self._overruns_seen else 0
         self._overruns_seen = overruns
         if self._overrun_streak > settings.max_overrun_streak:
-            raise self._fault(
+            held = held or self._fault(
                 FaultKind.OVERRUN,
                 None,
                 float(self._overrun_streak),
                 float(settings.max_overrun_streak),
                 "consecutive overruns",
             )
+        if held is not None:
+            raise held
 
-    def _check_following(self, q: FloatArray) -> None:
+    def _observe(self, now_s: float) -> bool:
+        """Step the observer with the cycle's measurements; False when a joint's state reply is missing (the next
+        complete cycle integrates over the gap)."""
+        observer, axes = self.observer, self.controller.axes
+        assert observer is not None
+        if not axes.fresh.all():
+            return False
+        residual, signal = self.residual_nm, self.collision_signal_nm
+        if math.isnan(self._observed_s):
+            observer.reset(axes.q_deg, axes.qd_dps)
+            residual[:] = 0.0
+            self._history[:] = 0.0
+            self._steps = 0
+        else:
+            tau = self.controller.transmission.joint_torque_nm(axes.iq_a, out=self._tau_motor)
+            residual[:] = observer.update(axes.q_deg, axes.qd_dps, tau, now_s - self._observed_s)
+        if self.settings.collision_window_cycles:
+            np.subtract(residual, self._history[self._slot], out=signal)
+            self._history[self._slot] = residual
+            self._slot = (self._slot + 1) % len(self._history)
+        else:
+            signal[:] = residual
+        self._observed_s = now_s
+        self._steps += 1
+        self.residual_cycle = self.controller.loop.cycles
+        return True
+
+    @property
+    def collision_armed(self) -> bool:
+        """Whether the latest collision signal was (or would have been) held against the thresholds: the observer
+        has settled since its (re)start (calibration looks only at these cycles)."""
+        return self._steps > self._armed_at
+
+    def _check_collision(self) -> None:
+        residual, threshold, over = self.collision_signal_nm, self.collision_threshold, self._over
+        np.abs(residual, out=self._share)
+        np.greater(self._share, threshold, out=over)
+        if not over.any():
+            return
+        self._share /= threshold
+        worst = int(np.argmax(self._share))
+        hit = [self.names[i] for i in np.flatnonzero(over)]
+        detail = "collision signal (residual change): " + ", ".join(
+            f"{self.names[i]} {residual[i]:+.2f} N·m (threshold {threshold[i]:g})" for i in np.flatnonzero(over)
+        )
+        fault = self._fault(FaultKind.COLLISION, worst, float(residual[worst]), float(threshold[worst]), detail)
+        fault.joints = tuple(hit)
+        raise fault
+
+    def _restart_following(self) -> None:
+        """No following-error check in the next cycle; the expectation starts again from the measured state."""
+        self._following = False
+        controller = self.controller
+        controller.tracking.reset(controller.axes.q_deg, controller.axes.qd_dps, controller.reference.position)
+
+    def _following_fault(self, q: FloatArray) -> MotionFault | None:
         """|expected - measured| against the threshold; a joint slower than expected also loses the lag it was
         expected to have (a joint that stops while it should move is as far from the reference as it is), so that a
         blocked joint is caught as soon as the raw reference-minus-measured error would catch it."""
@@ -200,10 +341,11 @@ class Watchdog:
         np.abs(error, out=error)
         worst = int(np.argmax(error))
         limit = self.settings.following_error_deg
-        if error[worst] > limit:
-            raise self._fault(
-                FaultKind.FOLLOWING_ERROR, worst, float(error[worst]), limit, "|expected - q| (+ lag lost by slipping)"
-            )
+        if error[worst] <= limit:
+            return None
+        return self._fault(
+            FaultKind.FOLLOWING_ERROR, worst, float(error[worst]), limit, "|expected - q| (+ lag lost by slipping)"
+        )
 
     def _check_status(self, i: int, status: Status1) -> None:
         if status.errors & ErrorFlags.OVER_TEMPERATURE:

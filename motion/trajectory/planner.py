@@ -15,12 +15,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Final
 
 import numpy as np
 import numpy.typing as npt
 from ruckig import ControlInterface, InputParameter, Result, Ruckig, RuckigError, Trajectory
 
 from motion.errors import PlanningError
+from motion.protocol.compiled import frozen_builder
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -85,6 +87,10 @@ class State:
         return cls(p, np.zeros_like(p), np.zeros_like(p))
 
 
+# State's slot-setting constructor (see frozen_builder), for the state sampled every cycle.
+_new_state: Final = frozen_builder(State)
+
+
 class Segment:
     """One time-synchronised Ruckig trajectory, sampled by time since its start."""
 
@@ -97,8 +103,9 @@ class Segment:
 
     def sample(self, t_s: float) -> State:
         """Reference state ``t_s`` seconds after the start (clamped to the segment)."""
+        # Sampled every control cycle: Ruckig's lists of Python floats become float64 arrays as they are.
         p, v, a = self._trajectory.at_time(min(max(t_s, 0.0), self.duration_s))
-        return State(np.asarray(p, dtype=np.float64), np.asarray(v, dtype=np.float64), np.asarray(a, dtype=np.float64))
+        return _new_state(np.array(p), np.array(v), np.array(a))
 
     def extrema(self) -> tuple[FloatArray, FloatArray]:
         """Smallest and largest position of every joint over the segment, in degrees."""
@@ -109,7 +116,7 @@ class Segment:
 class Path:
     """Segments played one after the other; time 0 is the start of the first."""
 
-    __slots__ = ("_cursor", "_starts", "duration_s", "segments")
+    __slots__ = ("_cursor", "_start_s", "_starts", "duration_s", "segments")
 
     def __init__(self, segments: Sequence[Segment]) -> None:
         if not segments:
@@ -117,6 +124,7 @@ class Path:
         self.segments = tuple(segments)
         starts = np.cumsum([0.0] + [s.duration_s for s in self.segments])
         self._starts = starts
+        self._start_s = tuple(starts.tolist())  # the same times as Python floats, for sample()
         self.duration_s = float(starts[-1])
         self._cursor = 0
 
@@ -132,14 +140,14 @@ class Path:
 
     def sample(self, t_s: float) -> State:
         """Reference state at time ``t_s`` (clamped to the path). Monotonic calls are O(1)."""
-        i = self._cursor
-        if t_s < self._starts[i]:
+        starts, i = self._start_s, self._cursor
+        if t_s < starts[i]:
             i = 0
         last = len(self.segments) - 1
-        while i < last and t_s >= self._starts[i + 1]:
+        while i < last and t_s >= starts[i + 1]:
             i += 1
         self._cursor = i
-        return self.segments[i].sample(t_s - self._starts[i])
+        return self.segments[i].sample(t_s - starts[i])
 
 
 class Planner:

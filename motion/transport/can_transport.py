@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, Protocol
+from typing import Any, Final, Protocol
 
 from motion.errors import DecodeError
 from motion.protocol import CanFrame, can_frame
-from motion.protocol.table import CAN_ID_BASE, MOTOR_ID_MAX, MOTOR_ID_MIN
+from motion.protocol.compiled import CODECS
+from motion.protocol.table import CAN_ID_BASE, CAN_PAYLOAD_BYTES, MOTOR_ID_MAX, MOTOR_ID_MIN, Direction, WireProtocol
 from motion.transport.base import Request, Transport
 from motion.transport.can_endpoint import CanEndpoint
 
@@ -24,19 +25,33 @@ def take_in_can_frame(transport: Transport, frame: CanFrame) -> None:
 
     Shared by every transport that carries RMD CAN frames (this one and the simulated bus).
     """
+    arbitration_id = frame.arbitration_id
     if transport.frame_tap is not None:
-        transport.frame_tap(transport.clock(), True, frame.arbitration_id, frame.data)
-    motor_id = frame.arbitration_id - CAN_ID_BASE
-    if not MOTOR_ID_MIN <= motor_id <= MOTOR_ID_MAX:
+        transport.frame_tap(transport.clock(), True, arbitration_id, frame.data)
+    motor_id = arbitration_id - CAN_ID_BASE
+    if not _FIRST_MOTOR_ID <= motor_id <= _LAST_MOTOR_ID:
         # Other devices may share the bus; their frames are not drive replies, nor are 0x280 frames.
         transport.bus_counters.unknown_id_frames += 1
         return
-    try:
-        _, message = can_frame.decode_reply(frame.arbitration_id, frame.data)
-    except DecodeError:
-        transport.motor_counters(motor_id).bad_frames += 1
-        return
+    # The codec's fast path straight away (an unpack and a message); can_frame.decode_reply for anything it does not
+    # take, which gives the same message or the DecodeError.
+    data = frame.data
+    decoder = _REPLY_DECODERS[data[0]] if len(data) == CAN_PAYLOAD_BYTES else None
+    message = decoder(data) if decoder is not None else None
+    if message is None:
+        try:
+            message = _decode_reply(arbitration_id, data)[1]
+        except DecodeError:
+            transport.motor_counters(motor_id).bad_frames += 1
+            return
     transport._offer(motor_id, message)
+
+
+# Looked up once, not for every frame.
+_decode_reply: Final = can_frame.decode_reply
+_REPLY_DECODERS: Final = CODECS[WireProtocol.CAN, Direction.REPLY].decoders
+_FIRST_MOTOR_ID: Final = MOTOR_ID_MIN
+_LAST_MOTOR_ID: Final = MOTOR_ID_MAX
 
 
 class CanPort(Protocol):
@@ -115,31 +130,32 @@ class CanTransport(Transport):
             frames.append(can_frame.encode_request(request.message, request.motor_id))
 
     def _exchange(self, deadline_s: float) -> None:
-        endpoint, clock = self._endpoint, self.clock
+        endpoint, clock, take_in = self._endpoint, self.clock, take_in_can_frame
+        recv = endpoint.recv
         # Anything already queued was sent before this cycle's requests: take it in as stale now, so that it
         # cannot be matched to them.
-        while (received := endpoint.recv(0.0)) is not None:
-            self._receive(received[0])
+        while (received := recv(0.0)) is not None:
+            take_in(self, received[0])
         # A send that cannot complete means a full transmit queue (bus off, no ACK): an error. It gets at least
         # SEND_TIMEOUT_MIN_S, not just what is left of the cycle: pyserial (slcan) raises a write timeout once the
         # timeout has passed even when every byte was written, which a descheduled thread hits on a loaded machine.
         send_timeout_s = max(deadline_s - clock(), SEND_TIMEOUT_MIN_S)
-        tap = self.frame_tap
-        for index, frame in enumerate(self._frames):
-            endpoint.send(frame, send_timeout_s)
-            self._sent(index)
-            if tap is not None:
-                tap(clock(), False, frame.arbitration_id, frame.data)
+        send, tap, sent = endpoint.send, self.frame_tap, 0
+        try:
+            for frame in self._frames:
+                send(frame, send_timeout_s)
+                sent += 1
+                if tap is not None:
+                    tap(clock(), False, frame.arbitration_id, frame.data)
+        finally:
+            self._sent_first(sent)  # the requests that went out, also when a send failed
         while self._open_slots:
             remaining_s = deadline_s - clock()
             if remaining_s <= 0.0:
                 break
-            received = endpoint.recv(remaining_s)
+            received = recv(remaining_s)
             if received is not None:
-                self._receive(received[0])
-
-    def _receive(self, frame: CanFrame) -> None:
-        take_in_can_frame(self, frame)
+                take_in(self, received[0])
 
     def _close(self) -> None:
         self._endpoint.close()

@@ -7,8 +7,9 @@ upstream, not yet released) reads everything that is waiting at once. This modul
 python-can's own ``slcanBus`` (our code, written for this project; only ``_read`` and ``_recv_internal`` differ):
 
 - ``_read`` takes a complete line (``\\r`` or ``\\a`` ends it) from its buffer if there is one; otherwise it reads
-  all bytes the port holds in one call, and when there are none it waits on the port's descriptor (or one
-  ``read(1)`` where there is no descriptor) until the timeout. Partial lines stay buffered for the next call.
+  all bytes the port holds in one system call (``os.read`` on pyserial's non-blocking descriptor; ``in_waiting``
+  and ``read`` where there is none), and when there are none it waits on the descriptor (or one ``read(1)``)
+  until the timeout. Partial lines stay buffered for the next call.
 - ``_recv_internal`` drops a garbled line (python-can's parser raises ValueError on one, which would end a control
   loop) and counts it in :attr:`SlcanShimBus.garbled_lines`: the transport then counts the missing reply as a
   timeout, as it would for a frame lost on the wire.
@@ -25,6 +26,7 @@ module, its use in ``can_endpoint.py`` and ``tests/test_slcan_shim.py``.
 from __future__ import annotations
 
 import io
+import os
 import re
 import select
 import time
@@ -38,6 +40,8 @@ from can.interfaces.slcan import slcanBus
 LAST_RELEASE_WITHOUT_FIX: Final = (4, 6, 1)
 
 _LINE_END: Final = re.compile(rb"[\r\a]")
+#: Bytes asked of the port per read (a pty or a USB adapter rarely holds more; the rest comes with the next read).
+_READ_CHUNK_BYTES: Final = 65536
 _RELEASE: Final = re.compile(r"(\d+)(?:\.(\d+))?(?:\.(\d+))?")
 
 
@@ -89,26 +93,39 @@ class SlcanShimBus(slcanBus):
         return line
 
     def _read(self, timeout: float | None) -> str | None:
-        port = self.serialPortOrig
         deadline = None if timeout is None else time.monotonic() + timeout
         try:
             while True:
                 line = self._take_line()
                 if line is not None:
                     return line
-                waiting = port.in_waiting
-                if waiting:
-                    self._buffer += port.read(waiting)
+                if self._take_waiting():
                     continue
                 remaining = None if deadline is None else deadline - time.monotonic()
                 if remaining is not None and remaining <= 0.0:
                     return None
                 if self._fd is not None:
-                    select.select([self._fd], [], [], remaining)
+                    if select.select([self._fd], [], [], remaining)[0] and not self._take_waiting():
+                        # Readable but nothing to read: the far end hung up (pyserial says the same).
+                        raise can.CanOperationError("device reports readiness to read but returned no data")
                 else:  # no descriptor: block in the port's own read, for at most its timeout
-                    self._buffer += port.read(1)
+                    self._buffer += self.serialPortOrig.read(1)
         except (OSError, ValueError) as exc:  # what pyserial raises (SerialException is an OSError)
             raise can.CanOperationError(f"Could not read from serial device: {exc}") from exc
+
+    def _take_waiting(self) -> bool:
+        """Append every byte the port holds to the buffer; False when it held none."""
+        if self._fd is not None:
+            # One system call: pyserial's port is non-blocking, and its in_waiting + read would make three.
+            try:
+                chunk = os.read(self._fd, _READ_CHUNK_BYTES)
+            except BlockingIOError:
+                return False
+        else:
+            waiting = self.serialPortOrig.in_waiting
+            chunk = self.serialPortOrig.read(waiting) if waiting else b""
+        self._buffer += chunk
+        return bool(chunk)
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         try:
