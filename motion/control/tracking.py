@@ -150,7 +150,7 @@ class ExpectedTracking:
         # Work buffers.
         self._e = np.zeros(n)
         self._w = np.zeros(n)
-        self._work = (np.zeros(n), np.zeros(n), np.zeros(n))
+        self._work = chase_work(n)
 
     # ------------------------------------------------------------------------------------------------ parameters
 
@@ -394,6 +394,15 @@ class ExpectedTracking:
         v += step
 
 
+#: Work arrays of :func:`chase`: six of the state's shape.
+ChaseWork = tuple[FloatArray, FloatArray, FloatArray, FloatArray, FloatArray, FloatArray]
+
+
+def chase_work(shape: int) -> ChaseWork:
+    """Work arrays for :func:`chase` on ``shape`` entries."""
+    return (np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape))
+
+
 def chase(
     x: FloatArray,
     v: FloatArray,
@@ -403,27 +412,28 @@ def chase(
     cap: FloatArray,
     gain: FloatArray,
     accel: FloatArray,
-    work: tuple[FloatArray, FloatArray, FloatArray],
+    work: ChaseWork,
 ) -> None:
     """The position-loop model over ``dt`` seconds, in place: angles ``x`` (deg) and speeds ``v`` (deg/s) chase
     ``target`` at ``min(gain |e|, sqrt(2 accel |e|), cap)``, the speed slewed at ``accel`` (arrays of one shape, one
-    entry per joint or per candidate of :func:`fit_position_loop`; ``work``: three arrays of that shape)."""
+    entry per joint or per candidate of :func:`fit_position_loop`; ``work`` from :func:`chase_work`)."""
     steps = max(1, math.ceil(dt / MAX_STEP_S - 1e-9))
     h = dt / steps
-    e, s, w = work
+    e, s, w, two_accel, slew, no_slew = work
+    np.multiply(accel, 2.0, out=two_accel)
+    np.multiply(accel, h, out=slew)
+    np.negative(slew, out=no_slew)
     for _ in range(steps):
         np.subtract(target, x, out=e)
         np.abs(e, out=s)
-        np.multiply(s, 2.0, out=w)
-        w *= accel
+        np.multiply(s, two_accel, out=w)
         np.sqrt(w, out=w)  # braking curve: sqrt(2 a |e|)
         s *= gain
         np.minimum(s, w, out=s)
         np.minimum(s, cap, out=s)
         np.copysign(s, e, out=s)  # the speed the drive asks for
         np.subtract(s, v, out=w)
-        np.multiply(accel, h, out=e)
-        np.clip(w, -e, e, out=w)  # slewed at the acceleration limit
+        np.clip(w, no_slew, slew, out=w)  # slewed at the acceleration limit
         v += w
         np.multiply(v, h, out=w)
         x += w
@@ -477,7 +487,7 @@ def _replay(record: MoveRecord, gains: FloatArray, accels: FloatArray) -> FloatA
     m = len(gains)
     x, v = np.full(m, record.q_deg[0]), np.full(m, record.qd_dps[0])
     target, cap = np.zeros(m), np.zeros(m)
-    work = (np.zeros(m), np.zeros(m), np.zeros(m))
+    work = chase_work(m)
     t = record.t_s
     errors = np.zeros((len(t), m))
     for k in range(1, len(t)):
