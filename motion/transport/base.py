@@ -333,7 +333,10 @@ class Transport(ABC):
 
     def _answered(self, index: int) -> bool:
         """True when no slot of request ``index`` is still open."""
-        state, first = self._slot_state, self._slots.first_slot
+        plan, state = self._slots, self._slot_state
+        if plan.one_each:
+            return state[index] != _OPEN
+        first = plan.first_slot
         return all(state[slot] != _OPEN for slot in range(first[index], first[index + 1]))
 
     def _offer(self, motor_id: int, message: Message) -> None:
