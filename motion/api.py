@@ -31,14 +31,14 @@ from typing import Any
 
 import numpy as np
 
-from motion.compose import build_controller, check_rate, feedforward_for, open_bus, safety_settings
+from motion.compose import build_controller, build_supervisor, check_rate, feedforward_for, open_bus
 from motion.config import ArmConfig, load_config_or_example
 from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.control.ratecheck import RateCheck, measure_rate
 from motion.control.scheduler import LoopStatistics
 from motion.control.snapshot import MotionProgress
-from motion.emulator import FrameLog
+from motion.emulator import Fault, FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
 from motion.protocol import WireProtocol
@@ -68,7 +68,11 @@ def _end_process(process: subprocess.Popen[str]) -> None:
 
 @contextmanager
 def emulator_process(
-    config: ArmConfig, *, log: str | os.PathLike[str] | None = None, latency_ms: float | None = None
+    config: ArmConfig,
+    *,
+    log: str | os.PathLike[str] | None = None,
+    latency_ms: float | None = None,
+    faults: Sequence[Fault] = (),
 ) -> Iterator[dict[str, object]]:
     """The drives of ``config``'s file, emulated in real time in a process of their own (``rmd-motion emulate``) on
     a slcan (CAN) or RS485 pseudo-terminal; yields the bus overrides that reach them. Ended on exit.
@@ -89,6 +93,8 @@ def emulator_process(
         command += ["--log", os.fspath(log)]
     if latency_ms is not None:
         command += ["--latency-ms", f"{latency_ms:g}"]
+    for fault in faults:  # the emulator's own clock: seconds since it started
+        command += ["--fault", fault.describe()]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         if process.stdout is None:
@@ -232,6 +238,10 @@ class Arm:
         emulator_log: write every frame the emulated drives receive and send to this file (emulation only).
         telemetry: record the run: a per-cycle log and/or a bus trace, written when the arm closes (see
             :mod:`motion.telemetry`); the files are created at :meth:`connect`, before anything moves.
+        observe_collisions: run the collision observer (and record its residuals) even where no joint has a
+            ``collision_threshold_nm`` (it always runs where one has), e.g. to calibrate thresholds.
+        faults: emulated faults to schedule (emulation only; e.g. ``Fault(InjectedFault.COLLISION, ...)``, an
+            external torque on a joint).
     """
 
     def __init__(
@@ -243,8 +253,12 @@ class Arm:
         initial_deg: Sequence[float] | None = None,
         emulator_log: str | os.PathLike[str] | None = None,
         telemetry: TelemetryOptions | None = None,
+        observe_collisions: bool = False,
+        faults: Sequence[Fault] = (),
     ) -> None:
         self.config = config
+        self._observe = observe_collisions
+        self._faults = tuple(faults)
         if emulate not in _EMULATE_CHOICES:
             raise ConfigError(
                 config.source, "<emulate>", f"{emulate!r} is not one of False, True, 'simulated', 'realtime'"
@@ -313,7 +327,7 @@ class Arm:
             )
             self.rate_check = check_rate(self.controller, self.config)
             self.controller.read_positions()
-            self.supervisor = Supervisor(self.controller, safety_settings(self.config))
+            self.supervisor = build_supervisor(self.config, self.controller, observe=self._observe)
             if self.telemetry is not None:
                 self.telemetry.attach(self.controller, self.supervisor)
             self.supervisor.start()
@@ -325,7 +339,7 @@ class Arm:
     def _start_simulation(self) -> tuple[Transport, SimulatedClock]:
         from kinematics.emulation import arm_emulator  # noqa: PLC0415 - as above
 
-        self.emulator, self.plant = arm_emulator(self.config, initial_deg=self._initial)
+        self.emulator, self.plant = arm_emulator(self.config, initial_deg=self._initial, faults=self._faults)
         bus_config = self.config.bus
         if isinstance(bus_config, CanBusConfig):
             simulation = Simulation(self.emulator, WireProtocol.CAN, bitrate=bus_config.bitrate or DEFAULT_BITRATE)
@@ -340,7 +354,9 @@ class Arm:
     def _start_emulator_process(self) -> None:
         if self._initial is not None:
             raise MotionError("initial_deg applies to simulated emulation only (emulate=True)")
-        self._overrides = self._stack.enter_context(emulator_process(self.config, log=self._emulator_log))
+        self._overrides = self._stack.enter_context(
+            emulator_process(self.config, log=self._emulator_log, faults=self._faults)
+        )
 
     def close(self) -> None:
         """Halt every axis (0x81), end the loop, release the bus and write the telemetry; safe to call twice."""

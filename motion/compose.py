@@ -11,16 +11,18 @@ limit and rotor inertia, so a program tested on the emulator talks to the same i
 from __future__ import annotations
 
 import logging
+import math
 from collections.abc import Iterable, Mapping
 
-from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, JointConfig
+from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, HaltPolicy, JointConfig
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
 from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
 from motion.emulator import DriveModel, Emulator, Fault, LoadModel, Plant
 from motion.protocol import WireProtocol
-from motion.safety import SafetySettings
+from motion.safety import SafetySettings, Supervisor
+from motion.safety.watchdog import CollisionObserver
 from motion.trajectory import JointLimits
 from motion.transport import Transport, open_transport
 
@@ -88,6 +90,26 @@ def feedforward_for(config: ArmConfig) -> Feedforward | None:
     return feedforward(build_arm(config), gravity=control.gravity_feedforward, inertia=control.inertia_feedforward)
 
 
+def collision_observer_for(config: ArmConfig, *, always: bool = False) -> CollisionObserver | None:
+    """The momentum observer of the arm's Pinocchio model (friction, rotor inertia and gain from the configuration)
+    when a joint has a ``collision_threshold_nm``, or ``always`` (to record residuals, e.g. to calibrate thresholds);
+    else None."""
+    if not (always or config.collision_watched):
+        return None
+    from kinematics.observer import momentum_observer  # noqa: PLC0415 - Pinocchio only where an arm needs it
+
+    return momentum_observer(config)
+
+
+def gravity_for(config: ArmConfig) -> Feedforward | None:
+    """Gravity compensation alone, g(q), for the ``comply`` reaction to a collision (torque mode); else None."""
+    if config.collision_reaction is not HaltPolicy.COMPLY:
+        return None
+    from kinematics import build_arm, feedforward  # noqa: PLC0415 - as above
+
+    return feedforward(build_arm(config), gravity=True, inertia=False)
+
+
 def build_controller(
     config: ArmConfig, bus: Transport, *, feedforward: Feedforward | None = None, clock: Clock | None = None
 ) -> Controller:
@@ -130,7 +152,7 @@ def drive_model(joint: JointConfig, supply_voltage_v: float = 24.0) -> DriveMode
     return DriveModel(
         supply_voltage_v=supply_voltage_v,
         gear_ratio=joint.gear_ratio,
-        torque_constant_nm_per_a=joint.torque_constant_nm_per_a,
+        torque_constant_nm_per_a=joint.emulation.torque_constant_nm_per_a or joint.torque_constant_nm_per_a,
         rotor_inertia_kgm2=joint.emulation.rotor_inertia_kgm2,
         encoder_bits=joint.encoder_bits,
         current_limit_a=joint.current_limit_a,
@@ -172,7 +194,8 @@ def emulator_for(
 
 
 def safety_settings(config: ArmConfig) -> SafetySettings:
-    """Fault thresholds and halt policy from ``safety:``, ``control.halt_policy`` and the joints.
+    """Fault thresholds and halt policy from ``safety:``, ``control.halt_policy`` and the joints (a joint without a
+    ``collision_threshold_nm`` gets inf: not watched).
 
     A drive counts as lost when it misses more than ``max_missed_replies`` consecutive cycles, or when nothing good
     came from it for ``reply_timeout_ms`` plus ``max_missed_replies + 1`` control periods.
@@ -186,4 +209,21 @@ def safety_settings(config: ArmConfig) -> SafetySettings:
         following_error_deg=safety.following_error_deg,
         reply_timeout_s=safety.reply_timeout_ms / 1000.0 + (safety.max_missed_replies + 1) * period,
         max_missed_replies=safety.max_missed_replies,
+        collision_threshold_nm=tuple(
+            math.inf if j.collision_threshold_nm is None else j.collision_threshold_nm for j in config.joints
+        ),
+        collision_reaction=config.collision_reaction,
+        collision_window_cycles=safety.collision_window_cycles,
+    )
+
+
+def build_supervisor(config: ArmConfig, controller: Controller, *, observe: bool = False) -> Supervisor:
+    """The safety supervisor of ``controller`` (after ``read_positions()``): the thresholds of ``config``, the
+    collision observer when a joint has a threshold (or ``observe``: residuals recorded, e.g. to calibrate), and
+    gravity compensation for the ``comply`` reaction."""
+    return Supervisor(
+        controller,
+        safety_settings(config),
+        observer=collision_observer_for(config, always=observe),
+        gravity=gravity_for(config),
     )

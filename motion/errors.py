@@ -85,6 +85,7 @@ class FaultKind(StrEnum):
 
     # seen by the watchdog in the cycle's replies
     FOLLOWING_ERROR = "following_error"  #: |reference - measured| beyond ``safety.following_error_deg``
+    COLLISION = "collision"  #: a joint's momentum-observer residual beyond its ``collision_threshold_nm``
     POSITION_LIMIT = "position_limit"  #: a measured angle beyond its joint limit
     SETPOINT_LIMIT = "setpoint_limit"  #: a planned set-point beyond its joint limit (it was not sent)
     TEMPERATURE = "temperature"  #: motor temperature at or above the joint's ``temperature_limit_c``
@@ -116,7 +117,9 @@ class FaultKind(StrEnum):
 
 #: The kinds after which the ``hold`` policy streams a stop ramp; every other kind halts with 0x81 / 0x80. Not the
 #: limit faults (a ramp from at or beyond a limit would carry the arm further past it), nor communication, drive
-#: flags or failures of our own code.
+#: flags or failures of our own code, nor a collision: the ramp follows the path on, into whatever the arm hit, for
+#: its whole length (at arm6's speeds a quarter of a second and degrees of travel), where the drives' own 0x81 brakes
+#: at their acceleration limit (``safety.collision_reaction: comply`` is the reaction that yields instead).
 HOLDABLE: Final = frozenset(
     {FaultKind.FOLLOWING_ERROR, FaultKind.TEMPERATURE, FaultKind.LOW_VOLTAGE, FaultKind.OVERRUN, FaultKind.ESTOP}
 )
@@ -131,6 +134,8 @@ class MotionFault(MotionError):
         value: the measured value, if any.
         threshold: the configured threshold the value crossed, if any.
         time_s: controller time of the detection, in seconds.
+        joints: every joint the fault concerns (a collision may be isolated to more than one); ``(joint,)`` by
+            default.
     """
 
     def __init__(
@@ -142,9 +147,11 @@ class MotionFault(MotionError):
         threshold: float | None = None,
         time_s: float = 0.0,
         detail: str = "",
+        joints: Sequence[str] = (),
     ) -> None:
         self.kind = FaultKind(kind)  # an unknown kind is a ValueError here, never a default
         self.joint = joint
+        self.joints = tuple(joints) if joints else ((joint,) if joint is not None else ())
         self.value = value
         self.threshold = threshold
         self.time_s = time_s

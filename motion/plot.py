@@ -1,8 +1,10 @@
 """Plots of a telemetry log (:mod:`motion.telemetry`): one PNG with a row per joint and a row of loop timing.
 
-Per joint, four panels on a shared time axis: position (reference and measured), velocity (reference and
-measured), torque current (measured, with the cycles where the current limit clipped the command marked) and the
-following error (:meth:`~motion.telemetry.TelemetryLog.following_error_deg`, with the configured limit). The last
+Per joint, five panels on a shared time axis: position (reference and measured), velocity (reference and
+measured), torque current (measured, with the cycles where the current limit clipped the command marked), the
+following error (:meth:`~motion.telemetry.TelemetryLog.following_error_deg`, with the configured limit) and the
+collision observer (the signal its threshold applies to, the residual itself, and the joint's threshold; empty where
+no observer ran). The last
 row shows every cycle's wake-up jitter and busy time against the period. Faults are vertical lines on every panel
 (the ``close`` halt at the end of a run is not a fault and is left out).
 
@@ -22,7 +24,13 @@ from matplotlib.figure import Figure
 from motion.telemetry import TelemetryLog, load_log
 
 #: Panel columns of a joint row: (title, unit).
-PANELS = (("position", "deg"), ("velocity", "deg/s"), ("torque current", "A"), ("following error", "deg"))
+PANELS = (
+    ("position", "deg"),
+    ("velocity", "deg/s"),
+    ("torque current", "A"),
+    ("following error", "deg"),
+    ("collision observer", "N·m"),
+)
 _REFERENCE: dict[str, Any] = {"color": "0.45", "linestyle": "--", "linewidth": 1.0, "label": "reference"}
 _MEASURED: dict[str, Any] = {"color": "tab:blue", "linewidth": 1.0, "label": "measured"}
 _FAULT: dict[str, Any] = {"color": "tab:red", "linewidth": 1.0, "alpha": 0.8}
@@ -33,8 +41,8 @@ def figure(log: TelemetryLog) -> Figure:
     """Draw ``log`` (see the module docstring); the figure is not attached to any window or pyplot state.
 
     Data lines come first in each panel, in this order: position and velocity panels ``[reference, measured]``,
-    current ``[measured]``, following error ``[error]``, timing ``[jitter, busy]`` (µs); limit and fault lines
-    follow them.
+    current ``[measured]``, following error ``[error]``, collision ``[signal, residual]``, timing ``[jitter, busy]``
+    (µs); limit (and threshold) and fault lines follow them.
     """
     names = log.joint_names
     rows = len(names) + 1
@@ -47,11 +55,12 @@ def figure(log: TelemetryLog) -> Figure:
     faults = [(float(when), str(kind)) for when, kind in zip(log["fault_t_s"], log["fault_kind"], strict=True)]
     faults = [(when, kind) for when, kind in faults if kind != "close"]
     limit = log.meta.get("following_error_limit_deg")
+    thresholds = log.meta.get("collision_threshold_nm") or [None] * len(names)
     first: Axes | None = None
     for j, name in enumerate(names):
         axes = [fig.add_subplot(grid[j, c], sharex=first) for c in range(len(PANELS))]
         first = first or axes[0]
-        position, velocity, current, following = axes
+        position, velocity, current, following, collision = axes
         position.plot(t_ref, log["q_ref_deg"][:, j], **_REFERENCE)
         position.plot(t, log["q_deg"][:, j], **_MEASURED)
         velocity.plot(t_ref, log["qd_ref_dps"][:, j], **_REFERENCE)
@@ -64,6 +73,11 @@ def figure(log: TelemetryLog) -> Figure:
         if limit is not None:
             for sign in (1.0, -1.0):
                 following.axhline(sign * float(limit), color="0.6", linestyle=":", linewidth=1.0)
+        collision.plot(t, log["collision_signal_nm"][:, j], color="tab:green", linewidth=1.0, label="signal")
+        collision.plot(t, log["residual_nm"][:, j], color="0.6", linewidth=0.8, label="residual")
+        if thresholds[j] is not None:
+            for sign in (1.0, -1.0):
+                collision.axhline(sign * float(thresholds[j]), color="tab:red", linestyle=":", linewidth=1.0)
         position.set_ylabel(f"{name}\n{PANELS[0][1]}")
         for c, panel in enumerate(axes):
             if j == 0:
@@ -73,6 +87,7 @@ def figure(log: TelemetryLog) -> Figure:
             _mark_faults(panel, faults)
         if j == 0:
             position.legend(fontsize=7, loc="best")
+            collision.legend(fontsize=7, loc="best")
     timing = fig.add_subplot(grid[rows - 1, :], sharex=first)
     _draw_timing(timing, log, faults)
     fig.suptitle(_title(log), fontsize=12)

@@ -7,14 +7,15 @@ is formatted, logged or written until :meth:`TelemetrySession.close`. Memory gro
 per cycle for the log (arm6 at 250 Hz: 135 kB/s) and 30 bytes per CAN frame for the trace (arm6: 13 frames per
 cycle, 100 kB/s), so record runs of minutes, not days.
 
-The per-cycle log (``.npz``, schema ``rmd-motion-telemetry`` version 2)
+The per-cycle log (``.npz``, schema ``rmd-motion-telemetry`` version 3)
 ------------------------------------------------------------------------
 A :func:`numpy.savez_compressed` archive: one array per column, plus ``meta``, a JSON document in a 0-d string
 array. ``numpy.load(path)`` reads it without pickles; :func:`load_log` returns a :class:`TelemetryLog`. ``N`` is
 the number of recorded cycles, ``J`` the number of joints (configuration order, named in ``meta["joints"]``), ``F``
 the number of faults. Times are seconds since ``meta["t0_s"]`` (controller clock: simulated time in a simulated run,
 where every array is reproducible to the bit; ``meta["t0_wall_unix_s"]`` is the host's wall-clock Unix time at that
-instant, the time base of the bus trace). Version 2 renamed version 1's ``t0_unix_s``.
+instant, the time base of the bus trace). Version 2 renamed version 1's ``t0_unix_s``; version 3 added the collision
+observer's columns (:func:`load_log` gives older logs NaN ones).
 
 =================  =====  =======  ==============================================================================
 column             shape  dtype    meaning (unit)
@@ -37,6 +38,10 @@ column             shape  dtype    meaning (unit)
 ``cmd_torque_nm``  N×J    float64  torque mode: joint torque asked for, feed-forward + PD before the current limit
                                    (N·m); NaN otherwise
 ``limited``        N×J    bool     torque mode: the current limit clipped the joint's command
+``residual_nm``    N×J    float64  the collision observer's residual: the estimated external torque (N·m); NaN in
+                                   the cycles it did not run (no observer, a state reply missing, halted)
+``collision_signal_nm`` N×J float64 what the collision thresholds apply to: the residual's change over
+                                   ``safety.collision_window_cycles`` (N·m); NaN likewise
 ``fault_t_s``      F      float64  detection time of each fault (s)
 ``fault_halt_s``   F      float64  time its halt went out (s)
 ``fault_kind``     F      str      the fault kind (``following_error``, ``no_reply``, ..., ``close`` at the end)
@@ -48,7 +53,8 @@ column             shape  dtype    meaning (unit)
 Command columns are NaN in the cycles that sent no set-point (while halted). ``meta`` holds ``schema``,
 ``version``, ``config`` (name), ``config_source``, ``mode``, ``transport``, ``channel``, ``emulated``, ``rate_hz``,
 ``period_s``, ``joints`` (``name``, ``motor_id``), ``units`` (column -> unit), ``t0_s``, ``t0_wall_unix_s``,
-``following_error_limit_deg``, ``loop`` (the :class:`~motion.control.scheduler.LoopStatistics` of the run),
+``following_error_limit_deg``, ``collision_threshold_nm`` (per joint, null where not watched),
+``loop`` (the :class:`~motion.control.scheduler.LoopStatistics` of the run),
 ``counters`` (per motor id: sent, replied, timeouts, bad and stale frames) and ``trace`` (file name or null).
 
 The bus trace
@@ -89,7 +95,9 @@ if TYPE_CHECKING:
     from motion.safety.supervisor import HaltRecord
 
 SCHEMA: Final = "rmd-motion-telemetry"
-VERSION: Final = 2
+VERSION: Final = 3
+#: Columns added by version 3 (NaN in older logs).
+_V3_COLUMNS: Final = ("residual_nm", "collision_signal_nm")
 #: Rows per chunk of the per-cycle log (16 s at 250 Hz).
 CHUNK_ROWS: Final = 4096
 #: Frames per chunk of the bus trace.
@@ -114,6 +122,8 @@ CYCLE_COLUMNS: Final[Mapping[str, tuple[bool, type[np.generic], str]]] = {
     "cmd_speed_dps": (True, np.float64, "deg/s (motor)"),
     "cmd_torque_nm": (True, np.float64, "N*m"),
     "limited": (True, np.bool_, "1"),
+    "residual_nm": (True, np.float64, "N*m"),
+    "collision_signal_nm": (True, np.float64, "N*m"),
 }
 #: Fault columns: name -> unit.
 FAULT_COLUMNS: Final[Mapping[str, str]] = {
@@ -244,6 +254,9 @@ def load_log(path: str | os.PathLike[str]) -> TelemetryLog:
         raise ValueError(f"{os.fspath(path)}: not a telemetry log (schema {meta.get('schema')!r})")
     if int(meta.get("version", 0)) > VERSION:
         raise ValueError(f"{os.fspath(path)}: telemetry log version {meta['version']} is newer than {VERSION}")
+    if int(meta.get("version", 0)) < VERSION and "q_deg" in arrays:
+        for name in _V3_COLUMNS:
+            arrays.setdefault(name, np.full(arrays["q_deg"].shape, np.nan))
     missing = [name for name in (*CYCLE_COLUMNS, *FAULT_COLUMNS) if name not in arrays]
     if missing:
         raise ValueError(f"{os.fspath(path)}: telemetry log without column(s) {', '.join(missing)}")
@@ -308,6 +321,8 @@ class Recorder:
         previous = self._prev_chunk
         if previous is not None and previous["cycle"][self._prev_row] == cycle - 1:
             previous["busy_s"][self._prev_row] = loop.last_busy_s  # known once that cycle has ended
+        if previous is not None:
+            self._residual(previous, self._prev_row)
         reference, axes = controller.reference, controller.axes
         chunk["q_ref_deg"][row] = reference.position
         chunk["qd_ref_dps"][row] = reference.velocity
@@ -328,11 +343,21 @@ class Recorder:
         self._prev_chunk, self._prev_row = chunk, row
         self._row = row + 1
 
+    def _residual(self, chunk: Chunk, row: int) -> None:
+        """The collision observer's output of the cycle of ``row``: the watchdog computes it after the cycle's
+        hooks ran, so a row gets it at the next cycle (or at :meth:`finish`)."""
+        watchdog = self.supervisor.watchdog if self.supervisor is not None else None
+        if watchdog is not None and watchdog.residual_cycle == chunk["cycle"][row]:
+            chunk["residual_nm"][row] = watchdog.residual_nm
+            chunk["collision_signal_nm"][row] = watchdog.collision_signal_nm
+
     def finish(self) -> None:
-        """Complete the last row's busy time once the loop has ended (call after the loop stopped)."""
+        """Complete the last row's busy time and residuals once the loop has ended (call after the loop stopped)."""
         previous, loop = self._prev_chunk, self.controller.loop
         if previous is not None and not loop.running and previous["cycle"][self._prev_row] == loop.cycles - 1:
             previous["busy_s"][self._prev_row] = loop.last_busy_s
+        if previous is not None:
+            self._residual(previous, self._prev_row)
 
     def columns(self) -> dict[str, NDArray[Any]]:
         """The recorded cycle and fault columns (copies)."""
@@ -560,6 +585,7 @@ class TelemetrySession:
             "channel": bus.channel if isinstance(bus, CanBusConfig) else bus.port,
             "emulated": self.emulated,
             "following_error_limit_deg": config.safety.following_error_deg,
+            "collision_threshold_nm": [j.collision_threshold_nm for j in config.joints],
             "trace": Path(self.options.trace).name if self.options.trace is not None else None,
         }
         if self.recorder is not None:

@@ -20,7 +20,7 @@ import pytest
 
 from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
-from motion.compose import build_controller, feedforward_for, open_bus, safety_settings
+from motion.compose import build_controller, build_supervisor, feedforward_for, open_bus
 from motion.config import ArmConfig, load_config
 from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
@@ -65,11 +65,18 @@ def arm_config(name: str, *, mode: ControlMode | None = None, rate_hz: float | N
 
 @contextmanager
 def emulated_arm(
-    config: ArmConfig, attachment: str, tmp_path: Path, *, use_feedforward: bool = True, supervised: bool = False
+    config: ArmConfig,
+    attachment: str,
+    tmp_path: Path,
+    *,
+    use_feedforward: bool = True,
+    supervised: bool = False,
+    observe: bool = False,
 ) -> Iterator[Rig]:
     """Run ``config`` on emulated drives over ``attachment`` (``sim``: the simulated bus of the configured protocol,
     in simulated time; or in real time on an in-process attachment: virtual | slcan | rs485); the controller is
-    started, under a safety :class:`Supervisor` if ``supervised``."""
+    started, under a safety :class:`Supervisor` if ``supervised`` (with the collision observer where the configuration
+    sets thresholds, or ``observe``)."""
     emulator, plant = arm_emulator(config)
     log_path = tmp_path / f"frames-{uuid.uuid4().hex[:8]}.log"
     clock = None
@@ -102,7 +109,7 @@ def emulated_arm(
         controller.read_positions()
         starts: list[float] = []
         controller.cycle_hooks.append(lambda _controller, start_s, _replies: starts.append(start_s))
-        supervisor = Supervisor(controller, safety_settings(config)) if supervised else None
+        supervisor = build_supervisor(config, controller, observe=observe) if supervised else None
         if supervisor is not None:
             supervisor.start()
         else:

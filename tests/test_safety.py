@@ -398,11 +398,12 @@ def test_every_state_and_event_pair(state: ArmState, event: ArmEvent) -> None:
 def test_the_transition_table_keeps_faults_faulted() -> None:
     assert SAFE_STATE is ArmState.HALTING and SAFE_STATE.faulted
     faulted = {s for s in ArmState if s.faulted}
-    assert faulted == {ArmState.HOLDING, ArmState.HALTING, ArmState.HALTED, ArmState.BUS_LOST}
+    assert faulted == {ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALTING, ArmState.HALTED, ArmState.BUS_LOST}
     for (state, event), target in TRANSITIONS.items():
         if state.faulted and target in (ArmState.READY, ArmState.MOVING):
-            assert event is ArmEvent.CLEARED and state in (ArmState.HOLDING, ArmState.HALTED), (state, event)
-        if event in (ArmEvent.HOLD, ArmEvent.HALT, ArmEvent.BUS_GONE):
+            assert event is ArmEvent.CLEARED, (state, event)
+            assert state in (ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALTED), (state, event)
+        if event in (ArmEvent.HOLD, ArmEvent.COMPLY, ArmEvent.HALT, ArmEvent.BUS_GONE):
             assert target.faulted
     # every state that can still send reaches the halt on a fault, and every state can be closed
     for state in ArmState:

@@ -229,10 +229,10 @@ def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:
     log = position_run.log
     fig = figure(log)
     joints = len(log.joint_names)
-    assert len(fig.axes) == 4 * joints + 1
+    assert len(fig.axes) == 5 * joints + 1
     error = log.following_error_deg()
     for j in range(joints):
-        position, velocity, current, following = fig.axes[4 * j : 4 * j + 4]
+        position, velocity, current, following, collision = fig.axes[5 * j : 5 * j + 5]
         assert np.array_equal(position.lines[0].get_xdata(), log["t_s"] + log.period_s)
         assert np.array_equal(position.lines[0].get_ydata(), log["q_ref_deg"][:, j])
         assert np.array_equal(position.lines[1].get_ydata(), log["q_deg"][:, j])
@@ -242,6 +242,8 @@ def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:
         # the following-error limit, then the E-stop
         assert [np.asarray(line.get_ydata())[0] for line in following.lines[1:3]] == [4.0, -4.0]
         assert np.asarray(following.lines[3].get_xdata())[0] == log["fault_t_s"][0]
+        assert np.array_equal(collision.lines[0].get_ydata(), log["collision_signal_nm"][:, j], equal_nan=True)
+        assert np.array_equal(collision.lines[1].get_ydata(), log["residual_nm"][:, j], equal_nan=True)
     timing = fig.axes[-1]
     assert np.array_equal(timing.lines[0].get_ydata(), log["jitter_s"] * 1e6)
 

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Final
 
 from motion import __version__
-from motion.cli import drives, examples, moves
+from motion.cli import collision, drives, examples, moves
 from motion.cli.common import (
     EXIT_COMMUNICATION,
     EXIT_FAULT,
@@ -202,6 +202,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("program", metavar="PROGRAM.yaml")
     _motion_options(run, "multiplies every step's speed scale, (0, 1] (default 1)")
 
+    collision.add_arguments(_command(sub, "collision-calibrate", collision.calibrate, collision.HELP))
     _command(sub, "hold", drives.hold, "make every drive hold its present position (0xA4 in the drive's loop)")
     _command(sub, "stop", drives.stop, "stop every drive (0x81): it stops and holds")
     _command(sub, "off", drives.off, "turn every drive off (0x80): torque released, the arm may fall")

@@ -11,11 +11,12 @@ import argparse
 import sys
 import time
 from collections.abc import Callable, Mapping
-from typing import Final, TextIO
+from typing import Any, Final, TextIO
 
 from motion.api import Arm, MotionHandle
 from motion.cli.common import EXIT_OK, Interrupts, Session, parse_targets, print_json, warn
 from motion.cli.program import MoveStep, PathStep, Program, WaitStep, load_program
+from motion.config import ArmConfig
 from motion.errors import MotionError, MotionFault
 from motion.telemetry import TelemetryOptions
 
@@ -92,6 +93,11 @@ def hold_for(arm: Arm, seconds: float) -> None:
     Raises:
         MotionFault: a fault halted every axis meanwhile.
     """
+    if arm.emulation == "simulated":  # simulated time passes in the arm's own sleep
+        arm.sleep(seconds)
+        if arm.fault is not None:
+            raise arm.fault
+        return
     end = time.monotonic() + seconds
     while (remaining := end - time.monotonic()) > 0:
         time.sleep(min(POLL_S, remaining))
@@ -100,16 +106,24 @@ def hold_for(arm: Arm, seconds: float) -> None:
             raise fault
 
 
-def with_arm(args: argparse.Namespace, session: Session, interrupts: Interrupts, body: Callable[[Arm], int]) -> int:
+def with_arm(
+    args: argparse.Namespace,
+    session: Session,
+    interrupts: Interrupts,
+    body: Callable[[Arm], int],
+    *,
+    config: ArmConfig | None = None,
+    **options: Any,
+) -> int:
     """Connect the arm (recording ``--log`` / ``--trace``), run ``body``, close the arm; an interrupt halts every
-    axis first.
+    axis first. ``config`` replaces the session's configuration, ``options`` go to :class:`~motion.api.Arm`.
 
     Raises:
         KeyboardInterrupt: after the E-stop and the close (the caller exits with 130).
         OSError: a telemetry file cannot be created (before anything moves) or written.
     """
     telemetry = TelemetryOptions(args.log, args.trace) if args.log or args.trace else None
-    arm = Arm(session.config, bus_overrides=session.overrides, telemetry=telemetry)
+    arm = Arm(config or session.config, bus_overrides=session.overrides, telemetry=telemetry, **options)
     try:
         with interrupts.deferred():  # a signal while connecting is raised once the loop runs (or connect failed)
             arm.connect()

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from motion.config.examples import example_config, example_names, load_config_or_example, resolve_config
-from motion.config.loader import load_config, parse_config, read_yaml
+from motion.config.loader import load_config, parse_config, read_yaml, write_joint_values
 from motion.config.schema import (
     ArmConfig,
     BusConfig,
@@ -43,4 +43,5 @@ __all__ = [
     "parse_config",
     "read_yaml",
     "resolve_config",
+    "write_joint_values",
 ]

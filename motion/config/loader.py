@@ -130,13 +130,16 @@ def _to_text(value: object) -> str:
     return value
 
 
-def _to_choice(value: object, choices: type[_E], false_alias: _E | None) -> _E:
+def _to_choice(value: object, choices: type[_E], false_alias: _E | None, refused: Mapping[_E, str]) -> _E:
     if value is False and false_alias is not None:
         return false_alias  # YAML 1.1 reads an unquoted `off` as False
+    for member, why in refused.items():
+        if value == member.value:
+            raise _Invalid(why)
     if isinstance(value, str) and value in {c.value for c in choices}:
         return choices(value)
     hint = " (YAML 1.1 reads unquoted on/off/yes/no as booleans; quote the value)" if isinstance(value, bool) else ""
-    allowed = ", ".join(c.value for c in choices)
+    allowed = ", ".join(c.value for c in choices if c not in refused)
     raise _Invalid(f"expected one of {allowed}; found {_describe(value)}{hint}")
 
 
@@ -204,6 +207,11 @@ class _Node:
         """Whether the file gives ``key``."""
         return key in self._data
 
+    def defaults(self, **values: object) -> _Node:
+        """Replace the schema's defaults of some keys (defaults that depend on another section); returns self."""
+        self._defaults.update(values)
+        return self
+
     def _read(self, key: str, expected: str, convert: Callable[[object], _T], required: bool | None) -> _T:
         if key in self._data:
             try:
@@ -230,10 +238,14 @@ class _Node:
         """A non-empty string."""
         return self._read(key, "a non-empty string", _to_text, None)
 
-    def choice(self, key: str, choices: type[_E], *, false_alias: _E | None = None) -> _E:
-        """One of the values of a StrEnum; ``false_alias`` is what a YAML 1.1 boolean False stands for."""
-        expected = "one of " + ", ".join(c.value for c in choices)
-        return self._read(key, expected, lambda v: _to_choice(v, choices, false_alias), None)
+    def choice(
+        self, key: str, choices: type[_E], *, false_alias: _E | None = None, refused: Mapping[_E, str] | None = None
+    ) -> _E:
+        """One of the values of a StrEnum; ``false_alias`` is what a YAML 1.1 boolean False stands for; ``refused``
+        members are not valid here (each with the reason given)."""
+        no = refused or {}
+        expected = "one of " + ", ".join(c.value for c in choices if c not in no)
+        return self._read(key, expected, lambda v: _to_choice(v, choices, false_alias, no), None)
 
     def vector3(self, key: str) -> schema.Vec3:
         """A list of three finite numbers."""
@@ -273,8 +285,16 @@ def _bus(root: _Node) -> schema.BusConfig:
 
 
 def _control(node: _Node) -> schema.ControlConfig:
+    policy = node.choice(
+        "halt_policy",
+        schema.HaltPolicy,
+        false_alias=schema.HaltPolicy.OFF,
+        refused={
+            schema.HaltPolicy.COMPLY: "comply is a reaction to collisions only: set safety.collision_reaction instead"
+        },
+    )
     return schema.ControlConfig(
-        halt_policy=node.choice("halt_policy", schema.HaltPolicy, false_alias=schema.HaltPolicy.OFF),
+        halt_policy=policy,
         mode=node.choice("mode", schema.ControlMode),
         rate_hz=node.number("rate_hz", _Range(50, 1000)),
         gravity_feedforward=node.flag("gravity_feedforward"),
@@ -283,25 +303,46 @@ def _control(node: _Node) -> schema.ControlConfig:
     )
 
 
-def _safety(node: _Node) -> schema.SafetyConfig:
+def _safety(node: _Node, control: schema.ControlConfig) -> schema.SafetyConfig:
+    reaction = (
+        node.choice("collision_reaction", schema.HaltPolicy, false_alias=schema.HaltPolicy.OFF)
+        if node.has("collision_reaction")
+        else None
+    )
+    if reaction is schema.HaltPolicy.COMPLY and control.mode is not schema.ControlMode.TORQUE:
+        raise node.error(
+            "collision_reaction",
+            f"comply needs control.mode torque (it streams gravity compensation); found mode {control.mode.value}",
+        )
     return schema.SafetyConfig(
         following_error_deg=node.number("following_error_deg", _POSITIVE),
         min_voltage_v=node.number("min_voltage_v", _Range(0, 60, lo_open=True)),
         reply_timeout_ms=node.number("reply_timeout_ms", _Range(0, 1000, lo_open=True)),
         max_missed_replies=node.integer("max_missed_replies", _Range(0, 100)),
+        collision_reaction=reaction,
+        # the observer's discrete update is stable and does not overshoot up to the deadbeat gain 1 per cycle
+        collision_gain_per_cycle=node.number("collision_gain_per_cycle", _Range(0, 1, lo_open=True)),
+        collision_window_cycles=node.integer("collision_window_cycles", _Range(0, 100)),
     )
 
 
-def _emulation(node: _Node) -> schema.EmulationConfig:
+def _emulation(node: _Node, rotor_inertia: float, viscous: float, coulomb: float) -> schema.EmulationConfig:
+    node.defaults(rotor_inertia_kgm2=rotor_inertia, viscous_friction_nm_per_dps=viscous, coulomb_friction_nm=coulomb)
     return schema.EmulationConfig(
         rotor_inertia_kgm2=node.number("rotor_inertia_kgm2", _NON_NEGATIVE),
         viscous_friction_nm_per_dps=node.number("viscous_friction_nm_per_dps", _NON_NEGATIVE),
         coulomb_friction_nm=node.number("coulomb_friction_nm", _NON_NEGATIVE),
+        torque_constant_nm_per_a=(
+            node.number("torque_constant_nm_per_a", _POSITIVE) if node.has("torque_constant_nm_per_a") else None
+        ),
     )
 
 
 def _joint(node: _Node, mode: schema.ControlMode) -> schema.JointConfig:
     torque_mode = mode is schema.ControlMode.TORQUE
+    rotor_inertia = node.number("rotor_inertia_kgm2", _NON_NEGATIVE)
+    viscous = node.number("viscous_friction_nm_per_dps", _NON_NEGATIVE)
+    coulomb = node.number("coulomb_friction_nm", _NON_NEGATIVE)
     joint = schema.JointConfig(
         name=node.text("name"),
         motor_id=node.integer("motor_id", _Range(MOTOR_ID_MIN, MOTOR_ID_MAX)),
@@ -319,7 +360,13 @@ def _joint(node: _Node, mode: schema.ControlMode) -> schema.JointConfig:
         kp_nm_per_deg=node.number("kp_nm_per_deg", _NON_NEGATIVE, required=torque_mode),
         kd_nm_per_dps=node.number("kd_nm_per_dps", _NON_NEGATIVE, required=torque_mode),
         temperature_limit_c=node.number("temperature_limit_c", _Range(0, 100, lo_open=True)),
-        emulation=_emulation(node.child("emulation", schema.EmulationConfig)),
+        rotor_inertia_kgm2=rotor_inertia,
+        viscous_friction_nm_per_dps=viscous,
+        coulomb_friction_nm=coulomb,
+        collision_threshold_nm=(
+            node.number("collision_threshold_nm", _POSITIVE) if node.has("collision_threshold_nm") else None
+        ),
+        emulation=_emulation(node.child("emulation", schema.EmulationConfig), rotor_inertia, viscous, coulomb),
     )
     if joint.position_min_deg >= joint.position_max_deg:
         raise node.error(
@@ -451,7 +498,7 @@ def parse_config(
         bus=_bus(root),
         control=control,
         model=_model(root, joints, Path(base_dir) if base_dir is not None else Path.cwd()),
-        safety=_safety(root.child("safety", schema.SafetyConfig)),
+        safety=_safety(root.child("safety", schema.SafetyConfig), control),
         joints=joints,
         source=source,
     )
@@ -504,3 +551,33 @@ def load_config(path: str | os.PathLike[str]) -> schema.ArmConfig:
     """
     file = Path(path)
     return parse_config(read_yaml(file), source=str(file), base_dir=file.parent)
+
+
+def write_joint_values(
+    source: str | os.PathLike[str], target: str | os.PathLike[str], key: str, values: Mapping[str, float]
+) -> schema.ArmConfig:
+    """Write a copy of the configuration ``source`` to ``target`` with ``key`` set on the named joints (e.g. the
+    proposed ``collision_threshold_nm``), and return the copy validated. The copy is written by the YAML library:
+    the values are kept, the comments are not; a relative ``model.urdf`` is rewritten to stay valid from the
+    copy's directory.
+
+    Raises:
+        ConfigError: the source is invalid, a joint is not in it, or the copy does not validate.
+        OSError: the copy cannot be written.
+    """
+    source_path, target_path = Path(source), Path(target)
+    load_config(source_path)  # the source itself is valid
+    data = read_yaml(source_path)
+    joints = {str(j.get("name")): j for j in data["joints"]}
+    for name, value in values.items():
+        if name not in joints:
+            raise ConfigError(str(source_path), "joints", f"no joint {name!r}")
+        joints[name][key] = float(value)
+    model = data.get("model", {})
+    if isinstance(model, dict) and "urdf" in model:
+        urdf = (source_path.parent / str(model["urdf"])).resolve()
+        model["urdf"] = os.path.relpath(urdf, target_path.resolve().parent)
+    text = yaml.safe_dump(data, sort_keys=False, allow_unicode=True)
+    parse_config(yaml.safe_load(text), str(target_path), target_path.resolve().parent)
+    target_path.write_text(text, encoding="utf-8")
+    return load_config(target_path)

@@ -35,6 +35,9 @@ class HaltPolicy(StrEnum):
     OFF = "off"
     #: A jerk-limited stop of the reference, then hold; only while communication is healthy (else 0x81).
     HOLD = "hold"
+    #: Torque mode, collisions only (``safety.collision_reaction``): gravity compensation with zero gains, so that a
+    #: person can push the arm away; only while communication is healthy (else 0x81).
+    COMPLY = "comply"
 
 
 @dataclass(frozen=True, slots=True)
@@ -166,17 +169,23 @@ class ModelConfig:
 
 @dataclass(frozen=True, slots=True)
 class EmulationConfig:
-    """Plant parameters for the emulated drive of a joint (used only by the emulator).
+    """Plant parameters for the emulated drive of a joint (used only by the emulator). In a file, the first three
+    default to the joint's own model values (``rotor_inertia_kgm2``, ``viscous_friction_nm_per_dps``,
+    ``coulomb_friction_nm`` beside the joint): the emulated joint is as modelled unless this block says otherwise
+    (e.g. to test the collision observer against a model mismatch).
 
     Attributes:
         rotor_inertia_kgm2: motor rotor inertia, motor side, in kg·m² (reflected: gear_ratio² times this).
         viscous_friction_nm_per_dps: joint-side viscous friction in N·m per deg/s.
         coulomb_friction_nm: joint-side Coulomb friction in N·m.
+        torque_constant_nm_per_a: the emulated motor's true torque constant, N·m/A (None: the joint's
+            ``torque_constant_nm_per_a``).
     """
 
     rotor_inertia_kgm2: float = 3.0e-5
     viscous_friction_nm_per_dps: float = 2.0e-4
     coulomb_friction_nm: float = 0.05
+    torque_constant_nm_per_a: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -200,6 +209,12 @@ class JointConfig:
         kp_nm_per_deg: torque-mode stiffness in N·m per degree (required when control.mode is torque).
         kd_nm_per_dps: torque-mode damping in N·m per deg/s (required when control.mode is torque).
         temperature_limit_c: motor temperature that faults the arm, in °C.
+        rotor_inertia_kgm2: motor rotor inertia, motor side, in kg·m² (the collision observer's model adds
+            gear_ratio² times this to the joint's diagonal of M(q)).
+        viscous_friction_nm_per_dps: the joint's viscous friction, joint side, in N·m per deg/s (observer model).
+        coulomb_friction_nm: the joint's Coulomb friction, joint side, in N·m (observer model).
+        collision_threshold_nm: the collision observer's residual beyond which the arm faults (``collision``), in
+            N·m (None: the joint is not watched; see ``rmd-motion collision-calibrate``).
         emulation: emulator plant parameters.
     """
 
@@ -219,7 +234,16 @@ class JointConfig:
     kp_nm_per_deg: float = 0.0
     kd_nm_per_dps: float = 0.0
     temperature_limit_c: float = 70.0
+    rotor_inertia_kgm2: float = 3.0e-5
+    viscous_friction_nm_per_dps: float = 2.0e-4
+    coulomb_friction_nm: float = 0.05
+    collision_threshold_nm: float | None = None
     emulation: EmulationConfig = field(default_factory=EmulationConfig)
+
+    @property
+    def peak_torque_nm(self) -> float:
+        """The largest joint torque the controller commands: torque constant × gear ratio × current limit, N·m."""
+        return self.torque_constant_nm_per_a * self.gear_ratio * self.current_limit_a
 
     def transmission(self) -> Transmission:
         """The joint <-> motor mapping of this joint."""
@@ -241,12 +265,22 @@ class SafetyConfig:
         min_voltage_v: supply voltage below which the arm faults, in volts.
         reply_timeout_ms: time to wait for a drive's reply, in milliseconds.
         max_missed_replies: consecutive missed replies of one drive tolerated before a fault.
+        collision_reaction: the reaction to a ``collision`` fault: a halt policy, or ``comply`` (torque mode only);
+            None: ``control.halt_policy`` (``hold`` then means 0x81: a collision is not holdable).
+        collision_gain_per_cycle: the momentum observer's gain K_O times the control period (0 < x <= 1): its
+            residual follows an external torque step as ``1 - (1 - x)^n`` after n cycles (1: deadbeat, noisiest).
+        collision_window_cycles: the thresholds apply to the residual's change over this many cycles (0..100; 0: to
+            the residual itself), which cancels slowly varying model errors (see :mod:`motion.safety.watchdog`); a
+            collision must be detected within the window.
     """
 
     following_error_deg: float
     min_voltage_v: float
     reply_timeout_ms: float = 20.0
     max_missed_replies: int = 3
+    collision_reaction: HaltPolicy | None = None
+    collision_gain_per_cycle: float = 0.5
+    collision_window_cycles: int = 8
 
 
 @dataclass(frozen=True, slots=True)
@@ -269,6 +303,17 @@ class ArmConfig:
     def joint_names(self) -> tuple[str, ...]:
         """Joint names in configuration order."""
         return tuple(j.name for j in self.joints)
+
+    @property
+    def collision_watched(self) -> bool:
+        """Whether any joint has a collision threshold (the observer then runs and its fault source is armed)."""
+        return any(j.collision_threshold_nm is not None for j in self.joints)
+
+    @property
+    def collision_reaction(self) -> HaltPolicy:
+        """The reaction to a collision: ``safety.collision_reaction``, else ``control.halt_policy``."""
+        reaction = self.safety.collision_reaction
+        return self.control.halt_policy if reaction is None else reaction
 
     def transmission(self) -> ArmTransmission:
         """Vectorised joint <-> motor mapping of all joints, in configuration order."""

@@ -210,6 +210,7 @@ class Controller:
         self._stop_loop = False
         #: The set-points of the latest cycle (updated in place).
         self.setpoints = Setpoints.zeros(len(self.specs))
+        self._zero = np.zeros(len(self.specs))
         n = len(self.specs)
         #: The arm after the latest cycle (replaced, never changed: any thread may read it without a lock).
         self.snapshot = CycleSnapshot(0, math.nan, frozen([np.zeros(n)] * len(JOINT_ROWS)), False)
@@ -432,6 +433,11 @@ class Controller:
         if self.feedforward is not None:
             feedforward = self.feedforward(axes.q_deg, ref.velocity, ref.acceleration).tolist()
             torques = [tau + ff for tau, ff in zip(torques, feedforward, strict=True)]
+        return self.torque_frames(torques)
+
+    def torque_frames(self, torques: Sequence[float]) -> list[Request]:
+        """The torque-current requests (0xA1, and 0x280 where it applies) for joint torques (N·m, joint order),
+        limited per joint; records the torque and the limiting."""
         record = self.setpoints
         record.torque_nm[:] = torques
         raw, limited = self.transmission.iq_raw_limited_list(torques)
@@ -486,14 +492,45 @@ class Controller:
         self.setpoints.commanded = command
         if extra:
             requests.extend(extra)
-        replies = self.bus.transact(requests, start_s + self._reply_budget * (deadline_s - start_s))
-        self.absorb(replies)
-        self._publish(self.loop.cycles + 1, start_s, command)  # (the loop counts the cycle once it has ended)
-        for hook in self.cycle_hooks:
-            hook(self, start_s, replies)
+        replies = self._exchange(requests, start_s, deadline_s, command)
         if not follower.moving and self._pending is None and not self._idle.is_set():
             self._idle.set()  # (Event.set takes a lock and notifies: not again every cycle of a hold)
         return replies
+
+    def _exchange(self, requests: list[Request], start_s: float, deadline_s: float, commanded: bool) -> list[Reply]:
+        replies = self.bus.transact(requests, start_s + self._reply_budget * (deadline_s - start_s))
+        self.absorb(replies)
+        self._publish(self.loop.cycles + 1, start_s, commanded)  # (the loop counts the cycle once it has ended)
+        for hook in self.cycle_hooks:
+            hook(self, start_s, replies)
+        return replies
+
+    def comply_step(
+        self, start_s: float, deadline_s: float, gravity: Feedforward, *, extra: Sequence[Request] = ()
+    ) -> list[Reply]:
+        """A cycle that yields (torque mode, the ``comply`` reaction to a collision): gravity compensation alone,
+        ``g(q)`` at the measured angles with zero gains, so that the arm holds itself up and a push moves it. The
+        reference is the measured position at rest (the stop path is dropped), where a ``clear()`` holds the arm.
+
+        Args:
+            start_s: the cycle's scheduled start.
+            deadline_s: the next cycle's start.
+            gravity: ``(q_deg, qd_dps, qdd_dps2) -> tau_nm``, gravity alone.
+            extra: requests appended to the batch (status reads).
+
+        Raises:
+            MotionError: the controller is not in torque mode (a position stream cannot yield).
+        """
+        if self.options.mode is not ControlMode.TORQUE:
+            raise MotionError("comply needs torque mode")
+        axes = self.axes
+        self.reference = State.at_rest(axes.q_deg.copy())
+        if self.follower is not None:
+            self.follower.hold_at(self.reference.position)
+        requests = self.torque_frames(gravity(axes.q_deg, self._zero, self._zero).tolist())
+        self.setpoints.commanded = True
+        requests.extend(extra)
+        return self._exchange(requests, start_s, deadline_s, True)
 
     def _publish(self, cycle: int, start_s: float, commanded: bool) -> None:
         """Replace :attr:`snapshot` with this cycle's (one stacked copy: the loop never waits on a reader)."""

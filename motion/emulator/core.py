@@ -132,6 +132,8 @@ class Emulator:
         self._order = [self.drives[i] for i in self.ids]
         self._index = {i: n for n, i in enumerate(self.ids)}
         self._torques = np.zeros(len(self.ids))
+        #: External joint torque per drive (``collision`` faults), N·m, emulator order.
+        self.external_torque_nm = np.zeros(len(self.ids))
         self._positions, self._velocities = self.plant.state()
         self._observe_all()
         self._lock = threading.RLock()
@@ -210,6 +212,7 @@ class Emulator:
         positions, velocities, torques, dt = self._positions, self._velocities, self._torques, self.step_s
         for n, drive in enumerate(self._order):
             torques[n] = drive.control(dt, float(positions[n]), float(velocities[n]))
+        torques += self.external_torque_nm
         self._positions, self._velocities = self.plant.step(dt, torques)
         self._steps += 1
 
@@ -248,15 +251,18 @@ class Emulator:
 
     def _refresh_physical_faults(self, motor_id: int) -> None:
         drive, now = self.drives[motor_id], self.time_s
-        volts, floors = [], []
+        volts, floors, external = [], [], 0.0
         for f in self._faults:
             if f.motor_id != motor_id or not f.active(now):
                 continue
-            if f.kind is InjectedFault.UNDER_VOLTAGE:
+            if f.kind is InjectedFault.COLLISION and f.value is not None:
+                external += f.value
+            elif f.kind is InjectedFault.UNDER_VOLTAGE:
                 volts.append(f.value if f.value is not None else drive.model.low_voltage_v - _UNDER_VOLTAGE_MARGIN_V)
             elif f.kind is InjectedFault.OVER_TEMPERATURE:
                 default_c = drive.model.over_temperature_c + _OVER_TEMPERATURE_MARGIN_C
                 floors.append(f.value if f.value is not None else default_c)
+        self.external_torque_nm[self._index[motor_id]] = external
         drive.voltage_override_v = max(0.0, min(volts)) if volts else None
         drive.temperature_floor_c = max(floors) if floors else None
         if floors:

@@ -18,9 +18,13 @@ Command-line syntax (``--fault``), also accepted by :func:`parse_fault`::
   checksum for frames without data). ``id`` - CAN: reply on 0x100 + id, outside the reply ids; RS485: motor id 0 with
   a valid header checksum. ``length`` - CAN: 7-byte payload; RS485: the last byte missing.
 - ``drop[:probability]``: each request is lost with probability PARAM (default 1): not executed, not answered.
+- ``collision:NM``: an external torque of PARAM N·m (required; either sign) on the drive's joint, joint side,
+  positive in the drive's positive sense (a configured ``direction: -1`` turns it the other way in joint angles), as a
+  person or an obstacle pushing. It acts through the plant (with an arm's plant, through its rigid-body dynamics),
+  so the drives' currents respond as their loops make them; torques of overlapping faults add up.
 
 Examples: ``over_temperature:2@5-20:95``, ``delay:1@0:15``, ``silent:3@10``, ``drop:4@2-3:0.5``,
-``corrupt:1@1:length``.
+``corrupt:1@1:length``, ``collision:2@1.5-2.5:-4.2``.
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ class InjectedFault(Enum):
     DELAY = "delay"  #: replies late by a number of milliseconds
     CORRUPT = "corrupt"  #: replies corrupted
     DROP = "drop"  #: requests lost with a probability
+    COLLISION = "collision"  #: an external torque on the joint, N·m
 
 
 class Corruption(Enum):
@@ -59,12 +64,14 @@ _NUMERIC: dict[InjectedFault, tuple[str, str]] = {
     InjectedFault.UNDER_VOLTAGE: ("V", "a voltage in 0..6553 V"),
     InjectedFault.DELAY: ("ms", "a delay >= 0 ms"),
     InjectedFault.DROP: ("", "a probability in 0..1"),
+    InjectedFault.COLLISION: ("N*m", "a torque in N·m (finite, either sign)"),
 }
 _NUMERIC_RANGES: dict[InjectedFault, tuple[float, float]] = {
     InjectedFault.OVER_TEMPERATURE: (-40.0, 127.0),
     InjectedFault.UNDER_VOLTAGE: (0.0, 6553.0),
     InjectedFault.DELAY: (0.0, math.inf),
     InjectedFault.DROP: (0.0, 1.0),
+    InjectedFault.COLLISION: (-math.inf, math.inf),
 }
 
 
@@ -98,6 +105,8 @@ class Fault:
             raise ValueError(f"fault start {self.start_s!r} s must be a time >= 0")
         if self.end_s is not None and not (math.isfinite(self.end_s) and self.end_s > self.start_s):
             raise ValueError(f"fault end {self.end_s!r} s must be after its start {self.start_s:g} s")
+        if self.kind is InjectedFault.COLLISION and self.value is None:
+            raise ValueError("fault collision needs its torque in N·m, e.g. collision:2@1.5:4.2")
         if self.value is not None:
             if self.kind not in _NUMERIC:
                 raise ValueError(f"fault {self.kind.value} takes no numeric parameter (got {self.value!r})")

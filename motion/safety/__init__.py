@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.supervisor import HaltRecord, Supervisor
-from motion.safety.watchdog import SafetySettings, Watchdog
+from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
 
 __all__ = [
     "ArmEvent",
     "ArmState",
+    "CollisionObserver",
     "HaltRecord",
     "InvalidTransition",
     "SafetySettings",

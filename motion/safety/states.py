@@ -10,11 +10,13 @@ from motion.errors import MotionError
 
 
 class ArmState(Enum):
-    """Where the arm is. Four of the states are faulted (:attr:`faulted`): motion is refused in them."""
+    """Where the arm is. Five of the states are faulted (:attr:`faulted`): motion is refused in them."""
 
     READY = "ready"  #: enabled, holding the reference, accepts motion
     MOVING = "moving"  #: playing a motion
     HOLDING = "holding"  #: faulted: a jerk-limited stop of the reference is streamed, then held (policy ``hold``)
+    #: faulted: a collision; gravity compensation with zero gains is streamed so that the arm yields (``comply``)
+    COMPLYING = "complying"
     HALTING = "halting"  #: faulted: 0x81 / 0x80 went to every axis; re-sent to those that have not acknowledged
     HALTED = "halted"  #: faulted: every drive acknowledged its halt (or the retry bound passed); reads only
     BUS_LOST = "bus_lost"  #: faulted: the bus failed, nothing can be sent; the loop has ended
@@ -22,11 +24,14 @@ class ArmState(Enum):
 
     @property
     def faulted(self) -> bool:
-        """True in the states that refuse motion until ``clear()`` (HOLDING, HALTING, HALTED, BUS_LOST)."""
+        """True in the states that refuse motion until ``clear()`` (HOLDING, COMPLYING, HALTING, HALTED,
+        BUS_LOST)."""
         return self in _FAULTED
 
 
-_FAULTED: Final = frozenset({ArmState.HOLDING, ArmState.HALTING, ArmState.HALTED, ArmState.BUS_LOST})
+_FAULTED: Final = frozenset(
+    {ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALTING, ArmState.HALTED, ArmState.BUS_LOST}
+)
 
 
 class ArmEvent(Enum):
@@ -35,6 +40,7 @@ class ArmEvent(Enum):
     MOVE = "move"  #: a motion command was accepted
     DONE = "done"  #: the motion ended
     HOLD = "hold"  #: a fault whose reaction is the stop ramp (policy ``hold``, a holdable kind, healthy bus)
+    COMPLY = "comply"  #: a collision whose reaction is to yield (``safety.collision_reaction: comply``, healthy bus)
     HALT = "halt"  #: a fault whose reaction is the drives' own halt (0x81 / 0x80 to every axis)
     ACKNOWLEDGED = "acknowledged"  #: every drive acknowledged the halt, or the retry bound passed
     BUS_GONE = "bus_gone"  #: the bus failed: nothing more can be sent
@@ -55,18 +61,29 @@ def _from_each(
 
 
 _RUNNING: Final = (ArmState.READY, ArmState.MOVING)
-_SENDING: Final = (ArmState.READY, ArmState.MOVING, ArmState.HOLDING, ArmState.HALTING, ArmState.HALTED)
+_SENDING: Final = (
+    ArmState.READY,
+    ArmState.MOVING,
+    ArmState.HOLDING,
+    ArmState.COMPLYING,
+    ArmState.HALTING,
+    ArmState.HALTED,
+)
 
 TRANSITIONS: Final[dict[tuple[ArmState, ArmEvent], ArmState]] = {
     **_from_each(_RUNNING, ArmEvent.MOVE, ArmState.MOVING),
     **_from_each(_RUNNING, ArmEvent.DONE, ArmState.READY),
     **_from_each(_RUNNING, ArmEvent.HOLD, ArmState.HOLDING),
-    # a fault in any state that can still send halts every axis: also an escalation of a hold (a fault of the bus,
-    # of a drive, a limit, an E-stop) and a new fault or E-stop while halting or halted (the halt is sent again)
+    # a collision while running or during a stop ramp: yield (the ramp would go on into what the arm hit)
+    **_from_each((*_RUNNING, ArmState.HOLDING), ArmEvent.COMPLY, ArmState.COMPLYING),
+    # a fault in any state that can still send halts every axis: also an escalation of a hold or of compliance (a
+    # fault of the bus, of a drive, a limit, an E-stop) and a new fault or E-stop while halting or halted (the halt
+    # is sent again)
     **_from_each(_SENDING, ArmEvent.HALT, ArmState.HALTING),
     (ArmState.HALTING, ArmEvent.ACKNOWLEDGED): ArmState.HALTED,
     **_from_each(_SENDING, ArmEvent.BUS_GONE, ArmState.BUS_LOST),
     (ArmState.HOLDING, ArmEvent.CLEARED): ArmState.READY,
+    (ArmState.COMPLYING, ArmEvent.CLEARED): ArmState.READY,
     (ArmState.HALTED, ArmEvent.CLEARED): ArmState.READY,
     **_from_each(tuple(ArmState), ArmEvent.CLOSE, ArmState.CLOSED),
 }

@@ -4,13 +4,16 @@ Reaction (:class:`~motion.config.schema.HaltPolicy`): ``stop`` sends 0x81 and ``
 (in the same cycle, before any other command), re-sent to the drives that did not acknowledge until they do or
 ``halt_retry_s`` passes; ``hold`` replaces the reference with a jerk-limited stop and keeps streaming (position or
 torque) to hold where it ends — only while communication is healthy: faults of the bus, of a drive, or of our own
-code fall back to 0x81. Then the arm is FAULTED: motion commands raise the fault until :meth:`Supervisor.clear`
-(0x9B to every drive) finds every drive answering with clean flags and no cause left.
+code fall back to 0x81. A collision has a reaction of its own (``safety.collision_reaction``, default the halt
+policy; it is not holdable, so ``hold`` means 0x81 for it): ``comply`` streams gravity compensation with zero gains
+(torque mode), so that the arm yields to what it hit, until any other fault (communication, a drive, a limit, an
+E-stop) halts every axis with 0x81. Then the arm is FAULTED: motion commands raise the fault until
+:meth:`Supervisor.clear` (0x9B to every drive) finds every drive answering with clean flags and no cause left.
 
 The states (:class:`~motion.safety.states.ArmState`) are the whole story: READY and MOVING run the guarded cycle;
-HOLDING streams the stop ramp; HALTING re-sends the halt to the drives that have not acknowledged it; HALTED only
-reads; BUS_LOST ends the loop. Every change of state goes through the transition table, and a pair the table does not
-know leads to HALTING, whose cycle sends the halt if none went out.
+HOLDING streams the stop ramp; COMPLYING streams gravity compensation; HALTING re-sends the halt to the drives that
+have not acknowledged it; HALTED only reads; BUS_LOST ends the loop. Every change of state goes through the
+transition table, and a pair the table does not know leads to HALTING, whose cycle sends the halt if none went out.
 
 No path leaves a motor moving under our last command: exceptions in the cycle are faults; E-stop requests
 (:meth:`Supervisor.estop`, the CLI's Ctrl-C / SIGTERM) are faults; :meth:`Supervisor.close`, garbage collection and
@@ -27,11 +30,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 from motion.config.schema import HaltPolicy
-from motion.control.controller import Controller
+from motion.control.controller import Controller, Feedforward
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Bare, Command, MotorState, Status1
 from motion.safety.states import ArmEvent, ArmState, StateMachine
-from motion.safety.watchdog import SafetySettings, Watchdog
+from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
 from motion.trajectory import State
 from motion.transmission import FloatArray
 from motion.transport import Reply, Request
@@ -59,12 +62,23 @@ class Supervisor:
     Args:
         controller: the controller (after ``read_positions()``).
         settings: thresholds and halt policy.
+        observer: the collision observer (:func:`motion.compose.collision_observer_for`), or None.
+        gravity: gravity compensation ``(q_deg, qd_dps, qdd_dps2) -> tau_nm`` for the ``comply`` reaction
+            (:func:`motion.compose.gravity_for`); without it a collision halts every axis with 0x81.
     """
 
-    def __init__(self, controller: Controller, settings: SafetySettings) -> None:
+    def __init__(
+        self,
+        controller: Controller,
+        settings: SafetySettings,
+        *,
+        observer: CollisionObserver | None = None,
+        gravity: Feedforward | None = None,
+    ) -> None:
         self.controller = controller
         self.settings = settings
-        self.watchdog = Watchdog(controller, settings)
+        self.watchdog = Watchdog(controller, settings, observer)
+        self.gravity = gravity
         self.machine = StateMachine(ArmState.READY)
         self.ids = tuple(s.motor_id for s in controller.specs)
         self.fault: MotionFault | None = None
@@ -236,14 +250,40 @@ class Supervisor:
         controller.discard_pending()  # a move queued during this cycle must not replace the halt
         self.fault = fault
         self.faults.append(fault)
-        policy = self.settings.halt_policy
-        running = self.machine.state in (ArmState.READY, ArmState.MOVING)
+        policy = self._policy(fault)
+        state = self.machine.state
+        running = state in (ArmState.READY, ArmState.MOVING)
         holdable = running and policy is HaltPolicy.HOLD and fault.kind.holdable
-        action = "stop ramp and hold" if holdable else ("0x80 off" if policy is HaltPolicy.OFF else "0x81 stop")
+        comply = (
+            policy is HaltPolicy.COMPLY
+            and fault.kind is FaultKind.COLLISION
+            and (running or state is ArmState.HOLDING)
+            and self.gravity is not None
+        )
+        action = (
+            "comply"
+            if comply
+            else "stop ramp and hold"
+            if holdable
+            else ("0x80 off" if policy is HaltPolicy.OFF else "0x81 stop")
+        )
         level = logging.INFO if fault.kind is FaultKind.CLOSE else logging.ERROR
         logger.log(level, "halting every axis (%s): %s", action, fault)
         sent = detected
         try:
+            if comply:
+                try:
+                    sent = self._start_comply(start_s, deadline_s)
+                except TransportError:
+                    raise
+                except Exception as exc:  # compliance that cannot start must not leave the last command in force
+                    logger.error(
+                        "compliance could not start (%s: %s): halting every axis with 0x81 instead",
+                        type(exc).__name__,
+                        exc,
+                    )
+                    comply = False
+                    policy = HaltPolicy.STOP
             if holdable:
                 try:
                     sent = self._start_hold(start_s, deadline_s)
@@ -256,14 +296,38 @@ class Supervisor:
                         exc,
                     )
                     holdable = False
-            if not holdable:
-                sent = self._start_halt(detected, deadline_s)
+            if not holdable and not comply:
+                sent = self._start_halt(detected, deadline_s, policy)
         except TransportError as exc:  # the bus itself is what failed: nothing more can be sent
             self._lose_bus(exc)
         except Exception as exc:  # the state is HALTING: the next cycle sends the halt again
             logger.error("halt could not be sent: %s: %s", type(exc).__name__, exc)
-        held = self.machine.state is ArmState.HOLDING
-        self.halts.append(HaltRecord(fault, k, detected, sent, "hold" if held else self._halt_code.name))
+        reaction = {ArmState.HOLDING: "hold", ArmState.COMPLYING: "comply"}.get(self.machine.state)
+        self.halts.append(HaltRecord(fault, k, detected, sent, reaction or self._halt_code.name))
+
+    def _policy(self, fault: MotionFault) -> HaltPolicy:
+        """The reaction configured for ``fault``: the collision reaction for a collision, else the halt policy."""
+        settings = self.settings
+        if self.machine.state is ArmState.COMPLYING:  # compliance ends in the drives' own stop, whatever the policy
+            return HaltPolicy.STOP
+        if fault.kind is FaultKind.COLLISION and settings.collision_reaction is not None:
+            return settings.collision_reaction
+        return settings.halt_policy
+
+    def _start_comply(self, start_s: float, deadline_s: float) -> float:
+        """Enter COMPLYING: gravity compensation alone from this cycle on; returns when it was sent.
+
+        Raises:
+            Exception: whatever kept it from starting (the caller falls back to the drives' own halt).
+        """
+        controller = self.controller
+        gravity = self.gravity
+        if gravity is None:
+            raise MotionError("no gravity model to comply with")
+        self.machine.fire(ArmEvent.COMPLY)
+        sent = controller.clock.now()
+        controller.comply_step(sent, max(deadline_s, sent + _HALT_WINDOW_S), gravity)
+        return sent
 
     def _start_hold(self, start_s: float, deadline_s: float) -> float:
         """Enter HOLDING: replace the reference with a jerk-limited stop and send its first set-point; returns when it
@@ -282,9 +346,10 @@ class Supervisor:
         controller.step(sent, max(deadline_s, sent + _HALT_WINDOW_S), apply_pending=False)
         return sent
 
-    def _start_halt(self, detected_s: float, deadline_s: float) -> float:
+    def _start_halt(self, detected_s: float, deadline_s: float, policy: HaltPolicy | None = None) -> float:
         """Enter HALTING: 0x81 (0x80 with policy ``off``) to every axis now; returns when it was sent."""
-        self._halt_code = Command.MOTOR_OFF if self.settings.halt_policy is HaltPolicy.OFF else Command.MOTOR_STOP
+        policy = self.settings.halt_policy if policy is None else policy
+        self._halt_code = Command.MOTOR_OFF if policy is HaltPolicy.OFF else Command.MOTOR_STOP
         self.unacknowledged = set(self.ids)
         self._halt_until_s = detected_s + self.settings.halt_retry_s
         self.machine.fire(ArmEvent.HALT)
@@ -310,7 +375,7 @@ class Supervisor:
     def _faulted_cycle(self, state: ArmState, start_s: float, deadline_s: float) -> None:
         controller = self.controller
         now = controller.clock.now()
-        if self._clear_request.is_set() and state in (ArmState.HOLDING, ArmState.HALTED):
+        if self._clear_request.is_set() and state in (ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALTED):
             self._clear_request.clear()
             try:
                 self._do_clear(start_s, deadline_s)
@@ -320,6 +385,14 @@ class Supervisor:
         if self._estop_request is not None:  # while holding: escalates to the drives' own halt; else sent again
             reason, self._estop_request = self._estop_request, None
             raise MotionFault(reason, time_s=now, detail=f"E-stop requested while {state.value}")
+        if state is ArmState.COMPLYING and self.gravity is not None:
+            extra = (self._next_status_read(),)
+            try:
+                replies = controller.comply_step(start_s, deadline_s, self.gravity, extra=extra)
+                self.watchdog.evaluate(replies, controller.clock.now(), complying=True)
+            except MotionFault as fault:  # communication, a drive, a limit: the drives' own halt
+                self._halt(fault, -1, start_s, deadline_s)
+            return
         if state is ArmState.HOLDING:
             extra = (self._next_status_read(),)
             check = self.watchdog.check_setpoint  # the stop ramp must not pass a limit either

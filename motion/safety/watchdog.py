@@ -3,15 +3,34 @@
 Sources, in the order they are checked: drive error flags (0x9A, read round-robin so every drive's flags are at
 most ``n_axes`` cycles old, and every 0x9B reply), motor temperature in every reply, supply voltage, missing replies
 (consecutive misses and time since the last good reply), corrupt frames, measured position beyond the joint limits,
-following error, and scheduler overrun streaks. The planned set-point is checked before it is sent.
+collisions (the momentum observer's residual per joint against its threshold), following error, and scheduler
+overrun streaks. The planned set-point is checked before it is sent.
+
+The collision observer is injected (:class:`CollisionObserver`; :func:`motion.compose.collision_observer_for` builds
+it on the arm's Pinocchio model): this package never imports the model. It is updated in every evaluated cycle in
+which every joint's state reply arrived, from the measured angles, speeds and torque currents of the cycle.
+
+What is held against a joint's threshold is the *collision signal*: the residual's change over the last
+``collision_window_cycles`` observer steps (with 0, the residual itself). A collision is a torque step, which the
+residual takes up within a few cycles; what the model gets wrong changes slowly along the motion and cancels in the
+difference: a torque constant or friction 20 % off (the residual carries 20 % of the joint's torque, which for a
+joint that holds its link against gravity can be as large as the collision to detect), and in position mode the bias
+of sampling the drives' current once per set-point (it ripples with every 0xA4 step, and the reply samples it at the
+step; the bias grows with the speed). A contact that builds up more slowly than the window is left to the following
+error. The check is armed :data:`COLLISION_SETTLE_CYCLES` plus the window after the observer (re)starts (loop start,
+``clear()``): there the drives take up their whole load at once, and any model error of that load is a step of the
+residual.
 """
 
 from __future__ import annotations
 
 import collections
+import math
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from motion.config.schema import HaltPolicy
 from motion.control.controller import Controller
@@ -25,6 +44,22 @@ from motion.transport import Reply
 POSITION_LIMIT_TOLERANCE_DEG = 0.1
 # Window of the corrupt-frame count, s.
 CORRUPT_WINDOW_S = 1.0
+#: Observer steps after a (re)start before collisions are checked, on top of the window: the residual of the
+#: drives taking up their load settles (at the default gain, 1 - 0.5**5 = 97 %).
+COLLISION_SETTLE_CYCLES = 5
+
+
+class CollisionObserver(Protocol):
+    """An estimate of the external joint torques (``kinematics.observer.MomentumObserver``)."""
+
+    def reset(self, q_deg: ArrayLike, qd_dps: ArrayLike) -> None:
+        """Start (again) from this state: the residual is zero."""
+        ...
+
+    def update(self, q_deg: ArrayLike, qd_dps: ArrayLike, tau_motor_nm: ArrayLike, dt_s: float) -> FloatArray:
+        """One step with the measured state and the joint torques of the measured currents; returns the residual
+        per joint, N·m (the observer's array, overwritten by the next step)."""
+        ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -41,6 +76,12 @@ class SafetySettings:
         max_corrupt_frames: corrupt frames per drive tolerated within one second.
         max_overrun_streak: consecutive overrunning cycles tolerated.
         halt_retry_s: how long unacknowledged halt frames are re-sent, s.
+        collision_threshold_nm: per joint, the observer residual that faults the arm (``collision``), N·m; inf for
+            a joint that is not watched; empty: no joint is.
+        collision_reaction: the reaction to a collision (None: ``halt_policy``; ``hold`` reacts with 0x81, a
+            collision is not holdable; ``comply``: gravity compensation, torque mode).
+        collision_window_cycles: the collision signal is the residual's change over this many observer steps (0:
+            the residual itself).
     """
 
     halt_policy: HaltPolicy
@@ -52,14 +93,21 @@ class SafetySettings:
     max_corrupt_frames: int = 3
     max_overrun_streak: int = 3
     halt_retry_s: float = 0.2
+    collision_threshold_nm: tuple[float, ...] = ()
+    collision_reaction: HaltPolicy | None = None
+    collision_window_cycles: int = 0
 
 
 class Watchdog:
     """Evaluates the monitors once per cycle (called from the control thread only)."""
 
-    def __init__(self, controller: Controller, settings: SafetySettings) -> None:
+    def __init__(
+        self, controller: Controller, settings: SafetySettings, observer: CollisionObserver | None = None
+    ) -> None:
         self.controller = controller
         self.settings = settings
+        #: The collision observer (None: none runs, no residual is recorded).
+        self.observer = observer
         specs = controller.specs
         n = len(specs)
         self.names = tuple(s.name for s in specs)
@@ -79,6 +127,24 @@ class Watchdog:
         self._overrun_streak = 0
         self._counters = [controller.bus.motor_counters(motor_id) for motor_id in self.ids]
         self.previous_reference: FloatArray | None = None
+        thresholds = settings.collision_threshold_nm
+        self.collision_threshold = np.array(thresholds, dtype=np.float64) if thresholds else np.full(n, np.inf)
+        if self.collision_threshold.shape != (n,):
+            raise ValueError(f"collision_threshold_nm: expected {n} values (one per joint), got {len(thresholds)}")
+        self._tau_motor = np.zeros(n)
+        self._over = np.zeros(n, dtype=bool)
+        self._share = np.zeros(n)
+        self._observed_s = math.nan  # when the observer last stepped; NaN: reset it at the next step
+        #: The latest residual per joint, N·m (NaN before the first observer step).
+        self.residual_nm = np.full(n, np.nan)
+        #: The latest collision signal per joint (the residual's change over the window), N·m.
+        self.collision_signal_nm = np.full(n, np.nan)
+        self._history = np.zeros((max(settings.collision_window_cycles, 1), n))
+        self._slot = 0
+        self._steps = 0  # observer steps since its (re)start
+        self._armed_at = COLLISION_SETTLE_CYCLES + settings.collision_window_cycles
+        #: The loop cycle count of the cycle that computed :attr:`residual_nm` (-1: none yet).
+        self.residual_cycle = -1
 
     def start(self, now_s: float) -> None:
         """Reset the reply clocks (at loop start or after a clear)."""
@@ -92,6 +158,7 @@ class Watchdog:
         self._overruns_seen = self.controller.loop.overruns
         self._overrun_streak = 0
         self.previous_reference = None
+        self._observed_s = math.nan
 
     def check_setpoint(self, reference: State) -> None:
         """Refuse to send a planned set-point outside the joint limits.
@@ -120,8 +187,14 @@ class Watchdog:
             detail=detail,
         )
 
-    def evaluate(self, replies: list[Reply], now_s: float) -> None:
+    def evaluate(self, replies: list[Reply], now_s: float, *, complying: bool = False) -> None:
         """Check one cycle's replies and the controller's state.
+
+        Args:
+            replies: the cycle's replies.
+            now_s: the time they were taken in.
+            complying: the arm yields to a collision (``comply``): the observer runs but does not fault, and there
+                is no reference to follow.
 
         Raises:
             MotionFault: the first violated limit.
@@ -156,7 +229,9 @@ class Watchdog:
         self._check_corrupt(now_s)
         q = self.controller.axes.q_deg
         self._check_limits(q, FaultKind.POSITION_LIMIT, "measured position beyond the limit")
-        previous = self.previous_reference
+        if self.observer is not None and self._observe(now_s) and not complying and self.collision_armed:
+            self._check_collision()
+        previous = None if complying else self.previous_reference
         if previous is not None:
             error = np.abs(previous - q)
             worst = int(np.argmax(error))
@@ -180,6 +255,55 @@ class Watchdog:
                 float(settings.max_overrun_streak),
                 "consecutive overruns",
             )
+
+    def _observe(self, now_s: float) -> bool:
+        """Step the observer with the cycle's measurements; False when a joint's state reply is missing (the next
+        complete cycle integrates over the gap)."""
+        observer, axes = self.observer, self.controller.axes
+        assert observer is not None
+        if not axes.fresh.all():
+            return False
+        residual, signal = self.residual_nm, self.collision_signal_nm
+        if math.isnan(self._observed_s):
+            observer.reset(axes.q_deg, axes.qd_dps)
+            residual[:] = 0.0
+            self._history[:] = 0.0
+            self._steps = 0
+        else:
+            tau = self.controller.transmission.joint_torque_nm(axes.iq_a, out=self._tau_motor)
+            residual[:] = observer.update(axes.q_deg, axes.qd_dps, tau, now_s - self._observed_s)
+        if self.settings.collision_window_cycles:
+            np.subtract(residual, self._history[self._slot], out=signal)
+            self._history[self._slot] = residual
+            self._slot = (self._slot + 1) % len(self._history)
+        else:
+            signal[:] = residual
+        self._observed_s = now_s
+        self._steps += 1
+        self.residual_cycle = self.controller.loop.cycles
+        return True
+
+    @property
+    def collision_armed(self) -> bool:
+        """Whether the latest collision signal was (or would have been) held against the thresholds: the observer
+        has settled since its (re)start (calibration looks only at these cycles)."""
+        return self._steps > self._armed_at
+
+    def _check_collision(self) -> None:
+        residual, threshold, over = self.collision_signal_nm, self.collision_threshold, self._over
+        np.abs(residual, out=self._share)
+        np.greater(self._share, threshold, out=over)
+        if not over.any():
+            return
+        self._share /= threshold
+        worst = int(np.argmax(self._share))
+        hit = [self.names[i] for i in np.flatnonzero(over)]
+        detail = "collision signal (residual change): " + ", ".join(
+            f"{self.names[i]} {residual[i]:+.2f} N·m (threshold {threshold[i]:g})" for i in np.flatnonzero(over)
+        )
+        fault = self._fault(FaultKind.COLLISION, worst, float(residual[worst]), float(threshold[worst]), detail)
+        fault.joints = tuple(hit)
+        raise fault
 
     def _check_status(self, i: int, status: Status1) -> None:
         if status.errors & ErrorFlags.OVER_TEMPERATURE:
