@@ -10,7 +10,7 @@ from __future__ import annotations
 import dataclasses
 import subprocess
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,13 +21,14 @@ from motion.config import ArmConfig
 from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller
 from motion.emulator import Fault, InjectedFault
-from motion.errors import MotionError, MotionFault, PlanningError
+from motion.errors import MotionError, MotionFault, PlanningError, TransportError
 from motion.protocol import Command, MultiTurnPositionSpeed
-from motion.safety import ArmEvent, ArmState, InvalidTransition, StateMachine
+from motion.safety import ArmEvent, ArmState, InvalidTransition, StateMachine, Supervisor
 from motion.safety.states import SAFE_STATE, TRANSITIONS
 from motion.trajectory import JointLimits, Planner, State
 from motion.trajectory import Path as TrajectoryPath
-from motion.transport import Reply
+from motion.transmission import FloatArray
+from motion.transport import Reply, Request
 from tests.motion_rig import CONFIGS, Rig, arm_config, emulated_arm, logged_requests, received
 
 
@@ -461,3 +462,125 @@ def test_process_exit_without_close_halts_every_axis(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr
     halted = {line.split()[3] for line in log.read_text().splitlines() if " IN " in line and ": 81 00" in line}
     assert halted == {"141:", "142:"}
+
+
+# ---------------------------------------------------------------------------------------------------- review findings
+
+
+def _halted_while_moving(rig: Rig, target: tuple[float, float] = (80.0, -100.0)) -> Supervisor:
+    supervisor = rig.supervisor
+    assert supervisor is not None
+    supervisor.move_to(target, speed_scale=0.4)
+    rig.sleep(0.4)
+    return supervisor
+
+
+@pytest.mark.parametrize("mode", [ControlMode.POSITION, ControlMode.TORQUE])
+def test_closing_the_bus_during_a_hold_halts_every_axis_first(mode: ControlMode, tmp_path: Path) -> None:
+    with emulated_arm(_config(HaltPolicy.HOLD, mode=mode), "sim", tmp_path, supervised=True) as rig:
+        supervisor = _halted_while_moving(rig)
+        supervisor.estop()  # holdable: HOLDING, the stop ramp streams
+        assert supervisor.state is ArmState.HOLDING
+        rig.controller.bus.close()
+        assert set(received(rig, Command.MOTOR_STOP)) == {1, 2}
+        assert all(drive.state.value == "stopped" for drive in rig.emulator.drives.values())
+
+
+def test_a_send_that_fails_twice_on_an_open_bus_keeps_halting_until_the_drives_have_it(tmp_path: Path) -> None:
+    with emulated_arm(_config(mode=ControlMode.TORQUE), "sim", tmp_path, supervised=True) as rig:
+        _halted_while_moving(rig)
+        bus = rig.controller.bus
+        transact, failures = bus.transact, [2]
+
+        def flaky(requests: Sequence[Request], deadline_s: float) -> list[Reply]:
+            if failures[0] > 0:
+                failures[0] -= 1
+                raise TransportError("CAN send failed: [Errno 105] No buffer space available")
+            return transact(requests, deadline_s)
+
+        bus.transact = flaky  # type: ignore[method-assign]
+        rig.sleep(0.1)
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        assert supervisor.state is ArmState.HALTED and rig.controller.loop.running and not bus.closed
+        assert set(received(rig, Command.MOTOR_STOP)) == {1, 2}
+        _assert_comes_to_rest(rig)
+
+
+def test_a_move_that_races_a_fault_is_withdrawn_and_never_plays_after_clear(tmp_path: Path) -> None:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
+        supervisor, controller = rig.supervisor, rig.controller
+        assert supervisor is not None
+        queue = controller.move_to
+
+        def fault_comes_first(target_deg: Sequence[float] | FloatArray, speed_scale: float = 1.0) -> None:
+            supervisor.estop()  # the loop's fault lands between the caller's check and its queueing
+            queue(target_deg, speed_scale)
+
+        controller.move_to = fault_comes_first  # type: ignore[method-assign]
+        with pytest.raises(MotionFault, match="estop"):
+            supervisor.move_to([80.0, -100.0], speed_scale=0.4)
+        controller.move_to = queue  # type: ignore[method-assign]
+        rig.sleep(0.3)
+        supervisor.clear()
+        before = rig.plant.joint_positions_deg()
+        rig.sleep(1.0)
+        assert np.abs(rig.plant.joint_positions_deg() - before).max() < 1.0
+
+
+def test_a_fault_that_cannot_be_held_escalates_during_a_temperature_hold(tmp_path: Path) -> None:
+    with emulated_arm(_config(HaltPolicy.HOLD), "sim", tmp_path, supervised=True) as rig:
+        supervisor = _halted_while_moving(rig)
+        _inject(rig, InjectedFault.OVER_TEMPERATURE, 1, 75.0, duration_s=60.0)  # above 70 degC: holdable
+        with pytest.raises(MotionFault, match="temperature"):
+            supervisor.wait(5.0)
+        states = [supervisor.state]
+        rig.sleep(0.3)
+        _inject(rig, InjectedFault.UNDER_VOLTAGE, 2, 10.0, duration_s=60.0)  # the drive's own flag: not holdable
+        rig.sleep(0.5)
+        states.append(supervisor.state)
+        assert states == [ArmState.HOLDING, ArmState.HALTED]
+        assert supervisor.faults[-1].kind == "drive_low_voltage"
+
+
+def test_clear_fails_when_the_clear_itself_fails(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
+        supervisor = _halted_while_moving(rig)
+        supervisor.estop()
+        rig.sleep(0.1)
+
+        def broken(replies: list[Reply]) -> None:
+            raise RuntimeError("bug while taking in the clear's replies")
+
+        monkeypatch.setattr(rig.controller, "absorb", broken)
+        with pytest.raises(MotionFault, match="clear_failed"):
+            supervisor.clear()
+        assert supervisor.state.faulted
+
+
+def test_clear_waits_for_the_end_of_the_stop_ramp(tmp_path: Path) -> None:
+    with emulated_arm(_config(HaltPolicy.HOLD), "sim", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        supervisor.move_to([80.0, -100.0])
+        rig.sleep(0.3)
+        supervisor.estop()
+        with pytest.raises(MotionFault, match="stop ramp is still running"):
+            supervisor.clear()
+        states = [supervisor.state]
+        rig.sleep(2.0)  # the ramp ends, the arm holds
+        supervisor.clear()
+        states.append(supervisor.state)
+        assert states == [ArmState.HOLDING, ArmState.READY]
+
+
+def test_the_reference_stops_where_the_arm_was_halted(tmp_path: Path) -> None:
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
+        supervisor = _halted_while_moving(rig)
+        supervisor.estop()
+        rig.sleep(0.05)
+        halted = rig.controller.snapshot
+        rig.sleep(1.0)
+        later = rig.controller.snapshot
+        assert not later.moving and np.array_equal(halted.reference_deg, later.reference_deg)
+        assert np.abs(later.reference_deg - later.position_deg).max() < 2.0

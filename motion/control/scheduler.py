@@ -79,6 +79,7 @@ class FixedRateLoop:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._stepping = False
+        self._step_lock = threading.RLock()
         self._begun = False
         self._ended = False
         self._t0 = 0.0
@@ -148,12 +149,17 @@ class FixedRateLoop:
         clock = self.clock
         end = None if timeout_s is None else clock.now() + timeout_s
         while not done():
-            if self._ended or self._stop.is_set() or (end is not None and clock.now() >= end):
-                return done()
-            if end is not None and self._t0 + self._k * self.period_s > end:
-                clock.sleep_until(end)  # the next cycle starts after the wait ends
-                return done()
-            self._next_cycle()
+            # One cycle at a time, whichever thread waits: two waiting threads (a motion's wait() and an E-stop)
+            # take turns instead of running cycles at once.
+            with self._step_lock:
+                if done():
+                    break
+                if self._ended or self._stop.is_set() or (end is not None and clock.now() >= end):
+                    return done()
+                if end is not None and self._t0 + self._k * self.period_s > end:
+                    clock.sleep_until(end)  # the next cycle starts after the wait ends
+                    return done()
+                self._next_cycle()
         return True
 
     @property

@@ -33,7 +33,7 @@ from motion.config.schema import HaltPolicy
 from motion.control.controller import Controller, Feedforward
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Bare, Command, MotorState, Status1
-from motion.safety.states import ArmEvent, ArmState, StateMachine
+from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
 from motion.trajectory import State
 from motion.transmission import FloatArray
@@ -117,6 +117,15 @@ class Supervisor:
             if not self.machine.state.faulted:
                 self.estop(FaultKind.BUS_CLOSING)
             self.controller.shutdown()
+        if self.machine.state in (ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALTING):
+            # the loop streamed a ramp or gravity compensation, or was still re-sending the halt: the drives' own
+            # stop to every axis now, before the port goes (the loop has ended, nothing else will send it)
+            try:
+                self.controller.bus.transact(
+                    [Request(i, Bare(Command.MOTOR_STOP)) for i in self.ids], self.controller.clock.now() + 0.02
+                )
+            except Exception as exc:  # the port is going anyway: leave a trace
+                logger.error("halt before the bus closed failed: %s: %s", type(exc).__name__, exc)
 
     def _refuse_if_faulted(self) -> None:
         if self.machine.state.faulted:
@@ -141,13 +150,23 @@ class Supervisor:
         """
         self._refuse_if_faulted()
         self.controller.move_to(target_deg, speed_scale)
-        self.machine.fire(ArmEvent.MOVE)
+        self._accept_motion()
 
     def follow(self, waypoints_deg: Sequence[Sequence[float]] | FloatArray, speed_scale: float = 1.0) -> None:
         """Queue a waypoint path (see :meth:`Controller.follow`)."""
         self._refuse_if_faulted()
         self.controller.follow(waypoints_deg, speed_scale)
-        self.machine.fire(ArmEvent.MOVE)
+        self._accept_motion()
+
+    def _accept_motion(self) -> None:
+        """MOVING, or — when a fault came in between the check and the queueing — withdraw the queued command (it
+        must not play after a later clear()) and raise the fault."""
+        try:
+            self.machine.fire(ArmEvent.MOVE)
+        except InvalidTransition:
+            self.controller.discard_pending()
+            self._refuse_if_faulted()
+            raise
 
     def stop_motion(self) -> None:
         """Queue a jerk-limited stop (not a fault)."""
@@ -188,12 +207,20 @@ class Supervisor:
         if not state.faulted or state is ArmState.BUS_LOST:
             raise MotionError(f"clear() needs a faulted arm with its bus; it is {state.value}")
         self._estop_request = None
+        self._clear_result = MotionFault(FaultKind.CLEAR_FAILED, detail="the clear did not complete")
         self._clear_done.clear()
         self._clear_request.set()
         if not self.controller.wait_for(self._clear_done.is_set, timeout_s):
             raise MotionError("the control loop did not process clear() in time")
-        if self._clear_result is not None:
-            raise self._clear_result
+        result = self._clear_outcome()
+        if result is not None:
+            raise result
+        if self.machine.state is not ArmState.READY:
+            raise MotionFault(FaultKind.CLEAR_FAILED, detail=f"the arm is {self.machine.state.value} after clear()")
+
+    def _clear_outcome(self) -> MotionFault | None:
+        """What the loop made of the clear request (None: success)."""
+        return self._clear_result
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Halt every axis with 0x81, end the loop (the bus stays open for its owner to close)."""
@@ -298,8 +325,8 @@ class Supervisor:
                     holdable = False
             if not holdable and not comply:
                 sent = self._start_halt(detected, deadline_s, policy)
-        except TransportError as exc:  # the bus itself is what failed: nothing more can be sent
-            self._lose_bus(exc)
+        except TransportError as exc:
+            self._send_failed(exc, detected, deadline_s, policy)
         except Exception as exc:  # the state is HALTING: the next cycle sends the halt again
             logger.error("halt could not be sent: %s: %s", type(exc).__name__, exc)
         reaction = {ArmState.HOLDING: "hold", ArmState.COMPLYING: "comply"}.get(self.machine.state)
@@ -354,8 +381,35 @@ class Supervisor:
         self._halt_until_s = detected_s + self.settings.halt_retry_s
         self.machine.fire(ArmEvent.HALT)
         sent = self.controller.clock.now()
-        self._send_halt(max(deadline_s, sent + _HALT_WINDOW_S))
+        try:
+            self._send_halt(max(deadline_s, sent + _HALT_WINDOW_S))
+        finally:
+            self._stop_reference()
         return sent
+
+    def _stop_reference(self) -> None:
+        """The reference stops where the arm is: an aborted path must not go on playing (in telemetry, the snapshot
+        and progress) while the drives stand halted."""
+        controller = self.controller
+        if controller.follower is not None:
+            q = controller.axes.positions()
+            controller.follower.hold_at(q)
+            controller.reference = State.at_rest(q)
+
+    def _send_failed(
+        self, exc: TransportError, detected_s: float, deadline_s: float, policy: HaltPolicy | None = None
+    ) -> None:
+        """A send failed while reacting to a fault. A closed bus is lost (nothing more can be sent); an open one (a
+        full transmit queue, a write refused once) stays HALTING, and every cycle sends the halt again."""
+        if self.controller.bus.closed:
+            self._lose_bus(exc)
+            return
+        logger.error("the halt could not be sent (%s): sent again next cycle", exc)
+        if self.machine.state is not ArmState.HALTING:  # a hold or compliance whose first step failed
+            self._halt_code = Command.MOTOR_OFF if policy is HaltPolicy.OFF else Command.MOTOR_STOP
+            self.machine.fire(ArmEvent.HALT)
+        self.unacknowledged = set(self.ids)
+        self._halt_until_s = detected_s + self.settings.halt_retry_s
 
     def _lose_bus(self, exc: BaseException) -> None:
         if self.machine.state is not ArmState.BUS_LOST:
@@ -378,7 +432,13 @@ class Supervisor:
         if self._clear_request.is_set() and state in (ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALTED):
             self._clear_request.clear()
             try:
-                self._do_clear(start_s, deadline_s)
+                follower = controller.follower
+                if state is ArmState.HOLDING and follower is not None and follower.moving:
+                    self._clear_result = MotionFault(
+                        FaultKind.CLEAR_FAILED, time_s=now, detail="the stop ramp is still running: clear() once ended"
+                    )
+                else:
+                    self._do_clear(start_s, deadline_s)
             finally:
                 self._clear_done.set()
             return
@@ -414,7 +474,14 @@ class Supervisor:
                 self.halts.append(HaltRecord(unsent, -1, now, sent, self._halt_code.name))
                 return
             if now < self._halt_until_s:
-                self._send_halt(start_s + controller.options.reply_budget * (deadline_s - start_s))
+                try:
+                    self._send_halt(start_s + controller.options.reply_budget * (deadline_s - start_s))
+                except TransportError as exc:
+                    if controller.bus.closed:
+                        self._lose_bus(exc)
+                    else:  # keep trying while the bus is open, past the retry bound: the drives must get it
+                        logger.error("the halt could not be sent (%s): sent again next cycle", exc)
+                        self._halt_until_s = max(self._halt_until_s, now + controller.period_s)
                 return
             logger.error("drives %s did not acknowledge the halt", sorted(self.unacknowledged))
             self.unacknowledged.clear()
@@ -439,6 +506,7 @@ class Supervisor:
                 FaultKind.CLEAR_FAILED, time_s=controller.clock.now(), detail="no follower"
             )
             return
+        controller.discard_pending()  # nothing queued while faulted may start after the clear
         controller.follower.hold_at(q)
         controller.reference = State.at_rest(q)
         self.fault = None

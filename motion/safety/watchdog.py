@@ -197,9 +197,12 @@ class Watchdog:
                 is no reference to follow.
 
         Raises:
-            MotionFault: the first violated limit.
+            MotionFault: the first violated limit that cannot be held (communication, a drive's flags, a limit, a
+                collision), else the first one that can (temperature, voltage, following error, overrun). Every
+                monitor runs in every cycle: a fault the hold is for must not hide one it is not for.
         """
         settings = self.settings
+        held: MotionFault | None = None
         self._missing[:] = False
         self._answered[:] = False
         index = self.index
@@ -217,9 +220,14 @@ class Watchdog:
             if i is None or message is None:
                 continue
             if isinstance(message, Status1):
-                self._check_status(i, message)
+                try:
+                    self._check_status(i, message)
+                except MotionFault as fault:
+                    if not fault.kind.holdable:
+                        raise
+                    held = held or fault
             elif isinstance(message, MotorState) and message.temperature_c >= self.temperature_limit[i]:
-                raise self._fault(
+                held = held or self._fault(
                     FaultKind.TEMPERATURE,
                     i,
                     message.temperature_c,
@@ -236,7 +244,7 @@ class Watchdog:
             error = np.abs(previous - q)
             worst = int(np.argmax(error))
             if error[worst] > settings.following_error_deg:
-                raise self._fault(
+                held = held or self._fault(
                     FaultKind.FOLLOWING_ERROR,
                     worst,
                     float(error[worst]),
@@ -248,13 +256,15 @@ class Watchdog:
         self._overrun_streak = self._overrun_streak + 1 if overruns > self._overruns_seen else 0
         self._overruns_seen = overruns
         if self._overrun_streak > settings.max_overrun_streak:
-            raise self._fault(
+            held = held or self._fault(
                 FaultKind.OVERRUN,
                 None,
                 float(self._overrun_streak),
                 float(settings.max_overrun_streak),
                 "consecutive overruns",
             )
+        if held is not None:
+            raise held
 
     def _observe(self, now_s: float) -> bool:
         """Step the observer with the cycle's measurements; False when a joint's state reply is missing (the next
