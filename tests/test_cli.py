@@ -180,8 +180,13 @@ def arm2_200hz(can_arm: Emulated, tmp_path_factory: pytest.TempPathFactory) -> P
 
 @pytest.fixture(scope="module")
 def rs485_fit(rs485_arm: Emulated, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """arm2_rs485.yaml at a rate this host holds, at most its configured 100 Hz."""
-    return rate_that_holds(ARM2_RS485, rs485_arm, tmp_path_factory.mktemp("config"), 100.0)
+    """arm2_rs485.yaml at a rate this host holds, at most its configured 100 Hz, in position mode: the example's torque
+    mode PD is tuned for 100 Hz, and at the lower rates a busy host holds over RS485 it tracks loosely (19.9 deg on the
+    elbow at half speed in one CI run; issue 18) — this test is about the command line over RS485, not that loop."""
+    path = rate_that_holds(ARM2_RS485, rs485_arm, tmp_path_factory.mktemp("config"), 100.0)
+    assert "mode: torque" in path.read_text()
+    path.write_text(path.read_text().replace("mode: torque", "mode: position"))
+    return path
 
 
 def status_json(config: Path, emulated: Emulated) -> dict[str, dict[str, Any]]:
@@ -435,9 +440,7 @@ def test_rs485_scan_move_status(rs485_arm: Emulated, rs485_fit: Path) -> None:
     drives = json.loads(result.stdout)["drives"]
     assert [d["motor_id"] for d in drives] == [1, 2]
     assert [d["model"]["motor_name"] for d in drives] == ["EMU-shoulder", "EMU-elbow"]  # from 0x12
-    # half speed: torque mode over RS485 at the low rates a busy host holds tracks loosely (22.6 deg on the elbow at
-    # full speed in one CI run) until the lag-aware following error (issue 18); this test is about the command line
-    moved = cli("move", "--config", rs485_fit, *rs485_arm.bus_args, "--speed-scale", "0.5", "shoulder=-15", "elbow=25")
+    moved = cli("move", "--config", rs485_fit, *rs485_arm.bus_args, "shoulder=-15", "elbow=25")
     skip_if_rate_refused(moved)
     assert moved.returncode == 0, moved.stderr
     reached = positions(ARM2_RS485, rs485_arm)
