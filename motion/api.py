@@ -407,9 +407,8 @@ class Arm:
         return q
 
     def positions(self) -> dict[str, float]:
-        """Measured joint angles, degrees."""
-        supervisor = self._guard()
-        q = supervisor.controller.axes.positions()
+        """Measured joint angles, degrees (of the latest cycle's published snapshot)."""
+        q = self._guard().controller.snapshot.position_deg
         return {name: float(q[i]) for i, name in enumerate(self.names)}
 
     def move_to(self, targets: Mapping[str, float], *, speed_scale: float = 1.0, wait: bool = True) -> MotionHandle:

@@ -90,6 +90,8 @@ def test_rate_check_arithmetic() -> None:
     # bounds: 0.8 / 0.003 = 266.7 Hz and 1 / 0.0045 = 222.2 Hz -> 220 Hz; recommended 0.8 x 220 = 176 -> 175 Hz
     assert check.highest_rate_hz == 220.0 and check.holds
     assert check.recommended_rate_hz == 175.0
+    slow = dataclasses.replace(check, round_trip_p99_s=0.09, host_p99_s=0.0)  # 1 / 0.135 = 7.4 Hz -> 5 Hz
+    assert slow.highest_rate_hz == 5.0 and slow.recommended_rate_hz == 5.0  # not 0 Hz
     assert not dataclasses.replace(check, rate_hz=225).holds
     assert "holds" in check.summary()
 

@@ -95,7 +95,8 @@ class RateCheck:
         highest = self.highest_rate_hz
         if not math.isfinite(highest):
             return highest
-        return math.floor(highest * RECOMMENDED_SHARE / RATE_STEP_HZ) * RATE_STEP_HZ
+        # never 0 where a rate holds: at the lowest step, the highest itself
+        return max(min(highest, RATE_STEP_HZ), math.floor(highest * RECOMMENDED_SHARE / RATE_STEP_HZ) * RATE_STEP_HZ)
 
     @property
     def holds(self) -> bool:

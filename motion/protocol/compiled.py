@@ -215,8 +215,13 @@ def _decoder(
             lines.append(f"    if e{i} is None: return None")
             values.append(f"e{i}")
         elif f.kind is Kind.FLAGS:
+            # The flag's member by value from the enum's own map (an IntFlag adds every combination it has built to
+            # it); the enum's call, which is twenty times slower, only for a combination not seen before.
             env[f"E_{f.name}"] = f.enum
-            values.append(f"E_{f.name}({raw})")
+            env[f"M_{f.name}"] = f.enum._value2member_map_ if f.enum is not None else {}
+            lines.append(f"    e{i} = M_{f.name}.get({raw})")
+            lines.append(f"    if e{i} is None: e{i} = E_{f.name}({raw})")
+            values.append(f"e{i}")
         else:
             values.append(raw)
     names = [f.name for f in ordered]

@@ -333,7 +333,10 @@ class Transport(ABC):
 
     def _answered(self, index: int) -> bool:
         """True when no slot of request ``index`` is still open."""
-        state, first = self._slot_state, self._slots.first_slot
+        plan, state = self._slots, self._slot_state
+        if plan.one_each:
+            return state[index] != _OPEN
+        first = plan.first_slot
         return all(state[slot] != _OPEN for slot in range(first[index], first[index + 1]))
 
     def _offer(self, motor_id: int, message: Message) -> None:
@@ -341,11 +344,11 @@ class Transport(ABC):
         counters = self._counters.get(motor_id)
         if counters is None:
             counters = self.motor_counters(motor_id)
-        command: int | None = getattr(message, "command", None)  # command_of, inlined
-        if command is None:
+        try:
+            key: int = motor_id << 8 | message.command  # type: ignore[attr-defined]  # every reply class has one
+        except AttributeError:  # (only the 0x280 request has none)
             counters.bad_frames += 1
             return
-        key = motor_id << 8 | command
         plan, state = self._slots, self._slot_state
         slot = plan.first_slot_of_key.get(key, -1)
         while slot >= 0 and state[slot] != _OPEN:

@@ -124,10 +124,10 @@ class CanTransport(Transport):
         return f"can {self._endpoint.interface}:{self._endpoint.channel}"
 
     def _prepare(self, requests: Sequence[Request]) -> None:
-        frames = self._frames
+        frames, encode = self._frames, can_frame.encode_request
         frames.clear()
         for request in requests:
-            frames.append(can_frame.encode_request(request.message, request.motor_id))
+            frames.append(encode(request.message, request.motor_id))
 
     def _exchange(self, deadline_s: float) -> None:
         endpoint, clock, take_in = self._endpoint, self.clock, take_in_can_frame

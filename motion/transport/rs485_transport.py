@@ -25,6 +25,7 @@ Waiting uses ``select`` on the port's file descriptor, so this backend needs a P
 
 from __future__ import annotations
 
+import os
 import select
 import time
 from collections.abc import Callable, Sequence
@@ -148,7 +149,7 @@ class Rs485Transport(Transport):
             except (OSError, ValueError) as exc:
                 raise TransportError(f"waiting on {self.describe()} failed: {exc}") from exc
             if ready:
-                parser.feed(self._read())
+                parser.feed(self._read(ready=True))
                 self._take_frames(flush=False)
 
     def _take_frames(self, *, flush: bool) -> None:
@@ -172,12 +173,23 @@ class Rs485Transport(Transport):
         self._seen_dropped = self.bus_counters.dropped_bytes = parser.dropped_bytes
         return bad
 
-    def _read(self) -> bytes:
+    def _read(self, *, ready: bool = False) -> bytes:
+        """Every byte the port holds, b"" when none: one system call on pyserial's non-blocking descriptor (its own
+        ``read`` adds a ``select`` per call). ``ready``: ``select`` said the port is readable, so no bytes mean the
+        device is gone (pyserial's read says the same)."""
         try:
-            chunk: bytes = self._serial.read(READ_CHUNK_BYTES)
-        except (serial.SerialException, OSError) as exc:
+            chunk = os.read(self._fds[0], READ_CHUNK_BYTES)
+        except BlockingIOError:
+            chunk = b""
+        except OSError as exc:
             raise TransportError(f"read from {self.describe()} failed: {exc}") from exc
-        if chunk and self.frame_tap is not None:
+        if not chunk:
+            if ready:
+                raise TransportError(
+                    f"read from {self.describe()} failed: the port reports input but returned none (disconnected?)"
+                )
+            return chunk
+        if self.frame_tap is not None:
             self.frame_tap(self.clock(), True, None, chunk)
         return chunk
 
