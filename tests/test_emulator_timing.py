@@ -44,3 +44,36 @@ def test_bus_clock_serialises_frames() -> None:
 def test_timing_model_refuses_negative_latency() -> None:
     with pytest.raises(ValueError, match="latency"):
         TimingModel(latency_s=-0.001)
+
+
+def _bit_by_bit(arbitration_id: int, data: bytes) -> int:
+    """The frame's bits counted the slow, obvious way: a list of bits, a bit-serial CRC-15, a bit-serial stuffer."""
+    bits = [0] + [(arbitration_id >> (10 - i)) & 1 for i in range(11)] + [0, 0, 0]
+    bits += [(len(data) >> (3 - i)) & 1 for i in range(4)]
+    for byte in data:
+        bits += [(byte >> (7 - i)) & 1 for i in range(8)]
+    crc = 0
+    for bit in bits:
+        feedback = bit ^ ((crc >> 14) & 1)
+        crc = (crc << 1) & 0x7FFF
+        if feedback:
+            crc ^= 0x4599
+    bits += [(crc >> (14 - i)) & 1 for i in range(15)]
+    stuffed, run, previous = 0, 0, -1
+    for bit in bits:
+        run = run + 1 if bit == previous else 1
+        previous = bit
+        if run == 5:
+            stuffed += 1
+            previous, run = 1 - bit, 1
+    return len(bits) + stuffed + 13
+
+
+def test_the_fast_bit_count_is_the_bit_serial_one() -> None:
+    rng = random.Random(7)
+    frames = [(rng.randrange(0x800), rng.randbytes(rng.randrange(9))) for _ in range(3000)]
+    # runs that end exactly on a stuff bit, long runs, and runs that a stuff bit joins
+    frames += [(0x000, bytes(n)) for n in range(9)] + [(0x7FF, b"\xff" * n) for n in range(9)]
+    frames += [(0x0F8, b"\x07\xc1\xf0\x7c\x1f\x07\xc1\xf0"), (0x1E0, b"\xf0\x0f\xf0\x0f\xe0\x1f\x80\x7f")]
+    for arbitration_id, data in frames:
+        assert can_frame_bits(arbitration_id, data) == _bit_by_bit(arbitration_id, data), (hex(arbitration_id), data)

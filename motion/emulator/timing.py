@@ -15,6 +15,7 @@ A drive executes a request when it arrives; the model delays the replies (by the
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from typing import Final
 
@@ -49,40 +50,59 @@ class TimingModel:
             raise ValueError(f"latency must be a time >= 0 s, got {self.latency_s!r}")
 
 
-def _crc15(bits: list[int]) -> int:
-    crc = 0
-    for bit in bits:
-        feedback = bit ^ ((crc >> 14) & 1)
-        crc = (crc << 1) & 0x7FFF
-        if feedback:
-            crc ^= _CAN_CRC15_POLY
-    return crc
+def _crc15_table() -> tuple[int, ...]:
+    """CRC-15/CAN of each byte value from a zero register, bit by bit (the byte-wise step below uses it)."""
+    table = []
+    for byte in range(256):
+        crc = byte << 7
+        for _ in range(8):
+            crc = ((crc << 1) ^ _CAN_CRC15_POLY) if crc & 0x4000 else crc << 1
+        table.append(crc & 0x7FFF)
+    return tuple(table)
 
 
-def _msb_bits(value: int, width: int) -> list[int]:
-    return [(value >> (width - 1 - i)) & 1 for i in range(width)]
+_CRC15_TABLE: Final = _crc15_table()
+#: SOF, identifier, RTR, IDE, r0 and DLC: the bits before the data.
+_CAN_HEADER_BITS: Final = 19
+#: Maximal runs of four or more equal bits in a bit string.
+_LONG_RUNS: Final = re.compile("0{4,}|1{4,}")
 
 
 def can_frame_bits(arbitration_id: int, data: bytes) -> int:
     """Bits a classic CAN data frame with an 11-bit identifier occupies on the bus, stuff bits included.
 
+    The frame from SOF to the end of the data is one integer; the CRC is computed a byte at a time from a table (with
+    a zero register leading zero bits change nothing, so the 19 header bits are padded to 24), and the stuff bits are
+    counted per run of equal bits rather than per bit (the emulated bus times every frame of every cycle).
+
     Args:
         arbitration_id: the 11-bit identifier.
         data: 0..8 data bytes.
     """
-    bits = [0, *_msb_bits(arbitration_id & 0x7FF, 11), 0, 0, 0, *_msb_bits(len(data), 4)]
-    for byte in data:
-        bits += _msb_bits(byte, 8)
-    bits += _msb_bits(_crc15(bits), 15)
-    stuffed, run, previous = 0, 0, -1
-    for bit in bits:
-        run = run + 1 if bit == previous else 1
-        previous = bit
-        if run == _CAN_STUFF_RUN:
-            # The inserted complementary bit starts the next run.
-            stuffed += 1
-            previous, run = 1 - bit, 1
-    return len(bits) + stuffed + _CAN_UNSTUFFED_TAIL_BITS
+    n = len(data)
+    # SOF, RTR, IDE and r0 are dominant (0): identifier at bits 4.., DLC in the low 4 bits of the header
+    header = ((arbitration_id & 0x7FF) << 7) | n
+    message = (header << (8 * n)) | int.from_bytes(data, "big")
+    crc = 0
+    for byte in message.to_bytes(3 + n, "big"):
+        crc = ((crc << 8) & 0x7FFF) ^ _CRC15_TABLE[((crc >> 7) ^ byte) & 0xFF]
+    width = _CAN_HEADER_BITS + 8 * n + 15
+    bits = format((message << 15) | crc, f"0{width}b")
+    # Stuffing: after five equal bits a complementary bit is inserted, which starts the next run and so joins the
+    # run of the other value that follows. Only runs of four or more can take a stuff bit (four only when the stuff
+    # bit of the run just before joins it); ``joined_at``: where the run that a stuff bit joins starts.
+    stuffed, joined_at = 0, -1
+    for match in _LONG_RUNS.finditer(bits):
+        start, end = match.span()
+        before = 1 if start == joined_at else 0
+        if end - start + before < _CAN_STUFF_RUN:
+            continue
+        # the first stuff bit after (5 - before) bits, then one after every 5 more
+        after_first = end - start - (_CAN_STUFF_RUN - before)
+        stuffed += 1 + after_first // _CAN_STUFF_RUN
+        if after_first % _CAN_STUFF_RUN == 0:
+            joined_at = end
+    return width + stuffed + _CAN_UNSTUFFED_TAIL_BITS
 
 
 def can_frame_time_s(arbitration_id: int, data: bytes, bitrate: int) -> float:
