@@ -39,6 +39,7 @@ from motion.compose import (
     identify_position_loops,
     offer_stored_tracking,
     open_bus,
+    rehearsal_watchdog,
     store_tracking,
 )
 from motion.config import ArmConfig, load_config_or_example
@@ -131,14 +132,13 @@ def measure_modes(config: ArmConfig, bus: Transport) -> dict[str, RateCheck]:
     Raises:
         TransportError: a drive did not answer.
     """
-    from kinematics import build_arm, feedforward  # noqa: PLC0415 - Pinocchio only for the torque-mode figure
-
     checks: dict[str, RateCheck] = {}
     for mode in (ControlMode.POSITION, ControlMode.TORQUE):
         variant = dataclasses.replace(config, control=dataclasses.replace(config.control, mode=mode))
-        ff = feedforward(build_arm(config), gravity=True) if mode is ControlMode.TORQUE else None
-        controller = build_controller(variant, bus, feedforward=ff)
-        checks[mode.value] = measure_rate(controller, margin=config.control.rate_margin)
+        controller = build_controller(variant, bus, feedforward=feedforward_for(variant))
+        controller.read_positions()
+        rehearse = rehearsal_watchdog(variant, controller).rehearse
+        checks[mode.value] = measure_rate(controller, margin=config.control.rate_margin, rehearse=rehearse)
     return checks
 
 
@@ -340,8 +340,8 @@ class Arm:
             self.controller = build_controller(
                 self.config, self.bus, feedforward=feedforward_for(self.config), clock=clock
             )
-            self.rate_check = check_rate(self.controller, self.config)
             self.controller.read_positions()
+            self.rate_check = check_rate(self.controller, self.config)
             if not self.emulate:  # an identification belongs to the drives it was made on
                 self.tracking_offered = offer_stored_tracking(self.config, self.controller)
             self.supervisor = build_supervisor(self.config, self.controller, observe=self._observe)

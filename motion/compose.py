@@ -31,7 +31,7 @@ from motion.emulator import DEFAULT_PID, DriveModel, Emulator, Fault, LoadModel,
 from motion.errors import MotionError
 from motion.protocol import WireProtocol
 from motion.safety import SafetySettings, Supervisor
-from motion.safety.watchdog import CollisionObserver
+from motion.safety.watchdog import CollisionObserver, Watchdog
 from motion.trajectory import JointLimits
 from motion.transmission import FloatArray
 from motion.transport import Reply, Transport, open_transport
@@ -164,8 +164,9 @@ def build_controller(
 
 
 def check_rate(controller: Controller, config: ArmConfig) -> RateCheck:
-    """The rate check at connect (before ``read_positions``): measure, warn about a thin margin, refuse a rate that
-    does not hold.
+    """The rate check at connect (after ``read_positions``, before the loop starts): measure the round trip and a
+    guarded cycle's host work (a watchdog of the configuration's, collision observer included, rehearsing on the
+    measuring replies), warn about a thin margin, refuse a rate that does not hold.
 
     Raises:
         RateError: ``control.rate_hz`` cannot be held (names the measured figures and the highest rate that holds).
@@ -178,7 +179,7 @@ def check_rate(controller: Controller, config: ArmConfig) -> RateCheck:
             margin,
             DEFAULT_MARGIN,
         )
-    check = measure_rate(controller, margin=margin)
+    check = measure_rate(controller, margin=margin, rehearse=rehearsal_watchdog(config, controller).rehearse)
     logger.info("rate check: %s", check.summary())
     if not check.holds:
         raise RateError(config.source, check)
@@ -261,6 +262,12 @@ def safety_settings(config: ArmConfig) -> SafetySettings:
         collision_reaction=config.collision_reaction,
         collision_window_cycles=safety.collision_window_cycles,
     )
+
+
+def rehearsal_watchdog(config: ArmConfig, controller: Controller) -> Watchdog:
+    """A watchdog like the supervisor's (thresholds, collision observer) for the rate check's rehearsals: its state
+    is its own, so the loop's watchdog starts untouched."""
+    return Watchdog(controller, safety_settings(config), collision_observer_for(config))
 
 
 def build_supervisor(config: ArmConfig, controller: Controller, *, observe: bool = False) -> Supervisor:

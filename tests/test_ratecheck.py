@@ -12,15 +12,19 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from kinematics.emulation import arm_emulator
-from motion.compose import build_controller, check_rate
+from motion.api import Arm
+from motion.compose import build_controller, check_rate, feedforward_for, rehearsal_watchdog
 from motion.config import ArmConfig
+from motion.config.schema import ControlMode
 from motion.control.ratecheck import RateCheck, RateError, measure_rate
-from motion.emulator import FrameLog, TimingModel
+from motion.emulator import Fault, FrameLog, InjectedFault, TimingModel
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
-from motion.errors import ConfigError
+from motion.errors import ConfigError, FaultKind, MotionFault
+from motion.transport import Reply
 from tests.motion_rig import CONFIGS, arm_config, skip_if_rate_refused
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -41,6 +45,7 @@ def test_simulated_slow_drives_refuse_500_hz_and_name_the_rate_that_holds(tmp_pa
     simulation, log, bus = _simulated(config, 0.003, tmp_path / "frames.log")
     with log, bus:
         controller = build_controller(config, bus, clock=SimulatedClock(simulation))
+        controller.read_positions()
         with pytest.raises(RateError) as info:
             check_rate(controller, config)
     error = info.value
@@ -54,12 +59,14 @@ def test_simulated_slow_drives_refuse_500_hz_and_name_the_rate_that_holds(tmp_pa
     assert f"highest rate that holds is {highest:g} Hz" in str(error) and "control.rate_hz" in str(error)
     assert f"set control.rate_hz to {check.recommended_rate_hz:g} Hz or lower" in str(error)
     sent = [line for line in (tmp_path / "frames.log").read_text().splitlines() if " IN " in line]
-    assert sent and all(": 9c " in line or ": 9a " in line for line in sent)  # reads only: nothing moved
+    assert sent and all(": 9c " in line or ": 9a " in line or ": 92 " in line for line in sent)  # reads only
     # at the proposed rate the check passes
     slower = dataclasses.replace(config, control=dataclasses.replace(config.control, rate_hz=highest))
     simulation, log, bus = _simulated(slower, 0.003, tmp_path / "frames2.log")
     with log, bus:
-        assert check_rate(build_controller(slower, bus, clock=SimulatedClock(simulation)), slower).holds
+        controller = build_controller(slower, bus, clock=SimulatedClock(simulation))
+        controller.read_positions()
+        assert check_rate(controller, slower).holds
 
 
 def test_margin_is_configurable_and_validated(tmp_path: Path) -> None:
@@ -67,6 +74,7 @@ def test_margin_is_configurable_and_validated(tmp_path: Path) -> None:
     simulation, log, bus = _simulated(config, 0.0005, tmp_path / "frames.log")
     with log, bus:
         controller = build_controller(config, bus, clock=SimulatedClock(simulation))
+        controller.read_positions()
         strict = measure_rate(controller, margin=3.0)
         loose = measure_rate(controller, margin=1.0)
     assert loose.round_trip_p99_s == pytest.approx(strict.round_trip_p99_s, rel=0.05)  # same exchange, bar stuff bits
@@ -81,6 +89,43 @@ def test_margin_is_configurable_and_validated(tmp_path: Path) -> None:
 
     with pytest.raises(ConfigError, match=r"control\.rate_margin"):
         load_config(bad)
+
+
+def test_the_host_work_measured_is_a_guarded_cycle_rehearsed_on_the_measuring_replies(tmp_path: Path) -> None:
+    config = arm_config("arm6.yaml", mode=ControlMode.TORQUE)  # feed-forward and collision observer: Pinocchio twice
+    simulation, log, bus = _simulated(config, 0.0002, tmp_path / "frames.log")
+    with log, bus:
+        clock = SimulatedClock(simulation)
+        controller = build_controller(config, bus, feedforward=feedforward_for(config), clock=clock)
+        controller.read_positions()
+        watchdog = rehearsal_watchdog(config, controller)
+        assert watchdog.observer is not None
+        seen: list[tuple[int, float]] = []
+
+        def rehearse(replies: list[Reply], now_s: float) -> None:
+            seen.append((sum(r.message is not None for r in replies), now_s))
+            watchdog.rehearse(replies, now_s)
+
+        check = measure_rate(controller, samples=4, rehearse=rehearse)
+    # one rehearsal per exchange, on all of its replies (a state read per joint and the status read), in time order
+    assert [n for n, _ in seen] == [len(config.joints) + 1] * 4 and check.samples == 4
+    assert [t for _, t in seen] == sorted(t for _, t in seen)
+    # the watchdog ran every monitor: the observer stepped and the following check tracked the rest reference
+    assert np.isfinite(watchdog.residual_nm).all()
+    assert np.isfinite(controller.tracking.expected_deg).all()
+    sent = [line for line in (tmp_path / "frames.log").read_text().splitlines() if " IN " in line]
+    assert all(": 9c " in line or ": 9a " in line or ": 92 " in line for line in sent), sent  # nothing but reads
+
+
+def test_a_fault_seen_while_rehearsing_is_left_to_the_first_cycle(tmp_path: Path) -> None:
+    config = arm_config("arm2.yaml", rate_hz=200)
+    hot = Fault(InjectedFault.OVER_TEMPERATURE, 2, start_s=0.0)
+    # connect's rate check saw the hot drive and did not raise
+    with Arm(config, emulate=True, faults=[hot]) as arm, pytest.raises(MotionFault) as info:
+        arm.move_to({"shoulder": 10.0})
+    # the drive's flag and the measured temperature both say so; the first cycles' watchdog saw it, not the check's
+    assert info.value.kind in (FaultKind.DRIVE_OVER_TEMPERATURE, FaultKind.TEMPERATURE), info.value
+    assert info.value.joint == "elbow"
 
 
 def test_rate_check_arithmetic() -> None:

@@ -577,6 +577,24 @@ class Controller:
         self.step(start_s, deadline_s)
         return not self._stop_loop
 
+    def rehearse(self, replies: list[Reply], now_s: float) -> None:
+        """The host's work of one cycle at rest on ``replies`` (a measuring exchange's), with nothing sent: the
+        reference sampled where the arm holds, the set-points built (in torque mode with the feed-forward), the replies
+        absorbed, the tracking model stepped and the snapshot published. The rate check times it; :meth:`start`
+        restarts the tracking model from where the arm is.
+
+        Raises:
+            MotionError: :meth:`read_positions` has not run.
+        """
+        follower = self.follower
+        if follower is None:
+            raise MotionError("read_positions() must run before the rate check")
+        self.reference = ref = follower.sample(now_s)
+        self._build(ref)
+        self.absorb(replies)
+        self._track(now_s, ref, True)
+        self._publish(self.loop.cycles, now_s, False)
+
     # ------------------------------------------------------------------------------------------------ loop
 
     def start(self, cycle: CycleFn | None = None) -> None:
@@ -586,6 +604,8 @@ class Controller:
             cycle: the cycle function to run instead of :meth:`cycle` (a safety supervisor's guarded cycle).
         """
         self._stop_loop = False
+        # what the rate check's rehearsals taught the model is not the loop's history
+        self.tracking.reset(self.axes.q_deg, self.axes.qd_dps, self.reference.position)
         if cycle is not None:
             self.loop = FixedRateLoop(self.options.rate_hz, cycle, clock=self.clock)
         if is_simulated(self.clock):

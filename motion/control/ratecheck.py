@@ -6,8 +6,10 @@ Two figures are measured, with requests that move nothing:
   set-point, plus the cycle's 0x9A status read), repeated; from the first frame out to the last reply in, on the
   transport's clock (real time on hardware and real-time emulation, simulated time in a simulation);
 - **the host's own work per cycle** beyond the exchange (whose encoding and decoding the round trip already holds):
-  building the cycle's set-points (in torque mode with the feed-forward, i.e. Pinocchio), timed with the process's
-  performance counter. In a simulation the host's computation takes no simulated time, so it does not count there.
+  a guarded cycle at rest rehearsed on each measuring exchange's replies, with nothing sent - the set-points (in
+  torque mode with the feed-forward, i.e. Pinocchio), the replies absorbed, the tracking model, the watchdog with the
+  collision observer (Pinocchio again) - timed with the process's performance counter. In a simulation the host's
+  computation takes no simulated time, so it does not count there.
 
 A rate holds when, with the margin, the round trip fits the share of the period given to ``transact``
 (``reply_budget``) and round trip plus host work fit the period:
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Final
 
@@ -36,8 +39,7 @@ from motion.control.clock import is_simulated
 from motion.control.controller import Controller
 from motion.errors import ConfigError, TransportError
 from motion.protocol import Bare, Command
-from motion.trajectory import State
-from motion.transport.base import Request
+from motion.transport.base import Reply, Request
 
 #: Exchanges measured by default (a few dozen: about 0.1 s of bus time for six joints at 1 Mbit/s).
 DEFAULT_SAMPLES: Final = 40
@@ -135,8 +137,19 @@ class RateError(ConfigError):
         )
 
 
-def measure_rate(controller: Controller, *, margin: float = DEFAULT_MARGIN, samples: int | None = None) -> RateCheck:
-    """Measure the cycle's round trip and the host's work per cycle (before the loop starts).
+#: The host's work of one cycle at rest on a measuring exchange's replies at a time, s (nothing may be sent).
+Rehearsal = Callable[[list[Reply], float], None]
+
+
+def measure_rate(
+    controller: Controller,
+    *,
+    margin: float = DEFAULT_MARGIN,
+    samples: int | None = None,
+    rehearse: Rehearsal | None = None,
+) -> RateCheck:
+    """Measure the cycle's round trip and the host's work per cycle (after ``read_positions``, before the loop
+    starts).
 
     Only reads are sent: nothing moves. In a simulation the exchange is the same every time, so a few samples do
     (:data:`SIMULATED_SAMPLES`), which keeps the emulated arm's unattended time before the loop short.
@@ -145,10 +158,13 @@ def measure_rate(controller: Controller, *, margin: float = DEFAULT_MARGIN, samp
         controller: the controller (its bus, options and request builders).
         margin: the margin the rate must hold with.
         samples: exchanges to measure (default :data:`DEFAULT_SAMPLES`, or :data:`SIMULATED_SAMPLES`).
+        rehearse: the host's work of a cycle at rest (default the controller's alone,
+            :meth:`~motion.control.controller.Controller.rehearse`; the safety layer adds its watchdog's).
 
     Raises:
         TransportError: a drive did not answer the measuring reads.
         ValueError: fewer than 2 samples, or a margin below 1.
+        MotionError: ``read_positions`` has not run.
     """
     simulated = is_simulated(controller.clock)
     if samples is None:
@@ -162,8 +178,8 @@ def measure_rate(controller: Controller, *, margin: float = DEFAULT_MARGIN, samp
     clock, bus = controller.clock, controller.bus
     round_trips = np.empty(samples)
     host = np.zeros(samples)
-    # The set-points of a cycle at rest where the axes are (the builders' cost does not depend on the values).
-    reference = State.at_rest(controller.axes.q_deg.copy())
+    if rehearse is None:
+        rehearse = controller.rehearse
     for n in range(samples):
         start = clock.now()
         replies = bus.transact(batch, start + _EXCHANGE_TIMEOUT_S)
@@ -171,9 +187,9 @@ def measure_rate(controller: Controller, *, margin: float = DEFAULT_MARGIN, samp
         missing = sorted({r.motor_id for r in replies if r.message is None})
         if missing:
             raise TransportError(f"no reply to the rate check's reads from motor(s) {missing}")
+        t0 = time.perf_counter()
+        rehearse(replies, clock.now())
         if not simulated:
-            t0 = time.perf_counter()
-            controller.build_requests(reference)
             host[n] = time.perf_counter() - t0
     return RateCheck(
         rate_hz=controller.options.rate_hz,

@@ -167,6 +167,19 @@ class Watchdog:
         self._observed_s = math.nan
         self._restart_following()
 
+    def rehearse(self, replies: list[Reply], now_s: float) -> None:
+        """A guarded cycle's host work at rest on a measuring exchange's ``replies``, nothing sent (the rate check
+        times it, :func:`motion.control.ratecheck.measure_rate`): the controller's
+        (:meth:`~motion.control.controller.Controller.rehearse`), the set-point check and every monitor, the collision
+        observer included. A fault seen here is left to the loop's first cycle, whose watchdog starts afresh
+        (:meth:`start`), as does the observer."""
+        self.controller.rehearse(replies, now_s)
+        try:
+            self.check_setpoint(self.controller.reference)
+            self.evaluate(replies, now_s)
+        except MotionFault:
+            pass
+
     def check_setpoint(self, reference: State) -> None:
         """Refuse to send a planned set-point outside the joint limits.
 
