@@ -510,5 +510,5 @@ class Arm:
             )
             for i, spec in enumerate(controller.specs)
         )
-        fault = str(supervisor.fault) if supervisor.fault is not None else None
-        return ArmStatus(self.config.name, supervisor.state.value, fault, joints, controller.loop.statistics())
+        fault = str(snapshot.fault) if snapshot.fault is not None else None
+        return ArmStatus(self.config.name, snapshot.state, fault, joints, controller.loop.statistics())

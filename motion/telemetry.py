@@ -48,7 +48,7 @@ column             shape  dtype    meaning (unit)
 ``fault_halt_s``   F      float64  time its halt went out (s)
 ``fault_kind``     F      str      the fault kind (``following_error``, ``no_reply``, ..., ``close`` at the end)
 ``fault_joint``    F      str      the joint, ``""`` for arm-wide faults
-``fault_action``   F      str      the reaction: ``hold``, ``MOTOR_STOP`` (0x81) or ``MOTOR_OFF`` (0x80)
+``fault_action``   F      str      the reaction: ``hold``, ``comply``, ``MOTOR_STOP`` (0x81) or ``MOTOR_OFF`` (0x80)
 ``fault_text``     F      str      the fault's message
 =================  =====  =======  ==============================================================================
 
@@ -161,7 +161,7 @@ def _fault_columns(halts: Sequence[HaltRecord], t0_s: float) -> dict[str, NDArra
         "fault_halt_s": np.array([h.halt_sent_s - t0_s for h in halts], dtype=np.float64),
         "fault_kind": np.array([h.fault.kind for h in halts], dtype=np.str_),
         "fault_joint": np.array([h.fault.joint or "" for h in halts], dtype=np.str_),
-        "fault_action": np.array([h.policy for h in halts], dtype=np.str_),
+        "fault_action": np.array([h.reaction for h in halts], dtype=np.str_),
         "fault_text": np.array([str(h.fault) for h in halts], dtype=np.str_),
     }
 

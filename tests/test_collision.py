@@ -21,8 +21,7 @@ from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.ratecheck import RateError
 from motion.emulator import Emulator, Fault, InjectedFault, parse_fault
 from motion.errors import ConfigError, FaultKind, MotionFault
-from motion.protocol import Command
-from motion.safety import ArmState
+from motion.safety import ArmState, Reaction
 from motion.telemetry import TelemetryOptions
 from tests.collision_trials import (
     collision_trial,
@@ -232,7 +231,7 @@ def test_comply_yields_to_the_push_and_clears(tmp_path: Path) -> None:
         emulator.add_fault(Fault(InjectedFault.COLLISION, elbow.motor_id, now, now + 0.1, torque * elbow.direction))
         arm.sleep(0.1)
         assert supervisor.fault is not None and supervisor.fault.kind == "collision"
-        assert supervisor.state is ArmState.COMPLYING and supervisor.halts[0].policy == "comply"
+        assert supervisor.state is ArmState.COMPLYING and supervisor.halts[0].reaction is Reaction.COMPLY
         assert arm.positions()["elbow_pitch"] - before > 1.0  # it yields in the push's direction (gains zero)
         assert all(drive.state.value == "running" for drive in emulator.drives.values())  # streaming, not halted
         assert not supervisor.controller.kp.any() or supervisor.controller.torque_nm is not None
@@ -267,7 +266,7 @@ def test_comply_falls_back_to_stop_when_communication_fails() -> None:
         arm.sleep(0.1)
         assert supervisor.fault is not None and supervisor.fault.kind == "no_reply"
         assert supervisor.state.value in ("halting", "halted")
-        assert supervisor.halts[-1].policy == Command.MOTOR_STOP.name
+        assert supervisor.halts[-1].reaction is Reaction.MOTOR_STOP
 
 
 def test_comply_in_position_mode_halts() -> None:

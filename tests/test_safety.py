@@ -23,7 +23,7 @@ from motion.control.controller import Controller
 from motion.emulator import Fault, InjectedFault
 from motion.errors import MotionError, MotionFault, PlanningError, TransportError
 from motion.protocol import Command, MultiTurnPositionSpeed
-from motion.safety import ArmEvent, ArmState, InvalidTransition, StateMachine, Supervisor
+from motion.safety import ArmEvent, ArmState, InvalidTransition, Reaction, StateMachine, Supervisor
 from motion.safety.states import SAFE_STATE, TRANSITIONS
 from motion.trajectory import JointLimits, Planner, State
 from motion.trajectory import Path as TrajectoryPath
@@ -202,7 +202,7 @@ def test_following_error_with_hold_policy(tmp_path: Path) -> None:
         assert info.value.kind == "following_error" and info.value.joint == "shoulder"
         assert info.value.value is not None and info.value.value > config.safety.following_error_deg
         halt = supervisor.halts[0]
-        assert halt.policy == "hold" and halt.halt_sent_s - halt.detected_s < rig.controller.period_s
+        assert halt.reaction is Reaction.HOLD and halt.halt_sent_s - halt.detected_s < rig.controller.period_s
         assert not received(rig, Command.MOTOR_STOP)  # hold streams a stop ramp instead of 0x81
         _assert_comes_to_rest(rig)
         held = rig.plant.joint_positions_deg()
@@ -237,7 +237,7 @@ def test_hold_that_cannot_start_halts_every_axis(tmp_path: Path, monkeypatch: py
         )
         assert fault.kind == "low_voltage"
         halt = supervisor.halts[0]
-        assert halt.policy == "MOTOR_STOP"
+        assert halt.reaction is Reaction.MOTOR_STOP
         _assert_halted_in_detection_cycle(rig)
         _assert_comes_to_rest(rig)
         stopped = rig.plant.joint_positions_deg()

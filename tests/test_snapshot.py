@@ -8,6 +8,7 @@ import pytest
 
 from motion.api import Arm
 from motion.control.snapshot import CycleSnapshot
+from motion.errors import FaultKind, MotionFault
 from tests.motion_rig import arm_config
 
 
@@ -55,3 +56,33 @@ def test_motion_handle_progress_runs_from_zero_to_done() -> None:
         assert all(not p.done for p in seen)
         end = handle.progress()
         assert end.done and end.fraction == 1.0
+
+
+def test_the_state_fault_and_loop_counters_are_published_with_each_transition() -> None:
+    with Arm(arm_config("arm2.yaml", rate_hz=200), emulate=True) as arm:
+        controller, supervisor = arm.controller, arm.supervisor
+        assert controller is not None and supervisor is not None
+        assert controller.snapshot.state == "ready" and controller.snapshot.fault is None
+        handle = arm.move_to({"shoulder": 30.0}, speed_scale=0.5, wait=False)
+        moving = controller.snapshot  # MOVE is published at once, before the next cycle ran
+        assert moving.state == "moving" and moving.fault is None
+        arm.sleep(0.1)
+        assert controller.snapshot.state == "moving" and controller.snapshot.cycle > moving.cycle
+        assert controller.snapshot.overruns == 0 and controller.snapshot.skipped_cycles == 0  # simulated time
+        before = controller.snapshot
+        arm.stop()  # the E-stop: 0x81 to every axis
+        with pytest.raises(MotionFault):
+            handle.wait()
+        halted = controller.snapshot
+        assert halted.state in ("halting", "halted") and halted.fault is supervisor.fault
+        assert halted.fault is not None and halted.fault.kind is FaultKind.STOP
+        assert before.state == "moving" and before.fault is None  # what a reader holds never changes
+        status = arm.status()
+        assert status.state == halted.state and status.fault == str(halted.fault)
+        arm.sleep(0.05)
+        settled = controller.snapshot
+        assert settled.state == "halted" and settled.fault is halted.fault
+        arm.clear()
+        cleared = controller.snapshot
+        assert cleared.state == "ready" and cleared.fault is None
+    assert controller.snapshot.state == "closed"

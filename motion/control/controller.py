@@ -30,7 +30,7 @@ from motion.control.clock import Clock, MonotonicClock, is_simulated
 from motion.control.scheduler import CycleFn, FixedRateLoop, LoopStatistics
 from motion.control.snapshot import JOINT_ROWS, CycleSnapshot, frozen
 from motion.control.tracking import ExpectedTracking
-from motion.errors import MotionError, PlanningError, TransportError
+from motion.errors import MotionError, MotionFault, PlanningError, TransportError
 from motion.protocol import (
     Bare,
     Command,
@@ -126,9 +126,10 @@ _NEW_REQUEST: Final = frozen_builder(Request)
 _NEW_POSITION: Final = frozen_builder(MultiTurnPositionSpeed)
 _NEW_TORQUE: Final = frozen_builder(TorqueControl)
 # The snapshot from its six fields in one tuple (what the named tuple's own constructor does, minus a call).
-_new_snapshot: Final[Callable[[tuple[int, float, NDArray[np.float64], bool, float, float]], CycleSnapshot]] = (
-    functools.partial(tuple.__new__, CycleSnapshot)
-)
+_SnapshotFields: TypeAlias = tuple[
+    int, float, NDArray[np.float64], bool, float, float, str, MotionFault | None, int, int, float
+]
+_new_snapshot: Final[Callable[[_SnapshotFields], CycleSnapshot]] = functools.partial(tuple.__new__, CycleSnapshot)
 _NEW_MULTI_TORQUE: Final = frozen_builder(MultiMotorTorque)
 
 
@@ -217,6 +218,10 @@ class Controller:
         n = len(self.specs)
         #: The arm after the latest cycle (replaced, never changed: any thread may read it without a lock).
         self.snapshot = CycleSnapshot(0, math.nan, frozen([np.zeros(n)] * len(JOINT_ROWS)), False)
+        # the arm's state and fault as the safety layer last set them (:meth:`set_condition`), and the lock that
+        # keeps a transition from another thread and the loop's next snapshot from overwriting each other
+        self._condition: tuple[str, MotionFault | None] = ("ready", None)
+        self._publish_lock = threading.Lock()
         self.cycle_hooks: list[Callable[[Controller, float, list[Reply]], None]] = []
         # The 0x280 frame commands motors 1..4 whether they belong to the arm or not, so it is used only when all
         # four are joints of this arm: a foreign drive on the bus is never switched into torque mode.
@@ -557,19 +562,35 @@ class Controller:
 
     def _publish(self, cycle: int, start_s: float, commanded: bool) -> None:
         """Replace :attr:`snapshot` with this cycle's (one stacked copy: the loop never waits on a reader)."""
-        axes, follower = self.axes, self.follower
+        axes, follower, loop = self.axes, self.follower, self.loop
         path = follower.path if follower is not None else None
         end = follower.end_time() if follower is not None and path is not None else math.nan
-        self.snapshot = _new_snapshot(
-            (
-                cycle,
-                start_s,
-                frozen((axes.q_deg, axes.qd_dps, self.reference.position, axes.iq_a, axes.temperature_c, axes.fresh)),
-                commanded,
-                end - path.duration_s if path is not None else math.nan,
-                end,
+        joints = frozen((axes.q_deg, axes.qd_dps, self.reference.position, axes.iq_a, axes.temperature_c, axes.fresh))
+        start = end - path.duration_s if path is not None else math.nan
+        with self._publish_lock:
+            state, fault = self._condition
+            self.snapshot = _new_snapshot(
+                (
+                    cycle,
+                    start_s,
+                    joints,
+                    commanded,
+                    start,
+                    end,
+                    state,
+                    fault,
+                    loop.overruns,
+                    loop.skipped_cycles,
+                    loop.wake_jitter_s,
+                )
             )
-        )
+
+    def set_condition(self, state: str, fault: MotionFault | None) -> None:
+        """The arm's state and fault changed (the safety layer's transition, in any thread): publish them at once in
+        a copy of the latest snapshot, and in every snapshot from now on."""
+        with self._publish_lock:
+            self._condition = (state, fault)
+            self.snapshot = self.snapshot._replace(state=state, fault=fault)
 
     def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
         """One unguarded control cycle (the scheduler calls it at ``start_s``); see :mod:`motion.safety` for the

@@ -16,6 +16,8 @@ from typing import Any, NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from motion.errors import MotionFault
+
 #: Rows of :attr:`CycleSnapshot.joints`, in this order (``fresh`` as 1.0 / 0.0).
 JOINT_ROWS = ("position_deg", "velocity_dps", "reference_deg", "iq_a", "temperature_c", "fresh")
 
@@ -32,6 +34,12 @@ class CycleSnapshot(NamedTuple):
         commanded: set-points were sent in this cycle (False while halted: reads only).
         motion_start_s: start of the motion being played, s (NaN when none is).
         motion_end_s: its end, s (NaN when none is).
+        state: the arm's state (``motion.safety.ArmState`` value: ``ready``, ``moving``, ``halting`` ...); a
+            transition between cycles is published at once, in a copy of the cycle's snapshot.
+        fault: the fault the arm is halted or holding for (None when it is not).
+        overruns: cycles so far that ended after the next one's start.
+        skipped_cycles: grid points skipped so far to catch up.
+        jitter_s: this cycle's wake-up time minus its scheduled start, s.
     """
 
     cycle: int
@@ -40,6 +48,11 @@ class CycleSnapshot(NamedTuple):
     commanded: bool
     motion_start_s: float = math.nan
     motion_end_s: float = math.nan
+    state: str = "ready"
+    fault: MotionFault | None = None
+    overruns: int = 0
+    skipped_cycles: int = 0
+    jitter_s: float = 0.0
 
     @property
     def fresh(self) -> NDArray[np.bool_]:

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
-from motion.safety.supervisor import HaltRecord, Supervisor
+from motion.safety.supervisor import HaltRecord, Reaction, Supervisor
 from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
 
 __all__ = [
@@ -12,6 +12,7 @@ __all__ = [
     "CollisionObserver",
     "HaltRecord",
     "InvalidTransition",
+    "Reaction",
     "SafetySettings",
     "StateMachine",
     "Supervisor",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from enum import Enum
 from typing import Final
 
@@ -96,9 +97,13 @@ class InvalidTransition(MotionError):
 class StateMachine:
     """Thread-safe holder of the arm state, driven only through :data:`TRANSITIONS`."""
 
-    def __init__(self, initial: ArmState = ArmState.READY) -> None:
+    def __init__(
+        self, initial: ArmState = ArmState.READY, on_change: Callable[[ArmState], None] | None = None
+    ) -> None:
         self._state = initial
         self._lock = threading.Lock()
+        #: Called with the new state after every transition (the safe state too), under the machine's lock.
+        self.on_change = on_change
 
     @property
     def state(self) -> ArmState:
@@ -117,7 +122,12 @@ class StateMachine:
             if nxt is None:
                 previous = self._state
                 if previous not in _FINAL:
-                    self._state = SAFE_STATE
+                    self._set(SAFE_STATE)
                 raise InvalidTransition(f"event {event.value!r} is not allowed in state {previous.value!r}")
-            self._state = nxt
+            self._set(nxt)
             return nxt
+
+    def _set(self, state: ArmState) -> None:
+        self._state = state
+        if self.on_change is not None:
+            self.on_change(state)

@@ -28,6 +28,8 @@ import threading
 import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
+from enum import StrEnum
+from typing import Final
 
 from motion.config.schema import HaltPolicy
 from motion.control.controller import Controller, Feedforward
@@ -45,15 +47,28 @@ logger = logging.getLogger("motion.safety")
 _HALT_WINDOW_S = 0.002
 
 
+class Reaction(StrEnum):
+    """What the supervisor did about a fault (telemetry's ``fault_action``)."""
+
+    HOLD = "hold"  #: a jerk-limited stop ramp of the reference, then held (``halt_policy: hold``)
+    COMPLY = "comply"  #: gravity compensation with zero gains (``collision_reaction: comply``)
+    MOTOR_STOP = Command.MOTOR_STOP.name  #: 0x81 to every axis: the drives stop themselves
+    MOTOR_OFF = Command.MOTOR_OFF.name  #: 0x80 to every axis: the drives release their torque (``halt_policy: off``)
+
+
 @dataclass(frozen=True, slots=True)
 class HaltRecord:
-    """When a fault was detected and when its halt went out (controller clock, seconds; cycle index)."""
+    """When a fault was detected and when its halt went out (controller clock, seconds; cycle index), and how."""
 
     fault: MotionFault
     cycle: int
     detected_s: float
     halt_sent_s: float
-    policy: str
+    reaction: Reaction
+
+
+#: The reactions that a state stands for (any other: the halt command that went out).
+_REACTIONS: Final = {ArmState.HOLDING: Reaction.HOLD, ArmState.COMPLYING: Reaction.COMPLY}
 
 
 class Supervisor:
@@ -79,9 +94,9 @@ class Supervisor:
         self.settings = settings
         self.watchdog = Watchdog(controller, settings, observer)
         self.gravity = gravity
-        self.machine = StateMachine(ArmState.READY)
+        self._fault: MotionFault | None = None
+        self.machine = StateMachine(ArmState.READY, on_change=self._publish_condition)
         self.ids = tuple(s.motor_id for s in controller.specs)
-        self.fault: MotionFault | None = None
         self.faults: list[MotionFault] = []
         self.halts: list[HaltRecord] = []
         #: Drives that have not acknowledged the halt yet (in HALTING).
@@ -105,6 +120,20 @@ class Supervisor:
     def state(self) -> ArmState:
         """The arm's state."""
         return self.machine.state
+
+    @property
+    def fault(self) -> MotionFault | None:
+        """The fault the arm is halted or holding for (None when it is not)."""
+        return self._fault
+
+    @fault.setter
+    def fault(self, fault: MotionFault | None) -> None:
+        self._fault = fault
+        self._publish_condition(self.machine.state)
+
+    def _publish_condition(self, state: ArmState) -> None:
+        """State and fault into the published snapshot (:meth:`Controller.set_condition`)."""
+        self.controller.set_condition(state.value, self._fault)
 
     def start(self) -> None:
         """Start the guarded loop (closing the bus first halts every axis and ends the loop)."""
@@ -329,8 +358,8 @@ class Supervisor:
             self._send_failed(exc, detected, deadline_s, policy)
         except Exception as exc:  # the state is HALTING: the next cycle sends the halt again
             logger.error("halt could not be sent: %s: %s", type(exc).__name__, exc)
-        reaction = {ArmState.HOLDING: "hold", ArmState.COMPLYING: "comply"}.get(self.machine.state)
-        self.halts.append(HaltRecord(fault, k, detected, sent, reaction or self._halt_code.name))
+        reaction = _REACTIONS.get(self.machine.state) or Reaction(self._halt_code.name)
+        self.halts.append(HaltRecord(fault, k, detected, sent, reaction))
 
     def _policy(self, fault: MotionFault) -> HaltPolicy:
         """The reaction configured for ``fault``: the collision reaction for a collision, else the halt policy."""
@@ -471,7 +500,7 @@ class Supervisor:
                 self.faults.append(unsent)
                 logger.error("halting every axis: %s", unsent)
                 sent = self._start_halt(now, deadline_s)
-                self.halts.append(HaltRecord(unsent, -1, now, sent, self._halt_code.name))
+                self.halts.append(HaltRecord(unsent, -1, now, sent, Reaction(self._halt_code.name)))
                 return
             if now < self._halt_until_s:
                 try:
