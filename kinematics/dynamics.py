@@ -74,11 +74,30 @@ def aba(arm: ArmModel, q_deg: ArrayLike, qd_dps: ArrayLike, tau_nm: ArrayLike) -
     return np.rad2deg(qdd, out=qdd)
 
 
+def _crba_fills_lower_triangle() -> bool:
+    """Whether this Pinocchio's ``crba`` returns all of M (4.1 does) or only its upper triangle (older releases; pin
+    2.7 and later is what pyproject allows). Asked once, of Pinocchio's sample manipulator. Exit plan: once pyproject
+    requires a release that fills M, drop this and :func:`crba_full`'s symmetrising branch."""
+    model = pin.buildSampleModelManipulator()
+    mass = pin.crba(model, model.createData(), pin.neutral(model) + 0.5)
+    return bool(np.abs(np.tril(mass, -1)).max() > 0.0)
+
+
+_CRBA_FULL = _crba_fills_lower_triangle()
+
+
+def crba_full(model: pin.Model, data: pin.Data, q: FloatArray) -> FloatArray:
+    """M(q) in model order and SI units, every entry filled (Pinocchio's own array when it fills them)."""
+    mass: FloatArray = pin.crba(model, data, q)
+    if not _CRBA_FULL:
+        mass = np.triu(mass) + np.triu(mass, 1).T
+    return mass
+
+
 def mass_matrix(arm: ArmModel, q_deg: ArrayLike) -> FloatArray:
     """Joint-space inertia matrix M(q) in N·m per deg/s² (kg·m² × π/180), so that ``M @ qdd_dps2`` is N·m."""
     q = _model_order(arm, q_deg, "q_deg")
-    upper = pin.crba(arm.model, arm.data, q)  # older Pinocchio releases fill only the upper triangle
-    full = np.triu(upper) + np.triu(upper, 1).T
+    full = crba_full(arm.model, arm.data, q)
     result: FloatArray = full[np.ix_(arm.to_config, arm.to_config)] * (math.pi / 180.0)
     return result
 

@@ -31,6 +31,7 @@ import numpy as np
 import pinocchio as pin
 from numpy.typing import ArrayLike, NDArray
 
+from kinematics.dynamics import crba_full
 from kinematics.model import ArmModel, build_arm
 from kinematics.plant import COULOMB_SMOOTHING_DPS
 from motion.config import ArmConfig
@@ -93,9 +94,7 @@ class MomentumObserver:
         self._v *= _RAD_PER_DEG
 
     def _momentum(self) -> None:
-        mass = pin.crba(self._model, self._data, self._q)
-        # older Pinocchio releases fill only the upper triangle of M
-        np.dot(np.triu(mass) + np.triu(mass, 1).T, self._v, out=self._p)
+        np.dot(crba_full(self._model, self._data, self._q), self._v, out=self._p)
 
     def reset(self, q_deg: ArrayLike, qd_dps: ArrayLike) -> None:
         """Start (again) at this state: p0 = M(q) q̇, the residual zero."""

@@ -124,6 +124,8 @@ class Watchdog:
         self.last_good_s = np.full(n, np.nan)
         self._missing = np.zeros(n, dtype=bool)
         self._answered = np.zeros(n, dtype=bool)
+        self._good = np.zeros(n, dtype=bool)  # answered this cycle with nothing missing
+        self._silent = np.zeros(n)  # time since the last good reply, s
         self._bad_seen = np.zeros(n, dtype=np.int64)
         self._corrupt: list[collections.deque[float]] = [collections.deque() for _ in range(n)]
         self._overruns_seen = 0
@@ -346,13 +348,14 @@ class Watchdog:
         np.greater(error, _MOVING_DPS, out=moving)
         np.subtract(expected_dps, qd, out=slip)
         np.divide(slip, expected_dps, out=slip, where=moving)
-        np.clip(slip, 0.0, 1.0, out=slip)
+        np.minimum(slip, 1.0, out=slip)
+        np.maximum(slip, 0.0, out=slip)
         slip *= moving
         slip *= tracking.lag_deg
         np.subtract(tracking.expected_deg, q, out=error)
         error += slip
         np.abs(error, out=error)
-        worst = int(np.argmax(error))
+        worst = int(error.argmax())
         limit = self.settings.following_error_deg
         if error[worst] <= limit:
             return None
@@ -378,11 +381,12 @@ class Watchdog:
 
     def _check_replies(self, now_s: float) -> None:
         settings = self.settings
-        missed = self._missing
-        self.misses[missed] += 1
-        self.misses[~missed & self._answered] = 0
-        self.last_good_s[self._answered & ~missed] = now_s
-        worst = int(np.argmax(self.misses))
+        missed, good, misses = self._missing, self._good, self.misses
+        np.greater(self._answered, missed, out=good)  # answered and nothing missing
+        np.add(misses, 1, out=misses, where=missed)
+        np.copyto(misses, 0, where=good)
+        np.copyto(self.last_good_s, now_s, where=good)
+        worst = int(misses.argmax())
         if self.misses[worst] > settings.max_missed_replies:
             raise self._fault(
                 FaultKind.NO_REPLY,
@@ -391,8 +395,8 @@ class Watchdog:
                 float(settings.max_missed_replies),
                 "consecutive misses",
             )
-        silent = now_s - self.last_good_s
-        worst = int(np.argmax(silent))
+        silent = np.subtract(now_s, self.last_good_s, out=self._silent)
+        worst = int(silent.argmax())
         if silent[worst] > settings.reply_timeout_s:
             raise self._fault(
                 FaultKind.NO_REPLY,
