@@ -108,6 +108,7 @@ class ExpectedTracking:
         self.torque_limit_nm = np.array(
             [abs(t.nm_per_a) * t.current_limit_a for t in transmission.transmissions], dtype=np.float64
         )
+        self._negative_limit_nm = -self.torque_limit_nm
         self.expected_deg = np.zeros(n)
         self.expected_dps = np.zeros(n)
         self.lag_deg = np.zeros(n)
@@ -375,7 +376,8 @@ class ExpectedTracking:
             np.multiply(self._ref_a, _RAD_PER_DEG, out=e)
             np.dot(mass, e, out=self._w)
             tau += self._w
-        np.clip(tau, -self.torque_limit_nm, self.torque_limit_nm, out=tau)
+        np.minimum(tau, self.torque_limit_nm, out=tau)
+        np.maximum(tau, self._negative_limit_nm, out=tau)
         np.dot(self._mass_inv, tau, out=self._accel_dps2)
         self._accel_dps2 *= _DEG_PER_RAD
 
@@ -433,7 +435,8 @@ def chase(
         np.minimum(s, cap, out=s)
         np.copysign(s, e, out=s)  # the speed the drive asks for
         np.subtract(s, v, out=w)
-        np.clip(w, no_slew, slew, out=w)  # slewed at the acceleration limit
+        np.minimum(w, slew, out=w)  # slewed at the acceleration limit (np.clip's wrapper costs more than both)
+        np.maximum(w, no_slew, out=w)
         v += w
         np.multiply(v, h, out=w)
         x += w
