@@ -136,11 +136,12 @@ def test_missing_reply_is_reported_explicitly_by_the_deadline(channel: str) -> N
 
 
 def test_late_reply_arriving_during_the_next_cycle_is_stale_not_matched(channel: str) -> None:
-    # Motor 1's first reply comes 100 ms late: after cycle 1's deadline, in the middle of cycle 2.
-    with rig(channel, {1: Script(delays_s=[0.1])}) as (transport, _):
+    # Motor 1's first reply comes 300 ms late: after cycle 1's deadline (30 ms, with room for a host that keeps the
+    # test waiting a while), in the middle of cycle 2.
+    with rig(channel, {1: Script(delays_s=[0.3])}) as (transport, _):
         first = transport.transact([status2(1), status2(2)], transport.clock() + 0.03)
         assert [r.ok for r in first] == [False, True]
-        second = transport.transact([status2(1), status2(2)], transport.clock() + 0.5)
+        second = transport.transact([status2(1), status2(2)], transport.clock() + 1.0)
         assert [r.ok for r in second] == [True, True]
         assert [tag_of(r.message) for r in second] == [2, 2]  # the answer to cycle 2, not the late one
         c = transport.counters[1]

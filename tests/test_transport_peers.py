@@ -24,8 +24,10 @@ from motion.transport import Request, Transport
 
 PayloadT = TypeVar("PayloadT")
 
-#: Slack on top of a deadline that a loaded 2-core machine meets.
-MARGIN_S = 0.05
+#: Slack on top of a deadline that a loaded host meets: a CPU shared with busy loops (../shared/tools/slow-host) can
+#: keep a thread waiting a tenth of a second. What the asserts tell apart is "returned at its deadline" from "waited
+#: for the reply that never comes" (the scripted silent drive never answers).
+MARGIN_S = 0.25
 
 
 def status2(motor_id: int) -> Request:
