@@ -5,7 +5,8 @@ guarded cycle, which adds the watchdog (every monitor, the lag-aware following e
 Pinocchio's crba and Coriolis matrix). This times both halves on the example arms, connected to emulated drives in
 simulated time, each on the replies of one real cycle-shaped exchange, with nothing sent:
 
-- `Controller.rehearse`: reference sample, set-points (torque mode: PD + feed-forward), absorb, tracking model, snapshot;
+- `Controller.rehearse`: reference sample, set-points (torque mode: PD + feed-forward), absorb, tracking model,
+  snapshot;
 - `Watchdog.rehearse`: the above plus the set-point check and every monitor of the watchdog.
 
     .venv/bin/python bench/guarded_cycle.py [--cycles 3000]

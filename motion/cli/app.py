@@ -21,6 +21,7 @@ from motion.cli.common import (
     Interrupts,
     UsageError,
     add_bus_arguments,
+    add_emulate_flag,
     speed_scale_arg,
 )
 from motion.cli.protocol_demo import protocol_demo
@@ -133,6 +134,7 @@ def _json(parser: argparse.ArgumentParser) -> None:
 
 def _motion_options(parser: argparse.ArgumentParser, speed_scale: str) -> None:
     parser.add_argument("--speed-scale", type=speed_scale_arg, default=1.0, metavar="S", help=speed_scale)
+    add_emulate_flag(parser)
     parser.add_argument("--log", metavar="FILE.npz", help="record every control cycle (see `rmd-motion plot`)")
     parser.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
     _json(parser)

@@ -18,7 +18,7 @@ from typing import Final
 import numpy as np
 
 from motion.api import Arm
-from motion.cli.common import EXIT_OK, Interrupts, Session, print_json, print_table
+from motion.cli.common import EXIT_OK, Interrupts, Session, add_emulate_flag, print_json, print_table
 from motion.cli.moves import run_program, with_arm
 from motion.cli.program import load_program
 from motion.config import ArmConfig, write_joint_values
@@ -62,9 +62,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"threshold = largest |signal| × M (>= 1, default {DEFAULT_MARGIN:g})",
     )
     parser.add_argument("--write", metavar="OUT.yaml", help="write a copy of the configuration with the thresholds")
-    parser.add_argument(
-        "--emulate", action="store_true", help="run on the configuration's emulated drives, in simulated time"
-    )
+    add_emulate_flag(parser)
     parser.add_argument("--log", metavar="FILE.npz", help="record every control cycle (see `rmd-motion plot`)")
     parser.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout (for scripts)")

@@ -180,6 +180,16 @@ def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
     bus.add_argument("--port", metavar="DEVICE", help="RS485: serial device (/dev/ttyUSB0, a pty, ...)")
 
 
+def add_emulate_flag(parser: argparse.ArgumentParser) -> None:
+    """``--emulate``: the command runs on the configuration's emulated drives in simulated time (no port opened)."""
+    parser.add_argument(
+        "--emulate",
+        action="store_true",
+        help="run on the configuration's emulated drives, in simulated time: a dry run that opens no port and gives "
+        "the same result on every host",
+    )
+
+
 # ---------------------------------------------------------------------------------------------------- joints
 
 

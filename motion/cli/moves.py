@@ -14,7 +14,7 @@ from collections.abc import Callable, Mapping
 from typing import Any, Final, TextIO
 
 from motion.api import Arm, MotionHandle
-from motion.cli.common import EXIT_OK, Interrupts, Session, parse_targets, print_json, warn
+from motion.cli.common import EXIT_OK, Interrupts, Session, UsageError, parse_targets, print_json, warn
 from motion.cli.program import MoveStep, PathStep, Program, WaitStep, load_program
 from motion.config import ArmConfig
 from motion.errors import MotionError, MotionFault
@@ -68,14 +68,15 @@ def wait_with_progress(arm: Arm, handle: MotionHandle, label: str) -> float:
         MotionFault: a fault halted every axis.
     """
     progress = Progress(label, sys.stderr)
-    start = time.monotonic()
+    now_s = _arm_clock(arm)
+    start = now_s()
     outcome = "ended"
     try:
         while not handle.wait(POLL_S):
             now = handle.progress()
             if now.duration_s > 0:
                 progress.update(now.elapsed_s, now.duration_s)
-        outcome = f"done in {time.monotonic() - start:.2f} s"
+        outcome = f"done in {now_s() - start:.2f} s"
     except KeyboardInterrupt:
         outcome = "interrupted"
         raise
@@ -84,7 +85,13 @@ def wait_with_progress(arm: Arm, handle: MotionHandle, label: str) -> float:
         raise
     finally:
         progress.close(outcome)
-    return time.monotonic() - start
+    return now_s() - start
+
+
+def _arm_clock(arm: Arm) -> Callable[[], float]:
+    """The arm's own clock (simulated time with ``--emulate``, the monotonic clock on hardware), s."""
+    controller = arm.controller
+    return controller.clock.now if controller is not None else time.monotonic
 
 
 def hold_for(arm: Arm, seconds: float) -> None:
@@ -123,7 +130,13 @@ def with_arm(
         OSError: a telemetry file cannot be created (before anything moves) or written.
     """
     telemetry = TelemetryOptions(args.log, args.trace) if args.log or args.trace else None
-    arm = Arm(config or session.config, bus_overrides=session.overrides, telemetry=telemetry, **options)
+    overrides = session.overrides
+    if options.get("emulate"):
+        if overrides:
+            given = ", ".join(f"--{name}" for name in overrides if name != "sleep_after_open")
+            raise UsageError(f"--emulate opens no port: drop {given}")
+        overrides = {}
+    arm = Arm(config or session.config, bus_overrides=overrides, telemetry=telemetry, **options)
     try:
         with interrupts.deferred():  # a signal while connecting is raised once the loop runs (or connect failed)
             arm.connect()
@@ -165,7 +178,7 @@ def move(args: argparse.Namespace, interrupts: Interrupts) -> int:
             _print_positions(arm, wall)
         return EXIT_OK
 
-    return with_arm(args, session, interrupts, body)
+    return with_arm(args, session, interrupts, body, emulate=args.emulate)
 
 
 def run_program(arm: Arm, program: Program, speed_scale: float) -> None:
@@ -193,13 +206,14 @@ def run(args: argparse.Namespace, interrupts: Interrupts) -> int:
     program = load_program(args.program, session.config)
 
     def body(arm: Arm) -> int:
-        start = time.monotonic()
+        now_s = _arm_clock(arm)
+        start = now_s()
         run_program(arm, program, args.speed_scale)
-        wall = time.monotonic() - start
+        wall = now_s() - start
         if args.json:
             print_json(_summary("run", arm, wall, {"program": program.source, "steps": len(program.steps)}))
         else:
             _print_positions(arm, wall)
         return EXIT_OK
 
-    return with_arm(args, session, interrupts, body)
+    return with_arm(args, session, interrupts, body, emulate=args.emulate)

@@ -1,0 +1,73 @@
+"""``move`` and ``run`` with ``--emulate``: the configuration's emulated drives in simulated time, in the command's own
+process (issue 11: what the command line prints is checked where the result does not depend on the host; the
+real-time runs against ``rmd-motion emulate`` in another process are in ``tests/test_cli.py``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from motion.cli import main
+from motion.telemetry import load_log
+
+PROGRAM = (
+    "steps:\n"
+    "  - move: {shoulder: 10, elbow: 15}\n"
+    "    speed_scale: 0.8\n"
+    "  - wait: 0.2\n"
+    "  - path: [{shoulder: 0}, {shoulder: -10, elbow: 5}]\n"
+)
+
+
+def _run(capsys: pytest.CaptureFixture[str], *argv: str | Path) -> tuple[int, str, str]:
+    code = main([str(a) for a in argv])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_an_emulated_move_lands_where_commanded_and_prints_the_same_on_every_run(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    runs = [_run(capsys, "move", "--config", "arm2.yaml", "--emulate", "shoulder=30", "elbow=-20", "--json")]
+    runs.append(_run(capsys, "move", "--config", "arm2.yaml", "--emulate", "shoulder=30", "elbow=-20", "--json"))
+    (code, out, err), again = runs
+    assert code == 0, err
+    assert again == runs[0]  # simulated time: the same figures, the same progress lines, to the digit
+    summary = json.loads(out)
+    joints = {j["name"]: j for j in summary["status"]["joints"]}
+    assert joints["shoulder"]["position_deg"] == pytest.approx(30.0, abs=0.2)
+    assert joints["elbow"]["position_deg"] == pytest.approx(-20.0, abs=0.2)
+    assert summary["status"]["state"] == "ready" and summary["status"]["fault"] is None
+    # the duration is the arm's clock (simulated): the planned move, to the cycle
+    planned = float(err.split("move: ")[1].split(" s planned")[0])
+    assert summary["duration_s"] == pytest.approx(planned, abs=0.01)
+    assert f"move: done in {summary['duration_s']:.2f} s" in err
+
+
+def test_an_emulated_program_runs_every_step_and_records_its_cycles(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    program = tmp_path / "program.yaml"
+    program.write_text(PROGRAM)
+    log = tmp_path / "run.npz"
+    code, out, err = _run(capsys, "run", "--config", "arm2.yaml", "--emulate", program, "--json", "--log", log)
+    assert code == 0, err
+    for label in ("step 1/3 move: done", "step 2/3 wait: 0.2 s", "step 3/3 path (2 waypoints): done"):
+        assert label in err
+    summary = json.loads(out)
+    assert summary["command"] == "run" and summary["steps"] == 3
+    reached = {j["name"]: j["position_deg"] for j in summary["status"]["joints"]}
+    assert reached == pytest.approx({"shoulder": -10.0, "elbow": 5.0}, abs=0.3)
+    recorded = load_log(log)
+    t = recorded["t_s"]
+    # one row per cycle of the configured rate, no cycle late or skipped (simulated time)
+    assert np.allclose(np.diff(t), 1.0 / recorded.meta["rate_hz"])
+    assert recorded["q_deg"][-1] == pytest.approx([-10.0, 5.0], abs=0.3)
+
+
+def test_emulate_refuses_bus_overrides(capsys: pytest.CaptureFixture[str]) -> None:
+    code, _, err = _run(capsys, "move", "--config", "arm2.yaml", "--emulate", "--interface", "slcan", "shoulder=5")
+    assert code == 2 and "--emulate opens no port: drop --interface" in err
