@@ -7,6 +7,7 @@ types and ranges. Every problem raises :class:`~motion.errors.ConfigError` namin
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import math
 import os
@@ -155,6 +156,20 @@ def _to_vector3(value: object) -> schema.Vec3:
     return (items[0], items[1], items[2])
 
 
+def _to_interval(value: object) -> tuple[float, float]:
+    if not isinstance(value, list | tuple) or len(value) != 2:
+        raise _Invalid(f"expected a list of 2 numbers [min, max]; found {_describe(value)}")
+    items: list[float] = []
+    for i, item in enumerate(value):
+        try:
+            items.append(_to_number(item))
+        except _Invalid as exc:
+            raise _Invalid(exc.message, f"[{i}]") from None
+    if items[0] >= items[1]:
+        raise _Invalid(f"expected [min, max] with min < max; found [{items[0]:g}, {items[1]:g}]")
+    return (items[0], items[1])
+
+
 class _Node:
     """A YAML mapping being read into one of the schema dataclasses.
 
@@ -250,6 +265,10 @@ class _Node:
     def vector3(self, key: str) -> schema.Vec3:
         """A list of three finite numbers."""
         return self._read(key, "a list of 3 numbers", _to_vector3, None)
+
+    def interval(self, key: str) -> tuple[float, float]:
+        """A list of two finite numbers, the first smaller."""
+        return self._read(key, "a list of 2 numbers [min, max]", _to_interval, None)
 
     def child(self, key: str, *schemas: type[Any], extra: Iterable[str] = ()) -> _Node:
         """The sub-mapping ``key`` (an empty one when absent and the schema gives it a default)."""
@@ -370,6 +389,7 @@ def _joint(node: _Node, mode: schema.ControlMode) -> schema.JointConfig:
         collision_threshold_nm=(
             node.number("collision_threshold_nm", _POSITIVE) if node.has("collision_threshold_nm") else None
         ),
+        power_on_window_deg=node.interval("power_on_window_deg") if node.has("power_on_window_deg") else None,
         emulation=_emulation(node.child("emulation", schema.EmulationConfig), rotor_inertia, viscous, coulomb),
     )
     if joint.position_min_deg >= joint.position_max_deg:
@@ -377,7 +397,41 @@ def _joint(node: _Node, mode: schema.ControlMode) -> schema.JointConfig:
             "position_max_deg",
             f"must be greater than position_min_deg ({joint.position_min_deg:g}); found {joint.position_max_deg:g}",
         )
+    window = joint.power_on_window_deg
+    turn_deg = 360.0 / joint.gear_ratio
+    if window is not None and window[1] - window[0] >= turn_deg:
+        raise node.error(
+            "power_on_window_deg",
+            f"a window {window[1] - window[0]:g} deg wide cannot tell the motor's turns apart: one motor turn is "
+            f"360 / gear_ratio = {turn_deg:g} deg of this joint, and the window must be narrower; found "
+            f"[{window[0]:g}, {window[1]:g}]",
+        )
+    if node.has("homing"):
+        joint = dataclasses.replace(joint, homing=_homing(node.child("homing", schema.HomingConfig), joint))
     return joint
+
+
+def _homing(node: _Node, joint: schema.JointConfig) -> schema.HomingConfig:
+    stop = node.number("stop_deg", required=True)
+    if joint.position_min_deg < stop < joint.position_max_deg:
+        raise node.error(
+            "stop_deg",
+            f"a hard stop lies outside the joint's limits (<= position_min_deg {joint.position_min_deg:g} or >= "
+            f"position_max_deg {joint.position_max_deg:g}); found {stop:g}",
+        )
+    back_off = node.number("back_off_deg", _POSITIVE)
+    far = joint.position_max_deg if stop <= joint.position_min_deg else joint.position_min_deg
+    homing = schema.HomingConfig(
+        stop_deg=stop,
+        speed_dps=node.number("speed_dps", _Range(0, joint.velocity_limit_dps, lo_open=True)),
+        current_limit_a=node.number("current_limit_a", _Range(0, joint.current_limit_a, lo_open=True)),
+        back_off_deg=back_off,
+        max_travel_deg=node.number("max_travel_deg", _POSITIVE)
+        if node.has("max_travel_deg")
+        else abs(far - stop) + back_off,
+        timeout_s=node.number("timeout_s", _POSITIVE),
+    )
+    return homing
 
 
 def _joints(root: _Node, mode: schema.ControlMode) -> tuple[schema.JointConfig, ...]:

@@ -168,6 +168,31 @@ class ModelConfig:
 
 
 @dataclass(frozen=True, slots=True)
+class HomingConfig:
+    """How ``rmd-motion home`` finds a joint's turn count against its hard stop.
+
+    The stop lies outside the joint's limits (below ``position_min_deg`` or above ``position_max_deg``); homing
+    moves toward it, so the side it lies on gives the direction.
+
+    Attributes:
+        stop_deg: the joint angle at the hard stop, in degrees.
+        speed_dps: joint speed toward the stop, in deg/s.
+        current_limit_a: torque-current limit while seeking, in A: what the joint may push against the stop with.
+        back_off_deg: how far the joint moves back off the stop once it is found, in degrees.
+        max_travel_deg: the farthest homing moves looking for the stop, in degrees (None: from the far joint limit
+            to the stop, plus the back-off).
+        timeout_s: the longest homing may take, in seconds.
+    """
+
+    stop_deg: float
+    speed_dps: float = 5.0
+    current_limit_a: float = 2.0
+    back_off_deg: float = 2.0
+    max_travel_deg: float | None = None
+    timeout_s: float = 60.0
+
+
+@dataclass(frozen=True, slots=True)
 class EmulatedPidConfig:
     """The PI gains (0x30 units, 0..255) an emulated drive has in ROM at first power-on; None: the factory value.
 
@@ -241,6 +266,10 @@ class JointConfig:
         coulomb_friction_nm: the joint's Coulomb friction, joint side, in N·m (observer model).
         collision_threshold_nm: the collision observer's residual beyond which the arm faults (``collision``), in
             N·m (None: the joint is not watched; see ``rmd-motion collision-calibrate``).
+        power_on_window_deg: where the joint is guaranteed to be when the drives power up, ``(min, max)`` in degrees,
+            narrower than ``360 / gear_ratio`` (None: no window; the drive's turn count is assumed, see
+            :mod:`motion.control.turns`).
+        homing: the joint's hard stop and how to home against it (None: the joint cannot be homed).
         emulation: emulator plant parameters.
     """
 
@@ -264,6 +293,8 @@ class JointConfig:
     viscous_friction_nm_per_dps: float = 2.0e-4
     coulomb_friction_nm: float = 0.05
     collision_threshold_nm: float | None = None
+    power_on_window_deg: tuple[float, float] | None = None
+    homing: HomingConfig | None = None
     emulation: EmulationConfig = field(default_factory=EmulationConfig)
 
     @property

@@ -97,9 +97,7 @@ class InvalidTransition(MotionError):
 class StateMachine:
     """Thread-safe holder of the arm state, driven only through :data:`TRANSITIONS`."""
 
-    def __init__(
-        self, initial: ArmState = ArmState.READY, on_change: Callable[[ArmState], None] | None = None
-    ) -> None:
+    def __init__(self, initial: ArmState = ArmState.READY, on_change: Callable[[ArmState], None] | None = None) -> None:
         self._state = initial
         self._lock = threading.Lock()
         #: Called with the new state after every transition (the safe state too), under the machine's lock.
