@@ -17,6 +17,7 @@ Pinocchio model (:mod:`kinematics`) and hands the controller its feed-forward ca
 from __future__ import annotations
 
 import dataclasses
+import logging
 import os
 import shutil
 import subprocess
@@ -35,12 +36,17 @@ from motion.compose import (
     build_controller,
     build_supervisor,
     check_rate,
+    emulated_frames,
     feedforward_for,
     identify_position_loops,
+    load_turn_records,
     offer_stored_tracking,
     open_bus,
     rehearsal_watchdog,
+    resolve_frames,
+    save_turn_records,
     store_tracking,
+    turns_store,
 )
 from motion.config import ArmConfig, load_config_or_example
 from motion.config.schema import CanBusConfig, ControlMode
@@ -49,6 +55,7 @@ from motion.control.ratecheck import RateCheck, measure_rate
 from motion.control.scheduler import LoopStatistics
 from motion.control.snapshot import MotionProgress
 from motion.control.tracking import PositionLoopFit
+from motion.control.turns import JointTurns
 from motion.emulator import Fault, FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
@@ -57,6 +64,8 @@ from motion.safety import Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
 from motion.transmission import FloatArray
 from motion.transport import Transport
+
+logger = logging.getLogger("motion.api")
 
 _EMULATE_CHOICES: dict[bool | str, str | None] = {
     False: None,
@@ -252,6 +261,8 @@ class Arm:
             ``collision_threshold_nm`` (it always runs where one has), e.g. to calibrate thresholds.
         faults: emulated faults to schedule (emulation only; e.g. ``Fault(InjectedFault.COLLISION, ...)``, an
             external torque on a joint).
+        forget_turns: the drives have been powered up since the last session: leave its recorded turn offsets
+            aside, and resolve every joint from its ``power_on_window_deg`` (see :mod:`motion.control.turns`).
     """
 
     def __init__(
@@ -265,8 +276,13 @@ class Arm:
         telemetry: TelemetryOptions | None = None,
         observe_collisions: bool = False,
         faults: Sequence[Fault] = (),
+        forget_turns: bool = False,
     ) -> None:
         self.config = config
+        self._forget_turns = forget_turns
+        #: Each joint's turn offset between the controller's frame and its drive's, and how it was found (set at
+        #: :meth:`connect`; see :mod:`motion.control.turns`).
+        self.turns: tuple[JointTurns, ...] = ()
         self._observe = observe_collisions
         self._faults = tuple(faults)
         if emulate not in _EMULATE_CHOICES:
@@ -340,7 +356,10 @@ class Arm:
             self.controller = build_controller(
                 self.config, self.bus, feedforward=feedforward_for(self.config), clock=clock
             )
+            self.turns = self._resolve_turns(self.controller)
             self.controller.read_positions()
+            if self._remembers:
+                save_turn_records(self.config, self.bus.describe(), self.controller, (j.source for j in self.turns))
             self.rate_check = check_rate(self.controller, self.config)
             if not self.emulate:  # an identification belongs to the drives it was made on
                 self.tracking_offered = offer_stored_tracking(self.config, self.controller)
@@ -352,6 +371,34 @@ class Arm:
             self._stack.close()
             raise
         return self
+
+    @property
+    def _remembers(self) -> bool:
+        """Whether the turn offsets are kept between sessions: on hardware (emulated drives are new every run)."""
+        return not self.emulate
+
+    def _resolve_turns(self, controller: Controller) -> tuple[JointTurns, ...]:
+        if self.emulation == "simulated":
+            return emulated_frames(controller, self.config)
+        records = None
+        if self._remembers and not self._forget_turns:
+            records = load_turn_records(self.config, controller.bus.describe())
+        return resolve_frames(controller, self.config, records=records)
+
+    def _remember_turns(self) -> None:
+        """Keep the turn offsets for the next session (where the drives ended), unless a drive restarted: then its
+        frame is unknown and the next session resolves every joint afresh."""
+        controller, supervisor = self.controller, self.supervisor
+        if not self._remembers or controller is None or self.bus is None or not self.turns:
+            return
+        fault = supervisor.fault if supervisor is not None else None
+        if fault is not None and fault.kind is FaultKind.DRIVE_RESTARTED:
+            turns_store(self.config).unlink(missing_ok=True)
+            return
+        try:
+            save_turn_records(self.config, self.bus.describe(), controller, (j.source for j in self.turns))
+        except OSError as exc:
+            logger.warning("turn offsets not kept for the next session: %s", exc)
 
     def _start_simulation(self) -> tuple[Transport, SimulatedClock]:
         from kinematics.emulation import arm_emulator  # noqa: PLC0415 - as above
@@ -380,6 +427,7 @@ class Arm:
         try:
             if self.supervisor is not None:
                 self.supervisor.close()
+                self._remember_turns()
         finally:
             self._stack.close()
 

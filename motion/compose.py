@@ -27,6 +27,15 @@ from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
 from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
 from motion.control.tracking import MoveRecord, PositionLoop, PositionLoopFit, fit_position_loop
+from motion.control.turns import (
+    JointTurns,
+    Source,
+    TurnRecord,
+    assumed_span,
+    drive_reading,
+    resolve_turns,
+    turn_joint_deg,
+)
 from motion.emulator import DEFAULT_PID, DriveModel, Emulator, Fault, LoadModel, Plant
 from motion.errors import MotionError
 from motion.protocol import WireProtocol
@@ -293,13 +302,121 @@ STATE_DIR_ENV = "RMD_MOTION_STATE_DIR"
 IDENTIFY_MOVE_DEG = 60.0
 
 
-def tracking_store(config: ArmConfig) -> Path:
-    """Where the identified position loops of ``config``'s arm are stored (one file per arm name)."""
+def state_dir() -> Path:
+    """The folder of what rmd-motion keeps between sessions: ``$RMD_MOTION_STATE_DIR``, else
+    ``$XDG_STATE_HOME/rmd-motion`` (``~/.local/state/rmd-motion``)."""
     folder = os.environ.get(STATE_DIR_ENV)
     if folder is None:
         state = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
         folder = str(Path(state) / "rmd-motion")
-    return Path(folder) / f"{config.name}-tracking.json"
+    return Path(folder)
+
+
+def tracking_store(config: ArmConfig) -> Path:
+    """Where the identified position loops of ``config``'s arm are stored (one file per arm name)."""
+    return state_dir() / f"{config.name}-tracking.json"
+
+
+# ---------------------------------------------------------------------------------------------- turn offsets
+
+#: What a turn record file is (the file's ``schema`` and ``version``).
+TURNS_SCHEMA = "rmd-motion-turns"
+TURNS_VERSION = 1
+
+
+def turns_store(config: ArmConfig) -> Path:
+    """Where the turn offsets of ``config``'s arm are kept between sessions (one file per arm name)."""
+    return state_dir() / f"{config.name}-turns.json"
+
+
+def load_turn_records(config: ArmConfig, where: str) -> dict[str, TurnRecord]:
+    """The turn records the last session on ``where`` (the bus, as ``Transport.describe()`` says) left, by joint
+    name; those of another bus or another motor id are left out. A missing file gives none; an unreadable one is
+    logged and gives none (joints with a window are then resolved from it, or refused)."""
+    path = turns_store(config)
+    if not path.exists():
+        return {}
+    try:
+        document = json.loads(path.read_text())
+        if document.get("schema") != TURNS_SCHEMA or document.get("version") != TURNS_VERSION:
+            raise ValueError(f"not a {TURNS_SCHEMA} version {TURNS_VERSION} file")
+        if document.get("bus") != where:
+            return {}
+        ids = {j.name: j.motor_id for j in config.joints}
+        records = {
+            name: TurnRecord(int(e["motor_id"]), int(e["turns"]), float(e["reading_deg"]), Source(e["source"]))
+            for name, e in document["joints"].items()
+        }
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        logger.warning("%s: recorded turn offsets ignored (%s)", path, exc)
+        return {}
+    return {name: r for name, r in records.items() if ids.get(name) == r.motor_id and math.isfinite(r.reading_deg)}
+
+
+def save_turn_records(config: ArmConfig, where: str, controller: Controller, sources: Iterable[Source]) -> Path:
+    """Record each joint's turn offset and its drive's reading now (from the controller's latest snapshot), for
+    the next session on ``where``."""
+    q = controller.snapshot.position_deg
+    joints = {
+        j.name: {
+            "motor_id": j.motor_id,
+            "turns": k,
+            "reading_deg": drive_reading(t, float(q[i]), k),
+            "source": str(source),
+        }
+        for i, (j, t, k, source) in enumerate(
+            zip(config.joints, controller.base_transmission.transmissions, controller.turns, sources, strict=True)
+        )
+    }
+    document = {"schema": TURNS_SCHEMA, "version": TURNS_VERSION, "arm": config.name, "bus": where, "joints": joints}
+    path = turns_store(config)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(document, indent=2) + "\n")
+    return path
+
+
+def resolve_frames(
+    controller: Controller, config: ArmConfig, *, records: Mapping[str, TurnRecord] | None = None
+) -> tuple[JointTurns, ...]:
+    """Read every drive's multi-turn angle and resolve each joint's turn offset (:mod:`motion.control.turns`) from
+    its power-on window and ``records`` (what the last session left, :func:`load_turn_records`); the controller
+    uses them from then on (call ``read_positions()`` next). A joint without a window warns once that its turns are
+    assumed.
+
+    Raises:
+        TurnError: a joint with a window whose turns cannot be told (nothing has moved).
+        TransportError: a drive did not answer.
+    """
+    readings = controller.read_angles()
+    base = controller.base_transmission.transmissions
+    known = records or {}
+    resolved = resolve_turns(
+        config.joint_names,
+        base,
+        [readings[j.motor_id] for j in config.joints],
+        [j.power_on_window_deg for j in config.joints],
+        [known.get(j.name) for j in config.joints],
+    )
+    controller.set_turns([j.turns for j in resolved])
+    for joint, t in zip(resolved, base, strict=True):
+        if joint.source is Source.ASSUMED:
+            lo, hi = assumed_span(t, joint)
+            logger.warning(
+                "joint %s has no power_on_window_deg: its turn count is assumed from the drive (right if it powered "
+                "up between %.2f and %.2f deg; elsewhere the joint reads off by a multiple of %g deg)",
+                joint.name,
+                lo,
+                hi,
+                turn_joint_deg(t),
+            )
+    return resolved
+
+
+def emulated_frames(controller: Controller, config: ArmConfig) -> tuple[JointTurns, ...]:
+    """The frames of emulated drives powered up at the zero pose (turn offset 0 for every joint, nothing read)."""
+    return tuple(
+        JointTurns(j.name, 0, Source.EMULATED, math.nan, math.nan, j.power_on_window_deg) for j in config.joints
+    )
 
 
 def identify_position_loops(supervisor: Supervisor, config: ArmConfig) -> dict[str, PositionLoopFit]:

@@ -93,6 +93,7 @@ class FaultKind(StrEnum):
     DRIVE_OVER_TEMPERATURE = "drive_over_temperature"  #: the drive's own over-temperature flag (0x9A)
     DRIVE_LOW_VOLTAGE = "drive_low_voltage"  #: the drive's own low-voltage flag (0x9A)
     DRIVE_ERROR = "drive_error"  #: any other error flag of the drive (0x9A)
+    DRIVE_RESTARTED = "drive_restarted"  #: a drive's multi-turn angle (0x92) jumped by whole turns: it restarted
     NO_REPLY = "no_reply"  #: too many consecutive missing replies, or too long without a good one
     CORRUPT_FRAMES = "corrupt_frames"  #: too many corrupt frames from a drive within a second
     OVERRUN = "overrun"  #: too many control cycles in a row over their period

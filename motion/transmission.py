@@ -16,6 +16,7 @@ Nothing is clipped silently: ``iq_raw_limited`` returns whether it limited, ``iq
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -197,6 +198,18 @@ class ArmTransmission:
 
     def __len__(self) -> int:
         return len(self.transmissions)
+
+    def with_turns(self, turns: Sequence[int]) -> ArmTransmission:
+        """This mapping in a frame ``turns`` whole motor turns from the drives' (per joint): a drive reading ``m``
+        is the joint angle of ``m + 360 * turns`` (see :mod:`motion.control.turns`). The turns fold into each
+        zero offset, so every conversion stays one multiply and one add."""
+        if len(turns) != len(self.transmissions):
+            raise ValueError(f"{len(turns)} turn counts for {len(self.transmissions)} joints")
+        shifted = [
+            dataclasses.replace(t, zero_offset_deg=t.zero_offset_deg + t.direction * 360.0 * k / t.gear_ratio)
+            for t, k in zip(self.transmissions, turns, strict=True)
+        ]
+        return ArmTransmission(shifted, self.names)
 
     def joint_deg(self, motor_deg: ArrayLike, out: FloatArray | None = None) -> FloatArray:
         """Joint angles in degrees from motor multi-turn angles in degrees."""

@@ -22,7 +22,7 @@ from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller
 from motion.emulator import Fault, InjectedFault
 from motion.errors import MotionError, MotionFault, PlanningError, TransportError
-from motion.protocol import Command, MultiTurnPositionSpeed
+from motion.protocol import Bare, Command, MultiTurnPositionSpeed
 from motion.safety import ArmEvent, ArmState, InvalidTransition, Reaction, StateMachine, Supervisor
 from motion.safety.states import SAFE_STATE, TRANSITIONS
 from motion.trajectory import JointLimits, Planner, State
@@ -49,22 +49,25 @@ def _move_and_catch(
     *,
     detected_in: int | None = None,
     status_read_of: int | None = None,
+    read: Command = Command.READ_STATUS_1,
+    after_s: float = 0.4,
 ) -> MotionFault:
     """Start a move, inject a fault, wait for it; assert how many cycles detection took (simulated time: exact).
 
     ``detected_in`` counts the cycles from the first one that can see the fault (1: that very cycle). Faults seen
-    only in the round-robin 0x9A read (``status_read_of``: that drive's flags and supply voltage) are detected in
-    the first cycle whose read goes to that drive.
+    only in the round-robin reads (``status_read_of``: that drive's 0x9A flags and supply voltage, or its 0x92
+    multi-turn angle with ``read``) are detected in the first cycle whose ``read`` goes to that drive.
     """
     supervisor = rig.supervisor
     assert supervisor is not None
     supervisor.move_to(target, speed_scale=0.4)
-    rig.sleep(0.4)
+    rig.sleep(after_s)
     assert supervisor.state is ArmState.MOVING
     first = rig.controller.loop.next_cycle  # the first cycle that can see what is injected now
     if status_read_of is not None:
-        ids, last = supervisor.ids, supervisor._round_robin  # the drive whose 0x9A went out last
-        detected_in = next(j for j in range(1, len(ids) + 1) if ids[(last + j) % len(ids)] == status_read_of)
+        reads, last = supervisor._status_reads, supervisor._round_robin  # the read that went out last
+        wanted = Request(status_read_of, Bare(read))
+        detected_in = next(j for j in range(1, len(reads) + 1) if reads[(last + j) % len(reads)] == wanted)
     inject()
     with pytest.raises(MotionFault) as info:
         supervisor.wait(5.0)
@@ -125,6 +128,23 @@ def test_drive_over_temperature_flag(tmp_path: Path) -> None:
         _assert_halted_in_detection_cycle(rig)
         _assert_comes_to_rest(rig)
         _assert_refused_until_clear(rig, fault, persists=True)
+
+
+def test_a_drive_that_restarts_mid_move_halts_every_axis(tmp_path: Path) -> None:
+    # issue 16: a brown-out of one drive: its multi-turn angle restarts from the single-turn reading, and every
+    # target in the old frame would be off by whole turns; seen in the first 0x92 read that goes to it
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
+        elbow = rig.emulator.drives[2]
+
+        def power_cycle() -> None:
+            assert elbow.angle_deg > 360.0  # past the first turn (in it, a restart changes nothing)
+            elbow.power_cycle()
+
+        fault = _move_and_catch(rig, power_cycle, status_read_of=2, read=Command.READ_MULTI_TURN_ANGLE, after_s=1.2)
+        assert fault.kind == "drive_restarted" and fault.joint == "elbow"
+        assert fault.value is not None and abs(fault.value - round(fault.value)) < 0.05 and round(fault.value) != 0
+        _assert_halted_in_detection_cycle(rig)
+        _assert_comes_to_rest(rig)
 
 
 def test_drive_low_voltage_flag_then_clear_after_the_cause_is_gone(tmp_path: Path) -> None:

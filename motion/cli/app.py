@@ -22,6 +22,7 @@ from motion.cli.common import (
     UsageError,
     add_bus_arguments,
     add_emulate_flag,
+    add_turns_flag,
     speed_scale_arg,
 )
 from motion.cli.protocol_demo import protocol_demo
@@ -135,6 +136,7 @@ def _json(parser: argparse.ArgumentParser) -> None:
 def _motion_options(parser: argparse.ArgumentParser, speed_scale: str) -> None:
     parser.add_argument("--speed-scale", type=speed_scale_arg, default=1.0, metavar="S", help=speed_scale)
     add_emulate_flag(parser)
+    add_turns_flag(parser)
     parser.add_argument("--log", metavar="FILE.npz", help="record every control cycle (see `rmd-motion plot`)")
     parser.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
     _json(parser)
@@ -186,7 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
     scan = _command(sub, "scan", drives.scan, "list the motor ids that answer on the bus (0x9A; RS485 also 0x12)")
     scan.add_argument("--ids", type=_ids_arg, metavar="IDS", help="ids to try: 1-6, 1,3,5 (default 1-32)")
     _json(scan)
-    _json(_command(sub, "status", drives.status, "read every joint's state without moving anything"))
+    status = _command(sub, "status", drives.status, "read every joint's state without moving anything")
+    add_turns_flag(status)
+    _json(status)
     check = _command(
         sub,
         "check",

@@ -190,6 +190,16 @@ def add_emulate_flag(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_turns_flag(parser: argparse.ArgumentParser) -> None:
+    """``--forget-turns``: the drives were powered up since the last session (see :mod:`motion.control.turns`)."""
+    parser.add_argument(
+        "--forget-turns",
+        action="store_true",
+        help="the drives have been powered up since the last session: leave its recorded turn offsets aside and "
+        "resolve every joint from its power_on_window_deg",
+    )
+
+
 # ---------------------------------------------------------------------------------------------------- joints
 
 

@@ -26,7 +26,7 @@ from motion.cli.common import (
     print_table,
     warn,
 )
-from motion.compose import build_controller
+from motion.compose import build_controller, load_turn_records, resolve_frames, save_turn_records
 from motion.config import CanBusConfig, JointConfig
 from motion.config.schema import ControlMode
 from motion.control.ratecheck import RateError
@@ -167,7 +167,10 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
         # The controller's start-up reads (0x92 + 0x9C) give the joint angles exactly as a motion command sees them;
         # its loop is never started.
         controller = build_controller(config, bus)
+        records = None if args.forget_turns else load_turn_records(config, bus.describe())
+        turns = resolve_frames(controller, config, records=records)
         controller.read_positions()
+        save_turn_records(config, bus.describe(), controller, (j.source for j in turns))
         status1: dict[int, Status1] = _ask(bus, session, config.joints, Bare(Command.READ_STATUS_1), Status1)
         where = bus.describe()
     axes = controller.axes
@@ -189,6 +192,8 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
                 "voltage_v": s.voltage_v,
                 "errors": flags,
                 "within_limits": inside,
+                "turns": turns[i].turns,
+                "turns_from": str(turns[i].source),
             }
         )
         rows.append(
@@ -201,13 +206,14 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
                 f"{s.temperature_c} °C",
                 f"{s.voltage_v:.1f} V",
                 ",".join(flags) or "ok",
+                turns[i].describe(),
             )
         )
     if args.json:
         print_json({"name": config.name, "bus": where, "joints": joints})
         return EXIT_OK
     print(f"{config.name} on {where}")
-    print_table(("joint", "motor", "position", "velocity", "iq", "temp", "voltage", "flags"), rows)
+    print_table(("joint", "motor", "position", "velocity", "iq", "temp", "voltage", "flags", "turns"), rows)
     return EXIT_OK
 
 

@@ -136,6 +136,7 @@ def with_arm(
             given = ", ".join(f"--{name}" for name in overrides if name != "sleep_after_open")
             raise UsageError(f"--emulate opens no port: drop {given}")
         overrides = {}
+    options.setdefault("forget_turns", getattr(args, "forget_turns", False))
     arm = Arm(config or session.config, bus_overrides=overrides, telemetry=telemetry, **options)
     try:
         with interrupts.deferred():  # a signal while connecting is raised once the loop runs (or connect failed)

@@ -190,11 +190,13 @@ class Controller:
         clock: Clock | None = None,
     ) -> None:
         self.specs = tuple(specs)
+        #: The joint <-> motor mapping of the configuration; :attr:`transmission` adds the turn offsets to it.
+        self.base_transmission = transmission
+        #: Whole motor turns per joint between this controller's frame and the drive's (:meth:`set_turns`).
+        self.turns: tuple[int, ...] = (0,) * len(self.specs)
         self.options = options
         self.bus = bus
-        self.transmission = transmission
         self.planner = Planner(limits)
-        self.axes = AxisStates(self.specs, transmission)
         self.feedforward = feedforward
         self.clock: Clock = clock if clock is not None else MonotonicClock()
         self.loop = FixedRateLoop(options.rate_hz, self.cycle, clock=self.clock)
@@ -242,15 +244,7 @@ class Controller:
         self._speed_floor_dps = velocity_limit * options.speed_floor_share
         self._speed_ceiling_dps = float(_MAX_SPEED_DPS[options.protocol])
         self._speed_headroom = options.speed_headroom
-        self._position_axes = tuple(
-            zip(
-                self.ids,
-                [t.direction * t.gear_ratio for t in transmission.transmissions],  # as ArmTransmission has them
-                [t.zero_offset_deg for t in transmission.transmissions],
-                self._speed_floor_dps.tolist(),
-                strict=True,
-            )
-        )
+        self._set_frame(transmission)
         self._reply_budget = options.reply_budget
         self._build: Callable[[State], list[Request]]
         match options.mode:
@@ -262,6 +256,47 @@ class Controller:
                 raise ValueError(f"unknown control mode {mode!r}")
 
     # ------------------------------------------------------------------------------------------------ start-up
+
+    def _set_frame(self, transmission: ArmTransmission) -> None:
+        """Use ``transmission`` for every angle read and every target sent (before :meth:`read_positions`)."""
+        self.transmission = transmission
+        self.axes = AxisStates(self.specs, transmission)
+        self._position_axes = tuple(
+            zip(
+                self.ids,
+                [t.direction * t.gear_ratio for t in transmission.transmissions],  # as ArmTransmission has them
+                [t.zero_offset_deg for t in transmission.transmissions],
+                self._speed_floor_dps.tolist(),
+                strict=True,
+            )
+        )
+
+    def set_turns(self, turns: Sequence[int]) -> None:
+        """Keep ``turns`` whole motor turns per joint between this controller's frame and the drives' (see
+        :mod:`motion.control.turns`); before :meth:`read_positions`, or again after a re-resolution (homing), then
+        followed by it.
+
+        Raises:
+            MotionError: the loop is running (the frame of a running loop never changes).
+        """
+        if self.loop.running:
+            raise MotionError("the turn offsets cannot change while the loop runs")
+        self.turns = tuple(int(k) for k in turns)
+        self._set_frame(self.base_transmission.with_turns(self.turns))
+
+    def read_angles(self, timeout_s: float = 0.2) -> dict[int, float]:
+        """Every drive's multi-turn reading (0x92), motor degrees in the drive's own frame, by motor id.
+
+        Raises:
+            TransportError: a drive did not answer by ``timeout_s``.
+        """
+        request = Bare(Command.READ_MULTI_TURN_ANGLE)
+        replies = self.bus.transact([Request(mid, request) for mid in self.ids], self.clock.now() + timeout_s)
+        angles = {r.motor_id: r.message.angle_deg for r in replies if isinstance(r.message, MultiTurnAngle)}
+        missing = [s.name for s in self.specs if s.motor_id not in angles]
+        if missing:
+            raise TransportError(f"no reply to the multi-turn angle read (0x92) from joint(s) {', '.join(missing)}")
+        return angles
 
     def read_positions(self, timeout_s: float = 0.2) -> FloatArray:
         """Read every axis' multi-turn angle (0x92) and encoder (0x9C) and anchor the position tracking.

@@ -108,7 +108,9 @@ class Supervisor:
         self._clear_request = threading.Event()
         self._clear_done = threading.Event()
         self._clear_result: MotionFault | None = None
-        self._status_reads = [Request(i, Bare(Command.READ_STATUS_1)) for i in self.ids]
+        # 0x9A (flags, voltage, temperature) and 0x92 (the multi-turn angle: a drive that restarted) in turn
+        reads = (Command.READ_STATUS_1, Command.READ_MULTI_TURN_ANGLE)
+        self._status_reads = [Request(i, Bare(command)) for i in self.ids for command in reads]
         self._round_robin = 0  # a counter of its own: the cycle index k jumps over skipped cycles
         self._state_reads = [Request(i, Bare(Command.READ_STATUS_2)) for i in self.ids]
         self._finalizer = weakref.finalize(self, _emergency_stop, controller, self.ids)
@@ -295,8 +297,9 @@ class Supervisor:
         return not controller.stopping and self.machine.state is not ArmState.BUS_LOST
 
     def _next_status_read(self) -> Request:
-        """0x9A for the next drive in turn: every drive's flags are at most ``n_axes`` cycles old."""
-        self._round_robin = (self._round_robin + 1) % len(self.ids)
+        """0x9A or 0x92 for the next drive in turn: every drive's flags and multi-turn angle are at most
+        ``2 n_axes`` cycles old."""
+        self._round_robin = (self._round_robin + 1) % len(self._status_reads)
         return self._status_reads[self._round_robin]
 
     def _halt(self, fault: MotionFault, k: int, start_s: float, deadline_s: float) -> None:

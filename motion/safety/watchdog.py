@@ -1,10 +1,11 @@
 """Per-cycle fault monitors: every reply is watched, and the first violated limit becomes a :class:`MotionFault`.
 
-Sources, in the order they are checked: drive error flags (0x9A, read round-robin so every drive's flags are at
-most ``n_axes`` cycles old, and every 0x9B reply), motor temperature in every reply, supply voltage, missing replies
-(consecutive misses and time since the last good reply), corrupt frames, measured position beyond the joint limits,
-collisions (the momentum observer's residual per joint against its threshold), following error, and scheduler
-overrun streaks. The planned set-point is checked before it is sent.
+Sources, in the order they are checked: drive error flags (0x9A, read round-robin with 0x92 so every drive's flags
+are at most ``2 n_axes`` cycles old, and every 0x9B reply), a drive that restarted (its 0x92 multi-turn angle jumps
+by whole turns from the angle tracked from its encoder), motor temperature in every reply, supply voltage, missing
+replies (consecutive misses and time since the last good reply), corrupt frames, measured position beyond the joint
+limits, collisions (the momentum observer's residual per joint against its threshold), following error, and
+scheduler overrun streaks. The planned set-point is checked before it is sent.
 
 The collision observer is injected (:class:`CollisionObserver`; :func:`motion.compose.collision_observer_for` builds
 it on the arm's Pinocchio model): this package never imports the model. It is updated in every evaluated cycle in
@@ -35,13 +36,16 @@ from numpy.typing import ArrayLike
 from motion.config.schema import HaltPolicy
 from motion.control.controller import Controller
 from motion.errors import FaultKind, MotionFault
-from motion.protocol import ErrorFlags, MotorState, Status1
+from motion.protocol import ErrorFlags, MotorState, MultiTurnAngle, Status1
 from motion.trajectory import State
 from motion.transmission import FloatArray
 from motion.transport import Reply
 
 # Measured positions may pass a joint limit by this much (encoder resolution, drive overshoot), deg.
 POSITION_LIMIT_TOLERANCE_DEG = 0.1
+#: A drive's multi-turn reading this far from the angle tracked from its encoder (motor degrees, half a turn) means
+#: it restarted; the two are read in the same exchange, so motion between them is a few degrees at most.
+RESTART_JUMP_MOTOR_DEG = 180.0
 # Window of the corrupt-frame count, s.
 CORRUPT_WINDOW_S = 1.0
 # Expected joint speed above which a joint counts as moving for the following-error check, deg/s.
@@ -248,6 +252,8 @@ class Watchdog:
                     if not fault.kind.holdable:
                         raise
                     held = held or fault
+            elif isinstance(message, MultiTurnAngle):
+                self._check_frame(i, message)
             elif isinstance(message, MotorState) and message.temperature_c >= self.temperature_limit[i]:
                 held = held or self._fault(
                     FaultKind.TEMPERATURE,
@@ -362,6 +368,25 @@ class Watchdog:
         return self._fault(
             FaultKind.FOLLOWING_ERROR, worst, float(error[worst]), limit, "|expected - q| (+ lag lost by slipping)"
         )
+
+    def _check_frame(self, i: int, reading: MultiTurnAngle) -> None:
+        """A drive's multi-turn angle against the one the controller tracks from its encoder: a drive that restarted
+        (a brown-out, a loose supply) counts its turns from its new power-up, and its reading jumps by whole turns
+        while the shaft did not move. Its frame is then unknown: every target sent to it would be off by those turns.
+
+        Raises:
+            MotionFault: kind ``drive_restarted`` (never held: a stop ramp would be in the old frame).
+        """
+        jump = reading.angle_deg - float(self.controller.axes.motor_deg[i])
+        if abs(jump) > RESTART_JUMP_MOTOR_DEG:
+            raise self._fault(
+                FaultKind.DRIVE_RESTARTED,
+                i,
+                round(jump / 360.0, 2),
+                None,
+                f"the drive's multi-turn angle (0x92) jumped by {jump:.1f} motor deg ({jump / 360.0:+.2f} turns) while "
+                "its encoder did not: it restarted (power), and its turn offset is lost",
+            )
 
     def _check_status(self, i: int, status: Status1) -> None:
         if status.errors & ErrorFlags.OVER_TEMPERATURE:
