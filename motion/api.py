@@ -50,17 +50,19 @@ from motion.compose import (
 )
 from motion.config import ArmConfig, load_config_or_example
 from motion.config.schema import CanBusConfig, ControlMode
+from motion.control.clock import Clock
 from motion.control.controller import Controller
 from motion.control.ratecheck import RateCheck, measure_rate
 from motion.control.scheduler import LoopStatistics
 from motion.control.snapshot import MotionProgress
 from motion.control.tracking import PositionLoopFit
-from motion.control.turns import JointTurns
+from motion.control.turns import JointTurns, Source
 from motion.emulator import Fault, FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
+from motion.homing import HomingResult, corrected_turns, homed_joints, homing_variant, seek_stop
 from motion.protocol import WireProtocol
-from motion.safety import Supervisor
+from motion.safety import ArmState, Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
 from motion.transmission import FloatArray
 from motion.transport import Transport
@@ -263,6 +265,8 @@ class Arm:
             external torque on a joint).
         forget_turns: the drives have been powered up since the last session: leave its recorded turn offsets
             aside, and resolve every joint from its ``power_on_window_deg`` (see :mod:`motion.control.turns`).
+        home: joints to home against their hard stops at :meth:`connect`, before the arm is handed over (their
+            power-on windows are not consulted; see :mod:`motion.homing`).
     """
 
     def __init__(
@@ -277,9 +281,16 @@ class Arm:
         observe_collisions: bool = False,
         faults: Sequence[Fault] = (),
         forget_turns: bool = False,
+        home: Sequence[str] = (),
     ) -> None:
         self.config = config
         self._forget_turns = forget_turns
+        self._home = tuple(home)
+        if self._home:
+            homed_joints(config, self._home)  # an unknown or unhomeable joint is refused before anything opens
+        #: What the latest homing found, per joint (see :meth:`home`).
+        self.homing: list[HomingResult] = []
+        self._clock: Clock | None = None
         #: Each joint's turn offset between the controller's frame and its drive's, and how it was found (set at
         #: :meth:`connect`; see :mod:`motion.control.turns`).
         self.turns: tuple[JointTurns, ...] = ()
@@ -351,26 +362,99 @@ class Arm:
                 if self.emulation == "realtime":
                     self._start_emulator_process()
                 self.bus = self._stack.enter_context(open_bus(self.config, **self._overrides))
+            self._clock = clock
             if self.telemetry is not None:
                 self.telemetry.tap(self.bus)
-            self.controller = build_controller(
-                self.config, self.bus, feedforward=feedforward_for(self.config), clock=clock
-            )
+            self.controller = self._new_controller()
             self.turns = self._resolve_turns(self.controller)
             self.controller.read_positions()
-            if self._remembers:
-                save_turn_records(self.config, self.bus.describe(), self.controller, (j.source for j in self.turns))
+            if self._home:
+                self.homing = self._home_joints(self._home)
+            self._keep_turns()
             self.rate_check = check_rate(self.controller, self.config)
             if not self.emulate:  # an identification belongs to the drives it was made on
                 self.tracking_offered = offer_stored_tracking(self.config, self.controller)
-            self.supervisor = build_supervisor(self.config, self.controller, observe=self._observe)
-            if self.telemetry is not None:
-                self.telemetry.attach(self.controller, self.supervisor)
-            self.supervisor.start()
+            self._start_supervisor()
         except BaseException:
             self._stack.close()
             raise
         return self
+
+    def _new_controller(self) -> Controller:
+        assert self.bus is not None
+        return build_controller(self.config, self.bus, feedforward=feedforward_for(self.config), clock=self._clock)
+
+    def _start_supervisor(self) -> None:
+        assert self.controller is not None
+        self.supervisor = build_supervisor(self.config, self.controller, observe=self._observe)
+        if self.telemetry is not None:
+            self.telemetry.attach(self.controller, self.supervisor)
+        self.supervisor.start()
+
+    def home(self, joints: Sequence[str]) -> list[HomingResult]:
+        """Home ``joints`` against their hard stops (see :mod:`motion.homing`): the guarded loop ends (every axis
+        halted with 0x81: the drives hold), the joints seek their stops one at a time under a homing loop of their
+        own, and the arm's loop starts again in the corrected frame, holding where homing left it.
+
+        Raises:
+            HomingError: a joint cannot be homed, or no stop was found (the arm is left halted and closed to motion
+                until connected again).
+            MotionFault: a fault halted the arm during homing.
+            MotionError: the arm is not connected, not READY, or recording telemetry (home at connect instead:
+                ``Arm(..., home=[...])``).
+        """
+        supervisor = self._guard()
+        homed_joints(self.config, joints)
+        if supervisor.state is not ArmState.READY:
+            raise MotionError(f"homing needs the arm READY; it is {supervisor.state.value}")
+        if self.telemetry is not None:
+            raise MotionError("homing a recording arm: home at connect instead (Arm(..., home=[...]))")
+        supervisor.close()
+        self.supervisor = None
+        self.controller = self._new_controller()
+        self.controller.set_turns([j.turns for j in self.turns])
+        self.controller.read_positions()
+        self.homing = self._home_joints(joints)
+        if self._remembers:
+            save_turn_records(
+                self.config, self.controller.bus.describe(), self.controller, (j.source for j in self.turns)
+            )
+        self._start_supervisor()
+        return self.homing
+
+    def _home_joints(self, names: Sequence[str]) -> list[HomingResult]:
+        """Run the homing loop (the homing variant of the configuration on the same bus), then put the arm's
+        controller (loop not running) in the corrected frame."""
+        controller = self.controller
+        assert controller is not None and self.bus is not None
+        joints = homed_joints(self.config, names)
+        variant = homing_variant(self.config, names)
+        seeker = build_controller(variant, self.bus, clock=self._clock)
+        seeker.set_turns(controller.turns)
+        seeker.read_positions()
+        supervisor = build_supervisor(variant, seeker)
+        supervisor.start()
+        try:
+            results = [seek_stop(supervisor, self._index[j.name], j, seeker.pause) for j in joints]
+        finally:
+            supervisor.close()
+        controller.set_turns(corrected_turns(controller.turns, self._index.__getitem__, results))
+        q = controller.read_positions()
+        homed = {r.name for r in results}
+        self.turns = tuple(
+            dataclasses.replace(t, turns=k, source=Source.HOMED, joint_deg=float(q[i])) if t.name in homed else t
+            for i, (t, k) in enumerate(zip(self.turns, controller.turns, strict=True))
+        )
+        return results
+
+    def _keep_turns(self) -> None:
+        """Record the turn offsets for the next session (on hardware; a file that cannot be written is a warning)."""
+        if not self._remembers or self.controller is None or self.bus is None or not self.turns:
+            return
+        try:
+            save_turn_records(self.config, self.bus.describe(), self.controller, (j.source for j in self.turns))
+        except OSError as exc:
+            logger.warning("turn offsets not kept for the next session: %s", exc)
 
     @property
     def _remembers(self) -> bool:
@@ -383,22 +467,16 @@ class Arm:
         records = None
         if self._remembers and not self._forget_turns:
             records = load_turn_records(self.config, controller.bus.describe())
-        return resolve_frames(controller, self.config, records=records)
+        return resolve_frames(controller, self.config, records=records, provisional=self._home)
 
     def _remember_turns(self) -> None:
-        """Keep the turn offsets for the next session (where the drives ended), unless a drive restarted: then its
-        frame is unknown and the next session resolves every joint afresh."""
-        controller, supervisor = self.controller, self.supervisor
-        if not self._remembers or controller is None or self.bus is None or not self.turns:
-            return
-        fault = supervisor.fault if supervisor is not None else None
-        if fault is not None and fault.kind is FaultKind.DRIVE_RESTARTED:
+        """At close: keep the turn offsets for the next session (where the drives ended), unless a drive restarted:
+        then its frame is unknown and the next session resolves every joint afresh."""
+        fault = self.supervisor.fault if self.supervisor is not None else None
+        if self._remembers and fault is not None and fault.kind is FaultKind.DRIVE_RESTARTED:
             turns_store(self.config).unlink(missing_ok=True)
             return
-        try:
-            save_turn_records(self.config, self.bus.describe(), controller, (j.source for j in self.turns))
-        except OSError as exc:
-            logger.warning("turn offsets not kept for the next session: %s", exc)
+        self._keep_turns()
 
     def _start_simulation(self) -> tuple[Transport, SimulatedClock]:
         from kinematics.emulation import arm_emulator  # noqa: PLC0415 - as above

@@ -15,7 +15,7 @@ import json
 import logging
 import math
 import os
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import fields
 from pathlib import Path
 
@@ -376,12 +376,17 @@ def save_turn_records(config: ArmConfig, where: str, controller: Controller, sou
 
 
 def resolve_frames(
-    controller: Controller, config: ArmConfig, *, records: Mapping[str, TurnRecord] | None = None
+    controller: Controller,
+    config: ArmConfig,
+    *,
+    records: Mapping[str, TurnRecord] | None = None,
+    provisional: Collection[str] = (),
 ) -> tuple[JointTurns, ...]:
     """Read every drive's multi-turn angle and resolve each joint's turn offset (:mod:`motion.control.turns`) from
     its power-on window and ``records`` (what the last session left, :func:`load_turn_records`); the controller
     uses them from then on (call ``read_positions()`` next). A joint without a window warns once that its turns are
-    assumed.
+    assumed. The ``provisional`` joints (about to be homed) take the record's turns or the drive's count, window aside
+    and without a warning.
 
     Raises:
         TurnError: a joint with a window whose turns cannot be told (nothing has moved).
@@ -394,12 +399,12 @@ def resolve_frames(
         config.joint_names,
         base,
         [readings[j.motor_id] for j in config.joints],
-        [j.power_on_window_deg for j in config.joints],
+        [None if j.name in provisional else j.power_on_window_deg for j in config.joints],
         [known.get(j.name) for j in config.joints],
     )
     controller.set_turns([j.turns for j in resolved])
     for joint, t in zip(resolved, base, strict=True):
-        if joint.source is Source.ASSUMED:
+        if joint.source is Source.ASSUMED and joint.name not in provisional:
             lo, hi = assumed_span(t, joint)
             logger.warning(
                 "joint %s has no power_on_window_deg: its turn count is assumed from the drive (right if it powered "

@@ -2,9 +2,16 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
+from kinematics.emulation import arm_emulator
+from kinematics.plant import ArmPlant
+from motion.compose import build_controller, build_supervisor, feedforward_for, resolve_frames
+from motion.config import ArmConfig
+from motion.control.controller import Controller
 from motion.control.turns import (
     CONTINUITY_MOTOR_DEG,
     POWER_UP_SAG_MOTOR_DEG,
@@ -16,7 +23,12 @@ from motion.control.turns import (
     resolve_joint,
     resolve_turns,
 )
+from motion.emulator import Emulator
+from motion.emulator.drive import RunState
+from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
+from motion.protocol import WireProtocol
 from motion.transmission import ArmTransmission, Transmission
+from tests.motion_rig import arm_config
 
 GEAR9 = Transmission(gear_ratio=9, direction=1, zero_offset_deg=0.0, torque_constant_nm_per_a=0.1)
 MIRRORED36 = Transmission(gear_ratio=36, direction=-1, zero_offset_deg=2.5, torque_constant_nm_per_a=0.1)
@@ -142,3 +154,57 @@ def test_turns_fold_into_the_transmission_exactly() -> None:
     np.testing.assert_allclose(shifted.joint_deg(readings), expected, atol=1e-9)
     np.testing.assert_allclose(shifted.motor_deg(expected), readings, atol=1e-9)
     assert drive_reading(MIRRORED36, float(expected[1]), -2) == pytest.approx(-50.0)
+
+
+# ---------------------------------------------------------------------------------------------- on emulated drives
+
+
+def _arm2_with_windows(shoulder: tuple[float, float], elbow: tuple[float, float]) -> ArmConfig:
+    config = arm_config("arm2.yaml", rate_hz=200)
+    windows = (shoulder, elbow)
+    joints = tuple(dataclasses.replace(j, power_on_window_deg=w) for j, w in zip(config.joints, windows, strict=True))
+    return dataclasses.replace(config, joints=joints)
+
+
+def _powered_up_at(config: ArmConfig, pose_deg: list[float]) -> tuple[Emulator, ArmPlant, Controller]:
+    """arm2's emulated drives powered up with the arm at ``pose_deg`` (their multi-turn angles restart from the
+    single-turn reading), and a controller on them in simulated time."""
+    emulator, plant = arm_emulator(config, initial_deg=pose_deg)
+    for drive in emulator.drives.values():
+        drive.power_cycle()
+    simulation = Simulation(emulator, WireProtocol.CAN)
+    controller = build_controller(
+        config, SimulatedBus(simulation), feedforward=feedforward_for(config), clock=SimulatedClock(simulation)
+    )
+    return emulator, plant, controller
+
+
+def test_arm2_powered_up_away_from_zero_is_read_where_it_is_and_moves_where_commanded() -> None:
+    config = _arm2_with_windows((55.0, 65.0), (-55.0, -45.0))
+    emulator, plant, controller = _powered_up_at(config, [60.0, -50.0])
+    readings = [drive.angle_deg for drive in emulator.drives.values()]
+    assert all(0.0 <= r < 360.0 for r in readings)  # the drives know the joints only modulo 40 deg
+    turns = resolve_frames(controller, config)
+    assert [(t.source, t.turns) for t in turns] == [(Source.WINDOW, 1), (Source.WINDOW, 1)]
+    np.testing.assert_allclose(controller.read_positions(), [60.0, -50.0], atol=0.01)
+    supervisor = build_supervisor(config, controller)
+    supervisor.start()
+    try:
+        supervisor.move_to([20.0, 10.0], 0.5)
+        assert supervisor.wait(10.0)
+        controller.pause(0.5)
+        np.testing.assert_allclose(plant.joint_positions_deg(), [20.0, 10.0], atol=0.1)
+        np.testing.assert_allclose(controller.snapshot.position_deg, [20.0, 10.0], atol=0.1)
+    finally:
+        supervisor.close()
+
+
+def test_a_window_that_misses_the_true_pose_is_refused_before_any_command() -> None:
+    config = _arm2_with_windows((55.0, 65.0), (-25.0, -15.0))
+    emulator, plant, controller = _powered_up_at(config, [60.0, -50.0])
+    with pytest.raises(TurnError) as caught:
+        resolve_frames(controller, config)
+    assert "joint elbow" in str(caught.value) and "[-25, -15]" in str(caught.value)
+    assert "shoulder" not in str(caught.value)
+    assert all(drive.state is RunState.OFF for drive in emulator.drives.values())  # nothing was commanded
+    np.testing.assert_allclose(plant.joint_positions_deg(), [60.0, -50.0], atol=0.05)

@@ -213,6 +213,18 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("program", metavar="PROGRAM.yaml")
     _motion_options(run, "multiplies every step's speed scale, (0, 1] (default 1)")
 
+    home = _command(
+        sub,
+        "home",
+        moves.home,
+        "MOVE joints slowly to their configured hard stops (joints[].homing) to find their turn offsets",
+    )
+    home.add_argument("joints", nargs="+", metavar="JOINT")
+    add_emulate_flag(home)
+    add_turns_flag(home)
+    home.add_argument("--log", metavar="FILE.npz", help="record every control cycle (see `rmd-motion plot`)")
+    home.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
+    _json(home)
     collision.add_arguments(_command(sub, "collision-calibrate", collision.calibrate, collision.HELP))
     _command(sub, "hold", drives.hold, "make every drive hold its present position (0xA4 in the drive's loop)")
     _command(sub, "stop", drives.stop, "stop every drive (0x81): it stops and holds")

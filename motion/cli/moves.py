@@ -18,6 +18,7 @@ from motion.cli.common import EXIT_OK, Interrupts, Session, UsageError, parse_ta
 from motion.cli.program import MoveStep, PathStep, Program, WaitStep, load_program
 from motion.config import ArmConfig
 from motion.errors import MotionError, MotionFault
+from motion.homing import homed_joints
 from motion.telemetry import TelemetryOptions
 
 #: How often the progress display is refreshed (and the wait for a motion polled), s.
@@ -218,3 +219,36 @@ def run(args: argparse.Namespace, interrupts: Interrupts) -> int:
         return EXIT_OK
 
     return with_arm(args, session, interrupts, body, emulate=args.emulate)
+
+
+def home(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``home JOINT...``: each joint seeks its configured hard stop, backs off, and its turn offset is set from it."""
+    session = Session.from_args(args)
+    joints = tuple(args.joints)
+    homed_joints(session.config, joints)  # refused before the bus is opened
+
+    def body(arm: Arm) -> int:
+        rows = [
+            {
+                "joint": r.name,
+                "stop_found_deg": round(r.stop_found_deg, 3),
+                "turns_correction": r.turns_correction,
+                "remainder_deg": round(r.remainder_deg, 3),
+                "seek_s": round(r.seek_s, 3),
+                "current_a": round(r.current_a, 3),
+            }
+            for r in arm.homing
+        ]
+        if args.json:
+            print_json({"command": "home", "joints": rows, "status": arm.status().as_dict()})
+            return EXIT_OK
+        for r in arm.homing:
+            print(
+                f"{r.name}: stop reached after {r.seek_s:.2f} s at {r.current_a:.2f} A; turn offset corrected by "
+                f"{r.turns_correction:+d} motor turns (the stop yielded {r.remainder_deg:+.2f} deg)"
+            )
+        reached = " ".join(f"{name}={deg:.2f}" for name, deg in arm.positions().items())
+        print(f"at {reached} deg")
+        return EXIT_OK
+
+    return with_arm(args, session, interrupts, body, emulate=args.emulate, home=joints)

@@ -1,0 +1,225 @@
+"""Homing: find a geared joint's turn count against its hard stop (``rmd-motion home``, ``Arm(..., home=...)``).
+
+The drive's single-turn encoder is absolute within a motor turn; what a power-up loses is the whole turns
+(:mod:`motion.control.turns`). Homing finds them from a hard stop whose joint angle is configured
+(``joints[].homing.stop_deg``, outside the joint's limits):
+
+1. The arm runs under a guarded loop of its own, built from a *homing variant* of the configuration
+   (:func:`homing_variant`): position mode (the drives' own loops; no feed-forward from angles not yet known), and for
+   the joints being homed no position limits, no power-on window and no collision threshold (touching the stop is the
+   point). Every other fault rule stays active: drive flags, temperature, voltage, replies, following error, overruns.
+2. The joint moves toward its stop at ``homing.speed_dps`` for at most ``homing.max_travel_deg`` and
+   ``homing.timeout_s``. The stop is reached when the measured torque current passes ``homing.current_limit_a``
+   or the joint falls :data:`STALL_DEG` behind its reference (a cycle hook watches every cycle).
+3. It backs off by ``homing.back_off_deg``. The angle measured at the stop, in the controller's provisional frame,
+   differs from ``stop_deg`` by whole motor turns plus what the stop yields: the nearest whole number of turns is
+   the correction, and a remainder of more than a quarter of a turn is refused (the configured ``stop_deg`` or
+   ``zero_offset_deg`` is wrong, or something else stopped the joint).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Final
+
+from motion.config.schema import ArmConfig, ControlMode, JointConfig
+from motion.control.controller import Controller
+from motion.control.turns import TURN_DEG, turn_joint_deg
+from motion.errors import MotionError
+from motion.safety import ArmState, Supervisor
+from motion.transmission import Transmission
+from motion.transport import Reply
+
+#: A joint that falls this far behind its reference while seeking has reached its stop, degrees.
+STALL_DEG: Final = 1.0
+#: The largest remainder (share of one motor turn, joint side) between the angle found at the stop and the configured
+#: ``stop_deg`` once whole turns are taken out.
+REMAINDER_SHARE_MAX: Final = 0.25
+#: Position limits of a joint being homed in the homing variant, degrees: none in effect (the frame is not known).
+_UNLIMITED_DEG: Final = 1.0e6
+
+
+class HomingError(MotionError):
+    """Homing could not find the stop, or found it where no whole number of turns explains (the CLI exits 2)."""
+
+
+@dataclass(frozen=True, slots=True)
+class HomingResult:
+    """One joint's homing.
+
+    Attributes:
+        name: the joint.
+        stop_found_deg: the angle measured at the stop, in the provisional frame, degrees.
+        turns_correction: whole motor turns added to the joint's turn offset.
+        remainder_deg: what the stop yielded (or its configured angle misses), degrees: found + correction - stop.
+        seek_s: how long the seek took, seconds (the arm's clock).
+        current_a: the torque current when the stop was reached, A.
+    """
+
+    name: str
+    stop_found_deg: float
+    turns_correction: int
+    remainder_deg: float
+    seek_s: float
+    current_a: float
+
+
+def homed_joints(config: ArmConfig, names: Sequence[str]) -> tuple[JointConfig, ...]:
+    """The joints to home, by name.
+
+    Raises:
+        HomingError: an unknown joint, a repeated one, or one without ``homing`` in the configuration.
+    """
+    by_name = {j.name: j for j in config.joints}
+    chosen: list[JointConfig] = []
+    for name in names:
+        joint = by_name.get(name)
+        if joint is None:
+            raise HomingError(f"unknown joint {name!r}; the joints of {config.name} are {', '.join(by_name)}")
+        if joint.homing is None:
+            with_stops = [j.name for j in config.joints if j.homing is not None]
+            raise HomingError(
+                f"joint {name} has no hard stop configured (joints[].homing.stop_deg); joints that can be homed: "
+                f"{', '.join(with_stops) or 'none'}"
+            )
+        if joint in chosen:
+            raise HomingError(f"joint {name} is named twice")
+        chosen.append(joint)
+    if not chosen:
+        raise HomingError("name at least one joint to home")
+    return tuple(chosen)
+
+
+def homing_variant(config: ArmConfig, names: Sequence[str]) -> ArmConfig:
+    """The configuration homing runs under (see the module docstring, step 1)."""
+    homed = set(names)
+
+    def relaxed(joint: JointConfig) -> JointConfig:
+        if joint.name not in homed:
+            return joint
+        return dataclasses.replace(
+            joint,
+            position_min_deg=-_UNLIMITED_DEG,
+            position_max_deg=_UNLIMITED_DEG,
+            power_on_window_deg=None,
+            collision_threshold_nm=None,
+        )
+
+    control = dataclasses.replace(
+        config.control, mode=ControlMode.POSITION, gravity_feedforward=False, inertia_feedforward=False
+    )
+    return dataclasses.replace(config, control=control, joints=tuple(relaxed(j) for j in config.joints))
+
+
+def turns_to_stop(name: str, transmission: Transmission, found_deg: float, stop_deg: float) -> tuple[int, float]:
+    """The whole motor turns that carry the angle found at the stop onto the configured one, and the remainder.
+
+    Raises:
+        HomingError: the remainder is more than :data:`REMAINDER_SHARE_MAX` of a turn.
+    """
+    step = transmission.direction * turn_joint_deg(transmission)  # joint degrees per added motor turn
+    turns = round((stop_deg - found_deg) / step)
+    remainder = found_deg + turns * step - stop_deg
+    if abs(remainder) > REMAINDER_SHARE_MAX * abs(step):
+        raise HomingError(
+            f"joint {name}: the stop was found at {found_deg:.2f} deg, {remainder:+.2f} deg from stop_deg "
+            f"{stop_deg:g} once whole motor turns ({abs(step):g} deg each) are taken out: more than a quarter turn, so "
+            "no turn count explains it; check homing.stop_deg and zero_offset_deg, and that nothing else blocked the "
+            "joint"
+        )
+    return turns, remainder
+
+
+class _StopWatch:
+    """A cycle hook: the first cycle in which joint ``index`` pressed against something (current or lag)."""
+
+    def __init__(self, index: int, current_limit_a: float) -> None:
+        self.index = index
+        self.current_limit_a = current_limit_a
+        self.found: tuple[float, float, float] | None = None  # (time, angle, current)
+
+    def __call__(self, controller: Controller, start_s: float, _replies: list[Reply]) -> None:
+        if self.found is not None:
+            return
+        i, axes = self.index, controller.axes
+        q, iq = float(axes.q_deg[i]), float(axes.iq_a[i])
+        lag = abs(float(controller.reference.position[i]) - q)
+        if abs(iq) >= self.current_limit_a or lag >= STALL_DEG:
+            self.found = (start_s, q, iq)
+
+
+def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Callable[[float], None]) -> HomingResult:
+    """Move joint ``index`` to its stop, back off, and return where the stop was (the loop of ``supervisor`` runs
+    the homing variant; ``pause`` lets time pass with it running).
+
+    Raises:
+        HomingError: no stop within the travel or the time, or a remainder no whole turn count explains.
+        MotionFault: a fault halted the arm.
+    """
+    homing = joint.homing
+    if homing is None:  # homed_joints() refuses these
+        raise HomingError(f"joint {joint.name} has no hard stop configured")
+    controller = supervisor.controller
+    clock, period = controller.clock, controller.period_s
+    toward = -1.0 if homing.stop_deg <= joint.position_min_deg else 1.0
+    start = controller.reference.position.copy()
+    travel = homing.max_travel_deg if homing.max_travel_deg is not None else TURN_DEG
+    target = start.copy()
+    target[index] += toward * travel
+    watch = _StopWatch(index, homing.current_limit_a)
+    controller.cycle_hooks.append(watch)
+    began = clock.now()
+    try:
+        supervisor.move_to(target, homing.speed_dps / joint.velocity_limit_dps)
+        while watch.found is None:
+            _raise_if_faulted(supervisor)
+            if controller.idle:
+                raise HomingError(
+                    f"joint {joint.name}: no stop within {travel:g} deg of travel toward {homing.stop_deg:g} deg "
+                    "(homing.max_travel_deg); the arm stopped there"
+                )
+            if clock.now() - began > homing.timeout_s:
+                supervisor.stop_motion()
+                raise HomingError(f"joint {joint.name}: no stop within homing.timeout_s = {homing.timeout_s:g} s")
+            pause(period)
+    finally:
+        controller.cycle_hooks.remove(watch)
+    found_s, found_deg, current = watch.found
+    back = controller.reference.position.copy()
+    back[index] = found_deg - toward * homing.back_off_deg
+    supervisor.move_to(back, homing.speed_dps / joint.velocity_limit_dps)
+    while not controller.idle:
+        _raise_if_faulted(supervisor)
+        pause(period)
+    _raise_if_faulted(supervisor)
+    turns, remainder = turns_to_stop(joint.name, joint.transmission(), found_deg, homing.stop_deg)
+    return HomingResult(joint.name, found_deg, turns, remainder, found_s - began, current)
+
+
+def _raise_if_faulted(supervisor: Supervisor) -> None:
+    fault = supervisor.fault
+    if fault is not None and supervisor.state is not ArmState.READY:
+        raise fault
+
+
+def corrected_turns(turns: Sequence[int], index_of: Callable[[str], int], results: Sequence[HomingResult]) -> list[int]:
+    """The turn offsets after homing: each homed joint's plus its correction."""
+    corrected = list(turns)
+    for result in results:
+        corrected[index_of(result.name)] += result.turns_correction
+    return corrected
+
+
+__all__ = [
+    "REMAINDER_SHARE_MAX",
+    "STALL_DEG",
+    "HomingError",
+    "HomingResult",
+    "corrected_turns",
+    "homed_joints",
+    "homing_variant",
+    "seek_stop",
+    "turns_to_stop",
+]
