@@ -16,6 +16,7 @@ import numpy as np
 import pinocchio as pin
 from numpy.typing import NDArray
 
+from kinematics.dynamics import crba_full
 from kinematics.model import ArmModel
 from motion.config import ArmConfig
 
@@ -59,6 +60,8 @@ class ArmPlant:
         self._tau = np.zeros(n)
         self._p = np.zeros(n)
         self._pd = np.zeros(n)
+        #: Joints held through the next step (model index -> the side it may leave toward, 0: none).
+        self._held: dict[int, int] = {}
         self._export()
 
     @property
@@ -88,14 +91,36 @@ class ArmPlant:
         tau -= self._viscous * self._v
         tau -= self._coulomb * np.tanh(self._v / self._smoothing)
         acceleration = pin.aba(self._model, self._data, self._q, self._v, tau)
+        if self._held:
+            acceleration = self._constrained(acceleration, tau)
         self._v += acceleration * dt_s
         self._q += self._v * dt_s
         self._export()
         return self._p, self._pd
 
-    def hold(self, index: int, position_rad: float) -> None:
-        """Put the joint of emulator index ``index`` at ``position_rad`` (emulator coordinate) at rest."""
+    def _constrained(self, free_acceleration: FloatArray, tau: FloatArray) -> FloatArray:
+        """The accelerations with the held joints fixed (their stop or obstruction takes whatever torque it takes):
+        ``M_FF qdd_F = tau_F - h_F`` over the free joints F, ``qdd_H = 0``. A joint at a one-sided stop whose free
+        acceleration points away from it leaves the stop."""
+        held = [m for m, side in self._held.items() if side * free_acceleration[m] <= 0.0]
+        self._held.clear()
+        if not held:
+            return free_acceleration
+        free = np.setdiff1d(np.arange(self.size), held)
+        acceleration = np.zeros(self.size)
+        if free.size:
+            mass = crba_full(self._model, self._data, self._q)
+            bias = pin.nonLinearEffects(self._model, self._data, self._q, self._v)
+            acceleration[free] = np.linalg.solve(mass[np.ix_(free, free)], tau[free] - bias[free])
+        self._v[held] = 0.0
+        return acceleration
+
+    def hold(self, index: int, position_rad: float, side: int = 0) -> None:
+        """Put the joint of emulator index ``index`` at ``position_rad`` (emulator coordinate) at rest, held there
+        through the next step (the rest of the arm moves with it fixed); ``side``: see
+        :meth:`motion.emulator.Plant.hold` (emulator coordinate)."""
         m = int(np.flatnonzero(self._emu_index == index)[0])
         self._q[m] = self._sign[m] * position_rad + self._offset_rad[m]
         self._v[m] = 0.0
+        self._held[m] = int(self._sign[m]) * side
         self._export()

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 import shutil
 import subprocess
@@ -95,6 +96,7 @@ def emulator_process(
     log: str | os.PathLike[str] | None = None,
     latency_ms: float | None = None,
     faults: Sequence[Fault] = (),
+    start_pose: Mapping[str, float] | None = None,
 ) -> Iterator[dict[str, object]]:
     """The drives of ``config``'s file, emulated in real time in a process of their own (``rmd-motion emulate``) on
     a slcan (CAN) or RS485 pseudo-terminal; yields the bus overrides that reach them. Ended on exit.
@@ -117,6 +119,8 @@ def emulator_process(
         command += ["--latency-ms", f"{latency_ms:g}"]
     for fault in faults:  # the emulator's own clock: seconds since it started
         command += ["--fault", fault.describe()]
+    for name, angle in (start_pose or {}).items():
+        command += ["--start-pose", f"{name}={angle!r}"]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         if process.stdout is None:
@@ -267,6 +271,10 @@ class Arm:
             aside, and resolve every joint from its ``power_on_window_deg`` (see :mod:`motion.control.turns`).
         home: joints to home against their hard stops at :meth:`connect`, before the arm is handed over (their
             power-on windows are not consulted; see :mod:`motion.homing`).
+        start_pose: emulation only: the emulated drives power up with the named joints at these angles, degrees
+            (the others at 0), so that they know each joint only modulo ``360 / gear_ratio``, as real drives do;
+            connect then resolves the turns as on hardware (unlike ``initial_deg``: drives powered up at the zero
+            pose, which has since moved there).
     """
 
     def __init__(
@@ -282,8 +290,10 @@ class Arm:
         faults: Sequence[Fault] = (),
         forget_turns: bool = False,
         home: Sequence[str] = (),
+        start_pose: Mapping[str, float] | None = None,
     ) -> None:
         self.config = config
+        self._start_pose = self._check_start_pose(config, start_pose, emulate, initial_deg)
         self._forget_turns = forget_turns
         self._home = tuple(home)
         if self._home:
@@ -327,6 +337,32 @@ class Arm:
         self.simulation: Simulation | None = None
         self.names = config.joint_names
         self._index = {name: i for i, name in enumerate(self.names)}
+
+    @staticmethod
+    def _check_start_pose(
+        config: ArmConfig,
+        pose: Mapping[str, float] | None,
+        emulate: bool | str,
+        initial_deg: Sequence[float] | None,
+    ) -> tuple[float, ...] | None:
+        """The emulated power-up pose in joint order (unnamed joints at 0), or None.
+
+        Raises:
+            ConfigError: not emulated, together with ``initial_deg``, an unknown joint or a non-finite angle.
+        """
+        if pose is None:
+            return None
+        if not emulate:
+            raise ConfigError(config.source, "<start_pose>", "applies to emulated drives only (emulate=...)")
+        if initial_deg is not None:
+            raise ConfigError(config.source, "<start_pose>", "give start_pose or initial_deg, not both")
+        names = config.joint_names
+        for name, angle in pose.items():
+            if name not in names:
+                raise ConfigError(config.source, "<start_pose>", f"unknown joint {name!r}; joints: {', '.join(names)}")
+            if not math.isfinite(angle):
+                raise ConfigError(config.source, f"<start_pose>.{name}", f"expected a finite angle; found {angle!r}")
+        return tuple(float(pose.get(name, 0.0)) for name in names)
 
     @classmethod
     def from_config(cls, path: str | os.PathLike[str], *, emulate: bool | str = False, **kwargs: Any) -> Arm:
@@ -462,7 +498,7 @@ class Arm:
         return not self.emulate
 
     def _resolve_turns(self, controller: Controller) -> tuple[JointTurns, ...]:
-        if self.emulation == "simulated":
+        if self.emulation == "simulated" and self._start_pose is None:
             return emulated_frames(controller, self.config)
         records = None
         if self._remembers and not self._forget_turns:
@@ -481,7 +517,10 @@ class Arm:
     def _start_simulation(self) -> tuple[Transport, SimulatedClock]:
         from kinematics.emulation import arm_emulator  # noqa: PLC0415 - as above
 
-        self.emulator, self.plant = arm_emulator(self.config, initial_deg=self._initial, faults=self._faults)
+        initial = self._start_pose if self._start_pose is not None else self._initial
+        self.emulator, self.plant = arm_emulator(self.config, initial_deg=initial, faults=self._faults)
+        if self._start_pose is not None:
+            self.emulator.power_cycle()  # powered up there: each drive counts its turns from this pose
         bus_config = self.config.bus
         if isinstance(bus_config, CanBusConfig):
             simulation = Simulation(self.emulator, WireProtocol.CAN, bitrate=bus_config.bitrate or DEFAULT_BITRATE)
@@ -496,8 +535,9 @@ class Arm:
     def _start_emulator_process(self) -> None:
         if self._initial is not None:
             raise MotionError("initial_deg applies to simulated emulation only (emulate=True)")
+        pose = None if self._start_pose is None else dict(zip(self.config.joint_names, self._start_pose, strict=True))
         self._overrides = self._stack.enter_context(
-            emulator_process(self.config, log=self._emulator_log, faults=self._faults)
+            emulator_process(self.config, log=self._emulator_log, faults=self._faults, start_pose=pose)
         )
 
     def close(self) -> None:

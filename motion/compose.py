@@ -246,7 +246,17 @@ def emulator_for(
         )
         for j in config.joints
     }
-    return Emulator(models.keys(), model=models, load=loads, plant=plant, faults=faults)
+    stops = {j.motor_id: hard_stops(j) for j in config.joints if j.homing is not None}
+    return Emulator(models.keys(), model=models, load=loads, plant=plant, faults=faults, stops=stops)
+
+
+def hard_stops(joint: JointConfig) -> tuple[float, float]:
+    """The emulated plant's bounds of a joint with a hard stop (``homing.stop_deg``), in the emulator's coordinate
+    (motor angle / gear ratio, rad): the joint angle is ``direction × p + zero_offset_deg``."""
+    assert joint.homing is not None
+    p = math.radians((joint.homing.stop_deg - joint.zero_offset_deg) / joint.direction)
+    below = joint.homing.stop_deg <= joint.position_min_deg  # the stop bounds the joint angle from below
+    return (p, math.inf) if below == (joint.direction > 0) else (-math.inf, p)
 
 
 def safety_settings(config: ArmConfig) -> SafetySettings:

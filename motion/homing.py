@@ -5,15 +5,18 @@ The drive's single-turn encoder is absolute within a motor turn; what a power-up
 (``joints[].homing.stop_deg``, outside the joint's limits):
 
 1. The arm runs under a guarded loop of its own, built from a *homing variant* of the configuration
-   (:func:`homing_variant`): position mode (the drives' own loops; no feed-forward from angles not yet known), and for
-   the joints being homed no position limits, no power-on window and no collision threshold (touching the stop is the
-   point). Every other fault rule stays active: drive flags, temperature, voltage, replies, following error, overruns.
-2. The joint moves toward its stop at ``homing.speed_dps`` for at most ``homing.max_travel_deg`` and
-   ``homing.timeout_s``. The stop is reached when the measured torque current passes ``homing.current_limit_a``
-   or the joint falls :data:`STALL_DEG` behind its reference (a cycle hook watches every cycle).
-3. It backs off by ``homing.back_off_deg``. The angle measured at the stop, in the controller's provisional frame,
-   differs from ``stop_deg`` by whole motor turns plus what the stop yields: the nearest whole number of turns is
-   the correction, and a remainder of more than a quarter of a turn is refused (the configured ``stop_deg`` or
+   (:func:`homing_variant`): position mode (the drives' own loops; no feed-forward from angles not yet known), no
+   collision observer (its model of the whole arm needs the angle homing looks for, and touching the stop is the
+   point), and for the joints being homed no position limits and no power-on window. Every other fault rule stays
+   active: drive flags, temperature, voltage, replies, following error, the other joints' limits, overruns.
+2. After :data:`SETTLE_S` of holding, the joint moves toward its stop at ``homing.speed_dps`` for at most
+   ``homing.max_travel_deg`` and ``homing.timeout_s``. The stop is reached when the measured torque current rises
+   ``homing.current_limit_a`` above what moving freely took (a slow average: gravity changes along the way), or the
+   joint falls :data:`STALL_DEG` behind its reference; a cycle hook watches every cycle.
+3. The reference stops at the full limits, and the joint backs off by ``homing.back_off_deg``, and at least to
+   :data:`LIMIT_CLEARANCE_DEG` inside its limits. The angle measured at the stop, in the controller's provisional
+   frame, differs from ``stop_deg`` by whole motor turns plus what the stop yields: the nearest whole number of turns
+   is the correction, and a remainder of more than a quarter of a turn is refused (the configured ``stop_deg`` or
    ``zero_offset_deg`` is wrong, or something else stopped the joint).
 """
 
@@ -34,9 +37,15 @@ from motion.transport import Reply
 
 #: A joint that falls this far behind its reference while seeking has reached its stop, degrees.
 STALL_DEG: Final = 1.0
+#: Time constant of the average current while moving freely toward the stop, s.
+FREE_CURRENT_TAU_S: Final = 0.25
+#: The arm holds this long under the homing loop before a seek starts (the drives take up their loads), s.
+SETTLE_S: Final = 0.5
 #: The largest remainder (share of one motor turn, joint side) between the angle found at the stop and the configured
 #: ``stop_deg`` once whole turns are taken out.
 REMAINDER_SHARE_MAX: Final = 0.25
+#: Homing leaves a joint at least this far inside its limits, degrees.
+LIMIT_CLEARANCE_DEG: Final = 1.0
 #: Position limits of a joint being homed in the homing variant, degrees: none in effect (the frame is not known).
 _UNLIMITED_DEG: Final = 1.0e6
 
@@ -55,7 +64,7 @@ class HomingResult:
         turns_correction: whole motor turns added to the joint's turn offset.
         remainder_deg: what the stop yielded (or its configured angle misses), degrees: found + correction - stop.
         seek_s: how long the seek took, seconds (the arm's clock).
-        current_a: the torque current when the stop was reached, A.
+        current_a: the torque current above the free-moving one when the stop was reached, A.
     """
 
     name: str
@@ -98,7 +107,7 @@ def homing_variant(config: ArmConfig, names: Sequence[str]) -> ArmConfig:
 
     def relaxed(joint: JointConfig) -> JointConfig:
         if joint.name not in homed:
-            return joint
+            return dataclasses.replace(joint, collision_threshold_nm=None)
         return dataclasses.replace(
             joint,
             position_min_deg=-_UNLIMITED_DEG,
@@ -133,11 +142,15 @@ def turns_to_stop(name: str, transmission: Transmission, found_deg: float, stop_
 
 
 class _StopWatch:
-    """A cycle hook: the first cycle in which joint ``index`` pressed against something (current or lag)."""
+    """A cycle hook: the first cycle in which joint ``index`` pressed against something — its torque current
+    :attr:`current_limit_a` above the current it took to move freely (a slow average: gravity changes along the way),
+    or :data:`STALL_DEG` behind its reference."""
 
-    def __init__(self, index: int, current_limit_a: float) -> None:
+    def __init__(self, index: int, current_limit_a: float, period_s: float) -> None:
         self.index = index
         self.current_limit_a = current_limit_a
+        self._alpha = min(1.0, period_s / FREE_CURRENT_TAU_S)
+        self.free_a: float | None = None  # the average current while moving freely
         self.found: tuple[float, float, float] | None = None  # (time, angle, current)
 
     def __call__(self, controller: Controller, start_s: float, _replies: list[Reply]) -> None:
@@ -145,9 +158,12 @@ class _StopWatch:
             return
         i, axes = self.index, controller.axes
         q, iq = float(axes.q_deg[i]), float(axes.iq_a[i])
+        free = iq if self.free_a is None else self.free_a
         lag = abs(float(controller.reference.position[i]) - q)
-        if abs(iq) >= self.current_limit_a or lag >= STALL_DEG:
-            self.found = (start_s, q, iq)
+        if abs(iq - free) >= self.current_limit_a or lag >= STALL_DEG:
+            self.found = (start_s, q, iq - free)
+        else:
+            self.free_a = free + self._alpha * (iq - free)
 
 
 def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Callable[[float], None]) -> HomingResult:
@@ -168,7 +184,9 @@ def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Cal
     travel = homing.max_travel_deg if homing.max_travel_deg is not None else TURN_DEG
     target = start.copy()
     target[index] += toward * travel
-    watch = _StopWatch(index, homing.current_limit_a)
+    pause(SETTLE_S)
+    _raise_if_faulted(supervisor)
+    watch = _StopWatch(index, homing.current_limit_a, period)
     controller.cycle_hooks.append(watch)
     began = clock.now()
     try:
@@ -187,15 +205,26 @@ def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Cal
     finally:
         controller.cycle_hooks.remove(watch)
     found_s, found_deg, current = watch.found
+    supervisor.stop_motion()  # at the full limits: the seek's scaled ones would take seconds to stop
+    _wait_idle(supervisor, pause)
+    turns, remainder = turns_to_stop(joint.name, joint.transmission(), found_deg, homing.stop_deg)
+    # back off the stop by back_off_deg, and at least into the joint's limits, where the arm's loop takes over
+    near_limit = joint.position_min_deg if toward < 0 else joint.position_max_deg
+    inside = -toward * max(homing.back_off_deg, abs(near_limit - homing.stop_deg) + LIMIT_CLEARANCE_DEG)
     back = controller.reference.position.copy()
-    back[index] = found_deg - toward * homing.back_off_deg
+    back[index] = found_deg - remainder + inside  # the stop's own angle in this frame, then off it
     supervisor.move_to(back, homing.speed_dps / joint.velocity_limit_dps)
+    _wait_idle(supervisor, pause)
+    return HomingResult(joint.name, found_deg, turns, remainder, found_s - began, current)
+
+
+def _wait_idle(supervisor: Supervisor, pause: Callable[[float], None]) -> None:
+    """Let the loop run until the motion has ended; a fault on the way is raised."""
+    controller = supervisor.controller
     while not controller.idle:
         _raise_if_faulted(supervisor)
-        pause(period)
+        pause(controller.period_s)
     _raise_if_faulted(supervisor)
-    turns, remainder = turns_to_stop(joint.name, joint.transmission(), found_deg, homing.stop_deg)
-    return HomingResult(joint.name, found_deg, turns, remainder, found_s - began, current)
 
 
 def _raise_if_faulted(supervisor: Supervisor) -> None:

@@ -89,7 +89,7 @@ def cli(*args: str | Path, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]
     )
 
 
-def start_emulator(tmp: Path, config: Path, link_option: str) -> Emulated:
+def start_emulator(tmp: Path, config: Path, link_option: str, *extra: str) -> Emulated:
     link, log = tmp / "link", tmp / "frames.log"
     process = subprocess.Popen(
         [
@@ -103,6 +103,7 @@ def start_emulator(tmp: Path, config: Path, link_option: str) -> Emulated:
             str(link),
             "--log",
             str(log),
+            *extra,
         ],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -138,8 +139,8 @@ def stop_emulator(process: subprocess.Popen[str]) -> None:
 
 
 @contextlib.contextmanager
-def running_emulator(tmp: Path, config: Path, link_option: str) -> Iterator[Emulated]:
-    emulated = start_emulator(tmp, config, link_option)
+def running_emulator(tmp: Path, config: Path, link_option: str, *extra: str) -> Iterator[Emulated]:
+    emulated = start_emulator(tmp, config, link_option, *extra)
     try:
         yield emulated
     finally:
@@ -553,3 +554,65 @@ def test_program_forms_and_scales() -> None:
     ]:
         with pytest.raises(ConfigError, match=re.escape(message)):
             parse_program(data, "p.yaml", config)
+
+
+# ---------------------------------------------------------------------------------------------- power-up (issue 16)
+
+
+def _with_windows(tmp: Path, shoulder: str, elbow: str) -> Path:
+    """A copy of arm2 with the given power-on windows (``"[55.0, 65.0]"``)."""
+    text = ARM2.read_text()
+    for joint, window in (("shoulder", shoulder), ("elbow", elbow)):
+        old = "power_on_window_deg: [-5.0, 5.0]"
+        assert old in text
+        text = text.replace(old, f"power_on_window_deg: {window}  # {joint}", 1)
+    path = tmp / "windows" / "arm2.yaml"
+    path.parent.mkdir()
+    path.write_text(text)
+    return path
+
+
+def _motion_commands(log: Path) -> list[str]:
+    """The control commands the emulated drives received (0xA1..0xA8, 0x280), as the frame log shows them."""
+    received = []
+    for line in log.read_text().splitlines():
+        fields = line.split(maxsplit=3)
+        if len(fields) == 4 and fields[1] == "IN":
+            ident, _, data = fields[3].split(" | ")[0].partition(":")
+            if ident == "280" or data[:2] in {"A1", "A2", "A3", "A4", "A5", "A6", "A7", "A8"}:
+                received.append(fields[3])
+    return received
+
+
+def test_arm2_powered_up_away_from_zero_status_and_move(tmp_path: Path) -> None:
+    pose = ("--start-pose", "shoulder=60", "--start-pose", "elbow=-50")
+    config = _with_windows(tmp_path, "[55.0, 65.0]", "[-55.0, -45.0]")
+    (tmp_path / "emulator").mkdir()
+    with running_emulator(tmp_path / "emulator", config, "--slcan-link", *pose) as emulated:
+        joints = status_json(config, emulated)
+        assert joints["shoulder"]["position_deg"] == pytest.approx(60.0, abs=0.05)
+        assert joints["elbow"]["position_deg"] == pytest.approx(-50.0, abs=0.05)
+        assert joints["shoulder"]["turns_from"] == "power-on window" and joints["shoulder"]["turns"] == 1
+        moving = rate_that_holds(config, emulated, tmp_path, 200.0)
+        result = cli("move", "--config", moving, *emulated.bus_args, "shoulder=20", "elbow=10", "--json")
+        skip_if_rate_refused(result)
+        assert result.returncode == 0, result.stderr
+        # a later session keeps the turns this one recorded (a wrong count would be 40 deg off; the drives hold
+        # after the 0x81 that ended the move within the drive's own loop, as in test_move_then_status...)
+        joints = status_json(config, emulated)
+        assert joints["shoulder"]["position_deg"] == pytest.approx(20.0, abs=0.5)
+        assert joints["elbow"]["position_deg"] == pytest.approx(10.0, abs=0.5)
+        assert joints["elbow"]["turns_from"] == "kept from the last session"
+
+
+def test_arm2_powered_up_outside_its_window_is_refused_before_any_command(tmp_path: Path) -> None:
+    pose = ("--start-pose", "shoulder=60", "--start-pose", "elbow=-50")
+    config = _with_windows(tmp_path, "[55.0, 65.0]", "[-25.0, -15.0]")
+    (tmp_path / "emulator").mkdir()
+    with running_emulator(tmp_path / "emulator", config, "--slcan-link", *pose) as emulated:
+        for command in (("status",), ("move", "shoulder=20")):
+            result = cli(command[0], "--config", config, *emulated.bus_args, *command[1:])
+            assert result.returncode == 2, (command, result.stderr)
+            assert "joint elbow" in result.stderr and "[-25, -15]" in result.stderr, result.stderr
+            assert "joint shoulder" not in result.stderr
+    assert _motion_commands(emulated.log) == []

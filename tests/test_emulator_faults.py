@@ -31,6 +31,7 @@ from motion.protocol import (
         ("corrupt:3@2-3:length", Fault(InjectedFault.CORRUPT, 3, 2.0, 3.0, corruption=Corruption.LENGTH)),
         ("DROP:4@0.5:0.25", Fault(InjectedFault.DROP, 4, 0.5, None, 0.25)),
         ("blocked:2@1.5-2", Fault(InjectedFault.BLOCKED, 2, 1.5, 2.0)),
+        ("power_cycle:2@3.5", Fault(InjectedFault.POWER_CYCLE, 2, 3.5)),
     ],
 )
 def test_fault_specs_parse_and_describe_themselves(spec: str, fault: Fault) -> None:
@@ -52,6 +53,8 @@ def test_fault_specs_parse_and_describe_themselves(spec: str, fault: Fault) -> N
         ("delay:1@0:-1", "a delay >= 0 ms"),
         ("corrupt:1@0:bits", "not one of payload, id, length"),
         ("nothing", "expected KIND:MOTOR@START"),
+        ("power_cycle:1@1-2", "happens at one instant: give no END"),
+        ("power_cycle:1@1:5", "takes no parameter"),
     ],
 )
 def test_bad_fault_specs_say_what_is_wrong(spec: str, message: str) -> None:
@@ -95,6 +98,25 @@ def test_blocked_joint_stays_where_it_was_until_the_fault_ends() -> None:
     assert abs(emulator.drives[1].iq_a) > 1.0  # its drive pushes against the block
     emulator.advance(0.4)
     assert emulator.drives[1].speed_dps == pytest.approx(200.0, rel=0.05)  # free again
+
+
+def test_a_power_cycle_restarts_the_drives_turn_count_and_leaves_it_off() -> None:
+    emulator = Emulator([1, 2], faults=[parse_fault("power_cycle:1@2")])
+    for motor_id in (1, 2):
+        emulator.request(motor_id, SpeedControl(2000.0))
+    emulator.advance(1.999)
+    before = emulator.drives[1].angle_deg
+    assert before > 720.0  # past its first turns
+    emulator.advance(0.0015)  # the power cycle's step
+    drive = emulator.drives[1]
+    assert drive.state is RunState.OFF  # it forgot its command
+    assert 0.0 <= drive.angle_deg < 360.0  # counting from its single-turn reading again
+    turns = (before - drive.angle_deg) / 360.0
+    assert abs(turns - round(turns)) < 0.02 and round(turns) >= 2  # by whole turns: the shaft did not jump
+    assert emulator.drives[2].state is RunState.RUNNING  # the other drive carries on
+    restarted = drive.angle_deg
+    emulator.advance(1.0)
+    assert drive.angle_deg > restarted + 10.0  # once only: it coasts on from the restart, counting continuously
 
 
 def test_dropped_requests_are_not_executed_and_a_probability_drops_some() -> None:

@@ -9,7 +9,15 @@ import pytest
 
 from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
-from motion.compose import build_controller, build_supervisor, feedforward_for, resolve_frames
+from motion.compose import (
+    build_controller,
+    build_supervisor,
+    feedforward_for,
+    load_turn_records,
+    resolve_frames,
+    save_turn_records,
+    turns_store,
+)
 from motion.config import ArmConfig
 from motion.control.controller import Controller
 from motion.control.turns import (
@@ -208,3 +216,19 @@ def test_a_window_that_misses_the_true_pose_is_refused_before_any_command() -> N
     assert "shoulder" not in str(caught.value)
     assert all(drive.state is RunState.OFF for drive in emulator.drives.values())  # nothing was commanded
     np.testing.assert_allclose(plant.joint_positions_deg(), [60.0, -50.0], atol=0.05)
+
+
+def test_records_are_kept_per_arm_and_bus_and_a_bad_file_is_left_aside(caplog: pytest.LogCaptureFixture) -> None:
+    config = _arm2_with_windows((55.0, 65.0), (-55.0, -45.0))
+    _, _, controller = _powered_up_at(config, [60.0, -50.0])
+    turns = resolve_frames(controller, config)
+    controller.read_positions()
+    path = save_turn_records(config, "can slcan:/dev/ttyACM0", controller, (t.source for t in turns))
+    assert path == turns_store(config)
+    records = load_turn_records(config, "can slcan:/dev/ttyACM0")
+    assert {name: (r.motor_id, r.turns) for name, r in records.items()} == {"shoulder": (1, 1), "elbow": (2, 1)}
+    assert records["shoulder"].reading_deg == pytest.approx(180.0, abs=0.1)  # the drive's own frame
+    assert load_turn_records(config, "can slcan:/dev/ttyACM1") == {}  # another bus: other drives
+    path.write_text("{not json")
+    assert load_turn_records(config, "can slcan:/dev/ttyACM0") == {}
+    assert "recorded turn offsets ignored" in caplog.text

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Final
 
@@ -23,6 +23,7 @@ from motion.cli.common import (
     add_bus_arguments,
     add_emulate_flag,
     add_turns_flag,
+    parse_pose,
     speed_scale_arg,
 )
 from motion.cli.protocol_demo import protocol_demo
@@ -57,8 +58,10 @@ EMULATED_HOLD_SPEED_SHARE: Final = 0.1
 # ---------------------------------------------------------------------------------------------------- emulate
 
 
-def arm_emulator_factory(config: ArmConfig) -> EmulatorFactory:
-    """Drives of ``config`` coupled through its Pinocchio model, holding the start pose (as if braked).
+def arm_emulator_factory(config: ArmConfig, start_pose: Mapping[str, float] | None = None) -> EmulatorFactory:
+    """Drives of ``config`` coupled through its Pinocchio model, holding the start pose (as if braked): each joint at
+    0 deg (or the limit nearest to it), or, with ``start_pose``, the joints named there, where the drives power up
+    (their multi-turn angles restart from the single-turn readings).
 
     Without the hold, the emulated arm would fall under gravity from the moment the emulator starts until a host
     takes control; a real arm rests on its brakes or its stops instead.
@@ -67,8 +70,11 @@ def arm_emulator_factory(config: ArmConfig) -> EmulatorFactory:
     def build(faults: Sequence[Fault]) -> Emulator:
         from kinematics.emulation import arm_emulator  # noqa: PLC0415 - Pinocchio only when emulating an arm
 
-        start = [min(max(0.0, j.position_min_deg), j.position_max_deg) for j in config.joints]
+        pose = start_pose or {}
+        start = [pose.get(j.name, min(max(0.0, j.position_min_deg), j.position_max_deg)) for j in config.joints]
         emulator, _plant = arm_emulator(config, initial_deg=start, faults=faults)
+        if start_pose:
+            emulator.power_cycle()
         for joint in config.joints:
             drive = emulator.drives[joint.motor_id]
             speed = joint.velocity_limit_dps * joint.gear_ratio * EMULATED_HOLD_SPEED_SHARE
@@ -81,8 +87,12 @@ def arm_emulator_factory(config: ArmConfig) -> EmulatorFactory:
 def emulate(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """``emulate``: drives of ``--ids`` or of the arm of ``--config``."""
     interrupts.restore()  # run_emulate handles SIGINT and SIGTERM itself (a clean shutdown, exit 0)
-    factory = arm_emulator_factory(load_config_or_example(args.config)) if args.config else None
-    return run_emulate(args, factory)
+    if not args.config:
+        if args.start_pose:
+            raise UsageError("--start-pose needs --config (the joints it names)")
+        return run_emulate(args, None)
+    config = load_config_or_example(args.config)
+    return run_emulate(args, arm_emulator_factory(config, parse_pose(config, args.start_pose)))
 
 
 # ---------------------------------------------------------------------------------------------------- demo, plot

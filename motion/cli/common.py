@@ -188,6 +188,14 @@ def add_emulate_flag(parser: argparse.ArgumentParser) -> None:
         help="run on the configuration's emulated drives, in simulated time: a dry run that opens no port and gives "
         "the same result on every host",
     )
+    parser.add_argument(
+        "--start-pose",
+        action="append",
+        default=[],
+        metavar="JOINT=DEG",
+        help="with --emulate: the emulated drives power up with the joint there (joints not named at 0 deg), so "
+        "they know it only modulo 360/gear_ratio, as real drives do; repeatable",
+    )
 
 
 def add_turns_flag(parser: argparse.ArgumentParser) -> None:
@@ -229,7 +237,21 @@ def parse_targets(config: ArmConfig, items: Sequence[str]) -> dict[str, float]:
     Raises:
         UsageError: a malformed item, a joint given twice, an unknown joint or a target outside the joint's range.
     """
-    targets: dict[str, float] = {}
+    targets = parse_pose(config, items)
+    for name, angle in targets.items():
+        problem = target_problem(config, name, angle)
+        if problem is not None:
+            raise UsageError(problem)
+    return targets
+
+
+def parse_pose(config: ArmConfig, items: Sequence[str]) -> dict[str, float]:
+    """``JOINT=DEG`` arguments -> ``{joint: deg}`` (joints of the configuration, finite angles, any value).
+
+    Raises:
+        UsageError: a malformed item, a joint given twice or an unknown joint.
+    """
+    pose: dict[str, float] = {}
     for item in items:
         name, equals, value = item.partition("=")
         name = name.strip()
@@ -237,15 +259,14 @@ def parse_targets(config: ArmConfig, items: Sequence[str]) -> dict[str, float]:
             angle = float(value) if equals and name else math.nan
         except ValueError:
             angle = math.nan
-        if math.isnan(angle):
+        if not math.isfinite(angle):
             raise UsageError(f"{item!r}: expected JOINT=DEG, e.g. {config.joint_names[0]}=30")
-        if name in targets:
+        if name in pose:
             raise UsageError(f"{name} is given twice")
-        problem = target_problem(config, name, angle)
-        if problem is not None:
-            raise UsageError(problem)
-        targets[name] = angle
-    return targets
+        if name not in config.joint_names:
+            raise UsageError(unknown_joint(config, name))
+        pose[name] = angle
+    return pose
 
 
 def speed_scale_arg(text: str) -> float:

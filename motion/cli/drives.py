@@ -31,6 +31,7 @@ from motion.config import CanBusConfig, JointConfig
 from motion.config.schema import ControlMode
 from motion.control.ratecheck import RateError
 from motion.control.tracking import PositionLoopFit
+from motion.control.turns import CONTINUITY_MOTOR_DEG, joint_angle
 from motion.errors import FaultKind, MotionFault
 from motion.protocol import (
     Acceleration,
@@ -257,7 +258,16 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
             for j in joints
         ]
         exchange(bus, requests, session.names, MotorState)
-    held = ", ".join(f"{j.name} at {j.transmission().joint_deg(angles[j.motor_id].angle_deg):.2f} deg" for j in joints)
+        records = load_turn_records(session.config, bus.describe())
+
+    def joint_deg(joint: JointConfig) -> str:
+        """The joint angle with the turns the last session recorded, while the drive continues from it."""
+        reading, record = angles[joint.motor_id].angle_deg, records.get(joint.name)
+        if record is None or abs(reading - record.reading_deg) > CONTINUITY_MOTOR_DEG:
+            return f"{joint_angle(joint.transmission(), reading, 0):.2f} deg (turns not known)"
+        return f"{joint_angle(joint.transmission(), reading, record.turns):.2f} deg"
+
+    held = ", ".join(f"{j.name} at {joint_deg(j)}" for j in joints)
     print(f"holding (drive position loop, 0xA4): {held}")
     return EXIT_OK
 

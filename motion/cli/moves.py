@@ -14,7 +14,16 @@ from collections.abc import Callable, Mapping
 from typing import Any, Final, TextIO
 
 from motion.api import Arm, MotionHandle
-from motion.cli.common import EXIT_OK, Interrupts, Session, UsageError, parse_targets, print_json, warn
+from motion.cli.common import (
+    EXIT_OK,
+    Interrupts,
+    Session,
+    UsageError,
+    parse_pose,
+    parse_targets,
+    print_json,
+    warn,
+)
 from motion.cli.program import MoveStep, PathStep, Program, WaitStep, load_program
 from motion.config import ArmConfig
 from motion.errors import MotionError, MotionFault
@@ -138,6 +147,10 @@ def with_arm(
             raise UsageError(f"--emulate opens no port: drop {given}")
         overrides = {}
     options.setdefault("forget_turns", getattr(args, "forget_turns", False))
+    if getattr(args, "start_pose", None):
+        if not options.get("emulate"):
+            raise UsageError("--start-pose applies to the emulated drives of --emulate")
+        options["start_pose"] = parse_pose(config or session.config, args.start_pose)
     arm = Arm(config or session.config, bus_overrides=overrides, telemetry=telemetry, **options)
     try:
         with interrupts.deferred():  # a signal while connecting is raised once the loop runs (or connect failed)

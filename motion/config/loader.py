@@ -144,30 +144,29 @@ def _to_choice(value: object, choices: type[_E], false_alias: _E | None, refused
     raise _Invalid(f"expected one of {allowed}; found {_describe(value)}{hint}")
 
 
-def _to_vector3(value: object) -> schema.Vec3:
-    if not isinstance(value, list | tuple) or len(value) != 3:
-        raise _Invalid(f"expected a list of 3 numbers [x, y, z]; found {_describe(value)}")
+def _to_numbers(value: object, count: int, form: str) -> list[float]:
+    """A list of ``count`` finite numbers (``form`` names them in the message, e.g. ``[x, y, z]``)."""
+    if not isinstance(value, list | tuple) or len(value) != count:
+        raise _Invalid(f"expected a list of {count} numbers {form}; found {_describe(value)}")
     items: list[float] = []
     for i, item in enumerate(value):
         try:
             items.append(_to_number(item))
         except _Invalid as exc:
             raise _Invalid(exc.message, f"[{i}]") from None
-    return (items[0], items[1], items[2])
+    return items
+
+
+def _to_vector3(value: object) -> schema.Vec3:
+    x, y, z = _to_numbers(value, 3, "[x, y, z]")
+    return (x, y, z)
 
 
 def _to_interval(value: object) -> tuple[float, float]:
-    if not isinstance(value, list | tuple) or len(value) != 2:
-        raise _Invalid(f"expected a list of 2 numbers [min, max]; found {_describe(value)}")
-    items: list[float] = []
-    for i, item in enumerate(value):
-        try:
-            items.append(_to_number(item))
-        except _Invalid as exc:
-            raise _Invalid(exc.message, f"[{i}]") from None
-    if items[0] >= items[1]:
-        raise _Invalid(f"expected [min, max] with min < max; found [{items[0]:g}, {items[1]:g}]")
-    return (items[0], items[1])
+    low, high = _to_numbers(value, 2, "[min, max]")
+    if low >= high:
+        raise _Invalid(f"expected [min, max] with min < max; found [{low:g}, {high:g}]")
+    return (low, high)
 
 
 class _Node:

@@ -143,6 +143,14 @@ def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = Fal
             "coupled through the arm's rigid-body dynamics (gravity loads the motors); the drives start holding "
             "the start pose (every joint at 0 deg, or at the limit nearest to it) as if braked",
         )
+        parser.add_argument(
+            "--start-pose",
+            action="append",
+            default=[],
+            metavar="JOINT=DEG",
+            help="with --config: the drives power up with the joint there (others at 0 deg, or the nearest limit), "
+            "so they know it only modulo 360/gear_ratio, as real drives do; repeatable",
+        )
     where = parser.add_argument_group("attachments (at least one)")
     where.add_argument(
         "--slcan-link", metavar="PATH", help="virtual slcan USB-CAN adapter on a pty, with a symlink at PATH"
@@ -187,8 +195,8 @@ def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = Fal
         type=_fault_arg,
         metavar="KIND:MOTOR@START[-END][:PARAM]",
         help="inject a fault at simulation time START s (until END s): over_temperature[:degC], "
-        "under_voltage[:V], silent, delay[:ms], corrupt[:payload|id|length], drop[:probability], blocked; "
-        "repeatable",
+        "under_voltage[:V], silent, delay[:ms], corrupt[:payload|id|length], drop[:probability], blocked, "
+        "collision:NM, power_cycle; repeatable",
     )
     parser.add_argument(
         "--encoder-bits",

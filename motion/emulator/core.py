@@ -96,6 +96,8 @@ class Emulator:
         faults: faults to schedule (see :mod:`motion.emulator.faults`).
         step_s: integration step, s.
         seed: seed of the random draws of ``drop`` faults.
+        stops: hard stops per motor id: the lowest and highest position of its joint in the plant's coordinate
+            (motor angle / gear ratio, rad; ``-inf`` / ``inf`` where there is none). The joint cannot pass them.
 
     Raises:
         ValueError: an id outside 1..32 or given twice, a fault on a drive that is not emulated, a bad step, or a
@@ -112,6 +114,7 @@ class Emulator:
         faults: Iterable[Fault] = (),
         step_s: float = DEFAULT_STEP_S,
         seed: int = 0,
+        stops: Mapping[int, tuple[float, float]] | None = None,
     ) -> None:
         id_list = [check_motor_id(i) for i in ids]
         if len(set(id_list)) != len(id_list) or not id_list:
@@ -146,6 +149,13 @@ class Emulator:
         self._faults: list[Fault] = []
         #: Blocked joints (emulator index -> where they are held, rad).
         self._blocked: dict[int, float] = {}
+        #: Hard stops (emulator index -> (lowest, highest) joint position, rad, emulator coordinate).
+        self._stops: dict[int, tuple[float, float]] = {}
+        for motor_id, (low, high) in (stops or {}).items():
+            if motor_id not in self._index or not low < high:
+                raise ValueError(f"hard stops of motor {motor_id}: expected an emulated id and low < high")
+            self._stops[self._index[motor_id]] = (low, high)
+        self._done: list[Fault] = []  # one-shot faults that have happened
         self._events: list[tuple[float, int]] = []  # (sim time, motor id) where a physical fault begins or ends
         for fault in faults:
             self.add_fault(fault)
@@ -220,7 +230,21 @@ class Emulator:
             for n, position in self._blocked.items():
                 self.plant.hold(n, position)
             self._positions, self._velocities = self.plant.state()
+        if self._stops:
+            self._at_stops()
         self._steps += 1
+
+    def _at_stops(self) -> None:
+        """A joint that passed one of its hard stops is put back on it, at rest (the stop takes the momentum; the
+        drive's torque keeps pressing it there); away from the stop it moves freely."""
+        pressed = False
+        for n, (low, high) in self._stops.items():
+            position = float(self._positions[n])
+            if position <= low or position >= high:
+                self.plant.hold(n, low if position <= low else high, 1 if position <= low else -1)
+                pressed = True
+        if pressed:
+            self._positions, self._velocities = self.plant.state()
 
     def _observe_all(self) -> None:
         for n, drive in enumerate(self._order):
@@ -259,6 +283,11 @@ class Emulator:
         drive, now = self.drives[motor_id], self.time_s
         volts, floors, external = [], [], 0.0
         active = [f for f in self._faults if f.motor_id == motor_id and f.active(now)]
+        for f in active:  # one-shot faults whose instant has come, each once
+            if f.kind is InjectedFault.POWER_CYCLE and not any(f is done for done in self._done):
+                self._done.append(f)
+                self._observe_all()
+                drive.power_cycle()
         for f in active:
             if f.kind is InjectedFault.COLLISION and f.value is not None:
                 external += f.value

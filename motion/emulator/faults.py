@@ -25,7 +25,11 @@ Command-line syntax (``--fault``), also accepted by :func:`parse_fault`::
   person or an obstacle pushing. It acts through the plant (with an arm's plant, through its rigid-body dynamics),
   so the drives' currents respond as their loops make them; torques of overlapping faults add up.
 
-Examples: ``over_temperature:2@5-20:95``, ``delay:1@0:15``, ``silent:3@10``, ``drop:4@2-3:0.5``,
+- ``power_cycle``: at START the drive switches off and on (a brown-out, a loose supply): RAM settings back to ROM,
+  the drive OFF, and its multi-turn angle restarts from the single-turn reading; the shaft itself does not move.
+  One instant: no END, no parameter.
+
+Examples: ``over_temperature:2@5-20:95``, ``power_cycle:2@3.5``, ``delay:1@0:15``, ``silent:3@10``, ``drop:4@2-3:0.5``,
 ``corrupt:1@1:length``, ``collision:2@1.5-2.5:-4.2``, ``blocked:2@1.5``.
 """
 
@@ -51,6 +55,7 @@ class InjectedFault(Enum):
     DROP = "drop"  #: requests lost with a probability
     BLOCKED = "blocked"  #: the joint held where it is (an obstruction)
     COLLISION = "collision"  #: an external torque on the joint, N·m
+    POWER_CYCLE = "power_cycle"  #: the drive switches off and on at START (one-shot)
 
 
 class Corruption(Enum):
@@ -108,6 +113,8 @@ class Fault:
             raise ValueError(f"fault start {self.start_s!r} s must be a time >= 0")
         if self.end_s is not None and not (math.isfinite(self.end_s) and self.end_s > self.start_s):
             raise ValueError(f"fault end {self.end_s!r} s must be after its start {self.start_s:g} s")
+        if self.kind is InjectedFault.POWER_CYCLE and self.end_s is not None:
+            raise ValueError("fault power_cycle happens at one instant: give no END (power_cycle:MOTOR@T)")
         if self.kind is InjectedFault.COLLISION and self.value is None:
             raise ValueError("fault collision needs its torque in N·m, e.g. collision:2@1.5:4.2")
         if self.value is not None:

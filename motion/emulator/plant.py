@@ -46,8 +46,10 @@ class Plant(Protocol):
         """Apply ``torques_nm`` (joint side, N·m) for ``dt_s`` seconds; return ``(positions_rad, velocities_rad_s)``."""
         ...
 
-    def hold(self, index: int, position_rad: float) -> None:
-        """Put joint ``index`` at ``position_rad`` at rest (an obstruction: the emulator calls it after each step)."""
+    def hold(self, index: int, position_rad: float, side: int = 0) -> None:
+        """Put joint ``index`` at ``position_rad`` at rest, held there through the next step (an obstruction: the
+        emulator calls it after each step while the joint is held). ``side`` +1 / -1: a stop that lets the joint
+        move only toward + / - (it leaves the stop when the torques pull it that way); 0: held both ways."""
         ...
 
 
@@ -122,7 +124,9 @@ class IndependentLoads:
         self._q += tmp
         return self._q, self._v
 
-    def hold(self, index: int, position_rad: float) -> None:
-        """Put joint ``index`` at ``position_rad`` at rest."""
+    def hold(self, index: int, position_rad: float, side: int = 0) -> None:
+        """Put joint ``index`` at ``position_rad`` at rest (independent joints: nothing else feels it, and a stop
+        released the next step moves the joint away only if its torque pulls that way)."""
+        del side
         self._q[index] = position_rad
         self._v[index] = 0.0
