@@ -5,6 +5,11 @@ nominal runs as a share of its threshold, also with the emulated drives' torque 
 
     .venv/bin/python bench/collision_trials.py            # arm6 position + torque mode, arm2_rs485; about 2 min
     .venv/bin/python bench/collision_trials.py --instants 5
+    .venv/bin/python bench/collision_trials.py --realtime # arm2 against `rmd-motion emulate` over an slcan pty
+
+``--realtime``: the emulator runs in its own process in real time (a fresh one per trial, the torque step scheduled
+on its clock, the latency counted in its frame log: :func:`tests.collision_trials.frame_latency`); arm2 at 200 Hz with
+the thresholds of ``tests/test_collision.py``'s real-time test.
 
 Prints Markdown tables; progress and the halt log go to stderr.
 """
@@ -15,6 +20,7 @@ import argparse
 import logging
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -23,12 +29,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from motion.config import load_config  # noqa: E402
+from motion.config import load_config, write_joint_values  # noqa: E402
+from motion.control.ratecheck import RateError  # noqa: E402
 from tests.collision_trials import (  # noqa: E402
     collision_trial,
     demo_path,
+    log_frames,
     mismatched,
     nominal_run,
+    realtime_trial,
     torque_move,
     torque_variant,
     with_thresholds,
@@ -68,12 +77,83 @@ def sweep(name, config, motion, instants, initial=None):  # type: ignore[no-unty
     return rows, nominal
 
 
+REALTIME_RATE_HZ = 200
+REALTIME_THRESHOLDS_NM = (1.5, 0.5)  # as tests/test_collision.py's real-time test
+REALTIME_PATH = ((30.0, -40.0), (-20.0, 20.0), (30.0, -40.0))
+
+
+def _realtime_config(folder: Path, rate_hz: float) -> Path:
+    """arm2 with thresholds, at ``rate_hz``, written where the emulator process can read it."""
+    path = folder / "arm2.yaml"
+    thresholds = dict(zip(("shoulder", "elbow"), REALTIME_THRESHOLDS_NM, strict=True))
+    write_joint_values(ROOT / "configs" / "arm2.yaml", path, "collision_threshold_nm", thresholds)
+    path.write_text(path.read_text().replace("rate_hz: 500", f"rate_hz: {rate_hz:g}"))
+    return path
+
+
+def realtime_sweep(instants: int) -> None:
+    """Real-time trials over an slcan pty: onsets spread over the motion as a fault-free run timed it."""
+    folder = Path(tempfile.mkdtemp(prefix="rmd-collision-"))
+    rate_hz: float = REALTIME_RATE_HZ
+
+    def motion(arm):  # type: ignore[no-untyped-def]
+        return arm.follow(REALTIME_PATH, speed_scale=0.3, wait=False)
+
+    # a run whose step comes long after the motion: where the motion lies on the emulator's clock; a host that
+    # cannot hold the rate (the rate check at connect) runs the trials at the rate it recommends
+    while True:
+        config = load_config(_realtime_config(folder, rate_hz))
+        try:
+            realtime_trial(config, motion, 0, 1.0e6, folder / "nominal.log")
+            break
+        except RateError as exc:
+            print(f"{rate_hz:g} Hz refused by the rate check: {exc}", file=sys.stderr)
+            if exc.check.recommended_rate_hz >= rate_hz:
+                raise
+            rate_hz = exc.check.recommended_rate_hz
+    times = [t for t, ident, data in log_frames(folder / "nominal.log") if ident == "141" and data[:2] == "A1"]
+    begin, end = times[0] + 0.2, times[-1] - 0.5  # the path, roughly (it starts from rest; its end holds)
+    rows = []
+    for j, joint in enumerate(config.joints):
+        latencies, ok, moving = [], 0, 0
+        for i in range(instants):
+            onset = begin + (end - begin) * (i + 0.5) / instants
+            trial = realtime_trial(config, motion, j, onset, folder / f"{joint.name}-{i}.log")
+            latency = trial.latency_cycles if trial.latency_cycles is not None else 99
+            latencies.append(latency)
+            ok += trial.isolated and latency <= 5
+            moving += trial.moving_at_onset
+        rows.append(
+            (
+                joint.name,
+                f"{0.15 * joint.peak_torque_nm:.3f}",
+                f"{joint.collision_threshold_nm:.3f}",
+                f"{statistics.median(latencies):g}",
+                str(max(latencies)),
+                f"{ok}/{instants}",
+                f"{moving}/{instants}",
+            )
+        )
+        print(f"real time {joint.name}: done", file=sys.stderr, flush=True)
+    header = ("joint", "step N·m", "threshold N·m", "latency median", "worst", "ok", "moving at onset")
+    print(f"arm2 over an slcan pty at {rate_hz:g} Hz, the emulator in its own process (real time)")
+    print("| " + " | ".join(header) + " |")
+    print("|" + "---|" * len(header))
+    for row in rows:
+        print("| " + " | ".join(row) + " |")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--instants", type=int, default=20)
+    parser.add_argument("--realtime", action="store_true", help="the real-time sweep over an slcan pty instead")
     args = parser.parse_args()
     logging.basicConfig(level=logging.CRITICAL)
     start = time.monotonic()
+    if args.realtime:
+        realtime_sweep(args.instants)
+        print(f"\n{time.monotonic() - start:.0f} s", file=sys.stderr)
+        return 0
     arm6 = load_config(ROOT / "configs" / "arm6.yaml")
     # the example carries no thresholds (real time on a loaded host tripped them); the test's calibrated ones
     rs485 = with_thresholds(load_config(ROOT / "configs" / "arm2_rs485.yaml"), (1.125, 0.6))

@@ -12,6 +12,7 @@ import contextlib
 import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -182,3 +183,78 @@ def collision_trial(
             and all(drive.state in stopped for drive in emulator.drives.values())
         )
     return Trial(spec.name, onset_s, torque, fault, latency, halted, state)
+
+
+# ---------------------------------------------------------------------------------------------- in real time
+
+
+@dataclass
+class RealtimeTrial:
+    """One collision trial against the emulator in its own process (real time, over a pty).
+
+    ``latency_cycles`` counts the joint's control frames (0xA4 / 0xA1 / 0x280) that the emulated drive received from
+    the onset on, up to the first halt (0x81 or 0x80): the cycles that ran with the torque acting, the detection
+    cycle included (the halt goes out in the cycle that detects it); both ends are the emulator's own clock.
+    """
+
+    joint: str
+    onset_s: float  # the emulator's clock
+    fault: MotionFault | None
+    latency_cycles: int | None
+    moving_at_onset: bool
+
+    @property
+    def isolated(self) -> bool:
+        """A collision fault naming this joint and no other."""
+        return self.fault is not None and self.fault.kind == "collision" and self.fault.joints == (self.joint,)
+
+
+def log_frames(log: Path) -> list[tuple[float, str, str]]:
+    """(time, CAN id, payload hex; upper case) of every request in an emulator frame log."""
+    frames = []
+    for line in log.read_text().splitlines():
+        fields = line.split(maxsplit=3)
+        if len(fields) == 4 and fields[1] == "IN":
+            ident, _, data = fields[3].split(" | ")[0].partition(":")
+            frames.append((float(fields[0]), ident.strip().upper(), data.strip().upper()))
+    return frames
+
+
+def frame_latency(log: Path, motor_id: int, onset_s: float) -> tuple[int | None, bool]:
+    """From an emulator frame log: the motor's control frames from ``onset_s`` to its first halt, and whether a
+    control frame of the motion had come before the onset (the arm was moving, not only holding)."""
+    own = f"{0x140 + motor_id:X}"
+    count, before = 0, 0
+    for t, ident, data in log_frames(log):
+        command = data[:2]
+        if ident == own and command in {"80", "81"} and t >= onset_s:
+            return count, before > 0
+        control = ident == "280" or (ident == own and command in {"A1", "A4"})
+        if control:
+            if t >= onset_s:
+                count += 1
+            else:
+                before += 1
+    return None, before > 0
+
+
+def realtime_trial(
+    config: ArmConfig, motion: Motion, joint: int, onset_s: float, log: Path, *, share: float = STEP_SHARE
+) -> RealtimeTrial:
+    """Start the emulator process with a torque step of ``share × peak torque`` on ``joint`` at ``onset_s`` of its
+    own clock, connect (``RateError`` when the host cannot hold the configured rate), start ``motion`` and wait
+    for the fault."""
+    spec = config.joints[joint]
+    fault = Fault(InjectedFault.COLLISION, spec.motor_id, onset_s, value=spec.direction * share * spec.peak_torque_nm)
+    arm = Arm(config, emulate="realtime", faults=[fault], emulator_log=log)
+    arm.connect()
+    caught: MotionFault | None = None
+    with contextlib.closing(arm):
+        try:
+            motion(arm)
+            assert arm.supervisor is not None
+            arm.supervisor.wait(onset_s + 10.0)
+        except MotionFault as exc:
+            caught = exc
+    latency, moving = frame_latency(log, spec.motor_id, onset_s)
+    return RealtimeTrial(spec.name, onset_s, caught, latency, moving)

@@ -26,6 +26,7 @@ from motion.telemetry import TelemetryOptions
 from tests.collision_trials import (
     collision_trial,
     demo_path,
+    frame_latency,
     mismatched,
     nominal_run,
     torque_move,
@@ -325,7 +326,8 @@ def test_emulate_command_takes_a_collision_fault(tmp_path: Path) -> None:
     config = load_config(copy)
     assert config.bus.transport.value == "can" and config.control.mode is ControlMode.TORQUE
     fault = Fault(InjectedFault.COLLISION, 2, 2.5, 3.0, -0.2 * config.joints[1].peak_torque_nm)
-    arm = Arm(config, emulate="realtime", faults=[fault])
+    log = tmp_path / "frames.log"
+    arm = Arm(config, emulate="realtime", faults=[fault], emulator_log=log)
     try:
         arm.connect()
     except RateError as exc:
@@ -339,3 +341,8 @@ def test_emulate_command_takes_a_collision_fault(tmp_path: Path) -> None:
                 arm.move_to({"shoulder": -20.0, "elbow": 20.0}, speed_scale=0.3)
         assert info.value.joints == ("elbow",)
         assert supervisor.state in (ArmState.HALTING, ArmState.HALTED)
+    # the emulator's frame log is timed by its own clock, that of the fault: the elbow's control frames from the
+    # onset to its halt are the cycles the torque acted (a few in simulated time; a stalled host runs fewer)
+    latency, moving = frame_latency(log, 2, 2.5)
+    assert moving
+    assert latency is not None and 1 <= latency <= 10

@@ -214,7 +214,11 @@ def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = Fal
     parser.add_argument(
         "--seed", type=int, help=f"seed of the drop faults' random draws (with --ids; default {_DEFAULT_SEED})"
     )
-    parser.add_argument("--log", metavar="FILE", help="write every frame in and out to FILE, one line each")
+    parser.add_argument(
+        "--log",
+        metavar="FILE",
+        help="write every frame in and out to FILE, one line each, timed by the emulator's clock (that of --fault)",
+    )
 
 
 def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -> Emulator:
@@ -236,6 +240,11 @@ def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -
     if factory is None:
         raise ValueError("--config needs the arm's model: run it as `rmd-motion emulate --config FILE`")
     return factory(tuple(args.fault))
+
+
+def emulator_clock(emulator: Emulator) -> Callable[[], float]:
+    """The emulator's simulation time as a clock (seconds since it started)."""
+    return lambda: emulator.time_s
 
 
 def run_emulate(args: argparse.Namespace, factory: EmulatorFactory | None = None) -> int:
@@ -267,7 +276,10 @@ def run_emulate(args: argparse.Namespace, factory: EmulatorFactory | None = None
     try:
         with contextlib.ExitStack() as stack:
             try:
-                frame_log = stack.enter_context(FrameLog(args.log)) if args.log else None
+                # the log's clock is the emulator's (real time once the first frame syncs it): the times of --fault
+                # and of the frames are then on one clock
+                clock = emulator_clock(emulator)
+                frame_log = stack.enter_context(FrameLog(args.log, clock=clock)) if args.log else None
                 if args.virtual_channel:
                     attachments.append(
                         stack.enter_context(
