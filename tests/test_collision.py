@@ -197,6 +197,28 @@ def test_torque_step_detected_torque_mode(joint: int) -> None:
     assert trial.latency_cycles is not None and trial.latency_cycles <= 5
 
 
+@pytest.mark.parametrize("clear", [False, True])
+def test_a_collision_in_the_first_cycles_of_motion_is_detected(clear: bool) -> None:
+    # the observer is blind for its settling steps after the loop (re)starts: connect and clear() return only once
+    # it is armed, so a collision one cycle into the first move (arm6 torque mode: gravity taken up at once) is
+    # detected as fast as any other
+    config = torque_variant(_arm6())
+    start = [10.0, 30.0, -45.0, 0.0, 20.0, 0.0]
+    period = 1.0 / config.control.rate_hz
+    with Arm(config, emulate=True, initial_deg=start) as arm:
+        supervisor = arm.supervisor
+        assert supervisor is not None
+        watchdog = supervisor.watchdog
+        assert watchdog.collision_guarding and watchdog.collision_armed
+        if clear:
+            supervisor.estop()
+            arm.clear()
+            assert watchdog.collision_armed
+    trial = collision_trial(config, torque_move(1.0), 3, period, initial_deg=start)
+    assert trial.detected and trial.isolated and trial.halted, trial
+    assert trial.latency_cycles is not None and trial.latency_cycles <= 3, trial
+
+
 @pytest.mark.parametrize("joint", [0, 1])
 def test_rs485_example_at_its_rate(joint: int) -> None:
     config = with_thresholds(load_config(RS485), RS485_THRESHOLDS_NM)

@@ -45,6 +45,8 @@ logger = logging.getLogger("motion.safety")
 
 # Shortest window given to the halt frames' acknowledgements in the detection cycle, s.
 _HALT_WINDOW_S = 0.002
+#: Real time allowed on top of the collision check's arming cycles before motion is let go anyway (with a warning).
+_ARMING_SLACK_S = 0.25
 
 
 class Reaction(StrEnum):
@@ -142,6 +144,22 @@ class Supervisor:
         self.watchdog.start(self.controller.clock.now())
         self.controller.bus.close_hooks.append(self._before_bus_close)
         self.controller.start(self.cycle)
+        self._await_collision_check()
+
+    def _await_collision_check(self) -> None:
+        """Hold still until the collision check is armed (it is blind for its first observer steps after a
+        (re)start: :data:`motion.safety.watchdog.COLLISION_SETTLE_CYCLES` plus the window), so that no motion starts
+        unguarded: called at loop start and after a clear; a fault meanwhile ends the wait (motion is refused)."""
+        watchdog, machine = self.watchdog, self.machine
+        if not watchdog.collision_guarding:
+            return
+        # one observer step per cycle with every reply: twice the steps, and a host's stall, before giving up
+        timeout_s = 2 * watchdog.collision_arming_steps * self.controller.period_s + _ARMING_SLACK_S
+        if not self.controller.wait_for(lambda: watchdog.collision_armed or machine.state.faulted, timeout_s):
+            logger.warning(
+                "the collision check is not armed %.3f s after the loop (re)started: collisions go unseen until it is",
+                timeout_s,
+            )
 
     def _before_bus_close(self) -> None:
         if self.controller.loop.running:
@@ -248,6 +266,7 @@ class Supervisor:
             raise result
         if self.machine.state is not ArmState.READY:
             raise MotionFault(FaultKind.CLEAR_FAILED, detail=f"the arm is {self.machine.state.value} after clear()")
+        self._await_collision_check()
 
     def _clear_outcome(self) -> MotionFault | None:
         """What the loop made of the clear request (None: success)."""

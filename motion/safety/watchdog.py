@@ -315,6 +315,16 @@ class Watchdog:
         return True
 
     @property
+    def collision_guarding(self) -> bool:
+        """Whether a collision check runs: an observer, and a threshold on at least one joint."""
+        return self.observer is not None and bool(np.isfinite(self.collision_threshold).any())
+
+    @property
+    def collision_arming_steps(self) -> int:
+        """Observer steps after its (re)start before the check is armed (settling plus the window)."""
+        return self._armed_at + 1
+
+    @property
     def collision_armed(self) -> bool:
         """Whether the latest collision signal was (or would have been) held against the thresholds: the observer
         has settled since its (re)start (calibration looks only at these cycles)."""
