@@ -28,8 +28,9 @@ from motion.errors import (
 
 if TYPE_CHECKING:
     from motion.api import Arm, ArmStatus, JointStatus, MotionHandle
+    from motion.view import ViewOptions
 
-_API = {"Arm", "ArmStatus", "JointStatus", "MotionHandle"}
+_API = {"Arm", "ArmStatus", "JointStatus", "MotionHandle", "ViewOptions"}
 
 
 def __getattr__(name: str) -> Any:
@@ -57,5 +58,6 @@ __all__ = [
     "ProtocolError",
     "TransportError",
     "TransportTimeout",
+    "ViewOptions",
     "__version__",
 ]

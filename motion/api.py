@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from motion.compose import (
+    arm_figure,
     build_controller,
     build_supervisor,
     check_rate,
@@ -67,6 +68,7 @@ from motion.safety import ArmState, Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
 from motion.transmission import FloatArray
 from motion.transport import Transport
+from motion.view import LiveView, ViewOptions
 
 logger = logging.getLogger("motion.api")
 
@@ -275,6 +277,9 @@ class Arm:
             (the others at 0), so that they know each joint only modulo ``360 / gear_ratio``, as real drives do;
             connect then resolves the turns as on hardware (unlike ``initial_deg``: drives powered up at the zero
             pose, which has since moved there).
+        view: show the arm live in the browser while connected (``True``: on 127.0.0.1:8080; or a
+            :class:`ViewOptions`); see :mod:`motion.view` (the ``view`` extra). In simulated emulation the
+            simulation is then paced to the wall clock, so that the page shows the motion at its speed.
     """
 
     def __init__(
@@ -291,8 +296,12 @@ class Arm:
         forget_turns: bool = False,
         home: Sequence[str] = (),
         start_pose: Mapping[str, float] | None = None,
+        view: bool | ViewOptions = False,
     ) -> None:
         self.config = config
+        self._view_options = ViewOptions() if view is True else (view or None)
+        #: The live page while connected with ``view=`` (see :mod:`motion.view`; ``view.url`` says where).
+        self.view: LiveView | None = None
         self._start_pose = self._check_start_pose(config, start_pose, emulate, initial_deg)
         self._forget_turns = forget_turns
         self._home = tuple(home)
@@ -411,10 +420,33 @@ class Arm:
             if not self.emulate:  # an identification belongs to the drives it was made on
                 self.tracking_offered = offer_stored_tracking(self.config, self.controller)
             self._start_supervisor()
+            if self._view_options is not None:
+                self._open_view(self._view_options)
         except BaseException:
             self._stack.close()
             raise
         return self
+
+    def _open_view(self, options: ViewOptions) -> None:
+        controller = self.controller
+        assert controller is not None and self.supervisor is not None
+        supervisor = self.supervisor
+
+        def stop() -> None:
+            supervisor.request_estop(FaultKind.ESTOP, "STOP pressed in the view")
+
+        figure = arm_figure(self.config)
+        self.view = LiveView(
+            self.config, figure, lambda: controller.snapshot, stop, host=options.host, port=options.port
+        )
+        self._stack.callback(self._close_view)
+        if isinstance(self._clock, SimulatedClock):
+            self._clock.pace(1.0)
+
+    def _close_view(self) -> None:
+        if self.view is not None:
+            self.view.close()
+            self.view = None
 
     def _new_controller(self) -> Controller:
         assert self.bus is not None

@@ -18,6 +18,7 @@ import os
 from collections.abc import Callable, Collection, Iterable, Mapping
 from dataclasses import fields
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -44,6 +45,9 @@ from motion.safety.watchdog import CollisionObserver, Watchdog
 from motion.trajectory import JointLimits
 from motion.transmission import FloatArray
 from motion.transport import Reply, Transport, open_transport
+
+if TYPE_CHECKING:
+    from kinematics.figure import ArmFigure
 
 logger = logging.getLogger("motion.config")
 
@@ -141,6 +145,13 @@ def collision_observer_for(config: ArmConfig, *, always: bool = False) -> Collis
     from kinematics.observer import momentum_observer  # noqa: PLC0415 - Pinocchio only where an arm needs it
 
     return momentum_observer(config)
+
+
+def arm_figure(config: ArmConfig) -> ArmFigure:
+    """The arm's shape for the live view (its own Pinocchio data: the view thread's; see :mod:`motion.view`)."""
+    from kinematics.figure import ArmFigure  # noqa: PLC0415 - Pinocchio only where an arm needs it
+
+    return ArmFigure(config)
 
 
 def gravity_for(config: ArmConfig) -> Feedforward | None:

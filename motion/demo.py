@@ -27,6 +27,7 @@ from motion.config.schema import ControlMode
 from motion.errors import ConfigError, MotionError, MotionFault, TransportError
 from motion.plot import plot_log
 from motion.telemetry import TelemetryLog, TelemetryOptions
+from motion.view import ViewOptions
 
 CONFIG_NAME = "arm6.yaml"
 DEFAULT_OUT_DIR = "rmd-motion-demo"
@@ -45,6 +46,10 @@ SPEED_SCALE = 1.0
 TORQUE_SPEED_SCALE = 1.0
 #: Time the torque run holds against gravity before and after its move, s.
 HOLD_S = 0.5
+#: With a view: how long a run waits for a browser to open the page before it starts, s.
+VIEW_WAIT_S = 60.0
+#: ... before the later runs (the open page reconnects to the next run's server by itself), s.
+VIEW_REOPEN_S = 15.0
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -83,11 +88,21 @@ def _run_phase(
     out_dir: Path,
     motion: Callable[[Arm], None],
     initial_deg: Sequence[float] | None,
+    *,
+    view: ViewOptions | None = None,
+    view_wait_s: float = 0.0,
 ) -> PhaseResult:
     log_path, trace_path, png_path = (out_dir / f"{name}{suffix}" for suffix in (".npz", ".log", ".png"))
-    arm = Arm(config, emulate=True, initial_deg=initial_deg, telemetry=TelemetryOptions(log_path, trace_path))
+    telemetry = TelemetryOptions(log_path, trace_path)
+    arm = Arm(config, emulate=True, initial_deg=initial_deg, telemetry=telemetry, view=view or False)
     fault = None
     with arm:
+        if arm.view is not None:
+            print(
+                f"the {name} run: open {arm.view.url} (it starts when a browser has the page, or in {view_wait_s:g} s)",
+                flush=True,
+            )
+            arm.view.wait_for_client(view_wait_s)
         try:
             motion(arm)
         except MotionFault as exc:
@@ -166,12 +181,13 @@ def _print_realtime(config: ArmConfig) -> None:
     )
 
 
-def run_demo(out_dir: Path | None = None, *, quiet: bool = False) -> int:
+def run_demo(out_dir: Path | None = None, *, quiet: bool = False, view: ViewOptions | None = None) -> int:
     """Run the demo and write its logs, traces and plots to ``out_dir`` (default ``./rmd-motion-demo``).
 
     Args:
         out_dir: where the files go (created if needed).
         quiet: print nothing but errors.
+        view: show each run live in the browser (:mod:`motion.view`), paced to the wall clock.
 
     Returns:
         The exit code: 0 done, 1 a motion fault halted the arm (its run is still recorded and plotted), 2 the
@@ -192,9 +208,13 @@ def run_demo(out_dir: Path | None = None, *, quiet: bool = False) -> int:
     )
     results: list[PhaseResult] = []
     try:
-        results.append(_run_phase("position", position, target, _follow_path, None))
+        results.append(_run_phase("position", position, target, _follow_path, None, view=view, view_wait_s=VIEW_WAIT_S))
         if results[-1].fault is None:
-            results.append(_run_phase("torque", torque, target, _gravity_move, results[-1].final_deg))
+            results.append(
+                _run_phase(
+                    "torque", torque, target, _gravity_move, results[-1].final_deg, view=view, view_wait_s=VIEW_REOPEN_S
+                )
+            )
     except MotionFault as exc:  # outside a motion (while connecting or closing)
         print(f"rmd-motion demo: motion fault: {exc}", file=sys.stderr)
         return 1

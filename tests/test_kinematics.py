@@ -278,3 +278,17 @@ def test_urdf_that_pinocchio_rejects(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="Pinocchio cannot build a model from it: .*broken.urdf") as info:
         kin.build_arm(config)
     assert (info.value.file, info.value.key_path) == ("mem", "model.urdf")
+
+
+def test_figure_places_the_joints_and_draws_each_link_to_the_next_joint() -> None:
+    from kinematics.figure import ArmFigure
+
+    figure = ArmFigure(ARM2_CONFIG)
+    # arm2: the elbow 0.30 m along the upper arm's x; the forearm, a tip, drawn toward its centre of mass
+    assert len(figure.links) == 2
+    assert figure.links[0][0] == pytest.approx([0.30, 0.0, 0.0])
+    assert figure.reach == pytest.approx(0.30)
+    positions, quaternions = figure.placements(np.array([90.0, 0.0]))
+    assert positions[1] == pytest.approx([0.0, 0.30, 0.0], abs=1e-12)  # shoulder turned 90 deg about z
+    assert quaternions[0] == pytest.approx([math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)])
+    assert np.linalg.norm(figure.up) == pytest.approx(1.0)

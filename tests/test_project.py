@@ -30,6 +30,8 @@ LAYERS = [
     "motion.compose",
     "motion.telemetry",
     "motion.plot",
+    # the live view and replay (viser): reads published snapshots and logs; the arm's shape is injected
+    "motion.view",
     "motion.api",
     "motion.demo",
     "motion.cli",
@@ -44,6 +46,7 @@ OWNERS = {
     "yaml": "motion.config",
     "pinocchio": "kinematics",
     "matplotlib": "motion.plot",
+    "viser": "motion.view",
 }
 
 

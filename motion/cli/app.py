@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Final
@@ -19,12 +20,15 @@ from motion.cli.common import (
     EXIT_USAGE,
     Command,
     Interrupts,
+    Session,
     UsageError,
     add_bus_arguments,
     add_emulate_flag,
     add_turns_flag,
+    add_view_arguments,
     parse_pose,
     speed_scale_arg,
+    view_options,
 )
 from motion.cli.protocol_demo import protocol_demo
 from motion.config import ArmConfig, load_config_or_example
@@ -104,7 +108,49 @@ def demo(args: argparse.Namespace, interrupts: Interrupts) -> int:
         return protocol_demo()
     from motion.demo import run_demo  # noqa: PLC0415 - Pinocchio and matplotlib load only for the demo
 
-    return run_demo(args.out, quiet=args.quiet)
+    return run_demo(args.out, quiet=args.quiet, view=view_options(args))
+
+
+def view(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``view RUN.npz``: replay a recorded run; ``view --config FILE``: the arm live (holding) until Ctrl-C."""
+    if args.run_log is not None:
+        return _replay(args)
+    if args.config is None:
+        raise UsageError("give a recorded run (RUN.npz) to replay, or --config FILE to see the arm live")
+    options = view_options(args, wanted=True)
+    return moves.with_arm(
+        args, Session.from_args(args), interrupts, lambda arm: EXIT_OK, emulate=args.emulate, view=options
+    )
+
+
+def _replay(args: argparse.Namespace) -> int:
+    from motion.compose import arm_figure  # noqa: PLC0415 - Pinocchio loads only to view
+    from motion.telemetry import load_log  # noqa: PLC0415 - as plot
+    from motion.view import Replay  # noqa: PLC0415
+
+    try:
+        log = load_log(args.run_log)
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"cannot replay {args.run_log}: {exc}") from exc
+    source = args.config or log.meta.get("config_source")
+    if not source:
+        raise UsageError(f"{args.run_log} names no configuration: give --config FILE")
+    config = load_config_or_example(source)
+    options = view_options(args, wanted=True)
+    assert options is not None
+    replay = Replay(log, config, arm_figure(config), host=options.host, port=options.port)
+    print(
+        f"replaying {args.run_log} ({log.cycles} cycles, {log.duration_s:.2f} s) at {replay.url}: Ctrl-C ends",
+        flush=True,
+    )
+    try:
+        while True:
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        replay.close()
+    return EXIT_OK
 
 
 def plot(args: argparse.Namespace, interrupts: Interrupts) -> int:
@@ -147,6 +193,7 @@ def _motion_options(parser: argparse.ArgumentParser, speed_scale: str) -> None:
     parser.add_argument("--speed-scale", type=speed_scale_arg, default=1.0, metavar="S", help=speed_scale)
     add_emulate_flag(parser)
     add_turns_flag(parser)
+    add_view_arguments(parser)
     parser.add_argument("--log", metavar="FILE.npz", help="record every control cycle (see `rmd-motion plot`)")
     parser.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
     _json(parser)
@@ -256,7 +303,22 @@ def build_parser() -> argparse.ArgumentParser:
     demo_parser.add_argument(
         "--protocol", action="store_true", help="instead: one control cycle encoded and decoded on both transports"
     )
+    add_view_arguments(demo_parser)
     examples.add_init_arguments(_command(sub, "init", examples.init, examples.HELP, bus=False))
+    view_parser = _command(
+        sub,
+        "view",
+        view,
+        "see the arm in the browser: live (--config FILE; holding until Ctrl-C, STOP halts it) or a recorded run "
+        "replayed (RUN.npz; --config when its configuration file has moved)",
+        bus=False,
+    )
+    view_parser.add_argument("run_log", nargs="?", metavar="RUN.npz", help="a telemetry log to replay")
+    add_bus_arguments(view_parser, required=False)
+    add_emulate_flag(view_parser)
+    add_turns_flag(view_parser)
+    add_view_arguments(view_parser, flag=False)
+    view_parser.set_defaults(log=None, trace=None)
     plot_parser = _command(sub, "plot", plot, "plot a telemetry log (.npz of a motion) into a PNG", bus=False)
     plot_parser.add_argument("log", metavar="LOG")
     plot_parser.add_argument("-o", "--output", required=True, metavar="OUT.png")

@@ -20,6 +20,7 @@ from motion.config import ArmConfig, CanBusConfig, JointConfig, load_config_or_e
 from motion.errors import TransportError
 from motion.protocol import ErrorFlags, Message
 from motion.transport import Request, Transport
+from motion.view import DEFAULT_HOST, DEFAULT_PORT, PORTS, ViewOptions, host_warning
 
 EXIT_OK: Final = 0
 EXIT_FAULT: Final = 1
@@ -166,11 +167,11 @@ def _is_pty(path: str) -> bool:
     return os.path.realpath(path).startswith(_PTY_PREFIX)
 
 
-def add_bus_arguments(parser: argparse.ArgumentParser) -> None:
+def add_bus_arguments(parser: argparse.ArgumentParser, *, required: bool = True) -> None:
     """``--config`` and the bus overrides."""
     parser.add_argument(
         "--config",
-        required=True,
+        required=required,
         metavar="FILE",
         help="arm configuration (YAML); when no such file exists, an example's name (arm2.yaml, configs/arm2.yaml)",
     )
@@ -196,6 +197,53 @@ def add_emulate_flag(parser: argparse.ArgumentParser) -> None:
         help="with --emulate: the emulated drives power up with the joint there (joints not named at 0 deg), so "
         "they know it only modulo 360/gear_ratio, as real drives do; repeatable",
     )
+
+
+def add_view_arguments(parser: argparse.ArgumentParser, *, flag: bool = True) -> None:
+    """``--view`` (with ``flag``) and where the page listens: ``--view-host`` / ``--view-port`` (see
+    :mod:`motion.view`)."""
+    if flag:
+        parser.add_argument(
+            "--view",
+            action="store_true",
+            help="show the arm live in the browser while the command runs (and after it, until Ctrl-C); with "
+            "--emulate paced to the wall clock",
+        )
+    parser.add_argument(
+        "--view-host",
+        default=DEFAULT_HOST,
+        metavar="HOST",
+        help=f"address the view listens on (default {DEFAULT_HOST}: this computer only; anyone who can reach "
+        "another one sees the arm and can press STOP)",
+    )
+    parser.add_argument(
+        "--view-port",
+        type=_port_arg,
+        default=DEFAULT_PORT,
+        metavar="PORT",
+        help=f"the view's port (default {DEFAULT_PORT}; 0: any free one)",
+    )
+
+
+def _port_arg(text: str) -> int:
+    valid = f"{PORTS[0]}..{PORTS[-1]}"
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number ({valid})") from None
+    if port not in PORTS:
+        raise argparse.ArgumentTypeError(f"{port} is outside {valid}")
+    return port
+
+
+def view_options(args: argparse.Namespace, *, wanted: bool | None = None) -> ViewOptions | None:
+    """The view the command asked for (``--view``, or ``wanted``), warning about an address beyond this computer."""
+    if not (getattr(args, "view", False) if wanted is None else wanted):
+        return None
+    warning = host_warning(args.view_host)
+    if warning is not None:
+        warn(warning)
+    return ViewOptions(args.view_host, args.view_port)
 
 
 def add_turns_flag(parser: argparse.ArgumentParser) -> None:

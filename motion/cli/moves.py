@@ -15,6 +15,7 @@ from typing import Any, Final, TextIO
 
 from motion.api import Arm, MotionHandle
 from motion.cli.common import (
+    EXIT_FAULT,
     EXIT_OK,
     Interrupts,
     Session,
@@ -22,6 +23,7 @@ from motion.cli.common import (
     parse_pose,
     parse_targets,
     print_json,
+    view_options,
     warn,
 )
 from motion.cli.program import MoveStep, PathStep, Program, WaitStep, load_program
@@ -32,6 +34,8 @@ from motion.telemetry import TelemetryOptions
 
 #: How often the progress display is refreshed (and the wait for a motion polled), s.
 POLL_S: Final = 0.1
+#: While the view stays open after a command: how long each wait runs the loop, s.
+VIEW_POLL_S: Final = 0.2
 #: Width of the terminal progress bar, characters.
 BAR_WIDTH: Final = 30
 
@@ -147,6 +151,7 @@ def with_arm(
             raise UsageError(f"--emulate opens no port: drop {given}")
         overrides = {}
     options.setdefault("forget_turns", getattr(args, "forget_turns", False))
+    options.setdefault("view", view_options(args) or False)
     if getattr(args, "start_pose", None):
         if not options.get("emulate"):
             raise UsageError("--start-pose applies to the emulated drives of --emulate")
@@ -155,7 +160,10 @@ def with_arm(
     try:
         with interrupts.deferred():  # a signal while connecting is raised once the loop runs (or connect failed)
             arm.connect()
-        return body(arm)
+        if arm.view is not None:
+            print(f"view: {arm.view.url}", file=sys.stderr, flush=True)
+        code = body(arm)
+        return keep_view_open(arm) if arm.view is not None and code == EXIT_OK else code
     except KeyboardInterrupt:
         interrupts.ignore()
         if arm.supervisor is not None:
@@ -168,6 +176,23 @@ def with_arm(
     finally:
         with interrupts.deferred():
             arm.close()  # halts every axis (0x81) unless halted already, releases the bus
+
+
+def keep_view_open(arm: Arm) -> int:
+    """After the command's work: the arm holds (its loop running, simulated time paced) and the view stays open
+    until Ctrl-C or SIGTERM; exit 0, or 1 when STOP (or another fault) halted the arm meanwhile."""
+    assert arm.view is not None
+    print(f"done; the view stays open at {arm.view.url}: Ctrl-C ends", file=sys.stderr, flush=True)
+    try:
+        while True:
+            arm.sleep(VIEW_POLL_S)
+    except KeyboardInterrupt:
+        pass
+    fault = arm.fault
+    if fault is not None:
+        warn(f"motion fault while the view was open: {fault}")
+        return EXIT_FAULT
+    return EXIT_OK
 
 
 def _summary(command: str, arm: Arm, wall_s: float, extra: Mapping[str, object]) -> dict[str, object]:

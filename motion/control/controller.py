@@ -225,6 +225,9 @@ class Controller:
         self._condition: tuple[str, MotionFault | None] = ("ready", None)
         self._publish_lock = threading.Lock()
         self.cycle_hooks: list[Callable[[Controller, float, list[Reply]], None]] = []
+        #: A per-joint array the safety layer keeps up to date (its collision signal, N·m), published in every
+        #: snapshot as it stands (NaN: none).
+        self.published_signal: NDArray[np.float64] = np.full(n, np.nan)
         # The 0x280 frame commands motors 1..4 whether they belong to the arm or not, so it is used only when all
         # four are joints of this arm: a foreign drive on the bus is never switched into torque mode.
         in_multi = [i for i, s in enumerate(self.specs) if s.motor_id in MULTI_TORQUE_MOTOR_IDS]
@@ -600,7 +603,18 @@ class Controller:
         axes, follower, loop = self.axes, self.follower, self.loop
         path = follower.path if follower is not None else None
         end = follower.end_time() if follower is not None and path is not None else math.nan
-        joints = frozen((axes.q_deg, axes.qd_dps, self.reference.position, axes.iq_a, axes.temperature_c, axes.fresh))
+        joints = frozen(
+            (
+                axes.q_deg,
+                axes.qd_dps,
+                self.reference.position,
+                axes.iq_a,
+                axes.temperature_c,
+                axes.fresh,
+                self.tracking.expected_deg,
+                self.published_signal,
+            )
+        )
         start = end - path.duration_s if path is not None else math.nan
         with self._publish_lock:
             state, fault = self._condition

@@ -19,7 +19,16 @@ from numpy.typing import NDArray
 from motion.errors import MotionFault
 
 #: Rows of :attr:`CycleSnapshot.joints`, in this order (``fresh`` as 1.0 / 0.0).
-JOINT_ROWS = ("position_deg", "velocity_dps", "reference_deg", "iq_a", "temperature_c", "fresh")
+JOINT_ROWS = (
+    "position_deg",
+    "velocity_dps",
+    "reference_deg",
+    "iq_a",
+    "temperature_c",
+    "fresh",
+    "expected_deg",
+    "collision_signal_nm",
+)
 
 
 class CycleSnapshot(NamedTuple):
@@ -79,6 +88,18 @@ class CycleSnapshot(NamedTuple):
     def iq_a(self) -> NDArray[np.float64]:
         """Measured torque currents, A."""
         return self._row(3)
+
+    @property
+    def expected_deg(self) -> NDArray[np.float64]:
+        """Where each joint should be under its control loop (the following error is this minus the measured
+        angle; :mod:`motion.control.tracking`), deg."""
+        return self._row(6)
+
+    @property
+    def collision_signal_nm(self) -> NDArray[np.float64]:
+        """The collision observer's signal per joint, N·m (what ``collision_threshold_nm`` applies to; NaN without
+        an observer; the safety layer's evaluation of the cycle before)."""
+        return self._row(7)
 
     @property
     def temperature_c(self) -> NDArray[np.float64]:

@@ -21,6 +21,8 @@ next request) with the same per-request windows.
 from __future__ import annotations
 
 import heapq
+import math
+import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -298,6 +300,10 @@ class SimulatedBus(Transport):
         """Nothing to release."""
 
 
+#: A paced simulation this far behind the wall clock (it waited for the program) starts pacing again from there, s.
+PACE_SLACK_S: Final = 0.1
+
+
 class SimulatedClock:
     """The controller's clock in a :class:`Simulation` (see :class:`~motion.control.clock.Clock`).
 
@@ -309,13 +315,33 @@ class SimulatedClock:
 
     def __init__(self, simulation: Simulation) -> None:
         self.simulation = simulation
+        self._pace: tuple[float, float, float] | None = None  # (wall clock, simulated time, factor) at pace()
 
     def now(self) -> float:
         """Simulated time, s."""
         return self.simulation.now_s
 
+    def pace(self, factor: float = 1.0) -> None:
+        """From now on, keep simulated time from running ahead of the wall clock times ``factor`` (a live view then
+        shows the motion at its own speed). Only the waiting changes: every result stays the same.
+
+        Raises:
+            ValueError: ``factor`` is not positive and finite.
+        """
+        if not (math.isfinite(factor) and factor > 0):
+            raise ValueError(f"pace factor {factor!r} must be > 0")
+        self._pace = (time.monotonic(), self.simulation.now_s, factor)
+
     def sleep_until(self, deadline_s: float) -> None:
-        """Advance the simulation to ``deadline_s``."""
+        """Advance the simulation to ``deadline_s`` (with :meth:`pace`, not before the wall clock is there)."""
+        if self._pace is not None:
+            wall0, sim0, factor = self._pace
+            now = time.monotonic()
+            wait = wall0 + (deadline_s - sim0) / factor - now
+            if wait > 0:
+                time.sleep(wait)
+            elif wait < -PACE_SLACK_S:  # it waited for the program (nothing ran): go on from here, no catching up
+                self._pace = (now, deadline_s, factor)
         self.simulation.sleep_until(deadline_s)
 
 

@@ -95,6 +95,8 @@ class Supervisor:
         self.controller = controller
         self.settings = settings
         self.watchdog = Watchdog(controller, settings, observer)
+        if observer is not None:  # the collision signal goes out in every snapshot (views, status)
+            controller.published_signal = self.watchdog.collision_signal_nm
         self.gravity = gravity
         self._fault: MotionFault | None = None
         self.machine = StateMachine(ArmState.READY, on_change=self._publish_condition)
@@ -107,6 +109,7 @@ class Supervisor:
         self._halt_until_s: float | None = None  # until when the halt is re-sent; None: no halt went out yet
         # Requests from other threads, taken by the next cycle:
         self._estop_request: FaultKind | None = None
+        self._estop_detail = "E-stop requested"
         self._clear_request = threading.Event()
         self._clear_done = threading.Event()
         self._clear_result: MotionFault | None = None
@@ -239,9 +242,15 @@ class Supervisor:
             raise rejected
         return True
 
+    def request_estop(self, reason: FaultKind = FaultKind.ESTOP, detail: str = "E-stop requested") -> None:
+        """Ask the loop to halt every axis in its next cycle, and return at once (any thread: a view's STOP button
+        never waits for the loop, nor runs a simulated one)."""
+        self._estop_detail = detail
+        self._estop_request = reason
+
     def estop(self, reason: FaultKind = FaultKind.ESTOP, timeout_s: float = 1.0) -> bool:
         """Halt every axis now (in the next cycle); returns True once the halt went out."""
-        self._estop_request = reason
+        self.request_estop(reason)
         machine = self.machine
         return self.controller.wait_for(lambda: machine.state.faulted, timeout_s)
 
@@ -296,7 +305,7 @@ class Supervisor:
             else:
                 if self._estop_request is not None:
                     reason, self._estop_request = self._estop_request, None
-                    raise MotionFault(reason, time_s=controller.clock.now(), detail="E-stop requested")
+                    raise MotionFault(reason, time_s=controller.clock.now(), detail=self._estop_detail)
                 extra = (self._next_status_read(),)
                 replies = controller.step(start_s, deadline_s, extra=extra, check=self.watchdog.check_setpoint)
                 self.watchdog.evaluate(replies, controller.clock.now())
