@@ -387,8 +387,9 @@ class LiveView:
         button.on_click(lambda _event: stop())
         self._history = _History(len(config.joints), int(HISTORY_S * VIEW_RATE_HZ))
         self._closing = threading.Event()
-        #: Page updates sent so far.
+        #: Page updates sent so far, and cycles the view failed to show.
         self.updates = 0
+        self.failures = 0
         self._thread = threading.Thread(target=self._run, name="rmd-motion view", daemon=True)
         self._thread.start()
 
@@ -415,8 +416,10 @@ class LiveView:
                 if snapshot.cycle != last:
                     last = snapshot.cycle
                     self._show(snapshot)
-            except Exception:  # the view must never take the program down: it says so and goes on
-                logger.exception("the view could not show a cycle")
+            except Exception:  # the view must never take the program down: it says so (once) and goes on
+                self.failures += 1
+                if self.failures == 1:
+                    logger.exception("the view could not show a cycle (further failures are counted, not logged)")
 
     def _show(self, snapshot: CycleSnapshot) -> None:
         q, q_ref, q_exp = snapshot.position_deg, snapshot.reference_deg, snapshot.expected_deg

@@ -166,6 +166,23 @@ def test_demo_runs_at_full_speed_without_collision_fault() -> None:
     assert share.max() < 0.75, share  # calibrated with margin 2
 
 
+@pytest.mark.parametrize("mode", ["position", "torque"])
+def test_each_joint_alone_at_full_speed_from_rest_is_no_false_positive(mode: str) -> None:
+    # beyond the demo: a full-speed move of one joint right after connect (an elbow move once tripped wrist_pitch at
+    # 1.001 x its threshold, calibrated on the demo alone)
+    config = _arm6() if mode == "position" else torque_variant(_arm6())
+    thresholds = np.array([j.collision_threshold_nm for j in config.joints])
+    for joint in config.joints:
+        far = 0.8 * (joint.position_max_deg if joint.name != "elbow_pitch" else joint.position_min_deg)
+
+        def motion(arm: Arm, name: str = joint.name, target: float = far) -> object:
+            return arm.move_to({name: target}, speed_scale=1.0, wait=False)
+
+        run = nominal_run(config, motion)
+        assert run.fault is None, (joint.name, run.fault)
+        assert (run.signal_peak_nm / thresholds).max() < 0.9, (joint.name, run.signal_peak_nm / thresholds)
+
+
 @pytest.mark.parametrize(("torque_constant", "friction"), [(1.2, 1.0), (0.8, 1.0), (1.0, 1.2), (1.0, 0.8)])
 def test_model_mismatch_is_no_false_positive(torque_constant: float, friction: float) -> None:
     config = mismatched(_arm6(), torque_constant=torque_constant, friction=friction)

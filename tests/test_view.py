@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import math
 import re
 import shutil
 import signal
@@ -279,3 +280,26 @@ def test_a_paced_simulation_runs_at_the_wall_clocks_speed_with_the_same_result(t
     assert np.array_equal(results[0], results[1])
     paced_wall, duration = walls[1]
     assert paced_wall >= 0.95 * duration
+
+
+def test_a_urdf_with_visuals_is_drawn_from_its_meshes_and_follows_the_arm(page: Page, tmp_path: Path) -> None:
+    # arm6's URDF with a cylinder visual on every link (yourdfpy, through viser's URDF helper)
+    urdf = (CONFIGS / "arm6.urdf").read_text()
+    visual = '<visual><origin xyz="0 0 0.05"/><geometry><cylinder radius="0.03" length="0.1"/></geometry></visual>'
+    urdf = re.sub(r"(<link name=\"[a-z_]+\">)", r"\1" + visual, urdf)
+    (tmp_path / "arm6.urdf").write_text(urdf)
+    (tmp_path / "arm6.yaml").write_text(ARM6.read_text())
+    config = load_config(tmp_path / "arm6.yaml")
+    with Arm(config, emulate=True, view=ViewOptions(port=0)) as arm:
+        assert arm.view is not None
+        figure = arm.view._page.measured
+        assert type(figure).__name__ == "_UrdfFigure"
+        page.open(arm.view.url)
+        arm.move_to({"elbow_pitch": -60.0}, speed_scale=0.5)
+        arm.sleep(0.3)
+        _wait_until(lambda: abs(page.angle("elbow_pitch") - arm.positions()["elbow_pitch"]) < 0.006)
+        # the helper's actuated joints got the measured angles (radians, its order)
+        names = list(figure._urdf.get_actuated_joint_names())
+        angles = dict(zip(names, figure._urdf._urdf.cfg, strict=True))
+        assert math.degrees(angles["elbow_pitch"]) == pytest.approx(arm.positions()["elbow_pitch"], abs=0.01)
+    assert page.errors == []
