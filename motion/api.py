@@ -416,12 +416,14 @@ class Arm:
             if self._home:
                 self.homing = self._home_joints(self._home)
             self._keep_turns()
+            if self._view_options is not None:  # before the rate check and the loop: its start takes a CPU a while
+                self._open_view(self._view_options)
             self.rate_check = check_rate(self.controller, self.config)
             if not self.emulate:  # an identification belongs to the drives it was made on
                 self.tracking_offered = offer_stored_tracking(self.config, self.controller)
             self._start_supervisor()
-            if self._view_options is not None:
-                self._open_view(self._view_options)
+            if self.view is not None and isinstance(self._clock, SimulatedClock):
+                self._clock.pace(1.0)  # a simulated arm on view moves at the wall clock's speed
         except BaseException:
             self._stack.close()
             raise
@@ -429,22 +431,20 @@ class Arm:
 
     def _open_view(self, options: ViewOptions) -> None:
         controller = self.controller
-        assert controller is not None and self.supervisor is not None
-        supervisor = self.supervisor
+        assert controller is not None
 
-        def stop() -> None:
-            supervisor.request_estop(FaultKind.ESTOP, "STOP pressed in the view")
+        def stop() -> None:  # before the loop runs nothing moves: there is nothing to stop
+            if self.supervisor is not None:
+                self.supervisor.request_estop(FaultKind.ESTOP, "STOP pressed in the view")
 
-        figure = arm_figure(self.config)
-        self.view = LiveView(
-            self.config, figure, lambda: controller.snapshot, stop, host=options.host, port=options.port
-        )
+        self.view = LiveView(self.config, arm_figure, stop, host=options.host, port=options.port)
         self._stack.callback(self._close_view)
-        if isinstance(self._clock, SimulatedClock):
-            self._clock.pace(1.0)
+        controller.publish_tap = self.view.publish
 
     def _close_view(self) -> None:
         if self.view is not None:
+            if self.controller is not None:
+                self.controller.publish_tap = None
             self.view.close()
             self.view = None
 

@@ -148,7 +148,7 @@ def collision_observer_for(config: ArmConfig, *, always: bool = False) -> Collis
 
 
 def arm_figure(config: ArmConfig) -> ArmFigure:
-    """The arm's shape for the live view (its own Pinocchio data: the view thread's; see :mod:`motion.view`)."""
+    """The arm's shape for the live view (built in the view's process; see :mod:`motion.view`)."""
     from kinematics.figure import ArmFigure  # noqa: PLC0415 - Pinocchio only where an arm needs it
 
     return ArmFigure(config)

@@ -10,9 +10,13 @@ halted); the page sends no motion command.
 :class:`Replay` shows a recorded telemetry log (``rmd-motion view RUN.npz``) with the same panels, a time slider and
 play/pause.
 
-The view never slows the control loop: a thread of its own reads the published snapshot
-(:class:`~motion.control.snapshot.CycleSnapshot`, one reference read, no lock) at most :data:`VIEW_RATE_HZ` times a
-second; the loop never waits for it. Its Pinocchio model is its own (one per thread).
+The view never slows the control loop: the page (viser's server, the figures, the plots, the view's own Pinocchio
+model) runs in a process of its own, scheduled as SCHED_IDLE, and the loop hands it the published snapshot
+(:class:`~motion.control.snapshot.CycleSnapshot`) itself, at most :data:`VIEW_RATE_HZ` times a second, as one datagram
+on a non-blocking socket (:meth:`LiveView.publish`): no other thread of the arm's process runs while the arm runs.
+(The page in a thread of the arm's process took the interpreter from the loop long enough to miss replies at 370 Hz;
+a thread that only fed it the snapshots 30 times a second still raised the loop's jitter p99 from 1 µs to about
+100 µs: held the interpreter when the CPU was taken from it, it made the loop wait. ``bench/view_jitter.py``.)
 
 The arm is drawn from its Pinocchio model: per joint a sphere at its origin and a cylinder to each child joint (at a
 tip, a stub toward the link's centre of mass). A URDF with ``<visual>`` elements is drawn from its meshes instead
@@ -29,11 +33,16 @@ import html
 import io
 import logging
 import math
+import socket
+import struct
+import subprocess
+import sys
 import threading
 import time
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -41,7 +50,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from motion.config import ArmConfig
-from motion.control.snapshot import CycleSnapshot
+from motion.control.snapshot import JOINT_ROWS, CycleSnapshot
 from motion.errors import MotionError
 from motion.telemetry import TelemetryLog
 
@@ -63,6 +72,10 @@ _REFERENCE_RGB = (240, 160, 40)
 _GHOST_OPACITY = 0.3
 #: The plots are sent every this many updates (10 Hz): a browser rendering in software keeps up.
 _PLOT_EVERY = 3
+#: The snapshot rows the page shows.
+_LIVE_ROWS = ("position_deg", "reference_deg", "iq_a", "expected_deg", "collision_signal_nm")
+#: How long the page's process may take to start (it imports viser and builds the arm's model), s.
+START_TIMEOUT_S = 60.0
 _PLOTS = ("position", "following error", "torque current", "collision signal")
 _PLOT_SERIES = (("reference", "expected", "measured"), ("expected − measured",), ("iq",), ("signal", "threshold"))
 _SERIES_COLORS = ("#f0a028", "#999999", "#466ebe")
@@ -229,7 +242,7 @@ def _figure(
 
 
 class _History:
-    """Rolling per-joint series for the plots (the view thread's own arrays)."""
+    """Rolling per-joint series for the plots (the page's own arrays)."""
 
     def __init__(self, joints: int, length: int) -> None:
         self.t = np.full(length, np.nan)
@@ -356,92 +369,224 @@ def _stop_server(server: Any) -> None:
 class LiveView:
     """The live page of an arm driven in this process (see the module docstring).
 
+    The page (viser, the figures, the plots) runs in a process of its own, so that none of its work shares the
+    control loop's interpreter or competes with it for a CPU. The loop itself hands it the published snapshot
+    (:meth:`publish`, the controller's ``publish_tap``): at most :data:`VIEW_RATE_HZ` times a second, and at once when
+    the arm's state changes, one datagram of a few hundred bytes on a non-blocking socket, dropped (and counted) when
+    the page is behind; no other thread of this process runs while the arm runs. A thread blocked on the page's
+    messages takes back STOP and the number of browsers.
+
     Args:
         config: the arm's configuration.
-        geometry: its shape (:func:`motion.compose.arm_figure`: the view thread's own model data).
-        snapshot: returns the latest published snapshot (``lambda: controller.snapshot``).
-        stop: called (in the server's thread) when STOP is pressed: must only *request* the halt, never wait for
-            the loop (``supervisor.request_estop``).
+        figure: builds its shape in the page's process (:func:`motion.compose.arm_figure`; picklable).
+        stop: called in the receiving thread when STOP is pressed: must only *request* the halt, never wait for the
+            loop (``supervisor.request_estop``).
         host: the address to bind (default this computer only).
         port: the port (0: any free one; :attr:`url` tells which).
 
     Raises:
-        MotionError: viser is not installed.
-        OSError: the port cannot be bound.
+        MotionError: viser is not installed, the port cannot be bound, or the page did not start in
+            :data:`START_TIMEOUT_S`.
     """
 
     def __init__(
         self,
         config: ArmConfig,
-        geometry: ArmGeometry,
-        snapshot: Callable[[], CycleSnapshot],
+        figure: Callable[[ArmConfig], ArmGeometry],
         stop: Callable[[], None],
         *,
         host: str = DEFAULT_HOST,
         port: int = DEFAULT_PORT,
     ) -> None:
-        self.server = _start_server(host, port)
-        self._snapshot = snapshot
-        self._page = _Page(self.server, config, geometry, [j.collision_threshold_nm for j in config.joints])
-        button = self.server.gui.add_button("STOP", color="red")
-        button.on_click(lambda _event: stop())
-        self._history = _History(len(config.joints), int(HISTORY_S * VIEW_RATE_HZ))
-        self._closing = threading.Event()
-        #: Page updates sent so far, and cycles the view failed to show.
+        # A fresh interpreter started as a program (not multiprocessing's spawn, which runs the caller's main module
+        # again: a script without a main guard would start a second arm): messages on a stream socket pair, the
+        # snapshots on a datagram pair (each one whole or not at all).
+        ours, theirs = socket.socketpair()
+        self._feed, feed = socket.socketpair(socket.AF_UNIX, socket.SOCK_DGRAM)
+        self._feed.setblocking(False)
+        with theirs, feed:
+            fds = (theirs.fileno(), feed.fileno())
+            self._process = subprocess.Popen(
+                [sys.executable, "-c", _CHILD.format(fd=fds[0], feed=fds[1])],
+                pass_fds=fds,
+                stdin=subprocess.DEVNULL,
+                start_new_session=True,  # Ctrl-C goes to the arm's program, which closes the view
+            )
+        self._conn = Connection(ours.detach())
+        self._conn.send(list(sys.path))
+        self._conn.send({"config": config, "figure": figure, "host": host, "port": port})
+        if not self._conn.poll(START_TIMEOUT_S):
+            self._end_process()
+            raise MotionError(f"the view did not start in {START_TIMEOUT_S:g} s")
+        try:
+            kind, text = self._conn.recv()
+        except EOFError:
+            kind, text = "error", f"its process ended with exit code {self._process.wait(5.0)}"
+        if kind != "ready":
+            self._end_process()
+            raise MotionError(f"the view cannot start: {text}")
+        #: Where the page is.
+        self.url: str = text
+        self._stop = stop
+        #: Browsers that have the page open (as the page's process last said).
+        self.clients = 0
+        #: Snapshots sent to the page so far, and those dropped because it was behind.
         self.updates = 0
-        self.failures = 0
-        self._thread = threading.Thread(target=self._run, name="rmd-motion view", daemon=True)
+        self.dropped = 0
+        self._period_s = 1.0 / VIEW_RATE_HZ
+        self._next_s = -math.inf
+        self._state = ""
+        self._fault: object = None
+        self._fault_text = b""
+        self._closing = False
+        self._thread = threading.Thread(target=self._receive, name="rmd-motion view", daemon=True)
         self._thread.start()
 
-    @property
-    def url(self) -> str:
-        """Where the page is."""
-        return f"http://{self.server.get_host()}:{self.server.get_port()}"
+    def publish(self, snapshot: CycleSnapshot) -> None:
+        """Called by the loop after each cycle: send the snapshot when :data:`VIEW_RATE_HZ` allows or the state
+        changed; never waits."""
+        state = snapshot.state
+        if snapshot.time_s < self._next_s and state == self._state:
+            return
+        self._next_s = snapshot.time_s + self._period_s
+        self._state = state
+        fault = snapshot.fault
+        if fault is not self._fault:
+            self._fault = fault
+            self._fault_text = b"" if fault is None else str(fault).encode()
+        text = state.encode()
+        try:
+            self._feed.send(
+                _FEED_HEADER.pack(snapshot.time_s, len(text), len(self._fault_text))
+                + text
+                + self._fault_text
+                + snapshot.joints.tobytes()
+            )
+            self.updates += 1
+        except OSError:  # full (the page is behind) or gone: a view misses a picture, the arm goes on
+            self.dropped += 1
 
     def wait_for_client(self, timeout_s: float) -> bool:
         """Wait until a browser has the page open (or ``timeout_s`` passed); returns whether one has."""
         end = time.monotonic() + timeout_s
-        while not self.server.get_clients():
-            if time.monotonic() >= end:
+        while not self.clients:
+            if time.monotonic() >= end or not self._thread.is_alive():
                 return False
             time.sleep(0.05)
         return True
 
-    def _run(self) -> None:
-        period = 1.0 / VIEW_RATE_HZ
-        last = -1
-        while not self._closing.wait(period):
-            try:
-                snapshot = self._snapshot()
-                if snapshot.cycle != last:
-                    last = snapshot.cycle
-                    self._show(snapshot)
-            except Exception:  # the view must never take the program down: it says so (once) and goes on
-                self.failures += 1
-                if self.failures == 1:
-                    logger.exception("the view could not show a cycle (further failures are counted, not logged)")
-
-    def _show(self, snapshot: CycleSnapshot) -> None:
-        q, q_ref, q_exp = snapshot.position_deg, snapshot.reference_deg, snapshot.expected_deg
-        self._history.push(
-            snapshot.time_s,
-            {"q": q, "q_ref": q_ref, "q_exp": q_exp, "iq": snapshot.iq_a, "signal": snapshot.collision_signal_nm},
-        )
-        page = self._page
-        with self.server.atomic():
-            fault = snapshot.fault
-            page.show_state(snapshot.state, None if fault is None else str(fault), snapshot.time_s)
-            page.show_joints(q, q_ref, q_exp, snapshot.iq_a)
-            if self.updates % _PLOT_EVERY == 0:
-                page.show_plots(self._history)
-        self.updates += 1
+    def _receive(self) -> None:
+        try:
+            while True:
+                kind, value = self._conn.recv()  # blocked here, without the interpreter, nearly all the time
+                if kind == "stop":
+                    self._stop()
+                elif kind == "clients":
+                    self.clients = value
+        except (EOFError, OSError) as exc:  # the page's process ended: the arm goes on without a view
+            if not self._closing:
+                logger.error("the view's process ended: %s: %s", type(exc).__name__, exc)
 
     def close(self) -> None:
-        """Stop the thread and the server; safe to call twice."""
-        self._closing.set()
+        """End the page's process; safe to call twice."""
+        if self._closing:
+            return
+        self._closing = True
+        with contextlib.suppress(OSError):
+            self._conn.send(None)
+        self._end_process()
         if self._thread.is_alive() and self._thread is not threading.current_thread():
             self._thread.join(2.0)
-        _stop_server(self.server)
+        self._conn.close()
+        self._feed.close()
+
+    def _end_process(self) -> None:
+        try:
+            self._process.wait(5.0)
+        except subprocess.TimeoutExpired:
+            self._process.kill()
+            self._process.wait(5.0)
+
+
+#: A snapshot on the feed: its time (s), the lengths of the state's and the fault's text; then those texts, then
+#: the snapshot's joint rows (float64, :data:`JOINT_ROWS` by joint).
+_FEED_HEADER = struct.Struct("<dHH")
+
+#: The page's process: scheduled as SCHED_IDLE before any of its threads starts (they inherit it), so that it runs
+#: only on CPU time nothing else wants: the loop, the bus I/O and the rest of the host always go first (where the
+#: host is saturated the page stalls, not the arm); then it takes the arm's import path, then the arguments of
+#: :func:`_serve_live`, from the socket.
+_CHILD = (
+    "import os, sys; from multiprocessing.connection import Connection; "
+    "os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0)) if hasattr(os, 'SCHED_IDLE') else os.nice(19); "
+    "c = Connection({fd}); sys.path[:0] = c.recv(); "
+    "import socket; from motion.view import _serve_live; "
+    "_serve_live(c, socket.socket(fileno={feed}), **c.recv())"
+)
+
+
+def _serve_live(
+    conn: Connection,
+    feed: socket.socket,
+    *,
+    config: ArmConfig,
+    figure: Callable[[ArmConfig], ArmGeometry],
+    host: str,
+    port: int,
+) -> None:
+    """The page's process: serve the page, show the snapshots the loop sends, send back STOP and the number of
+    browsers; end when the arm's process says so (None) or goes away."""
+    logging.basicConfig(level=logging.WARNING, format="rmd-motion view: %(message)s")
+    sending = threading.Lock()
+
+    def send(message: tuple[str, Any]) -> None:
+        with sending, contextlib.suppress(OSError):
+            conn.send(message)
+
+    try:
+        server = _start_server(host, port)
+        page = _Page(server, config, figure(config), [j.collision_threshold_nm for j in config.joints])
+    except Exception as exc:  # the arm's process raises it as a MotionError
+        send(("error", f"{type(exc).__name__}: {exc}"))
+        return
+    button = server.gui.add_button("STOP", color="red")
+    button.on_click(lambda _event: send(("stop", None)))
+    history = _History(len(config.joints), int(HISTORY_S * VIEW_RATE_HZ))
+    shape = (len(JOINT_ROWS), len(config.joints))
+    feed.settimeout(1.0 / VIEW_RATE_HZ)
+    send(("ready", f"http://{server.get_host()}:{server.get_port()}"))
+    clients, shown = 0, 0
+    try:
+        while not conn.poll():
+            with contextlib.suppress(TimeoutError):
+                message = feed.recv(65536)
+                time_s, n_state, n_fault = _FEED_HEADER.unpack_from(message)
+                at = _FEED_HEADER.size
+                state = message[at : at + n_state].decode()
+                fault = message[at + n_state : at + n_state + n_fault].decode() or None
+                joints = np.frombuffer(message, np.float64, offset=at + n_state + n_fault).reshape(shape)
+                _show_live(server, page, history, (time_s, state, fault, joints), plots=shown % _PLOT_EVERY == 0)
+                shown += 1
+            now = len(server.get_clients())
+            if now != clients:
+                clients = now
+                send(("clients", clients))
+        conn.recv()  # None: the arm's process closes the view (or EOFError: it went away)
+    except (EOFError, OSError):  # the arm's process ended
+        pass
+    finally:
+        _stop_server(server)
+
+
+def _show_live(server: Any, page: _Page, history: _History, message: Any, *, plots: bool) -> None:
+    time_s, state, fault, joints = message
+    q, q_ref, iq, q_exp, signal = (joints[JOINT_ROWS.index(row)] for row in _LIVE_ROWS)
+    history.push(time_s, {"q": q, "q_ref": q_ref, "q_exp": q_exp, "iq": iq, "signal": signal})
+    with server.atomic():
+        page.show_state(state, fault, time_s)
+        page.show_joints(q, q_ref, q_exp, iq)
+        if plots:
+            page.show_plots(history)
 
 
 # ------------------------------------------------------------------------------------------------ replay

@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import os
 import re
 import shutil
 import signal
@@ -25,8 +26,9 @@ import pytest
 from motion import Arm, MotionFault, ViewOptions
 from motion.compose import arm_figure
 from motion.config import load_config
+from motion.control.snapshot import JOINT_ROWS, CycleSnapshot, frozen
 from motion.telemetry import TelemetryOptions, load_log
-from motion.view import Replay, host_warning
+from motion.view import LiveView, Replay, host_warning
 from tests.motion_rig import CONFIGS
 
 playwright = pytest.importorskip("playwright.sync_api")
@@ -282,24 +284,64 @@ def test_a_paced_simulation_runs_at_the_wall_clocks_speed_with_the_same_result(t
     assert paced_wall >= 0.95 * duration
 
 
-def test_a_urdf_with_visuals_is_drawn_from_its_meshes_and_follows_the_arm(page: Page, tmp_path: Path) -> None:
-    # arm6's URDF with a cylinder visual on every link (yourdfpy, through viser's URDF helper)
+def test_a_urdf_with_visuals_is_drawn_from_its_meshes(page: Page, demo_log: Path, tmp_path: Path) -> None:
+    # arm6's URDF with a cylinder visual on every link (yourdfpy, through viser's URDF helper), replaying the demo
     urdf = (CONFIGS / "arm6.urdf").read_text()
     visual = '<visual><origin xyz="0 0 0.05"/><geometry><cylinder radius="0.03" length="0.1"/></geometry></visual>'
     urdf = re.sub(r"(<link name=\"[a-z_]+\">)", r"\1" + visual, urdf)
     (tmp_path / "arm6.urdf").write_text(urdf)
     (tmp_path / "arm6.yaml").write_text(ARM6.read_text())
     config = load_config(tmp_path / "arm6.yaml")
-    with Arm(config, emulate=True, view=ViewOptions(port=0)) as arm:
-        assert arm.view is not None
-        figure = arm.view._page.measured
+    log = load_log(demo_log)
+    replay = Replay(log, config, arm_figure(config), port=0)
+    try:
+        figure = replay._page.measured
         assert type(figure).__name__ == "_UrdfFigure"
-        page.open(arm.view.url)
-        arm.move_to({"elbow_pitch": -60.0}, speed_scale=0.5)
-        arm.sleep(0.3)
-        _wait_until(lambda: abs(page.angle("elbow_pitch") - arm.positions()["elbow_pitch"]) < 0.006)
-        # the helper's actuated joints got the measured angles (radians, its order)
+        page.open(replay.url)
+        replay.show(float(log["t_s"][-1]))
+        # the helper's actuated joints got the recorded angles (radians, its order)
         names = list(figure._urdf.get_actuated_joint_names())
         angles = dict(zip(names, figure._urdf._urdf.cfg, strict=True))
-        assert math.degrees(angles["elbow_pitch"]) == pytest.approx(arm.positions()["elbow_pitch"], abs=0.01)
+        final = dict(zip(log.joint_names, log["q_deg"][-1], strict=True))
+        assert {n: math.degrees(a) for n, a in angles.items()} == pytest.approx(final, abs=1e-9)
+        _wait_until(lambda: abs(page.angle("elbow_pitch") - final["elbow_pitch"]) < 0.006)
+    finally:
+        replay.close()
     assert page.errors == []
+
+
+def test_the_loop_never_waits_for_a_page_that_is_behind() -> None:
+    config = load_config(ARM6)
+    view = LiveView(config, arm_figure, lambda: None, port=0)
+    pid = view._process.pid
+    os.kill(pid, signal.SIGSTOP)  # the page's process reads nothing more
+    try:
+        joints = frozen([np.zeros(len(config.joints))] * len(JOINT_ROWS))
+        for k in range(5000):  # a second apart: every one is due
+            view.publish(CycleSnapshot(k, float(k), joints, True, state="moving"))
+        # the socket filled, and the rest were dropped, not waited for
+        assert view.updates > 0
+        assert view.dropped > 0
+        assert view.updates + view.dropped == 5000
+    finally:
+        os.kill(pid, signal.SIGCONT)
+        view.close()
+    assert view._process.returncode == 0
+
+
+def test_a_script_without_a_main_guard_opens_one_view(tmp_path: Path) -> None:
+    # the page's process is a program of its own: it does not run the caller's script again (multiprocessing's spawn
+    # would: a second arm)
+    script = tmp_path / "arm.py"
+    script.write_text(
+        "from motion import Arm, ViewOptions\n"
+        "from motion.config import load_config\n"
+        f"with Arm(load_config({str(ARM6)!r}), emulate=True, view=ViewOptions(port=0)) as arm:\n"
+        "    print('view', arm.view.url, flush=True)\n"
+        "    arm.move_to({'elbow_pitch': -10.0}, speed_scale=0.5)\n"
+        "print('done', flush=True)\n"
+    )
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=180, check=False)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.count("view http://127.0.0.1:") == 1
+    assert result.stdout.splitlines()[-1] == "done"

@@ -220,6 +220,8 @@ class Controller:
         n = len(self.specs)
         #: The arm after the latest cycle (replaced, never changed: any thread may read it without a lock).
         self.snapshot = CycleSnapshot(0, math.nan, frozen([np.zeros(n)] * len(JOINT_ROWS)), False)
+        #: Called by the loop with each published snapshot, in its thread (a live view's feed: must never wait).
+        self.publish_tap: Callable[[CycleSnapshot], None] | None = None
         # the arm's state and fault as the safety layer last set them (:meth:`set_condition`), and the lock that
         # keeps a transition from another thread and the loop's next snapshot from overwriting each other
         self._condition: tuple[str, MotionFault | None] = ("ready", None)
@@ -633,6 +635,9 @@ class Controller:
                     loop.wake_jitter_s,
                 )
             )
+        tap = self.publish_tap
+        if tap is not None:
+            tap(self.snapshot)
 
     def set_condition(self, state: str, fault: MotionFault | None) -> None:
         """The arm's state and fault changed (the safety layer's transition, in any thread): publish them at once in
