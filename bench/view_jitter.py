@@ -6,7 +6,9 @@ interleaved over rounds so that the host's drift hits them alike:
 
 - ``none``: no view;
 - ``server``: the view running (its process, fed by the loop), nobody watching;
-- ``browser``: the view with a page open in headless chromium (Playwright).
+- ``browser``: the view with a page open in headless chromium (Playwright);
+- ``elsewhere``: no view of this arm, and the same browser on the view of another arm (emulated in simulated time,
+  paced, on the browser's CPU): what the browser costs the arm by itself.
 
 Chromium renders the page's WebGL in software here (no GPU): while the arm moves it takes 1.7 of this 2-core host's
 cores, and the emulated drives in their process then miss replies by tens of milliseconds, with no view at all as
@@ -21,7 +23,7 @@ chromium busy on its own CPU, an arm with no view at all still missed 4 replies 
 bench also confines the kernel's unbound workqueues to the arm's CPUs (``/sys/devices/virtual/workqueue/cpumask``,
 root; restored at the end), as a host with a USB-CAN adapter should be (README, "Real time on a busy host").
 
-    .venv/bin/python bench/view_jitter.py                    # 3 rounds x 3 setups x 8 s, about 3 min
+    .venv/bin/python bench/view_jitter.py                    # 3 rounds x 4 setups x 8 s, about 3 min
     .venv/bin/python bench/view_jitter.py --rounds 5 --seconds 15 --same-cpus
 
 The rate is :data:`RATE_HZ` (arm6's, the demo's), or the rate check's recommendation for this host when that is
@@ -39,6 +41,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -48,13 +51,17 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
-from motion import Arm, ViewOptions  # noqa: E402
+from motion import Arm, MotionFault, ViewOptions  # noqa: E402
 from motion.config import ArmConfig, load_config  # noqa: E402
 from motion.control.ratecheck import RateError  # noqa: E402
 from motion.telemetry import TelemetryOptions, load_log  # noqa: E402
 
 PATH = ((30.0, -40.0), (-20.0, 20.0))
-SETUPS = ("none", "server", "browser")
+SETUPS = ("none", "server", "browser", "elsewhere")
+#: What the browser's process is told to open for ``elsewhere``.
+OTHER = "another arm"
+#: When a run's faults happened (see :func:`run`).
+WHEN = ("while the page loaded", "on the path")
 #: How long the browser and the page are given to settle before what is measured, s.
 SETTLE_S = 3.0
 #: The control rate, Hz: arm6's (the demo's); arm2's 500 Hz needs a CPU of its own for the emulator.
@@ -109,12 +116,33 @@ def serve_browser() -> int:
         page = browser.new_page(viewport={"width": 1200, "height": 800})
         page.goto("about:blank")
         print("ready", flush=True)
-        for line in sys.stdin:
-            page.goto(line.strip())
-            page.wait_for_selector("span[data-joint]", timeout=60_000)
-            print("loaded", flush=True)
+        with contextlib.ExitStack() as stack:
+            for line in sys.stdin:
+                url = line.strip() if line.strip() != OTHER else stack.enter_context(another_arm())
+                page.goto(url)
+                page.wait_for_selector("span[data-joint]", timeout=60_000)
+                print("loaded", flush=True)
         browser.close()
     return 0
+
+
+@contextlib.contextmanager
+def another_arm() -> Iterator[str]:
+    """arm2 emulated in simulated time, paced, following the path in a thread, with its view; yields its URL."""
+    moving = threading.Event()
+    moving.set()
+    with Arm(load_config(ROOT / "configs" / "arm2.yaml"), emulate=True, view=ViewOptions(port=0)) as arm:
+
+        def keep_moving() -> None:
+            while moving.is_set():
+                arm.follow(PATH, speed_scale=0.5)
+
+        thread = threading.Thread(target=keep_moving, daemon=True)
+        thread.start()
+        assert arm.view is not None
+        yield arm.view.url
+        moving.clear()
+        thread.join()
 
 
 def move_process(pid: int, cpu: int) -> None:
@@ -126,11 +154,11 @@ def move_process(pid: int, cpu: int) -> None:
 
 def run(
     config: ArmConfig, setup: str, seconds: float, log: Path, browser_cpu: int | None
-) -> tuple[np.ndarray, str | None]:
-    """One run; the jitter of every cycle while the path played, s, and the fault of the page's first load (None:
-    none)."""
-    view: bool | ViewOptions = False if setup == "none" else ViewOptions(port=0)
-    browser = Browser(browser_cpu) if setup == "browser" else None
+) -> tuple[np.ndarray, str | None, str | None]:
+    """One run; the jitter of every cycle while the path played, s, the fault of the page's first load and the
+    fault that ended the path early (None: none)."""
+    view: bool | ViewOptions = ViewOptions(port=0) if setup in {"server", "browser"} else False
+    browser = Browser(browser_cpu) if setup in {"browser", "elsewhere"} else None
     try:
         for attempt in range(3):  # a refusal by the rate check at connect: a moment of the host's noise, try again
             arm = Arm(config, emulate="realtime", view=view, telemetry=TelemetryOptions(log))
@@ -144,16 +172,21 @@ def run(
         try:
             if arm.view is not None and browser_cpu is not None:
                 move_process(arm.view._process.pid, browser_cpu)
-            if browser is not None and arm.view is not None:
-                browser.open(arm.view.url)
+            if browser is not None:
+                browser.open(OTHER if arm.view is None else arm.view.url)
             time.sleep(SETTLE_S)  # every setup holds as long before the path: the page's first load is not measured
             load_fault = arm.fault
             if load_fault is not None:  # said in the table; cleared, so that the steady state can be measured
                 arm.clear()
                 time.sleep(SETTLE_S)
             end = time.monotonic() + seconds
+            path_fault = None
             while time.monotonic() < end:
-                arm.follow(PATH, speed_scale=0.5)
+                try:
+                    arm.follow(PATH, speed_scale=0.5)
+                except MotionFault as exc:  # counted in the table; the cycles until then are measured
+                    path_fault = str(exc)
+                    break
         finally:
             arm.close()
     finally:
@@ -161,7 +194,7 @@ def run(
             browser.close()
     recorded = load_log(log)
     jitter: np.ndarray = recorded["jitter_s"][recorded.active_rows()]
-    return jitter, None if load_fault is None else str(load_fault)
+    return jitter, None if load_fault is None else str(load_fault), path_fault
 
 
 def main() -> int:
@@ -218,27 +251,33 @@ def measure(args: argparse.Namespace, browser_cpu: int | None, cpus: list[int]) 
         print(f"running at {rate:g} Hz (rate check: {check.summary()})", file=sys.stderr)
         config = dataclasses.replace(config, control=dataclasses.replace(config.control, rate_hz=rate))
     jitter: dict[str, list[np.ndarray]] = {setup: [] for setup in SETUPS}
-    load_faults: dict[str, list[str]] = {setup: [] for setup in SETUPS}
+    faults: dict[str, tuple[list[str], list[str]]] = {setup: ([], []) for setup in SETUPS}
     for r in range(args.rounds):
         for setup in SETUPS:
-            measured, load_fault = run(config, setup, args.seconds, folder / f"{setup}-{r}.npz", browser_cpu)
+            measured, *run_faults = run(config, setup, args.seconds, folder / f"{setup}-{r}.npz", browser_cpu)
             jitter[setup].append(measured)
-            if load_fault is not None:
-                load_faults[setup].append(load_fault)
-                print(f"round {r + 1} {setup}: while the page loaded: {load_fault} (cleared)", file=sys.stderr)
+            for when, fault, kept in zip(WHEN, run_faults, faults[setup], strict=True):
+                if fault is not None:
+                    kept.append(fault)
+                    print(f"round {r + 1} {setup}: {when}: {fault}", file=sys.stderr)
             print(f"round {r + 1} {setup}: done", file=sys.stderr, flush=True)
     where = "every CPU shared" if browser_cpu is None else f"the browser on CPU {browser_cpu}, the rest on {cpus[:-1]}"
     rate, rounds = config.control.rate_hz, args.rounds
     print(f"arm2 over an slcan pty at {rate:g} Hz, {rounds} rounds x {args.seconds:g} s each; {where}")
-    print("| setup | cycles | jitter p50 µs | p99 µs | max µs | p99 of the rounds µs | p99 / none | faults at load |")
+    print(
+        "| setup | cycles | jitter p50 µs | p99 µs | max µs | p99 of the rounds µs | p99 / none | faults: load / path |"
+    )
     print("|---|---:|---:|---:|---:|---|---:|---:|")
     base = float(np.percentile(np.concatenate(jitter["none"]), 99))
     for setup in SETUPS:
         every = np.concatenate(jitter[setup])
         p50, p99, top = (float(np.percentile(every, q)) * 1e6 for q in (50, 99, 100))
         rounds = ", ".join(f"{np.percentile(j, 99) * 1e6:.1f}" for j in jitter[setup])
-        ratio, faults = p99 / (base * 1e6), len(load_faults[setup])
-        print(f"| {setup} | {len(every)} | {p50:.1f} | {p99:.1f} | {top:.0f} | {rounds} | {ratio:.2f} | {faults} |")
+        ratio, (at_load, on_path) = p99 / (base * 1e6), faults[setup]
+        print(
+            f"| {setup} | {len(every)} | {p50:.1f} | {p99:.1f} | {top:.0f} | {rounds} | {ratio:.2f} "
+            f"| {len(at_load)} / {len(on_path)} |"
+        )
     return 0
 
 
