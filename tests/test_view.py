@@ -219,7 +219,7 @@ def test_replay_of_a_demo_log_shows_the_final_pose_at_the_end_of_the_slider(page
 
 
 def test_cli_view_replays_a_log_until_ctrl_c_and_warns_beyond_this_computer(page: Page, demo_log: Path) -> None:
-    command = [sys.executable, "-m", "motion.cli", "view", str(demo_log), "--view-host", "0.0.0.0", "--view-port", "0"]
+    command = [sys.executable, "-m", "motion.cli", "view", str(demo_log), "--host", "0.0.0.0", "--view-port", "0"]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         assert process.stdout is not None

@@ -201,7 +201,7 @@ def add_emulate_flag(parser: argparse.ArgumentParser) -> None:
 
 def add_view_arguments(parser: argparse.ArgumentParser, *, flag: bool = True) -> None:
     """``--view`` (with ``flag``) and where the page listens: ``--view-host`` / ``--view-port`` (see
-    :mod:`motion.view`)."""
+    :mod:`motion.view`); without ``flag`` (``rmd-motion view``) ``--host`` as well."""
     if flag:
         parser.add_argument(
             "--view",
@@ -210,7 +210,8 @@ def add_view_arguments(parser: argparse.ArgumentParser, *, flag: bool = True) ->
             "--emulate paced to the wall clock",
         )
     parser.add_argument(
-        "--view-host",
+        *(("--view-host",) if flag else ("--view-host", "--host")),  # rmd-motion view: --host too (--port is taken)
+        dest="view_host",
         default=DEFAULT_HOST,
         metavar="HOST",
         help=f"address the view listens on (default {DEFAULT_HOST}: this computer only; anyone who can reach "
