@@ -32,6 +32,10 @@ _OK = (Result.Working, Result.Finished)
 _LIMIT_TOLERANCE_DEG = 1e-6
 # Velocities and accelerations below this are round-off, deg/s or deg/s².
 _RESIDUE = 1e-9
+#: Ruckig's message when its profile search found no profile (see :meth:`Planner._calculate`).
+_PROFILE_SEARCH_FAILED = "error in step"
+#: The factor the limits are lowered by when it did.
+_OFF_BORDER = 1.0 - 1e-9
 # Pass-through speeds keep this share of the velocity limit as headroom for synchronisation.
 _PASS_VELOCITY_SHARE = 0.9
 
@@ -200,7 +204,20 @@ class Planner:
     def _calculate(self, inp: InputParameter, what: str) -> Segment:
         trajectory = Trajectory(self.limits.dofs)
         try:
-            result = self._otg.calculate(inp, trajectory)
+            try:
+                result = self._otg.calculate(inp, trajectory)
+            except RuckigError as exc:
+                if _PROFILE_SEARCH_FAILED not in str(exc):
+                    raise
+                # Shim (exit: a Ruckig release in which tests/test_trajectory.py's boundary case plans without it):
+                # Ruckig's profile search misses inputs that sit exactly on the border between two profile shapes
+                # (0 -> 6 deg from rest at 18 deg/s, 12 deg/s², 24 deg/s³ fails in ruckig 0.19.4; pantor/ruckig
+                # issue 90, open). Limits lowered by a relative 1e-9 step off the border; the plan keeps within
+                # the real ones.
+                inp.max_velocity = [v * _OFF_BORDER for v in inp.max_velocity]
+                inp.max_acceleration = [a * _OFF_BORDER for a in inp.max_acceleration]
+                inp.max_jerk = [j * _OFF_BORDER for j in inp.max_jerk]
+                result = self._otg.calculate(inp, trajectory)
         except RuckigError as exc:
             raise PlanningError(f"{what}: Ruckig rejected the input: {str(exc).splitlines()[0] or exc}") from exc
         if result not in _OK:
