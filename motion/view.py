@@ -433,6 +433,8 @@ class LiveView:
         #: Snapshots sent to the page so far, and those dropped because it was behind.
         self.updates = 0
         self.dropped = 0
+        #: Snapshots that could not be sent for another reason (the first one is logged).
+        self.failures = 0
         self._period_s = 1.0 / VIEW_RATE_HZ
         self._next_s = -math.inf
         self._state = ""
@@ -450,12 +452,12 @@ class LiveView:
             return
         self._next_s = snapshot.time_s + self._period_s
         self._state = state
-        fault = snapshot.fault
-        if fault is not self._fault:
-            self._fault = fault
-            self._fault_text = b"" if fault is None else str(fault).encode()
-        text = state.encode()
         try:
+            fault = snapshot.fault
+            if fault is not self._fault:
+                self._fault_text = b"" if fault is None else str(fault).encode()
+                self._fault = fault
+            text = state.encode()
             self._feed.send(
                 _FEED_HEADER.pack(snapshot.time_s, len(text), len(self._fault_text))
                 + text
@@ -465,6 +467,10 @@ class LiveView:
             self.updates += 1
         except OSError:  # full (the page is behind) or gone: a view misses a picture, the arm goes on
             self.dropped += 1
+        except Exception:  # the view must never take the loop down: it says so (once) and goes on
+            self.failures += 1
+            if self.failures == 1:
+                logger.exception("the view could not be sent a cycle (further failures are counted, not logged)")
 
     def wait_for_client(self, timeout_s: float) -> bool:
         """Wait until a browser has the page open (or ``timeout_s`` passed); returns whether one has."""

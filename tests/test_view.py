@@ -329,6 +329,24 @@ def test_the_loop_never_waits_for_a_page_that_is_behind() -> None:
     assert view._process.returncode == 0
 
 
+def test_a_snapshot_the_view_cannot_send_is_counted_not_raised_into_the_loop(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    config = load_config(ARM6)
+    view = LiveView(config, arm_figure, lambda: None, port=0)
+    try:
+        joints = frozen([np.zeros(len(config.joints))] * len(JOINT_ROWS))
+        for k in (1, 2):  # a state that is no text: the view's failure, not the loop's
+            view.publish(CycleSnapshot(k, float(k), joints, True, state=None))  # type: ignore[arg-type]
+        view.publish(CycleSnapshot(3, 3.0, joints, True, state="moving"))
+    finally:
+        view.close()
+    assert (view.failures, view.updates) == (2, 1)
+    assert [r.getMessage() for r in caplog.records if r.name == "motion.view"] == [
+        "the view could not be sent a cycle (further failures are counted, not logged)"
+    ]
+
+
 def test_a_script_without_a_main_guard_opens_one_view(tmp_path: Path) -> None:
     # the page's process is a program of its own: it does not run the caller's script again (multiprocessing's spawn
     # would: a second arm)
