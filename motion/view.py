@@ -33,6 +33,7 @@ import html
 import io
 import logging
 import math
+import select
 import socket
 import struct
 import subprocess
@@ -74,6 +75,10 @@ _GHOST_OPACITY = 0.3
 _PLOT_EVERY = 3
 #: The snapshot rows the page shows.
 _LIVE_ROWS = ("position_deg", "reference_deg", "iq_a", "expected_deg", "collision_signal_nm")
+#: Their names in the page's history.
+_LIVE_KEYS = ("q", "q_ref", "iq", "q_exp", "signal")
+#: The largest snapshot datagram read, bytes (a few hundred for six joints).
+_FEED_MAX = 65536
 #: How long the page's process may take to start (it imports viser and builds the arm's model), s.
 START_TIMEOUT_S = 60.0
 _PLOTS = ("position", "following error", "torque current", "collision signal")
@@ -559,19 +564,24 @@ def _serve_live(
     button.on_click(lambda _event: send(("stop", None)))
     history = _History(len(config.joints), int(HISTORY_S * VIEW_RATE_HZ))
     shape = (len(JOINT_ROWS), len(config.joints))
-    feed.settimeout(1.0 / VIEW_RATE_HZ)
+    feed.setblocking(False)
     send(("ready", f"http://{server.get_host()}:{server.get_port()}"))
-    clients, shown = 0, 0
+    clients, shown, failures = 0, 0, 0
     try:
         while not conn.poll():
-            with contextlib.suppress(TimeoutError):
-                message = feed.recv(65536)
-                time_s, n_state, n_fault = _FEED_HEADER.unpack_from(message)
-                at = _FEED_HEADER.size
-                state = message[at : at + n_state].decode()
-                fault = message[at + n_state : at + n_state + n_fault].decode() or None
-                joints = np.frombuffer(message, np.float64, offset=at + n_state + n_fault).reshape(shape)
-                _show_live(server, page, history, (time_s, state, fault, joints), plots=shown % _PLOT_EVERY == 0)
+            latest = None
+            if select.select([feed], [], [], 1.0 / VIEW_RATE_HZ)[0]:
+                with contextlib.suppress(BlockingIOError):  # behind: every waiting one into the plots, the last shown
+                    while True:
+                        latest = _unpack(feed.recv(_FEED_MAX), shape)
+                        history.push(latest[0], latest[3])
+            if latest is not None:
+                try:
+                    _show_live(server, page, history, latest, plots=shown % _PLOT_EVERY == 0)
+                except Exception:  # a picture the page could not show: it says so (once) and goes on
+                    failures += 1
+                    if failures == 1:
+                        logger.exception("the view could not show a cycle (further failures are counted, not logged)")
                 shown += 1
             now = len(server.get_clients())
             if now != clients:
@@ -584,10 +594,27 @@ def _serve_live(
         _stop_server(server)
 
 
-def _show_live(server: Any, page: _Page, history: _History, message: Any, *, plots: bool) -> None:
-    time_s, state, fault, joints = message
-    q, q_ref, iq, q_exp, signal = (joints[JOINT_ROWS.index(row)] for row in _LIVE_ROWS)
-    history.push(time_s, {"q": q, "q_ref": q_ref, "q_exp": q_exp, "iq": iq, "signal": signal})
+def _unpack(message: bytes, shape: tuple[int, int]) -> tuple[float, str, str | None, dict[str, FloatArray]]:
+    """A snapshot from the feed (see :data:`_FEED_HEADER`): time, state, fault and the rows the page shows."""
+    time_s, n_state, n_fault = _FEED_HEADER.unpack_from(message)
+    at = _FEED_HEADER.size
+    state = message[at : at + n_state].decode()
+    fault = message[at + n_state : at + n_state + n_fault].decode() or None
+    joints = np.frombuffer(message, np.float64, offset=at + n_state + n_fault).reshape(shape)
+    rows = dict(zip(_LIVE_KEYS, (joints[JOINT_ROWS.index(row)] for row in _LIVE_ROWS), strict=True))
+    return time_s, state, fault, rows
+
+
+def _show_live(
+    server: Any,
+    page: _Page,
+    history: _History,
+    snapshot: tuple[float, str, str | None, dict[str, FloatArray]],
+    *,
+    plots: bool,
+) -> None:
+    time_s, state, fault, rows = snapshot
+    q, q_ref, q_exp, iq = rows["q"], rows["q_ref"], rows["q_exp"], rows["iq"]
     with server.atomic():
         page.show_state(state, fault, time_s)
         page.show_joints(q, q_ref, q_exp, iq)
