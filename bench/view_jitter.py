@@ -171,7 +171,7 @@ def run(
                     raise
         try:
             if arm.view is not None and browser_cpu is not None:
-                move_process(arm.view._process.pid, browser_cpu)
+                move_process(arm.view.pid, browser_cpu)
             if browser is not None:
                 browser.open(OTHER if arm.view is None else arm.view.url)
             time.sleep(SETTLE_S)  # every setup holds as long before the path: the page's first load is not measured

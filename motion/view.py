@@ -73,10 +73,17 @@ _REFERENCE_RGB = (240, 160, 40)
 _GHOST_OPACITY = 0.3
 #: The plots are sent every this many updates (10 Hz): a browser rendering in software keeps up.
 _PLOT_EVERY = 3
-#: The snapshot rows the page shows.
-_LIVE_ROWS = ("position_deg", "reference_deg", "iq_a", "expected_deg", "collision_signal_nm")
-#: Their names in the page's history.
-_LIVE_KEYS = ("q", "q_ref", "iq", "q_exp", "signal")
+#: The snapshot rows the page shows (:data:`JOINT_ROWS` index), by their names in the page's history.
+_LIVE_ROWS = {
+    key: JOINT_ROWS.index(row)
+    for key, row in (
+        ("q", "position_deg"),
+        ("q_ref", "reference_deg"),
+        ("iq", "iq_a"),
+        ("q_exp", "expected_deg"),
+        ("signal", "collision_signal_nm"),
+    )
+}
 #: The largest snapshot datagram read, bytes (a few hundred for six joints).
 _FEED_MAX = 65536
 #: How long the page's process may take to start (it imports viser and builds the arm's model), s.
@@ -377,9 +384,9 @@ class LiveView:
     The page (viser, the figures, the plots) runs in a process of its own, so that none of its work shares the
     control loop's interpreter or competes with it for a CPU. The loop itself hands it the published snapshot
     (:meth:`publish`, the controller's ``publish_tap``): at most :data:`VIEW_RATE_HZ` times a second, and at once when
-    the arm's state changes, one datagram of a few hundred bytes on a non-blocking socket, dropped (and counted) when
-    the page is behind; no other thread of this process runs while the arm runs. A thread blocked on the page's
-    messages takes back STOP and the number of browsers.
+    the arm's state changes, one datagram of a few hundred bytes on a non-blocking socket (gathered from its parts:
+    no copy of the joint rows), dropped (and counted) when the page is behind; no other thread of this process runs
+    while the arm runs. A thread blocked on the page's messages takes back STOP and the number of browsers.
 
     Args:
         config: the arm's configuration.
@@ -432,6 +439,8 @@ class LiveView:
             raise MotionError(f"the view cannot start: {text}")
         #: Where the page is.
         self.url: str = text
+        #: The page's process.
+        self.pid = self._process.pid
         self._stop = stop
         #: Browsers that have the page open (as the page's process last said).
         self.clients = 0
@@ -442,7 +451,10 @@ class LiveView:
         self.failures = 0
         self._period_s = 1.0 / VIEW_RATE_HZ
         self._next_s = -math.inf
+        # the datagram's parts, kept between sends: the header packed in place, the texts encoded once per change
+        self._header = bytearray(_FEED_HEADER.size)
         self._state = ""
+        self._state_text = b""
         self._fault: object = None
         self._fault_text = b""
         self._closing = False
@@ -456,19 +468,17 @@ class LiveView:
         if snapshot.time_s < self._next_s and state == self._state:
             return
         self._next_s = snapshot.time_s + self._period_s
-        self._state = state
         try:
+            if state != self._state:
+                self._state_text = state.encode()
+                self._state = state
             fault = snapshot.fault
             if fault is not self._fault:
                 self._fault_text = b"" if fault is None else str(fault).encode()
                 self._fault = fault
-            text = state.encode()
-            self._feed.send(
-                _FEED_HEADER.pack(snapshot.time_s, len(text), len(self._fault_text))
-                + text
-                + self._fault_text
-                + snapshot.joints.tobytes()
-            )
+            _FEED_HEADER.pack_into(self._header, 0, snapshot.time_s, len(self._state_text), len(self._fault_text))
+            # one datagram gathered from its parts (the joint rows straight from the snapshot's array: no copy)
+            self._feed.sendmsg((self._header, self._state_text, self._fault_text, snapshot.joints.data))
             self.updates += 1
         except OSError:  # full (the page is behind) or gone: a view misses a picture, the arm goes on
             self.dropped += 1
@@ -601,7 +611,7 @@ def _unpack(message: bytes, shape: tuple[int, int]) -> tuple[float, str, str | N
     state = message[at : at + n_state].decode()
     fault = message[at + n_state : at + n_state + n_fault].decode() or None
     joints = np.frombuffer(message, np.float64, offset=at + n_state + n_fault).reshape(shape)
-    rows = dict(zip(_LIVE_KEYS, (joints[JOINT_ROWS.index(row)] for row in _LIVE_ROWS), strict=True))
+    rows = {key: joints[index] for key, index in _LIVE_ROWS.items()}
     return time_s, state, fault, rows
 
 

@@ -313,12 +313,19 @@ def test_a_urdf_with_visuals_is_drawn_from_its_meshes(page: Page, demo_log: Path
 def test_the_loop_never_waits_for_a_page_that_is_behind() -> None:
     config = load_config(ARM6)
     view = LiveView(config, arm_figure, lambda: None, port=0)
-    pid = view._process.pid
+    pid = view.pid
     os.kill(pid, signal.SIGSTOP)  # the page's process reads nothing more
     try:
         joints = frozen([np.zeros(len(config.joints))] * len(JOINT_ROWS))
-        for k in range(5000):  # a second apart: every one is due
-            view.publish(CycleSnapshot(k, float(k), joints, True, state="moving"))
+
+        def loop() -> None:
+            for k in range(5000):  # a second apart: every one is due
+                view.publish(CycleSnapshot(k, float(k), joints, True, state="moving"))
+
+        publishing = threading.Thread(target=loop, daemon=True)
+        publishing.start()
+        publishing.join(60.0)  # a publish that waited would never end: the page's process is stopped
+        assert not publishing.is_alive(), "publish waited for the stopped page"
         # the socket filled, and the rest were dropped, not waited for
         assert view.updates > 0
         assert view.dropped > 0
