@@ -663,11 +663,13 @@ def _slcan_reader() -> str:
     return f"the slcan shim, python-can {release}" if slcan_shim.needs_shim() else f"python-can {release}'s own"
 
 
-def slcan_host_costs(bus: Transport, n_axes: int, repeats: int = 7) -> tuple[float, float]:
+def slcan_host_costs(bus: Transport, n_axes: int, period_s: float, repeats: int = 101) -> tuple[float, float]:
     """What slcan costs this process per frame: (send wall time, read CPU time), µs, medians.
 
-    Sends one status read (0x9C) per drive, waits until every reply has surely arrived, then times taking them in
-    (``CanEndpoint.recv``: the slcan reader, python-can's parsing, the frame).
+    Sends one status read (0x9C) per drive, sleeps one control period (as the loop waits between cycles, so the
+    wake-up and the caches are the loop's), then times taking the replies in (``CanEndpoint.recv``: the slcan
+    reader, the parsing, the frame), in this thread's CPU time. A round whose replies had not all arrived after the
+    period is left out (it would time a wait, not a read).
     """
     endpoint = cast(CanTransport, bus).port
     frames = [can_frame.encode_request(Bare(Command.READ_STATUS_2), m) for m in range(1, n_axes + 1)]
@@ -678,12 +680,16 @@ def slcan_host_costs(bus: Transport, n_axes: int, repeats: int = 7) -> tuple[flo
         for frame in frames:
             endpoint.send(frame, 0.1)
         sends.append((time.perf_counter() - start) / len(frames))
-        time.sleep(0.05)
-        cpu0, count = time.process_time(), 0
+        time.sleep(period_s)
+        cpu0, count = time.thread_time(), 0
         while endpoint.recv(0.0) is not None:
             count += 1
-        if count:
-            reads.append((time.process_time() - cpu0) / count)
+        spent = time.thread_time() - cpu0
+        if count == len(frames):
+            reads.append(spent / count)
+        else:  # the rest of the replies are late: take them in before the next round
+            while count < len(frames) and endpoint.recv(0.1) is not None:
+                count += 1
     return float(np.median(sends)) * 1e6, float(np.median(reads)) * 1e6 if reads else math.nan
 
 
@@ -723,7 +729,11 @@ def run_live_case(case: LiveCase, seconds: float) -> LiveResult:
                 host_cpu = (time.process_time() - host0) / wall
                 emu_cpu = (_cpu_seconds(process.pid) - emu0) / wall
                 error = None if controller.error is None else f"{type(controller.error).__name__}: {controller.error}"
-                frame_costs = slcan_host_costs(bus, case.n_axes) if case.link == "slcan" else (math.nan, math.nan)
+                frame_costs = (
+                    slcan_host_costs(bus, case.n_axes, 1.0 / case.rate_hz)
+                    if case.link == "slcan"
+                    else (math.nan, math.nan)
+                )
                 totals = MotorCounters()
                 for counters in bus.counters.values():
                     totals.sent += counters.sent
@@ -791,7 +801,8 @@ def print_live(results: Sequence[LiveResult]) -> None:
             f"| {r.complete_share * 100:.1f} % | {r.host_cpu_share * 100:.0f} % / {r.emulator_cpu_share * 100:.0f} % |"
         )
     print(
-        f"\nHost cost of slcan per frame ({_slcan_reader()}), measured after each CAN run (medians), against the "
+        f"\nHost cost of slcan per frame ({_slcan_reader()}), measured after each CAN run (medians of 101 rounds; "
+        f"the replies read one control period after the requests, in this thread's CPU time), against the "
         f"time the reply occupies a 1 Mbit/s bus ({SLCAN_REPLY_WIRE_US:.0f} µs):\n"
     )
     print(

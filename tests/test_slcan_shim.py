@@ -7,6 +7,7 @@ import sys
 import time
 from collections.abc import Iterator
 
+import can
 import pytest
 
 from motion.protocol import CanFrame
@@ -88,6 +89,52 @@ def test_recv_waits_for_its_timeout_and_no_longer(pty_bus: tuple[int, SlcanShimB
     assert 0.015 <= time.monotonic() - start < 0.5
 
 
+def _frame_lines(bus: SlcanShimBus, count: int) -> list[object]:
+    got: list[object] = []
+    end = time.monotonic() + 1.0
+    while len(got) < count and time.monotonic() < end:
+        item = bus.recv_frame(0.05)
+        if item is not None:
+            got.append(item if item.__class__ is tuple else ("message", item))
+    return got
+
+
+def test_recv_frame_gives_standard_data_frames_as_tuples_and_the_rest_as_python_can_does(
+    pty_bus: tuple[int, SlcanShimBus],
+) -> None:
+    master, bus = pty_bus
+    remote, extended, short = b"r1410\r", b"T000001418A400000000000000\r", b"t1413A40102\r"
+    # FRAME_A and FRAME_B as python-can writes them (those two carry a ninth byte, which python-can's parser ignores)
+    line_a, line_b = b"t1418A400680128230000\r", b"t1428A400000000000000\r"
+    os.write(master, line_a + b"z\r" + remote + extended + short + b"t14G8A40068012823000000\r" + line_b)
+    got = _frame_lines(bus, 5)
+    assert got[0] == (0x141, bytes.fromhex("a4 00 68 01 28 23 00 00"))
+    kinds = [
+        item[1] for item in got[1:3] if isinstance(item, tuple)
+    ]  # python-can's own messages for the remote and the extended frame
+    assert isinstance(kinds[0], can.Message) and kinds[0].is_remote_frame and kinds[0].arbitration_id == 0x141
+    assert isinstance(kinds[1], can.Message) and kinds[1].is_extended_id and kinds[1].arbitration_id == 0x141
+    assert got[3] == (0x141, bytes.fromhex("a4 01 02"))  # a 3-byte frame is a frame (the transport counts it bad)
+    assert got[4] == (0x142, b"\xa4" + bytes(7))  # the garbled line between was dropped and counted
+    assert bus.garbled_lines == 1
+    assert bus.recv_frame(0.01) is None
+
+
+def test_send_frame_writes_the_line_python_can_writes(pty_bus: tuple[int, SlcanShimBus]) -> None:
+    master, bus = pty_bus
+    frames = [(0x141, bytes.fromhex("a4 00 68 01 28 23 00 00")), (0x280, bytes.fromhex("ff 7f 00 80 01 00 fe ff"))]
+    for arbitration_id, data in frames:
+        bus.send_frame(arbitration_id, data, 0.1)
+    fast = os.read(master, 4096)
+    for arbitration_id, data in frames:
+        bus.send(can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False), 0.1)
+    assert fast == os.read(master, 4096) == b"t1418A400680128230000\rt2808FF7F00800100FEFF\r"
+    with pytest.raises(ValueError, match="0x800"):
+        bus.send_frame(0x800, b"", 0.1)
+    with pytest.raises(ValueError, match="9 bytes"):
+        bus.send_frame(0x141, bytes(9), 0.1)
+
+
 def test_endpoint_uses_the_shim_while_python_can_lacks_the_fix() -> None:
     import tty
 
@@ -96,6 +143,7 @@ def test_endpoint_uses_the_shim_while_python_can_lacks_the_fix() -> None:
     try:
         with CanEndpoint("slcan", os.ttyname(slave), 1_000_000, sleep_after_open=0) as endpoint:
             assert isinstance(endpoint._bus, SlcanShimBus) is needs_shim()
+            assert (endpoint._recv_frame is not None) is needs_shim()  # the loop's frames skip can.Message
             os.write(master, FRAME_A + FRAME_B)
             time.sleep(0.02)
             first, second = endpoint.recv(0.5), endpoint.recv(0.0)  # the second is buffered: no select wait

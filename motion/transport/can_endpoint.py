@@ -74,6 +74,9 @@ class CanEndpoint:
                 self._fd = None
         # A bus that buffers input itself (the slcan shim) says so: select must not wait while it holds a frame.
         self._pending_input = getattr(self._bus, "pending_input", None)
+        # The slcan shim carries standard data frames without a can.Message (see slcan_shim): the loop's frames.
+        self._recv_frame = getattr(self._bus, "recv_frame", None)
+        self._send_frame = getattr(self._bus, "send_frame", None)
 
     def send(self, frame: CanFrame, timeout_s: float | None = None) -> None:
         """Send one frame.
@@ -81,8 +84,11 @@ class CanEndpoint:
         Raises:
             TransportError: the interface refused the frame (bus off, buffer full, port gone).
         """
-        message = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
         try:
+            if self._send_frame is not None:
+                self._send_frame(frame.arbitration_id, frame.data, timeout_s)
+                return
+            message = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
             self._bus.send(message, timeout=timeout_s)
         except (can.CanError, OSError, ValueError) as exc:
             raise TransportError(f"CAN send on {self.interface}:{self.channel} failed: {exc}") from exc
@@ -109,9 +115,11 @@ class CanEndpoint:
                     if not buffered and not select.select([self._fd], [], [], remaining)[0]:
                         return None
                     remaining = 0.0
-                message = self._bus.recv(timeout=remaining)
+                message = self._bus.recv(timeout=remaining) if self._recv_frame is None else self._recv_frame(remaining)
             except (can.CanError, OSError, ValueError) as exc:
                 raise TransportError(f"CAN receive on {self.interface}:{self.channel} failed: {exc}") from exc
+            if message.__class__ is tuple:
+                return _new_frame(*message), time.time()  # slcan's time stamp: the host's clock
             if message is None:
                 # The input was no frame (an adapter's acknowledgement) or only part of one: wait on, or at the end
                 # of the time take in what else is there, so that a poll still drains every frame already received.

@@ -15,6 +15,10 @@ python-can's own ``slcanBus`` (our code, written for this project; only ``_read`
   timeout, as it would for a frame lost on the wire.
 - :meth:`SlcanShimBus.pending_input` says whether a complete line is buffered: a caller that waits on the port's
   descriptor with ``select`` must not wait while lines it has not taken are already in this buffer.
+- :meth:`SlcanShimBus.recv_frame` and :meth:`SlcanShimBus.send_frame` carry a standard data frame as
+  ``(arbitration id, data)`` without a ``can.Message`` on the way (python-can's ``BusABC.recv`` also formats a log
+  call for every frame): the same line python-can writes, the same frame it parses; every other line goes through
+  python-can's own parser. The control loop's frames take this path (issue 12: a cycle reads one frame per drive).
 
 :class:`motion.transport.can_endpoint.CanEndpoint` uses it for ``interface: slcan`` only while
 :func:`needs_shim` says the installed python-can lacks the fix. **Exit plan**: once a python-can release carries
@@ -30,6 +34,7 @@ import os
 import re
 import select
 import time
+from binascii import hexlify
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any, Final
 
@@ -40,6 +45,8 @@ from can.interfaces.slcan import slcanBus
 LAST_RELEASE_WITHOUT_FIX: Final = (4, 6, 1)
 
 _LINE_END: Final = re.compile(rb"[\r\a]")
+#: A standard (11-bit) data frame line: ``t``, three hex digits of id, the length 0..8, two hex digits per byte.
+_STANDARD_DATA: Final = re.compile(r"t([0-9A-Fa-f]{3})([0-8])((?:[0-9A-Fa-f]{2})*)\r")
 #: Bytes asked of the port per read (a pty or a USB adapter rarely holds more; the rest comes with the next read).
 _READ_CHUNK_BYTES: Final = 65536
 _RELEASE: Final = re.compile(r"(\d+)(?:\.(\d+))?(?:\.(\d+))?")
@@ -134,3 +141,45 @@ class SlcanShimBus(slcanBus):
             # A garbled line (noise on the adapter's serial link): drop it, like a frame lost on the wire.
             self.garbled_lines += 1
             return None, False
+
+    def recv_frame(self, timeout: float | None) -> tuple[int, bytes] | can.Message | None:
+        """The next received line as ``(arbitration id, data)`` when it is a standard data frame, else as python-can
+        makes it (a ``can.Message`` of another kind, or None: no frame before ``timeout``, an adapter's reply, a
+        garbled line). Software filters (``can_filters``) are python-can's: with them set, this is ``recv``.
+
+        Raises:
+            can.CanOperationError: the port failed.
+        """
+        if self._filters is not None or self._queue.qsize():
+            return self.recv(timeout)
+        line = self._read(timeout)
+        if line is None:
+            return None
+        match = _STANDARD_DATA.fullmatch(line)
+        if match is not None:
+            data = bytes.fromhex(match[3])
+            if len(data) == int(match[2]):
+                return int(match[1], 16), data
+        # Anything else as python-can parses it (the line goes back first in its queue, where it looks first).
+        self._queue.put_nowait(line)
+        return self.recv(0.0)
+
+    def send_frame(self, arbitration_id: int, data: bytes, timeout: float | None) -> None:
+        """Send a standard data frame: the line python-can's ``send`` writes for it, written and drained as it does.
+
+        Raises:
+            can.CanOperationError: the port failed or the write timed out.
+            ValueError: an id beyond 11 bits or more than 8 bytes (no standard frame).
+        """
+        if not 0 <= arbitration_id <= 0x7FF or len(data) > 8:
+            raise ValueError(
+                f"a standard data frame has an id 0..0x7FF and 0..8 bytes, got 0x{arbitration_id:X}, {len(data)} bytes"
+            )
+        port = self.serialPortOrig
+        try:
+            if timeout != port.write_timeout:
+                port.write_timeout = timeout
+            port.write(b"t%03X%d%s\r" % (arbitration_id, len(data), hexlify(data).upper()))
+            port.flush()
+        except (OSError, ValueError) as exc:  # what pyserial raises (SerialException is an OSError)
+            raise can.CanOperationError(f"Could not write to serial device: {exc}") from exc
