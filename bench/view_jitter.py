@@ -36,6 +36,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import math
 import os
 import shutil
 import subprocess
@@ -145,6 +146,39 @@ def another_arm() -> Iterator[str]:
         thread.join()
 
 
+#: /proc/interrupts rows counted on the arm's CPUs (local timer, rescheduling, function-call and TLB-shootdown IPIs).
+INTERRUPT_ROWS = ("LOC", "RES", "CAL", "TLB")
+
+
+def cpu_counters(cpus: list[int]) -> dict[str, int]:
+    """Counts of what interrupted ``cpus`` so far: the :data:`INTERRUPT_ROWS` of /proc/interrupts, every softirq of
+    /proc/softirqs (as ``softirq NAME``), and this process's involuntary context switches (its threads preempted)."""
+    counts: dict[str, int] = {}
+    for source, rows, prefix in (
+        ("/proc/interrupts", INTERRUPT_ROWS, ""),
+        ("/proc/softirqs", None, "softirq "),
+    ):
+        with contextlib.suppress(OSError):
+            lines = Path(source).read_text().splitlines()
+            columns = {name: i for i, name in enumerate(lines[0].split())}
+            for line in lines[1:]:
+                name, _, rest = line.partition(":")
+                name, values = name.strip(), rest.split()
+                if rows is not None and name not in rows:
+                    continue
+                counts[prefix + name] = sum(
+                    int(values[columns[f"CPU{c}"]]) for c in cpus if columns.get(f"CPU{c}", len(values)) < len(values)
+                )
+    switches = 0
+    for task in Path("/proc/self/task").iterdir():
+        with contextlib.suppress(OSError):
+            for line in (task / "status").read_text().splitlines():
+                if line.startswith("nonvoluntary_ctxt_switches:"):
+                    switches += int(line.split()[1])
+    counts["preemptions of this process"] = switches
+    return counts
+
+
 def move_process(pid: int, cpu: int) -> None:
     """Every thread of process ``pid`` to CPU ``cpu`` (threads started later inherit it)."""
     for task in Path(f"/proc/{pid}/task").iterdir():
@@ -153,10 +187,11 @@ def move_process(pid: int, cpu: int) -> None:
 
 
 def run(
-    config: ArmConfig, setup: str, seconds: float, log: Path, browser_cpu: int | None
-) -> tuple[np.ndarray, str | None, str | None]:
-    """One run; the jitter of every cycle while the path played, s, the fault of the page's first load and the
-    fault that ended the path early (None: none)."""
+    config: ArmConfig, setup: str, seconds: float, log: Path, *, browser_cpu: int | None, arm_cpus: list[int]
+) -> tuple[np.ndarray, dict[str, float], str | None, str | None]:
+    """One run; the jitter of every cycle while the path played, s, what interrupted the arm's CPUs meanwhile (per
+    second, :func:`cpu_counters`), the fault of the page's first load and the fault that ended the path early
+    (None: none)."""
     view: bool | ViewOptions = ViewOptions(port=0) if setup in {"server", "browser"} else False
     browser = Browser(browser_cpu) if setup in {"browser", "elsewhere"} else None
     try:
@@ -179,7 +214,8 @@ def run(
             if load_fault is not None:  # said in the table; cleared, so that the steady state can be measured
                 arm.clear()
                 time.sleep(SETTLE_S)
-            end = time.monotonic() + seconds
+            begin, before = time.monotonic(), cpu_counters(arm_cpus)
+            end = begin + seconds
             path_fault = None
             while time.monotonic() < end:
                 try:
@@ -187,6 +223,8 @@ def run(
                 except MotionFault as exc:  # counted in the table; the cycles until then are measured
                     path_fault = str(exc)
                     break
+            after, elapsed = cpu_counters(arm_cpus), time.monotonic() - begin
+            rates = {name: (after[name] - before.get(name, 0)) / elapsed for name in after}
         finally:
             arm.close()
     finally:
@@ -194,7 +232,7 @@ def run(
             browser.close()
     recorded = load_log(log)
     jitter: np.ndarray = recorded["jitter_s"][recorded.active_rows()]
-    return jitter, None if load_fault is None else str(load_fault), path_fault
+    return jitter, rates, None if load_fault is None else str(load_fault), path_fault
 
 
 def main() -> int:
@@ -203,10 +241,19 @@ def main() -> int:
     parser.add_argument("--seconds", type=float, default=8.0)
     parser.add_argument("--rate", type=float, default=RATE_HZ, help="control rate, Hz (default: %(default)g)")
     parser.add_argument("--same-cpus", action="store_true", help="the browser shares every CPU with the arm")
+    parser.add_argument(
+        "--setups",
+        default=",".join(SETUPS),
+        help="which setups, comma-separated, in this order within each round (default: %(default)s)",
+    )
     parser.add_argument("--browser", action="store_true", help=argparse.SUPPRESS)  # the browser's own process
     args = parser.parse_args()
     if args.browser:
         return serve_browser()
+    args.setups = tuple(args.setups.split(","))
+    unknown = sorted(set(args.setups) - set(SETUPS))
+    if unknown or not args.setups:
+        parser.error(f"--setups: {', '.join(unknown) or 'none given'}; valid: {', '.join(SETUPS)}")
     cpus = sorted(os.sched_getaffinity(0))
     browser_cpu = None if args.same_cpus or len(cpus) < 2 else cpus[-1]
     if browser_cpu is not None:  # this thread, before any other starts: every thread and child inherits it
@@ -250,12 +297,19 @@ def measure(args: argparse.Namespace, browser_cpu: int | None, cpus: list[int]) 
     if rate != config.control.rate_hz:  # its highest rate leaves no room for the host's noise over minutes of runs
         print(f"running at {rate:g} Hz (rate check: {check.summary()})", file=sys.stderr)
         config = dataclasses.replace(config, control=dataclasses.replace(config.control, rate_hz=rate))
-    jitter: dict[str, list[np.ndarray]] = {setup: [] for setup in SETUPS}
-    faults: dict[str, tuple[list[str], list[str]]] = {setup: ([], []) for setup in SETUPS}
+    setups = args.setups
+    jitter: dict[str, list[np.ndarray]] = {setup: [] for setup in setups}
+    faults: dict[str, tuple[list[str], list[str]]] = {setup: ([], []) for setup in setups}
+    interrupted: dict[str, list[dict[str, float]]] = {setup: [] for setup in setups}
+    arm_cpus = cpus[:-1] if browser_cpu is not None else cpus
     for r in range(args.rounds):
-        for setup in SETUPS:
-            measured, *run_faults = run(config, setup, args.seconds, folder / f"{setup}-{r}.npz", browser_cpu)
+        for setup in setups:
+            log = folder / f"{setup}-{r}.npz"
+            measured, rates, *run_faults = run(
+                config, setup, args.seconds, log, browser_cpu=browser_cpu, arm_cpus=arm_cpus
+            )
             jitter[setup].append(measured)
+            interrupted[setup].append(rates)
             for when, fault, kept in zip(WHEN, run_faults, faults[setup], strict=True):
                 if fault is not None:
                     kept.append(fault)
@@ -268,8 +322,8 @@ def measure(args: argparse.Namespace, browser_cpu: int | None, cpus: list[int]) 
         "| setup | cycles | jitter p50 µs | p99 µs | max µs | p99 of the rounds µs | p99 / none | faults: load / path |"
     )
     print("|---|---:|---:|---:|---:|---|---:|---:|")
-    base = float(np.percentile(np.concatenate(jitter["none"]), 99))
-    for setup in SETUPS:
+    base = float(np.percentile(np.concatenate(jitter["none"]), 99)) if "none" in jitter else math.nan
+    for setup in setups:
         every = np.concatenate(jitter[setup])
         p50, p99, top = (float(np.percentile(every, q)) * 1e6 for q in (50, 99, 100))
         rounds = ", ".join(f"{np.percentile(j, 99) * 1e6:.1f}" for j in jitter[setup])
@@ -277,6 +331,29 @@ def measure(args: argparse.Namespace, browser_cpu: int | None, cpus: list[int]) 
         print(
             f"| {setup} | {len(every)} | {p50:.1f} | {p99:.1f} | {top:.0f} | {rounds} | {ratio:.2f} "
             f"| {len(at_load)} / {len(on_path)} |"
+        )
+    names = sorted({name for rates in interrupted[setups[0]] for name in rates})
+    print(f"\nWhat interrupted the arm's CPUs {arm_cpus} while the path played, per second (median of the rounds):\n")
+    print(f"| counter | {' | '.join(setups)} |")
+    print(f"|---|{'---:|' * len(setups)}")
+    for name in names:
+        medians = [float(np.median([rates.get(name, 0.0) for rates in interrupted[setup]])) for setup in setups]
+        if any(m >= 0.5 for m in medians):
+            print(f"| {name} | {' | '.join(f'{m:.0f}' for m in medians)} |")
+    if "browser" in jitter and "elsewhere" in jitter:
+        # Paired by round (run one after the other): the round's p99 with this arm's page watched over the one with
+        # another arm's page watched, by the same browser.
+        pairs = [
+            float(np.percentile(b, 99) / np.percentile(e, 99))
+            for b, e in zip(jitter["browser"], jitter["elsewhere"], strict=True)
+        ]
+        low, mid, high = np.percentile(pairs, [25, 50, 75])
+        pooled = np.percentile(np.concatenate(jitter["browser"]), 99) / np.percentile(
+            np.concatenate(jitter["elsewhere"]), 99
+        )
+        print(
+            f"\nbrowser / elsewhere, p99 per round paired: median {mid:.2f} (quartiles {low:.2f}-{high:.2f}; "
+            f"{sum(x > 1 for x in pairs)} of {len(pairs)} rounds above 1); pooled: {pooled:.2f}"
         )
     return 0
 
