@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from motion.protocol.reference import markdown_table
+from motion.protocol.reference import markdown_table, markdown_table_v3
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -77,6 +77,8 @@ def test_docs_protocol_table_matches_the_code() -> None:
     doc = (ROOT / "docs" / "protocol.md").read_text()
     generated = doc.split("<!-- BEGIN GENERATED TABLE -->\n", 1)[1].split("<!-- END GENERATED TABLE -->", 1)[0]
     assert generated == markdown_table(), "regenerate with: python -m motion.protocol"
+    v3 = doc.split("<!-- BEGIN GENERATED V3 TABLE -->\n", 1)[1].split("<!-- END GENERATED V3 TABLE -->", 1)[0]
+    assert v3 == markdown_table_v3(), "regenerate with: python -m motion.protocol v3"
 
 
 def _layer(module: str) -> int | None:

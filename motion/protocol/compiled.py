@@ -25,13 +25,15 @@ import dataclasses
 import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from enum import IntEnum
 from typing import Any, Final, TypeVar
 
-from motion.protocol.messages import Command, Message, MultiMotorTorque
+from motion.protocol.messages import Message, MultiMotorTorque
 from motion.protocol.table import (
     CAN_PAYLOAD_BYTES,
     COMMANDS,
     MULTI_TORQUE_LAYOUT,
+    CommandSpec,
     Direction,
     Field,
     Kind,
@@ -72,7 +74,7 @@ class CompiledLayout:
     """
 
     layout: Layout
-    command: Command | None
+    command: IntEnum | None
     size: int
     packer: struct.Struct
     encode: Encoder
@@ -80,7 +82,7 @@ class CompiledLayout:
 
 
 def _compilable(layout: Layout) -> bool:
-    return all(f.kind is not Kind.TEXT and (f.width, f.signed) in _STRUCT_CODES for f in layout.fields)
+    return all(f.kind not in (Kind.TEXT, Kind.FLOAT32) and (f.width, f.signed) in _STRUCT_CODES for f in layout.fields)
 
 
 def _full_range(f: Field) -> bool:
@@ -134,7 +136,7 @@ def _to_raw_source(f: Field, value: str, raw: str, env: dict[str, Any], lines: l
 
 
 def _encoder(
-    layout: Layout, command: Command | None, ordered: list[Field], packer: struct.Struct, *, lead: bool
+    layout: Layout, command: IntEnum | None, ordered: list[Field], packer: struct.Struct, *, lead: bool
 ) -> Encoder:
     env: dict[str, Any] = {"pack": packer.pack, "fround": float.__round__}
     lines = ["def encode(m):"]
@@ -181,7 +183,7 @@ def _constructor(cls: type[Message], names: list[str], env: dict[str, Any]) -> C
 
 def _decoder(
     layout: Layout,
-    command: Command | None,
+    command: IntEnum | None,
     ordered: list[Field],
     packer: struct.Struct,
     *,
@@ -241,7 +243,7 @@ def _decoder(
 
 
 def compile_layout(
-    layout: Layout, command: Command | None, transport: WireProtocol, direction: Direction
+    layout: Layout, command: IntEnum | None, transport: WireProtocol, direction: Direction
 ) -> CompiledLayout | None:
     """The fast path of one layout, or None when struct cannot express it (text, 7-byte fields)."""
     if not _compilable(layout):
@@ -288,12 +290,13 @@ def _dispatcher(by_command: dict[int, Encoder]) -> Encoder:
     return encode
 
 
-def build_codec(transport: WireProtocol, direction: Direction) -> Codec:
-    """Compile every layout of :data:`COMMANDS` for ``transport`` in ``direction``."""
+def build_codec(transport: WireProtocol, direction: Direction, commands: Mapping[Any, CommandSpec] = COMMANDS) -> Codec:
+    """Compile every layout of ``commands`` (a family's table; :data:`COMMANDS` is the older family's) for
+    ``transport`` in ``direction``."""
     single: dict[type[Message], Encoder] = {}
     shared: dict[type[Message], dict[int, Encoder]] = {}
     layouts: list[CompiledLayout | None] = [None] * 256
-    for spec in COMMANDS.values():
+    for spec in commands.values():
         layout = spec.layout(transport, direction)
         if layout is None:
             continue
@@ -308,7 +311,7 @@ def build_codec(transport: WireProtocol, direction: Direction) -> Codec:
     encoders: dict[type[Message], Encoder] = dict(single)
     for cls, by_command in shared.items():
         encoders[cls] = _dispatcher(by_command)
-    if transport is WireProtocol.CAN and direction is Direction.REQUEST:
+    if commands is COMMANDS and transport is WireProtocol.CAN and direction is Direction.REQUEST:
         multi = compile_layout(MULTI_TORQUE_LAYOUT, None, transport, direction)
         if multi is not None:
             encoders[MultiMotorTorque] = multi.encode

@@ -1,4 +1,5 @@
-"""The command × transport reference table of ``docs/protocol.md``, generated from the command table."""
+"""The command × transport reference tables of ``docs/protocol.md``, generated from the command tables (the older
+family's and the V3 family's)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ def _field(f: Field, transport: WireProtocol) -> str:
     # CAN offsets are DATA[i] of the 8-byte payload; RS485 offsets count from the frame's first byte.
     index = f.offset if transport is WireProtocol.CAN else f.offset + 5
     place = f"DATA[{index}]" if f.width == 1 else f"DATA[{index}..{index + f.width - 1}]"
-    if f.kind is Kind.TEXT:
+    if f.kind in (Kind.TEXT, Kind.FLOAT32):
         return f"{place} {f.name} {f.ctype}"
     scale = ""
     if f.kind is Kind.REAL and (f.num, f.den) != (1, 1):
@@ -58,4 +59,20 @@ def markdown_table() -> str:
         f"| ID 0x{CAN_MULTI_TORQUE_ID:03X} | Multi-motor torque (motors 1–4) | {multi} | "
         "each motor 1–4 replies on 0x140+id like 0xA1, in ascending id order | — | — |"
     )
+    return "\n".join(lines) + "\n"
+
+
+def markdown_table_v3() -> str:
+    """Markdown table of every command of the V3 family: request and reply layout (DATA[0..7], the same bytes on CAN
+    and in the RS485 frame's data field)."""
+    # Imported here: the V3 table imports the older family's modules, this module among their users.
+    from motion.protocol.v3.table import COMMANDS_V3, RS485_COMMANDS  # noqa: PLC0415
+
+    lines = ["| code | command | request | reply | RS485 |", "|---|---|---|---|---|"]
+    for code, spec in COMMANDS_V3.items():
+        request, reply = (_layout(spec.layout(WireProtocol.CAN, d), WireProtocol.CAN) for d in Direction)
+        reply = reply if reply != "—" else "no reply"
+        lines.append(
+            f"| 0x{code:02X} | {spec.title} | {request} | {reply} | {'yes' if code in RS485_COMMANDS else 'no'} |"
+        )
     return "\n".join(lines) + "\n"

@@ -13,6 +13,7 @@ series and firmware use some of them).
 from __future__ import annotations
 
 import math
+import struct
 from collections.abc import Mapping
 from dataclasses import dataclass, field, fields
 from enum import Enum, IntEnum, IntFlag, StrEnum
@@ -73,7 +74,12 @@ class Kind(Enum):
     ENUM = "enum"  #: an IntEnum member (only its members are valid)
     FLAGS = "flags"  #: an IntFlag (every bit pattern is kept)
     TEXT = "text"  #: NUL-padded ASCII of ``width`` bytes
+    FLOAT32 = "float32"  #: an IEEE-754 single, little-endian (V3 family's PID parameters); finite values only
 
+
+#: Largest finite IEEE-754 single.
+FLOAT32_MAX: Final = 3.4028234663852886e38
+_FLOAT32: Final = struct.Struct("<f")
 
 MOTOR_ID_MIN: Final = 1
 MOTOR_ID_MAX: Final = 32
@@ -112,7 +118,7 @@ class Field:
     enum: type[IntEnum] | type[IntFlag] | None = None
 
     def __post_init__(self) -> None:
-        if self.lo == 0 and self.hi == 0 and self.kind is not Kind.TEXT:
+        if self.lo == 0 and self.hi == 0 and self.kind not in (Kind.TEXT, Kind.FLOAT32):
             bits = 8 * self.width
             lo, hi = (-(1 << (bits - 1)), (1 << (bits - 1)) - 1) if self.signed else (0, (1 << bits) - 1)
             object.__setattr__(self, "lo", lo)
@@ -123,6 +129,8 @@ class Field:
         """C-like type name of the wire field (``int32``, ``uint16``, ``int56``, ``char[20]``)."""
         if self.kind is Kind.TEXT:
             return f"char[{self.width}]"
+        if self.kind is Kind.FLOAT32:
+            return "float32"
         return f"{'int' if self.signed else 'uint'}{8 * self.width}"
 
     def physical(self, raw: int) -> float:
@@ -136,6 +144,8 @@ class Field:
             return "{" + ", ".join(f"{m.name}={m.value}" for m in self.enum) + "}"
         if self.kind is Kind.TEXT:
             return f"ASCII text of at most {self.width} bytes"
+        if self.kind is Kind.FLOAT32:
+            return f"a finite float32 (|x| <= {FLOAT32_MAX:.7g}){' ' + self.unit if self.unit else ''}"
         if self.kind is Kind.REAL:
             return f"{self.physical(self.lo):g}..{self.physical(self.hi):g}{unit} (raw {self.lo}..{self.hi})"
         return f"{self.lo}..{self.hi}{unit}"
@@ -173,9 +183,10 @@ class Layout:
 
 @dataclass(frozen=True, slots=True)
 class CommandSpec:
-    """One command of the documents: its name and its layouts per transport and direction."""
+    """One command of the documents: its name and its layouts per transport and direction (``code`` is a member of
+    the family's command enum: :class:`Command`, or the V3 family's ``CommandV3``)."""
 
-    code: Command
+    code: IntEnum
     title: str
     request: Mapping[WireProtocol, Layout]
     reply: Mapping[WireProtocol, Layout]
@@ -496,7 +507,7 @@ _SPECS: tuple[CommandSpec, ...] = (
 )
 
 #: Every command of both documents, by command byte.
-COMMANDS: Final[Mapping[Command, CommandSpec]] = {spec.code: spec for spec in _SPECS}
+COMMANDS: Final[Mapping[Command, CommandSpec]] = {Command(spec.code): spec for spec in _SPECS}
 
 #: CAN arbitration id of single-motor frames is ``CAN_ID_BASE + motor id`` (requests and replies).
 CAN_ID_BASE: Final = 0x140
@@ -622,6 +633,14 @@ def _text_bytes(f: Field, value: object) -> bytes:
     return value.encode("ascii").ljust(f.width, b"\0")
 
 
+def _float32_bytes(f: Field, value: object) -> bytes:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise EncodeError(f.name, f.valid_range(), value, "a number is required")
+    if not math.isfinite(value) or abs(value) > FLOAT32_MAX:
+        raise EncodeError(f.name, f.valid_range(), value)
+    return _FLOAT32.pack(value)
+
+
 def pack_fields(layout: Layout, message: Message, data: bytearray) -> None:
     """Write the fields of ``message`` into ``data`` (CAN payload or RS485 data section).
 
@@ -636,11 +655,13 @@ def pack_fields(layout: Layout, message: Message, data: bytearray) -> None:
         end = f.offset + f.width
         if f.kind is Kind.TEXT:
             data[f.offset : end] = _text_bytes(f, value)
+        elif f.kind is Kind.FLOAT32:
+            data[f.offset : end] = _float32_bytes(f, value)
         else:
             data[f.offset : end] = _to_raw(f, value).to_bytes(f.width, "little", signed=f.signed)
 
 
-def unpack_fields(layout: Layout, data: bytes, command: Command | None, *, first: int, check_reserved: bool) -> Message:
+def unpack_fields(layout: Layout, data: bytes, command: IntEnum | None, *, first: int, check_reserved: bool) -> Message:
     """Build the message of ``layout`` from ``data`` (CAN payload or RS485 data section).
 
     Args:
@@ -661,6 +682,12 @@ def unpack_fields(layout: Layout, data: bytes, command: Command | None, *, first
             if not text.isascii():
                 raise DecodeError(f"{f.name}: text is not ASCII", data)
             values[f.name] = text.decode("ascii")
+            continue
+        if f.kind is Kind.FLOAT32:
+            (number,) = _FLOAT32.unpack_from(chunk)
+            if not math.isfinite(number):
+                raise DecodeError(f"{f.name}: {number} is not {f.valid_range()}", data)
+            values[f.name] = number
             continue
         raw = int.from_bytes(chunk, "little", signed=f.signed)
         if not f.lo <= raw <= f.hi:
@@ -689,4 +716,6 @@ def raw_values(message: Message, transport: WireProtocol, direction: Direction) 
         EncodeError: as for encoding.
     """
     layout = layout_for(message, transport, direction)
-    return {f.name: _to_raw(f, getattr(message, f.name)) for f in layout.fields if f.kind is not Kind.TEXT}
+    return {
+        f.name: _to_raw(f, getattr(message, f.name)) for f in layout.fields if f.kind not in (Kind.TEXT, Kind.FLOAT32)
+    }
