@@ -41,7 +41,7 @@ from motion.emulator.framelog import FrameLog
 from motion.emulator.model import DriveModel
 from motion.emulator.timing import DEFAULT_LATENCY_S, TimingModel
 from motion.errors import TransportError
-from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN
+from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, ProtocolFamily
 
 EXIT_OK = 0
 EXIT_USAGE = 2
@@ -215,6 +215,20 @@ def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = Fal
         "--seed", type=int, help=f"seed of the drop faults' random draws (with --ids; default {_DEFAULT_SEED})"
     )
     parser.add_argument(
+        "--protocol",
+        choices=[f.value for f in ProtocolFamily],
+        default=ProtocolFamily.V2.value,
+        help="the drives' protocol generation: v2 (the CAN v2.3 / RS485 v1.62 documents) or v3 (driver V3, "
+        "V4.2 document: replies on 0x240+id; CAN links and --ids only so far) (default %(default)s)",
+    )
+    parser.add_argument(
+        "--brakes",
+        type=_ids_arg,
+        default=(),
+        metavar="IDS",
+        help="with --protocol v3: the drives whose joint has a holding brake (locked at power-on; 0x77 releases)",
+    )
+    parser.add_argument(
         "--log",
         metavar="FILE",
         help="write every frame in and out to FILE, one line each, timed by the emulator's clock (that of --fault)",
@@ -227,13 +241,18 @@ def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -
     Raises:
         ValueError: conflicting options, or drives or faults the emulator rejects (ConfigError is one).
     """
+    family = ProtocolFamily(args.protocol)
+    if family is ProtocolFamily.V3 and (args.rs485_link or getattr(args, "config", None) is not None):
+        raise ValueError("--protocol v3 is emulated with --ids on CAN links (--slcan-link, --virtual-channel) so far")
+    if args.brakes and family is not ProtocolFamily.V3:
+        raise ValueError("--brakes needs --protocol v3 (the older drives have no brake commands)")
     if getattr(args, "config", None) is None:
         model = DriveModel(
             encoder_bits=_DEFAULT_ENCODER_BITS if args.encoder_bits is None else args.encoder_bits,
             gear_ratio=_DEFAULT_GEAR_RATIO if args.gear_ratio is None else args.gear_ratio,
         )
         seed = _DEFAULT_SEED if args.seed is None else args.seed
-        return Emulator(args.ids, model=model, faults=args.fault, seed=seed)
+        return Emulator(args.ids, model=model, faults=args.fault, seed=seed, family=family, brakes=args.brakes)
     given = [option for name, option in _DRIVE_OPTIONS.items() if getattr(args, name) is not None]
     if given:
         raise ValueError(f"{', '.join(given)} apply to --ids only: with --config each joint's drive is configured")

@@ -24,12 +24,14 @@ from typing import Final, Generic, TypeVar
 import numpy as np
 
 from motion.emulator.drive import EmulatedDrive
-from motion.emulator.faults import Corruption, Fault, InjectedFault, corrupt_can, corrupt_rs485
+from motion.emulator.drive_v3 import EmulatedDriveV3
+from motion.emulator.faults import Corruption, Fault, InjectedFault, corrupt_can, corrupt_rs485, corrupt_rs485_v3
 from motion.emulator.model import DriveModel, LoadModel
 from motion.emulator.plant import IndependentLoads, Plant
 from motion.errors import ConfigError
 from motion.protocol import CanFrame, Message, MultiMotorTorque, Rs485Frame, TorqueControl, can_frame, rs485_frame
-from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, Direction, WireProtocol, check_motor_id
+from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, Direction, ProtocolFamily, WireProtocol, check_motor_id
+from motion.protocol.v3 import frames as frames_v3
 
 logger = logging.getLogger("motion.emulator")
 
@@ -98,6 +100,9 @@ class Emulator:
         seed: seed of the random draws of ``drop`` faults.
         stops: hard stops per motor id: the lowest and highest position of its joint in the plant's coordinate
             (motor angle / gear ratio, rad; ``-inf`` / ``inf`` where there is none). The joint cannot pass them.
+        family: the protocol generation the drives speak: ``v2`` (:class:`EmulatedDrive`) or ``v3``
+            (:class:`~motion.emulator.drive_v3.EmulatedDriveV3`, with its brakes and communication-loss protection).
+        brakes: V3 family: the ids of the drives whose joint has a holding brake.
 
     Raises:
         ValueError: an id outside 1..32 or given twice, a fault on a drive that is not emulated, a bad step, or a
@@ -115,6 +120,8 @@ class Emulator:
         step_s: float = DEFAULT_STEP_S,
         seed: int = 0,
         stops: Mapping[int, tuple[float, float]] | None = None,
+        family: ProtocolFamily = ProtocolFamily.V2,
+        brakes: Iterable[int] = (),
     ) -> None:
         id_list = [check_motor_id(i) for i in ids]
         if len(set(id_list)) != len(id_list) or not id_list:
@@ -128,10 +135,18 @@ class Emulator:
         self.plant: Plant = plant or IndependentLoads(loads, [m.rotor_inertia_kgm2 * m.gear_ratio**2 for m in models])
         if self.plant.size != len(self.ids):
             raise ValueError(f"plant has {self.plant.size} joints for {len(self.ids)} drives")
-        self.drives: dict[int, EmulatedDrive] = {
-            i: EmulatedDrive(i, m, m.rotor_inertia_kgm2 + ld.inertia_kgm2 / m.gear_ratio**2)
-            for i, m, ld in zip(self.ids, models, loads, strict=True)
-        }
+        self.family = ProtocolFamily(family)
+        braked = set(brakes)
+        if braked - set(self.ids) or (braked and self.family is not ProtocolFamily.V3):
+            raise ValueError(f"brakes {sorted(braked)}: expected ids of emulated V3 drives {list(self.ids)}")
+        self.drives: dict[int, EmulatedDrive] = {}
+        for i, m, ld in zip(self.ids, models, loads, strict=True):
+            tuned = m.rotor_inertia_kgm2 + ld.inertia_kgm2 / m.gear_ratio**2
+            if self.family is ProtocolFamily.V3:
+                self.drives[i] = EmulatedDriveV3(i, m, tuned, brake=i in braked)
+            else:
+                self.drives[i] = EmulatedDrive(i, m, tuned)
+        self._v3 = [(n, d) for n, d in enumerate(self.drives[i] for i in self.ids) if isinstance(d, EmulatedDriveV3)]
         self._order = [self.drives[i] for i in self.ids]
         self._index = {i: n for n, i in enumerate(self.ids)}
         self._torques = np.zeros(len(self.ids))
@@ -225,14 +240,31 @@ class Emulator:
         for n, drive in enumerate(self._order):
             torques[n] = drive.control(dt, float(positions[n]), float(velocities[n]))
         torques += self.external_torque_nm
+        held = self._held_by_brakes() if self._v3 else {}
         self._positions, self._velocities = self.plant.step(dt, torques)
-        if self._blocked:
-            for n, position in self._blocked.items():
+        if self._blocked or held:
+            for n, position in (self._blocked | held).items():
                 self.plant.hold(n, position)
             self._positions, self._velocities = self.plant.state()
         if self._stops:
             self._at_stops()
         self._steps += 1
+
+    def _held_by_brakes(self) -> dict[int, float]:
+        """V3 drives: trip the communication-loss protection where it is due; the joints whose brake is locked, at
+        their position (emulator index -> rad)."""
+        now = self.time_s
+        held: dict[int, float] = {}
+        for n, drive in self._v3:
+            if drive.check_link(now):
+                logger.info(
+                    "motor %d: no frame for %d ms: output cut, brake locked",
+                    drive.motor_id,
+                    drive.communication_timeout_ms,
+                )
+            if drive.held:
+                held[n] = float(self._positions[n])
+        return held
 
     def _at_stops(self) -> None:
         """A joint that passed one of its hard stops is put back on it, at rest (the stop takes the momentum; the
@@ -332,6 +364,8 @@ class Emulator:
         Raises:
             DecodeError: the frame breaks the CAN protocol (id, length, command, field, reserved byte).
         """
+        if self.family is ProtocolFamily.V3:
+            return self._handle_can_v3(frame)
         request = can_frame.decode_request(frame.arbitration_id, frame.data)
         message = request.message
         if isinstance(message, MultiMotorTorque):
@@ -342,6 +376,23 @@ class Emulator:
             return self._dispatch(None, message, targets, WireProtocol.CAN, _encode_can)
         assert request.motor_id is not None  # every other CAN request addresses one drive
         return self._dispatch(request.motor_id, message, [(request.motor_id, message)], WireProtocol.CAN, _encode_can)
+
+    def _handle_can_v3(self, frame: CanFrame) -> Exchange[CanFrame]:
+        request = frames_v3.decode_can_request(frame.arbitration_id, frame.data)
+        # 0x280 and 0x300 reach every drive; each answers on its own id (0x79 on 0x300).
+        ids = self.ids if request.motor_id is None else (request.motor_id,)
+        targets = [(i, request.message) for i in ids]
+        return self._dispatch(request.motor_id, request.message, targets, WireProtocol.CAN, _encode_can_v3)
+
+    def handle_rs485_v3(self, raw: bytes) -> Exchange[bytes]:
+        """Execute a V3 RS485 frame (``3E id 08 data crc16``; id 0xCD reaches every drive).
+
+        Raises:
+            DecodeError: the frame breaks the V3 RS485 protocol (length, head, CRC, id, command, field).
+        """
+        motor_id, message = frames_v3.decode_rs485_request(raw)
+        ids = self.ids if motor_id is None else (motor_id,)
+        return self._dispatch(motor_id, message, [(i, message) for i in ids], WireProtocol.RS485, _encode_rs485_v3)
 
     def handle_rs485(self, frame: Rs485Frame) -> Exchange[bytes]:
         """Execute an RS485 request frame (checksums already verified by the parser).
@@ -375,7 +426,13 @@ class Emulator:
                     continue
                 n = self._index[target_id]
                 drive.observe(float(self._positions[n]), float(self._velocities[n]))
-                reply = drive.handle(message, transport)
+                if isinstance(drive, EmulatedDriveV3):
+                    answer = drive.handle_v3(message, self.time_s)
+                    if answer is None:  # 0x76, 0xB4, 0xB6 have no reply
+                        continue
+                    reply = answer
+                else:
+                    reply = drive.handle(message, transport)
                 replies.append(Outgoing(target_id, encode(reply, target_id, corruption), reply, delay_s, corruption))
         return Exchange(motor_id, request, tuple(replies), tuple(notes))
 
@@ -390,6 +447,12 @@ class Emulator:
             EncodeError: the request cannot be encoded.
             DecodeError: a reply was corrupted by a fault.
         """
+        if self.family is ProtocolFamily.V3:
+            if transport is WireProtocol.CAN:
+                sent = self.handle_can(frames_v3.encode_can_request(message, motor_id))
+                return [_v3_id(frames_v3.decode_can_reply(o.wire.arbitration_id, o.wire.data), o) for o in sent.replies]
+            done = self.handle_rs485_v3(frames_v3.encode_rs485_request(message, motor_id))
+            return [_v3_id(frames_v3.decode_rs485_reply(o.wire), o) for o in done.replies]
         if transport is WireProtocol.CAN:
             exchange_can = self.handle_can(can_frame.encode_request(message, motor_id))
             return [can_frame.decode_reply(o.wire.arbitration_id, o.wire.data) for o in exchange_can.replies]
@@ -416,3 +479,18 @@ def _encode_can(reply: Message, motor_id: int, corruption: Corruption | None) ->
 def _encode_rs485(reply: Message, motor_id: int, corruption: Corruption | None) -> bytes:
     raw = rs485_frame.encode_reply(reply, motor_id)
     return raw if corruption is None else corrupt_rs485(raw, corruption)
+
+
+def _encode_can_v3(reply: Message, motor_id: int, corruption: Corruption | None) -> CanFrame:
+    frame = frames_v3.encode_can_reply(reply, motor_id)
+    return frame if corruption is None else corrupt_can(frame, corruption, motor_id)
+
+
+def _encode_rs485_v3(reply: Message, motor_id: int, corruption: Corruption | None) -> bytes:
+    raw = frames_v3.encode_rs485_reply(reply, motor_id)
+    return raw if corruption is None else corrupt_rs485_v3(raw, corruption)
+
+
+def _v3_id(decoded: tuple[int | None, Message], sent: Outgoing[W]) -> tuple[int, Message]:
+    """A decoded V3 reply with the id of the drive that sent it (0x79 replies name no drive in their id)."""
+    return (sent.motor_id if decoded[0] is None else decoded[0]), decoded[1]

@@ -109,6 +109,7 @@ class DriveLoop(Enum):
     TORQUE = "torque"  #: 0xA1 and the 0x280 multi-motor frame: torque current
     SPEED = "speed"  #: 0xA2
     POSITION = "position"  #: 0xA3..0xA8
+    MOTION = "motion"  #: V3 family's motion frame (0x400 + id): the drive's own PD on position and speed
 
 
 @dataclass(frozen=True, slots=True)
@@ -193,15 +194,20 @@ class EmulatedDrive:
         self.errors = ErrorFlags.NONE
         self._turn_off()
 
-    def _apply_gains(self) -> None:
+    def _gain_units(self) -> tuple[float, float, float, float, float]:
+        """The loop gains in the documents' units: angle kp, angle ki, speed kp, speed ki, current kp."""
         g = self.pid
-        self._kp_angle = g.angle_kp * ANGLE_KP_PER_S
-        self._ki_angle = g.angle_ki * ANGLE_KI_PER_S2
+        return g.angle_kp, g.angle_ki, g.speed_kp, g.speed_ki, g.iq_kp
+
+    def _apply_gains(self) -> None:
+        angle_kp, angle_ki, speed_kp, speed_ki, iq_kp = self._gain_units()
+        self._kp_angle = angle_kp * ANGLE_KP_PER_S
+        self._ki_angle = angle_ki * ANGLE_KI_PER_S2
         # Speed loop: a gain unit is a bandwidth at the tuned inertia; convert N·m per rad/s to A per dps.
-        speed_nm_s_per_rad = self._tuned_inertia * g.speed_kp * SPEED_KP_RAD_S
+        speed_nm_s_per_rad = self._tuned_inertia * speed_kp * SPEED_KP_RAD_S
         self._kp_speed = speed_nm_s_per_rad / self.model.torque_constant_nm_per_a * _RAD_PER_DEG
-        self._ki_speed = self._kp_speed * g.speed_ki * SPEED_KI_RAD_S
-        self._iq_bandwidth = g.iq_kp * IQ_KP_RAD_S
+        self._ki_speed = self._kp_speed * speed_ki * SPEED_KI_RAD_S
+        self._iq_bandwidth = iq_kp * IQ_KP_RAD_S
         self._iq_dt_s = math.nan
 
     def _turn_off(self) -> None:

@@ -42,6 +42,7 @@ from enum import Enum
 from motion.protocol import CanFrame
 from motion.protocol.rs485_frame import HEADER_BYTES, checksum
 from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN
+from motion.protocol.v3.frames import crc16
 
 
 class InjectedFault(Enum):
@@ -216,4 +217,17 @@ def corrupt_rs485(frame: bytes, how: Corruption) -> bytes:
         # The first data byte when there is one (data checksum fails), else the header checksum itself.
         index = HEADER_BYTES if len(out) > HEADER_BYTES else HEADER_BYTES - 1
         out[index] ^= 0xFF
+    return bytes(out)
+
+
+def corrupt_rs485_v3(frame: bytes, how: Corruption) -> bytes:
+    """A damaged copy of a V3 RS485 reply frame (``3E id 08 data crc16``) that a host parser must reject."""
+    out = bytearray(frame)
+    if how is Corruption.ID:
+        out[1] = 0  # no drive has id 0; the CRC is made to match, so only the id gives it away
+        out[-2:] = crc16(out[:-2]).to_bytes(2, "little")
+    elif how is Corruption.LENGTH:
+        del out[-1]
+    else:
+        out[3] ^= 0xFF  # the command byte: the CRC fails
     return bytes(out)

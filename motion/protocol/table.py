@@ -59,6 +59,13 @@ class WireProtocol(StrEnum):
     RS485 = "rs485"  #: RS485 v1.62: 0x3E-framed, checksummed
 
 
+class ProtocolFamily(StrEnum):
+    """The drives' protocol generation (the configuration's ``bus.protocol`` names one, or ``auto``)."""
+
+    V2 = "v2"  #: the two documents of ../shared/protocol (CAN v2.3, RS485 v1.62): replies on 0x140 + id
+    V3 = "v3"  #: driver V3 ("Servo Motor Control Protocol" V4.2): replies on 0x240 + id (motion.protocol.v3)
+
+
 class Direction(Enum):
     """Which way a frame travels."""
 

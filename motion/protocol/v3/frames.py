@@ -114,8 +114,8 @@ def decode_payload(data: bytes, direction: Direction) -> Message:
 
 # ------------------------------------------------------------------------------------------------ motion frame
 
-#: (field, lowest, highest, bits) of the motion frame, in the document's ranges (rad, rad/s, -, -, N·m).
-_MOTION_RANGES: Final = {
+#: Per field of the motion frame: (lowest, highest, bits), in the document's ranges (rad, rad/s, -, -, N·m).
+MOTION_RANGES: Final = {
     "position_rad": (-12.5, 12.5, 16),
     "velocity_rad_s": (-45.0, 45.0, 12),
     "kp": (0.0, 500.0, 12),
@@ -125,14 +125,14 @@ _MOTION_RANGES: Final = {
 
 
 def _quantise(name: str, value: object) -> int:
-    lo, hi, bits = _MOTION_RANGES[name]
+    lo, hi, bits = MOTION_RANGES[name]
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
         raise EncodeError(name, f"{lo:g}..{hi:g}", value)
     return round((value - lo) / (hi - lo) * ((1 << bits) - 1))
 
 
 def _physical(name: str, raw: int) -> float:
-    lo, hi, bits = _MOTION_RANGES[name]
+    lo, hi, bits = MOTION_RANGES[name]
     return raw * (hi - lo) / ((1 << bits) - 1) + lo
 
 
@@ -143,7 +143,7 @@ def encode_motion(command: MotionCommand) -> bytes:
     Raises:
         EncodeError: a value outside its range (p ±12.5 rad, v ±45 rad/s, kp 0..500, kd 0..5, t ±24 N·m).
     """
-    p, v, kp, kd, t = (_quantise(name, getattr(command, name)) for name in _MOTION_RANGES)
+    p, v, kp, kd, t = (_quantise(name, getattr(command, name)) for name in MOTION_RANGES)
     word = (p << 48) | (v << 36) | (kp << 24) | (kd << 12) | t
     return word.to_bytes(8, "big")
 
@@ -158,7 +158,7 @@ def decode_motion(data: bytes) -> MotionCommand:
         raise DecodeError(f"a motion frame is {CAN_PAYLOAD_BYTES} bytes, got {len(data)}", bytes(data))
     word = int.from_bytes(data, "big")
     raws = (word >> 48, (word >> 36) & 0xFFF, (word >> 24) & 0xFFF, (word >> 12) & 0xFFF, word & 0xFFF)
-    return MotionCommand(*(_physical(name, raw) for name, raw in zip(_MOTION_RANGES, raws, strict=True)))
+    return MotionCommand(*(_physical(name, raw) for name, raw in zip(MOTION_RANGES, raws, strict=True)))
 
 
 def encode_motion_state(state: MotionState) -> bytes:

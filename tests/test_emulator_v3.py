@@ -1,0 +1,256 @@
+"""Emulated V3-family drives (issue 17): every command answered through the V3 codec on CAN and RS485, output-shaft
+units through the drive's gear, the communication-loss protection (0xB3) that cuts the output, holding brakes, the
+0x280 broadcast and the motion frame. Simulation time, in process."""
+
+from __future__ import annotations
+
+import math
+import signal
+from pathlib import Path
+
+import pytest
+
+from motion.emulator import DriveModel, Emulator, Fault, InjectedFault, LoadModel
+from motion.protocol import MultiTurnAngle, MultiTurnPositionSpeed, SpeedControl, TorqueControl
+from motion.protocol.messages import Message
+from motion.protocol.table import Direction, ProtocolFamily, WireProtocol
+from motion.protocol.v3 import COMMANDS_V3, frames
+from motion.protocol.v3.messages import (
+    AccelerationIndex,
+    AccelerationRead,
+    ActiveReply,
+    ActiveReplyCommand,
+    BareV3,
+    BaudRate,
+    BrakeCommand,
+    CanIdCommand,
+    CanIdReply,
+    CommandV3,
+    CommunicationTimeout,
+    FunctionControl,
+    FunctionIndex,
+    MotionCommand,
+    MotionState,
+    MotorStateV3,
+    MultiTurnEncoder,
+    PidIndex,
+    PidParameter,
+    PidRead,
+    PlanningAcceleration,
+    ReadWrite,
+    Status1V3,
+    SystemErrorFlags,
+)
+from motion.transport.can_endpoint import CanEndpoint
+from tests.test_emulator_bus import start_cli
+
+C = CommandV3
+GEAR = 6.0
+
+
+def _emulator(**kwargs: object) -> Emulator:
+    model = DriveModel(gear_ratio=GEAR, encoder_bits=14)
+    return Emulator([1, 2], model=model, load=LoadModel(), family=ProtocolFamily.V3, **kwargs)  # type: ignore[arg-type]
+
+
+def _one(emulator: Emulator, message: Message, transport: WireProtocol = WireProtocol.CAN) -> Message:
+    replies = emulator.request(1, message, transport)
+    assert len(replies) == 1 and replies[0][0] == 1
+    return replies[0][1]
+
+
+def _requests() -> list[Message]:
+    """One request of every command of the V4.2 document (harmless ones: nothing moves far)."""
+    out: list[Message] = []
+    for code, spec in COMMANDS_V3.items():
+        layout = spec.layout(WireProtocol.CAN, Direction.REQUEST)
+        assert layout is not None
+        samples: dict[type[Message], Message] = {
+            BareV3: BareV3(code),
+            PidRead: PidRead(PidIndex.SPEED_KP),
+            PidParameter: PidParameter(code, PidIndex.SPEED_KI, 2.5),
+            AccelerationRead: AccelerationRead(AccelerationIndex.POSITION_ACCELERATION),
+            PlanningAcceleration: PlanningAcceleration(code, AccelerationIndex.SPEED_ACCELERATION, 1000),
+            MultiTurnEncoder: MultiTurnEncoder(code, 0),
+            FunctionControl: FunctionControl(FunctionIndex.ERROR_BROADCAST, 1),
+            CanIdCommand: CanIdCommand(ReadWrite.READ, 0),
+            CommunicationTimeout: CommunicationTimeout(0),
+            BaudRate: BaudRate(1),
+            ActiveReply: ActiveReply(ActiveReplyCommand.READ_STATUS_2, 0, 10.0),
+            TorqueControl: TorqueControl(0.0),
+            SpeedControl: SpeedControl(0.0),
+            MultiTurnPositionSpeed: MultiTurnPositionSpeed(0.0, 100.0),
+        }
+        if layout.cls in samples:
+            out.append(samples[layout.cls])
+    return out
+
+
+@pytest.mark.parametrize("transport", [WireProtocol.CAN, WireProtocol.RS485])
+def test_every_command_gets_the_reply_the_table_gives(transport: WireProtocol) -> None:
+    emulator = _emulator()
+    sent = 0
+    for request in _requests():
+        code = CommandV3(request.command)  # type: ignore[attr-defined]
+        if transport is WireProtocol.RS485 and code is C.ACTIVE_REPLY:
+            continue
+        replies = emulator.request(1, request, transport)
+        layout = COMMANDS_V3[code].layout(WireProtocol.CAN, Direction.REPLY)
+        if layout is None:
+            assert replies == [], code
+        else:
+            every = code is C.CAN_ID  # 0x79 goes to every drive on the bus (0x300 / 0xCD), and each answers
+            assert [type(m) for _, m in replies] == [layout.cls] * (len(emulator.ids) if every else 1), code
+            if layout.echo:
+                assert replies[0][1] == request
+        sent += 1
+    assert sent >= 30
+
+
+def test_positions_and_speeds_are_the_output_shafts() -> None:
+    emulator = _emulator()
+    _one(emulator, MultiTurnPositionSpeed(90.0, 180.0))
+    emulator.advance(2.0)
+    angle = _one(emulator, BareV3(C.READ_MULTI_TURN_ANGLE))
+    assert isinstance(angle, MultiTurnAngle) and angle.angle_deg == pytest.approx(90.0, abs=0.2)
+    state = _one(emulator, BareV3(C.READ_STATUS_2))
+    assert isinstance(state, MotorStateV3) and state.angle_deg in (89, 90)
+    encoder = _one(emulator, BareV3(C.READ_MULTI_TURN_ENCODER))
+    assert isinstance(encoder, MultiTurnEncoder)
+    assert encoder.encoder == pytest.approx(90.0 * GEAR / 360.0 * (1 << 14), rel=0.01)  # motor encoder counts
+    _one(emulator, SpeedControl(30.0))
+    emulator.advance(1.0)
+    state = _one(emulator, BareV3(C.READ_STATUS_2))
+    assert isinstance(state, MotorStateV3) and state.speed_dps == pytest.approx(30, abs=2)
+
+
+def test_the_communication_loss_protection_cuts_the_output_and_locks_the_brake() -> None:
+    emulator = _emulator(brakes=[1])
+    assert _one(emulator, BareV3(C.RELEASE_BRAKE)) == BareV3(C.RELEASE_BRAKE)
+    assert _one(emulator, CommunicationTimeout(50)) == CommunicationTimeout(50)
+    _one(emulator, SpeedControl(60.0))
+    for _ in range(30):  # frames every 20 ms: within the protection time
+        emulator.advance(0.02)
+        _one(emulator, BareV3(C.READ_STATUS_2))
+    drive = emulator.drives[1]
+    assert drive.link_losses == 0  # type: ignore[attr-defined]
+    assert abs(drive.speed_dps / GEAR - 60.0) < 3.0
+    emulator.advance(0.049)  # the host goes quiet
+    assert drive.link_losses == 0  # type: ignore[attr-defined]
+    emulator.advance(0.1)
+    assert drive.link_losses == 1  # type: ignore[attr-defined]
+    status = _one(emulator, BareV3(C.READ_STATUS_1))
+    assert isinstance(status, Status1V3) and status.brake is BrakeCommand.LOCK
+    emulator.advance(0.5)
+    assert abs(drive.speed_dps) < 1e-6  # held by the brake
+    # without the protection (0 ms) a quiet host leaves the drive running
+    other = _emulator()
+    _one(other, SpeedControl(60.0))
+    other.advance(1.0)
+    assert abs(other.drives[1].speed_dps / GEAR - 60.0) < 3.0
+
+
+def test_a_locked_brake_holds_the_joint_and_refuses_motion() -> None:
+    load = LoadModel(load_torque_nm=0.2)  # a constant pull (above the friction) that would turn the joint
+    emulator = Emulator([1], model=DriveModel(gear_ratio=GEAR), load=load, family=ProtocolFamily.V3, brakes=[1])
+    start = _one(emulator, BareV3(C.READ_MULTI_TURN_ANGLE))
+    _one(emulator, MultiTurnPositionSpeed(45.0, 100.0))
+    emulator.advance(1.0)
+    assert _one(emulator, BareV3(C.READ_MULTI_TURN_ANGLE)) == start  # locked: held, the command did nothing
+    _one(emulator, BareV3(C.RELEASE_BRAKE))
+    emulator.advance(0.2)
+    moved = _one(emulator, BareV3(C.READ_MULTI_TURN_ANGLE))
+    assert isinstance(moved, MultiTurnAngle) and isinstance(start, MultiTurnAngle)
+    assert abs(moved.angle_deg - start.angle_deg) > 1.0  # released and unpowered: the load turns it
+    goal = round(moved.angle_deg) + 20.0
+    _one(emulator, MultiTurnPositionSpeed(goal, 100.0))
+    emulator.advance(1.5)
+    there = _one(emulator, BareV3(C.READ_MULTI_TURN_ANGLE))
+    assert isinstance(there, MultiTurnAngle) and there.angle_deg == pytest.approx(goal, abs=0.5)
+    _one(emulator, BareV3(C.LOCK_BRAKE))
+    emulator.advance(0.5)
+    assert _one(emulator, BareV3(C.READ_MULTI_TURN_ANGLE)) == there
+
+
+def test_a_broadcast_reaches_every_drive_and_each_answers_on_its_own_id() -> None:
+    emulator = _emulator()
+    exchange = emulator.handle_can(frames.encode_can_broadcast(BareV3(C.READ_STATUS_2)))
+    assert [o.wire.arbitration_id for o in exchange.replies] == [0x241, 0x242]
+    ids = emulator.handle_can(frames.encode_can_broadcast(CanIdCommand(ReadWrite.READ, 0)))
+    assert [(o.wire.arbitration_id, o.message) for o in ids.replies] == [
+        (0x300, CanIdReply(ReadWrite.READ, 0x241)),
+        (0x300, CanIdReply(ReadWrite.READ, 0x242)),
+    ]
+
+
+def test_parameters_live_in_ram_and_rom_and_reset_restores_rom() -> None:
+    emulator = _emulator()
+    _one(emulator, PidParameter(C.WRITE_PID_RAM, PidIndex.SPEED_KP, 7.5))
+    _one(emulator, PidParameter(C.WRITE_PID_ROM, PidIndex.POSITION_KP, 3.25))
+    assert _one(emulator, PidRead(PidIndex.SPEED_KP)) == PidParameter(C.READ_PID, PidIndex.SPEED_KP, 7.5)
+    _one(emulator, PlanningAcceleration(C.WRITE_ACCELERATION, AccelerationIndex.POSITION_ACCELERATION, 0))
+    assert emulator.drives[1].acceleration_dps2 == 0  # 0: the position loop tracks the target directly
+    assert emulator.request(1, BareV3(C.RESET)) == []  # no reply
+    assert _one(emulator, PidRead(PidIndex.SPEED_KP)) != PidParameter(C.READ_PID, PidIndex.SPEED_KP, 7.5)
+    assert _one(emulator, PidRead(PidIndex.POSITION_KP)) == PidParameter(C.READ_PID, PidIndex.POSITION_KP, 3.25)
+
+
+def test_the_motion_frame_runs_the_drives_own_pd() -> None:
+    emulator = _emulator()
+    target = math.radians(30.0)
+    reply = emulator.request(1, MotionCommand(target, 0.0, 20.0, 1.0, 0.0))
+    assert isinstance(reply[0][1], MotionState) and reply[0][1].motor_id == 1
+    for _ in range(100):
+        emulator.advance(0.01)
+        state = emulator.request(1, MotionCommand(target, 0.0, 20.0, 1.0, 0.0))[0][1]
+    assert isinstance(state, MotionState) and state.position_rad == pytest.approx(target, abs=0.02)
+
+
+def test_level_two_errors_show_in_the_error_word_and_clear_by_themselves() -> None:
+    fault = Fault(InjectedFault.UNDER_VOLTAGE, 1, start_s=0.1, end_s=0.3)
+    emulator = _emulator(faults=[fault])
+    emulator.advance(0.2)
+    status = _one(emulator, BareV3(C.READ_STATUS_1))
+    assert isinstance(status, Status1V3) and status.errors == SystemErrorFlags.LOW_VOLTAGE
+    emulator.advance(0.2)
+    status = _one(emulator, BareV3(C.READ_STATUS_1))
+    assert isinstance(status, Status1V3) and status.errors == SystemErrorFlags.NONE
+
+
+def test_emulate_serves_v3_drives_on_an_slcan_link_in_its_own_process(tmp_path: Path) -> None:
+    link = tmp_path / "slcan"
+    process = start_cli("--ids", "1,2", "--protocol", "v3", "--brakes", "2", "--slcan-link", str(link))
+    try:
+        assert process.stdout is not None
+        assert process.stdout.readline().startswith(f"slcan: {link}")
+        assert "emulating motors 1,2" in process.stdout.readline()
+        with CanEndpoint("slcan", str(link), bitrate=1_000_000, sleep_after_open=0) as host:
+            host.send(frames.encode_can_request(BareV3(C.READ_STATUS_1), 2), 0.5)
+            received = host.recv(2.0)
+            assert received is not None and received[0].arbitration_id == 0x242  # V3 replies on 0x240 + id
+            motor_id, status = frames.decode_can_reply(received[0].arbitration_id, received[0].data)
+            assert motor_id == 2 and isinstance(status, Status1V3) and status.brake is BrakeCommand.LOCK
+            host.send(frames.encode_can_broadcast(BareV3(C.READ_VERSION_DATE)), 0.5)
+            answers = [host.recv(2.0) for _ in range(2)]
+            assert sorted(a[0].arbitration_id for a in answers if a is not None) == [0x241, 0x242]
+    finally:
+        process.send_signal(signal.SIGTERM)
+        _, stderr = process.communicate(timeout=10)
+    assert process.returncode == 0, stderr
+    assert "slcan: 2 requests, 3 replies, 0 protocol errors" in stderr
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--ids", "1", "--rs485-link", "x", "--protocol", "v3"], "CAN links"),
+        (["--ids", "1", "--virtual-channel", "c", "--brakes", "1"], "--brakes needs --protocol v3"),
+        (["--ids", "1", "--virtual-channel", "c", "--protocol", "v3", "--brakes", "2"], "brakes [2]"),
+        (["--ids", "1", "--virtual-channel", "c", "--protocol", "v4"], "invalid choice: 'v4'"),
+    ],
+)
+def test_emulate_refuses_what_v3_emulation_lacks(args: list[str], message: str) -> None:
+    process = start_cli(*args)
+    _, stderr = process.communicate(timeout=20)
+    assert process.returncode == 2
+    assert message in stderr
