@@ -4,13 +4,18 @@ units through the drive's gear, the communication-loss protection (0xB3) that cu
 
 from __future__ import annotations
 
+import json
 import math
 import signal
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
 
 from motion.emulator import DriveModel, Emulator, Fault, InjectedFault, LoadModel
+from motion.emulator.simulated import SimulatedBus, Simulation
 from motion.protocol import MultiTurnAngle, MultiTurnPositionSpeed, SpeedControl, TorqueControl
 from motion.protocol.messages import Message
 from motion.protocol.table import Direction, ProtocolFamily, WireProtocol
@@ -31,6 +36,7 @@ from motion.protocol.v3.messages import (
     FunctionIndex,
     MotionCommand,
     MotionState,
+    MotorModel,
     MotorStateV3,
     MultiTurnEncoder,
     PidIndex,
@@ -41,7 +47,9 @@ from motion.protocol.v3.messages import (
     Status1V3,
     SystemErrorFlags,
 )
+from motion.transport.base import Request
 from motion.transport.can_endpoint import CanEndpoint
+from motion.transport.can_transport import CanTransport
 from tests.test_emulator_bus import start_cli
 
 C = CommandV3
@@ -254,3 +262,71 @@ def test_emulate_refuses_what_v3_emulation_lacks(args: list[str], message: str) 
     _, stderr = process.communicate(timeout=20)
     assert process.returncode == 2
     assert message in stderr
+
+
+@pytest.mark.parametrize("wire", [WireProtocol.CAN, WireProtocol.RS485])
+def test_the_transport_exchanges_v3_batches_with_the_same_matching(wire: WireProtocol) -> None:
+    simulation = Simulation(_emulator(), wire)
+    bus = SimulatedBus(simulation)
+    assert bus.family is ProtocolFamily.V3
+    batch = [
+        Request(1, MultiTurnPositionSpeed(20.0, 200.0)),
+        Request(2, BareV3(C.READ_MULTI_TURN_ANGLE)),
+        Request(1, BareV3(C.READ_MULTI_TURN_ENCODER)),
+    ]
+    period_s = 0.005 if wire is WireProtocol.CAN else 0.02  # 115200 baud: 13-byte frames take 1.1 ms each way
+    cycles = round(1.0 / period_s)
+    for k in range(cycles):  # 1 s of cycles
+        replies = bus.transact(batch, (k + 0.8) * period_s)
+        simulation.sleep_until((k + 1) * period_s)
+    assert [type(r.message) for r in replies] == [MotorStateV3, MultiTurnAngle, MultiTurnEncoder]
+    state = replies[0].message
+    assert isinstance(state, MotorStateV3) and state.angle_deg == 20
+    counters = bus.counters[1]
+    assert counters.sent == counters.replied == 2 * cycles and counters.timeouts == 0
+
+
+def test_a_can_transport_talks_to_v3_drives_in_another_process(tmp_path: Path) -> None:
+    link = tmp_path / "slcan"
+    process = start_cli("--ids", "1-3", "--protocol", "v3", "--slcan-link", str(link))
+    try:
+        assert process.stdout is not None
+        process.stdout.readline()
+        process.stdout.readline()
+        bus = CanTransport("slcan", str(link), 1_000_000, family=ProtocolFamily.V3, sleep_after_open=0)
+        with bus:
+            batch = [Request(i, BareV3(C.READ_STATUS_2)) for i in (1, 2, 3)] + [Request(2, BareV3(C.READ_MODEL))]
+            replies = bus.transact(batch, time.monotonic() + 0.5)
+            assert [type(r.message) for r in replies] == [MotorStateV3] * 3 + [MotorModel]
+            assert [r.motor_id for r in replies] == [1, 2, 3, 2]
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.communicate(timeout=10)
+
+
+def test_scan_names_each_drives_generation_firmware_and_model(tmp_path: Path) -> None:
+    link = tmp_path / "slcan"
+    process = start_cli("--ids", "1,2", "--protocol", "v3", "--slcan-link", str(link))
+    try:
+        assert process.stdout is not None
+        process.stdout.readline()
+        process.stdout.readline()
+        arm2 = Path(__file__).resolve().parent.parent / "configs" / "arm2.yaml"
+        command = ["scan", "--config", str(arm2), "--interface", "slcan", "--channel", str(link), "--ids", "1-3"]
+        result = subprocess.run(
+            [sys.executable, "-m", "motion.cli", *command, "--json"],
+            capture_output=True,
+            text=True,
+            timeout=30,
+            check=False,
+        )
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.communicate(timeout=10)
+    assert result.returncode == 0, result.stderr
+    drives = json.loads(result.stdout)["drives"]
+    assert [(d["motor_id"], d["protocol"], d["model"]) for d in drives] == [
+        (1, "v3", "EMU-V3 firmware 20240528"),
+        (2, "v3", "EMU-V3 firmware 20240528"),
+    ]
+    assert "speak the V3-driver protocol" in result.stderr

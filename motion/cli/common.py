@@ -13,12 +13,13 @@ import sys
 import types
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
+from enum import IntFlag
 from typing import Any, Final
 
 from motion.compose import open_bus
 from motion.config import ArmConfig, CanBusConfig, JointConfig, load_config_or_example
 from motion.errors import TransportError
-from motion.protocol import ErrorFlags, Message
+from motion.protocol import Message
 from motion.transport import Request, Transport
 from motion.view import DEFAULT_HOST, DEFAULT_PORT, PORTS, ViewOptions, host_warning
 
@@ -354,11 +355,12 @@ def exchange(
     return got
 
 
-def flag_names(flags: ErrorFlags) -> list[str]:
-    """The names of the set error bits (unknown bits as hex)."""
-    names = [f.name.lower() for f in ErrorFlags if f and f in flags and f.name]
+def flag_names(flags: IntFlag) -> list[str]:
+    """The names of the set error bits (unknown bits as hex), of either family's error flags."""
+    kind = type(flags)
+    names = [f.name.lower() for f in kind if f and f in flags and f.name]
     known = 0
-    for f in ErrorFlags:
+    for f in kind:
         known |= f.value
     if flags.value & ~known:
         names.append(f"0x{flags.value & ~known:02x}")

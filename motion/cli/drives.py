@@ -46,8 +46,19 @@ from motion.protocol import (
     ProductInfo,
     Status1,
 )
-from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, Direction, WireProtocol, field_names, field_range
+from motion.protocol.table import (
+    MOTOR_ID_MAX,
+    MOTOR_ID_MIN,
+    Direction,
+    ProtocolFamily,
+    WireProtocol,
+    field_names,
+    field_range,
+)
+from motion.protocol.v3.messages import BareV3, CommandV3, MotorModel, Status1V3, VersionDate
 from motion.transport import Request, Transport
+from motion.transport.can_transport import CanTransport
+from motion.transport.detect import detect_can
 
 if TYPE_CHECKING:
     from motion.api import Arm
@@ -107,14 +118,42 @@ def _model_text(info: ProductInfo | None) -> str:
     return f"{info.driver_name} / {info.motor_name} hw {info.hardware_version:g} fw {info.firmware_version:g}"
 
 
+#: What scan reads of a V3 drive: status, firmware date, model.
+_V3_SCAN_READS: Final = (CommandV3.READ_STATUS_1, CommandV3.READ_VERSION_DATE, CommandV3.READ_MODEL)
+
+
+def _scan_v3(bus: Transport, ids: Sequence[int]) -> tuple[dict[int, Status1V3], dict[int, str]]:
+    """Status, firmware date and model of V3 drives (the bus speaks their generation for the exchange)."""
+    previous, bus.family = bus.family, ProtocolFamily.V3
+    try:
+        requests = [Request(i, BareV3(c)) for i in ids for c in _V3_SCAN_READS]
+        replies = bus.transact(requests, bus.clock() + SCAN_CAN_S)
+    finally:
+        bus.family = previous
+    status = {r.motor_id: r.message for r in replies if isinstance(r.message, Status1V3)}
+    dates = {r.motor_id: r.message.date for r in replies if isinstance(r.message, VersionDate)}
+    models = {r.motor_id: r.message.model for r in replies if isinstance(r.message, MotorModel)}
+    text = {i: f"{models.get(i, '?')} firmware {dates.get(i, '?')}" for i in status}
+    return status, text
+
+
 def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
-    """Which motor ids answer 0x9A (and, on RS485, 0x12 for the model)."""
+    """Which motor ids answer 0x9A, in which protocol generation (CAN: told by the reply id), and their model (RS485:
+    0x12; V3 drives: 0xB5 and the firmware date 0xB2)."""
     session = Session.from_args(args)
     ids: tuple[int, ...] = args.ids or tuple(range(MOTOR_ID_MIN, MOTOR_ID_MAX + 1))
     rs485 = not isinstance(session.config.bus, CanBusConfig)
+    v3_status: dict[int, Status1V3] = {}
+    v3_models: dict[int, str] = {}
     with session.open_bus() as bus:
-        window = SCAN_RS485_PER_ID_S * len(ids) if rs485 else SCAN_CAN_S
-        replies = bus.transact([Request(i, Bare(Command.READ_STATUS_1)) for i in ids], bus.clock() + window)
+        # A real CAN bus: the reply ids tell the generations apart (a simulated bus knows its drives' generation).
+        generations = detect_can(bus.port, ids, SCAN_CAN_S) if isinstance(bus, CanTransport) else {}
+        v3_ids = sorted(i for i, f in generations.items() if f is ProtocolFamily.V3)
+        if v3_ids:
+            v3_status, v3_models = _scan_v3(bus, v3_ids)
+        older = [i for i in ids if i not in v3_ids]
+        window = SCAN_RS485_PER_ID_S * len(older) if rs485 else SCAN_CAN_S
+        replies = bus.transact([Request(i, Bare(Command.READ_STATUS_1)) for i in older], bus.clock() + window)
         found = {r.motor_id: r.message for r in replies if isinstance(r.message, Status1)}
         models: dict[int, ProductInfo] = {}
         if rs485 and found:
@@ -123,34 +162,42 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
             models = {r.motor_id: r.message for r in replies if isinstance(r.message, ProductInfo)}
         where = bus.describe()
     names = session.names
+    answered: dict[int, Status1 | Status1V3] = {**found, **v3_status}
     drives = [
         {
             "motor_id": motor_id,
             "joint": names.get(motor_id),
+            "protocol": (ProtocolFamily.V3 if motor_id in v3_status else bus.family).value,
             "voltage_v": status.voltage_v,
             "temperature_c": status.temperature_c,
             "errors": flag_names(status.errors),
-            "model": asdict(models[motor_id]) if motor_id in models else None,
+            "model": asdict(models[motor_id]) if motor_id in models else v3_models.get(motor_id),
         }
-        for motor_id, status in sorted(found.items())
+        for motor_id, status in sorted(answered.items())
     ]
-    missing = [_label(j) for j in session.config.joints if j.motor_id not in found]
+    missing = [_label(j) for j in session.config.joints if j.motor_id not in answered]
     if args.json:
         print_json({"bus": where, "drives": drives, "missing": missing})
     else:
         print(f"{where}: {len(drives)} of {len(ids)} ids answered")
         rows = [
             (
-                motor_id,
-                names.get(motor_id, "-"),
-                f"{status.voltage_v:.1f} V",
-                f"{status.temperature_c} °C",
-                ",".join(flag_names(status.errors)) or "ok",
-                _model_text(models.get(motor_id)),
+                d["motor_id"],
+                d["joint"] or "-",
+                d["protocol"],
+                f"{d['voltage_v']:.1f} V",
+                f"{d['temperature_c']} °C",
+                ",".join(d["errors"]) or "ok",  # type: ignore[arg-type]
+                v3_models.get(motor_id) or _model_text(models.get(motor_id)),
             )
-            for motor_id, status in sorted(found.items())
+            for d, motor_id in zip(drives, sorted(answered), strict=True)
         ]
-        print_table(("id", "joint", "voltage", "temp", "flags", "model"), rows)
+        print_table(("id", "joint", "protocol", "voltage", "temp", "flags", "model"), rows)
+    if v3_status:
+        warn(
+            f"motor(s) {', '.join(map(str, sorted(v3_status)))} speak the V3-driver protocol (V4.2): rmd-motion reads "
+            "them, but controls only drives of the older protocol so far"
+        )
     if missing:
         warn(f"communication error: configured joint(s) not answering: {', '.join(missing)}")
         return EXIT_COMMUNICATION

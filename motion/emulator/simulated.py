@@ -33,6 +33,8 @@ from motion.emulator.framelog import FrameLog
 from motion.emulator.timing import TimingModel, can_frame_time_s, rs485_frame_time_s
 from motion.errors import DecodeError
 from motion.protocol import CanFrame, WireProtocol, can_frame, rs485_frame
+from motion.protocol.table import ProtocolFamily
+from motion.protocol.v3 import frames as frames_v3
 from motion.transport.base import Request, Transport
 from motion.transport.can_transport import take_in_can_frame
 
@@ -181,6 +183,8 @@ class Simulation:
         try:
             if isinstance(wire, CanFrame):
                 exchange = self.emulator.handle_can(wire)
+            elif self.emulator.family is ProtocolFamily.V3:
+                exchange = self.emulator.handle_rs485_v3(wire)
             else:
                 exchange = self.emulator.handle_rs485(rs485_frame.split_frame(wire))
         except DecodeError as exc:
@@ -210,9 +214,13 @@ class SimulatedBus(Transport):
     """
 
     def __init__(self, simulation: Simulation) -> None:
-        super().__init__(clock=simulation.now)
+        super().__init__(clock=simulation.now, family=simulation.emulator.family)
         self.simulation = simulation
         self._can = simulation.protocol is WireProtocol.CAN
+        v3 = self.family is ProtocolFamily.V3
+        self._encode_can = frames_v3.encode_can_request if v3 else can_frame.encode_request
+        self._encode_rs485 = frames_v3.encode_rs485_request if v3 else rs485_frame.encode_request
+        self._decode_rs485 = frames_v3.decode_rs485_reply if v3 else rs485_frame.decode_reply
         self._wires: list[CanFrame | bytes] = []
         self._motors: list[int] = []
 
@@ -226,9 +234,9 @@ class SimulatedBus(Transport):
         motors.clear()
         for request in requests:
             if self._can:
-                wires.append(can_frame.encode_request(request.message, request.motor_id))
+                wires.append(self._encode_can(request.message, request.motor_id))
             else:
-                wires.append(rs485_frame.encode_request(request.message, request.motor_id))
+                wires.append(self._encode_rs485(request.message, request.motor_id))
             motors.append(request.motor_id)
 
     def _exchange(self, deadline_s: float) -> None:
@@ -289,7 +297,10 @@ class SimulatedBus(Transport):
             return
         self._tap(True, wire)
         try:
-            motor_id, message = rs485_frame.decode_reply(wire)
+            motor_id, message = self._decode_rs485(wire)
+            if motor_id is None:  # a V3 id-setting reply on 0xCD: not the control loop's
+                self.bus_counters.unknown_id_frames += 1
+                return
         except DecodeError:
             # On a half-duplex line only the addressed drive talks: corrupt bytes count against it.
             self.motor_counters(arrival.motor_id if waiting_for is None else waiting_for).bad_frames += 1

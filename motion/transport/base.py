@@ -51,7 +51,7 @@ from typing import Final, NamedTuple, Self
 
 from motion.errors import TransportError
 from motion.protocol import Command, Message, MultiMotorTorque
-from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS
+from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, ProtocolFamily
 
 #: ``tap(time_s, received, arbitration_id, data)``: called with every frame a backend sends (``received`` False) or
 #: takes in (True), at the transport clock's time; ``arbitration_id`` is None on RS485, where ``data`` is the bytes as
@@ -159,8 +159,12 @@ class Transport(ABC):
             real seconds), so it may be offset from :func:`time.monotonic` but not frozen.
     """
 
-    def __init__(self, *, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self, *, clock: Callable[[], float] = time.monotonic, family: ProtocolFamily = ProtocolFamily.V2
+    ) -> None:
         self.clock = clock
+        #: The protocol generation the drives on this bus speak (their frames are encoded and decoded with it).
+        self.family = ProtocolFamily(family)
         self.bus_counters = BusCounters()
         #: Optional observer of every frame (a bus trace); see :data:`FrameTap`.
         self.frame_tap: FrameTap | None = None

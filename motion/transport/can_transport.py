@@ -15,7 +15,16 @@ from typing import Any, Final, Protocol
 from motion.errors import DecodeError
 from motion.protocol import CanFrame, can_frame
 from motion.protocol.compiled import CODECS
-from motion.protocol.table import CAN_ID_BASE, CAN_PAYLOAD_BYTES, MOTOR_ID_MAX, MOTOR_ID_MIN, Direction, WireProtocol
+from motion.protocol.table import (
+    CAN_ID_BASE,
+    CAN_PAYLOAD_BYTES,
+    MOTOR_ID_MAX,
+    MOTOR_ID_MIN,
+    Direction,
+    ProtocolFamily,
+    WireProtocol,
+)
+from motion.protocol.v3 import frames as frames_v3
 from motion.transport.base import Request, Transport
 from motion.transport.can_endpoint import CanEndpoint
 
@@ -28,6 +37,9 @@ def take_in_can_frame(transport: Transport, frame: CanFrame) -> None:
     arbitration_id = frame.arbitration_id
     if transport.frame_tap is not None:
         transport.frame_tap(transport.clock(), True, arbitration_id, frame.data)
+    if transport.family is not ProtocolFamily.V2:
+        _take_in_v3(transport, frame)
+        return
     motor_id = arbitration_id - CAN_ID_BASE
     if not _FIRST_MOTOR_ID <= motor_id <= _LAST_MOTOR_ID:
         # Other devices may share the bus; their frames are not drive replies, nor are 0x280 frames.
@@ -44,6 +56,21 @@ def take_in_can_frame(transport: Transport, frame: CanFrame) -> None:
         except DecodeError:
             transport.motor_counters(motor_id).bad_frames += 1
             return
+    transport._offer(motor_id, message)
+
+
+def _take_in_v3(transport: Transport, frame: CanFrame) -> None:
+    """A V3 drive's frame: replies on 0x240 + id (0x300 id-setting and 0x500 motion replies are not the control
+    loop's: counted as frames of other devices)."""
+    motor_id = frame.arbitration_id - frames_v3.CAN_REPLY_BASE
+    if not _FIRST_MOTOR_ID <= motor_id <= _LAST_MOTOR_ID:
+        transport.bus_counters.unknown_id_frames += 1
+        return
+    try:
+        message = frames_v3.decode_payload(frame.data, Direction.REPLY)
+    except DecodeError:
+        transport.motor_counters(motor_id).bad_frames += 1
+        return
     transport._offer(motor_id, message)
 
 
@@ -83,6 +110,7 @@ class CanTransport(Transport):
         channel: interface channel (``can0``, ``/dev/ttyACM0``, a virtual channel name, ...).
         bitrate: bit rate in bit/s (RMD drives use 1 Mbit/s), or None to leave the interface's setting alone.
         clock: time source of the deadlines (see :class:`~motion.transport.base.Transport`).
+        family: the drives' protocol generation (``v3``: replies on 0x240 + id, :mod:`motion.protocol.v3`).
         **bus_kwargs: passed to :class:`can.Bus` unchanged.
 
     Use :meth:`over` for a port that is already open (injected instead of opened here).
@@ -98,19 +126,26 @@ class CanTransport(Transport):
         bitrate: int | None = None,
         *,
         clock: Callable[[], float] = time.monotonic,
+        family: ProtocolFamily = ProtocolFamily.V2,
         **bus_kwargs: Any,
     ) -> None:
-        self._adopt(CanEndpoint(interface, channel, bitrate, **bus_kwargs), clock)
+        self._adopt(CanEndpoint(interface, channel, bitrate, **bus_kwargs), clock, family)
 
     @classmethod
-    def over(cls, port: CanPort, *, clock: Callable[[], float] = time.monotonic) -> CanTransport:
+    def over(
+        cls,
+        port: CanPort,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        family: ProtocolFamily = ProtocolFamily.V2,
+    ) -> CanTransport:
         """The transport over ``port``, already open (closing the transport closes it)."""
         transport = cls.__new__(cls)
-        transport._adopt(port, clock)
+        transport._adopt(port, clock, family)
         return transport
 
-    def _adopt(self, port: CanPort, clock: Callable[[], float]) -> None:
-        super().__init__(clock=clock)
+    def _adopt(self, port: CanPort, clock: Callable[[], float], family: ProtocolFamily) -> None:
+        super().__init__(clock=clock, family=family)
         self._endpoint: CanPort = port
         self._frames: list[CanFrame] = []
 
@@ -124,7 +159,8 @@ class CanTransport(Transport):
         return f"can {self._endpoint.interface}:{self._endpoint.channel}"
 
     def _prepare(self, requests: Sequence[Request]) -> None:
-        frames, encode = self._frames, can_frame.encode_request
+        frames = self._frames
+        encode = can_frame.encode_request if self.family is ProtocolFamily.V2 else frames_v3.encode_can_request
         frames.clear()
         for request in requests:
             frames.append(encode(request.message, request.motor_id))
