@@ -37,6 +37,7 @@ from motion.compose import (
     arm_figure,
     build_controller,
     build_supervisor,
+    check_generation,
     check_rate,
     emulated_frames,
     feedforward_for,
@@ -407,6 +408,7 @@ class Arm:
                 if self.emulation == "realtime":
                     self._start_emulator_process()
                 self.bus = self._stack.enter_context(open_bus(self.config, **self._overrides))
+                check_generation(self.bus, self.config)
             self._clock = clock
             if self.telemetry is not None:
                 self.telemetry.tap(self.bus)

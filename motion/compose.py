@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, HaltPolicy, JointConfig
+from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, HaltPolicy, JointConfig, ProtocolSetting
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
@@ -38,8 +38,9 @@ from motion.control.turns import (
     turn_joint_deg,
 )
 from motion.emulator import DEFAULT_PID, DriveModel, Emulator, Fault, LoadModel, Plant
-from motion.errors import MotionError
+from motion.errors import MotionError, TransportError
 from motion.protocol import WireProtocol
+from motion.protocol.table import ProtocolFamily
 from motion.safety import SafetySettings, Supervisor
 from motion.safety.watchdog import CollisionObserver, Watchdog
 from motion.trajectory import JointLimits
@@ -99,6 +100,44 @@ def open_bus(config: ArmConfig, **overrides: object) -> Transport:
         settings: dict[str, object] = {"interface": bus.interface, "channel": bus.channel, "bitrate": bus.bitrate}
         return open_transport("can", **(settings | overrides))
     return open_transport("rs485", **({"port": bus.port, "baudrate": bus.baudrate} | overrides))
+
+
+#: Connect: the window in which the configured drives answer the generation check on a CAN bus, s.
+GENERATION_CHECK_WINDOW_S = 0.1
+
+
+def check_generation(bus: Transport, config: ArmConfig) -> None:
+    """Refuse a bus whose drives speak a protocol generation this controller does not drive (issue 17).
+
+    ``bus.protocol: auto`` on a real CAN bus: the configured drives are asked for their status once at the frame level
+    and their reply ids tell the generation (:mod:`motion.transport.detect`); drives that do not answer are left to
+    the connect's own reads. RS485 and simulated buses, and ``v2``, are not probed.
+
+    Raises:
+        TransportError: V3-driver drives (not controlled yet), drives of both generations, or ``bus.protocol: v3``.
+    """
+    setting = config.bus.protocol
+    if setting is ProtocolSetting.V3:
+        raise TransportError(
+            "bus.protocol is v3: rmd-motion reads V3-driver drives (rmd-motion scan) but does not control them yet"
+        )
+    # The CAN backend is imported where it is used (python-can only for a CAN bus).
+    from motion.transport.can_transport import CanTransport  # noqa: PLC0415
+    from motion.transport.detect import describe_mixed, detect_can  # noqa: PLC0415
+
+    if setting is ProtocolSetting.V2 or not isinstance(bus, CanTransport):
+        return
+    found = detect_can(bus.port, [j.motor_id for j in config.joints], GENERATION_CHECK_WINDOW_S)
+    newer = sorted(i for i, family in found.items() if family is ProtocolFamily.V3)
+    if not newer:
+        return
+    names = ", ".join(f"{j.name} (motor {j.motor_id})" for j in config.joints if j.motor_id in newer)
+    if len(newer) < len(found):
+        raise TransportError(f"drives of both protocol generations on one bus ({describe_mixed(found)}): refused")
+    raise TransportError(
+        f"{names} answer in the V3-driver protocol (V4.2: replies on 0x240 + id): rmd-motion reads them "
+        "(rmd-motion scan) but does not control them yet"
+    )
 
 
 def feedforward_for(config: ArmConfig) -> Feedforward | None:

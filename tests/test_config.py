@@ -394,7 +394,7 @@ CASES: list[tuple[str, dict[str, Any], Mutation, str, list[str]]] = [
         ARM2,
         _set("bus", "port", value="COM3"),
         "bus.port",
-        ["unknown key", "allowed keys: bitrate, channel, interface, transport"],
+        ["unknown key", "allowed keys: bitrate, channel, interface, protocol, transport"],
     ),
     (
         "duplicate motor id",

@@ -10,12 +10,18 @@ import signal
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import pytest
+import yaml
 
-from motion.emulator import DriveModel, Emulator, Fault, InjectedFault, LoadModel
+from motion.compose import check_generation
+from motion.config import ArmConfig, parse_config
+from motion.config.schema import ProtocolSetting
+from motion.emulator import DriveModel, Emulator, Fault, InjectedFault, LoadModel, VirtualCanAttachment
 from motion.emulator.simulated import SimulatedBus, Simulation
+from motion.errors import ConfigError, TransportError
 from motion.protocol import MultiTurnAngle, MultiTurnPositionSpeed, SpeedControl, TorqueControl
 from motion.protocol.messages import Message
 from motion.protocol.table import Direction, ProtocolFamily, WireProtocol
@@ -53,6 +59,7 @@ from motion.transport.can_transport import CanTransport
 from tests.test_emulator_bus import start_cli
 
 C = CommandV3
+ROOT = Path(__file__).resolve().parent.parent
 GEAR = 6.0
 
 
@@ -311,7 +318,7 @@ def test_scan_names_each_drives_generation_firmware_and_model(tmp_path: Path) ->
         assert process.stdout is not None
         process.stdout.readline()
         process.stdout.readline()
-        arm2 = Path(__file__).resolve().parent.parent / "configs" / "arm2.yaml"
+        arm2 = ROOT / "configs" / "arm2.yaml"
         command = ["scan", "--config", str(arm2), "--interface", "slcan", "--channel", str(link), "--ids", "1-3"]
         result = subprocess.run(
             [sys.executable, "-m", "motion.cli", *command, "--json"],
@@ -330,3 +337,59 @@ def test_scan_names_each_drives_generation_firmware_and_model(tmp_path: Path) ->
         (2, "v3", "EMU-V3 firmware 20240528"),
     ]
     assert "speak the V3-driver protocol" in result.stderr
+
+
+def _arm2(protocol: str | None = None) -> ArmConfig:
+    text = (ROOT / "configs" / "arm2.yaml").read_text()
+    if protocol is not None:
+        text = text.replace("  bitrate: 1000000\n", f"  bitrate: 1000000\n  protocol: {protocol}\n", 1)
+        assert f"protocol: {protocol}" in text
+    return parse_config(yaml.safe_load(text), source="arm2.yaml", base_dir=ROOT / "configs")
+
+
+def test_connect_refuses_v3_drives_and_a_mixed_bus_naming_each_drives_generation() -> None:
+    channel = uuid.uuid4().hex
+    older = Emulator([1], model=DriveModel(), load=LoadModel())
+    newer = Emulator([2], model=DriveModel(), load=LoadModel(), family=ProtocolFamily.V3)
+    with (
+        VirtualCanAttachment(older, channel),
+        VirtualCanAttachment(newer, channel),
+        CanTransport("virtual", channel, None) as bus,
+    ):
+        with pytest.raises(TransportError, match=r"both protocol generations .*motor 1: v2, motor 2: v3"):
+            check_generation(bus, _arm2())
+        check_generation(bus, _arm2("v2"))  # told, not probed
+        with pytest.raises(TransportError, match="does not control them yet"):
+            check_generation(bus, _arm2("v3"))
+    refused = r"shoulder \(motor 1\), elbow \(motor 2\) answer in the V3-driver"
+    with (
+        VirtualCanAttachment(_emulator(), channel),
+        CanTransport("virtual", channel, None) as bus,
+        pytest.raises(TransportError, match=refused),
+    ):
+        check_generation(bus, _arm2())
+
+
+def test_bus_protocol_is_validated() -> None:
+    with pytest.raises(ConfigError, match=r"bus\.protocol.*one of auto, v2, v3"):
+        _arm2("v4")
+    assert _arm2().bus.protocol is ProtocolSetting.AUTO
+
+
+def test_a_command_on_a_bus_of_v3_drives_says_why_it_cannot_drive_them(tmp_path: Path) -> None:
+    link = tmp_path / "slcan"
+    process = start_cli("--ids", "1,2", "--protocol", "v3", "--slcan-link", str(link))
+    try:
+        assert process.stdout is not None
+        process.stdout.readline()
+        process.stdout.readline()
+        arm2 = ROOT / "configs" / "arm2.yaml"
+        command = ["status", "--config", str(arm2), "--interface", "slcan", "--channel", str(link)]
+        result = subprocess.run(
+            [sys.executable, "-m", "motion.cli", *command], capture_output=True, text=True, timeout=30, check=False
+        )
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.communicate(timeout=10)
+    assert result.returncode == 3, result.stderr
+    assert "answer in the V3-driver protocol" in result.stderr

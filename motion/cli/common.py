@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from enum import IntFlag
 from typing import Any, Final
 
-from motion.compose import open_bus
+from motion.compose import check_generation, open_bus
 from motion.config import ArmConfig, CanBusConfig, JointConfig, load_config_or_example
 from motion.errors import TransportError
 from motion.protocol import Message
@@ -134,13 +134,21 @@ class Session:
             overrides["sleep_after_open"] = 0
         return cls(config, overrides)
 
-    def open_bus(self) -> Transport:
-        """Open the configured bus with the overrides.
+    def open_bus(self, *, check: bool = True) -> Transport:
+        """Open the configured bus with the overrides and (``check``) refuse drives this controller does not drive
+        (:func:`motion.compose.check_generation`; ``scan`` reads any).
 
         Raises:
-            TransportError: the bus or port could not be opened.
+            TransportError: the bus or port could not be opened, or its drives were refused.
         """
-        return open_bus(self.config, **self.overrides)
+        bus = open_bus(self.config, **self.overrides)
+        if check:
+            try:
+                check_generation(bus, self.config)
+            except TransportError:
+                bus.close()
+                raise
+        return bus
 
     @property
     def names(self) -> dict[int, str]:

@@ -57,8 +57,6 @@ from motion.protocol.table import (
 )
 from motion.protocol.v3.messages import BareV3, CommandV3, MotorModel, Status1V3, VersionDate
 from motion.transport import Request, Transport
-from motion.transport.can_transport import CanTransport
-from motion.transport.detect import detect_can
 
 if TYPE_CHECKING:
     from motion.api import Arm
@@ -145,8 +143,11 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
     rs485 = not isinstance(session.config.bus, CanBusConfig)
     v3_status: dict[int, Status1V3] = {}
     v3_models: dict[int, str] = {}
-    with session.open_bus() as bus:
+    with session.open_bus(check=False) as bus:
         # A real CAN bus: the reply ids tell the generations apart (a simulated bus knows its drives' generation).
+        from motion.transport.can_transport import CanTransport  # noqa: PLC0415 - python-can only for CAN
+        from motion.transport.detect import detect_can  # noqa: PLC0415
+
         generations = detect_can(bus.port, ids, SCAN_CAN_S) if isinstance(bus, CanTransport) else {}
         v3_ids = sorted(i for i, f in generations.items() if f is ProtocolFamily.V3)
         if v3_ids:

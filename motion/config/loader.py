@@ -296,9 +296,12 @@ def _bus(root: _Node) -> schema.BusConfig:
             interface=node.text("interface"),
             channel=node.text("channel"),
             bitrate=node.integer("bitrate", _OneOf((500_000, 1_000_000))),
+            protocol=node.choice("protocol", schema.ProtocolSetting),
         )
     return schema.Rs485BusConfig(
-        port=node.text("port"), baudrate=node.integer("baudrate", _OneOf((9600, 19200, 57600, 115200)))
+        port=node.text("port"),
+        baudrate=node.integer("baudrate", _OneOf((9600, 19200, 57600, 115200))),
+        protocol=node.choice("protocol", schema.ProtocolSetting),
     )
 
 

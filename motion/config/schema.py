@@ -40,6 +40,14 @@ class HaltPolicy(StrEnum):
     COMPLY = "comply"
 
 
+class ProtocolSetting(StrEnum):
+    """``bus.protocol``: the drives' protocol generation, or ``auto`` to tell it from their replies at connect."""
+
+    AUTO = "auto"  #: CAN: detected at connect by the reply ids (RS485: the older family)
+    V2 = "v2"  #: the older family (CAN v2.3 / RS485 v1.62 documents)
+    V3 = "v3"  #: the V3-driver family (V4.2 document): read by `rmd-motion scan`, not controlled yet
+
+
 @dataclass(frozen=True, slots=True)
 class CanBusConfig:
     """CAN bus via python-can.
@@ -48,12 +56,14 @@ class CanBusConfig:
         interface: python-can interface name (``virtual``, ``socketcan``, ``slcan``, ``pcan``, ``kvaser``, ...).
         channel: interface channel (``can0``, ``/dev/ttyACM0``, ``PCAN_USBBUS1``, ...).
         bitrate: bit rate in bit/s (500000 or 1000000, the rates the RMD drives support).
+        protocol: the drives' protocol generation (see :class:`ProtocolSetting`).
     """
 
     transport: ClassVar[WireProtocol] = WireProtocol.CAN
     interface: str
     channel: str
     bitrate: int = 1_000_000
+    protocol: ProtocolSetting = ProtocolSetting.AUTO
 
 
 @dataclass(frozen=True, slots=True)
@@ -63,11 +73,13 @@ class Rs485BusConfig:
     Attributes:
         port: serial device (``/dev/ttyUSB0``, ``COM3``).
         baudrate: baud rate in bit/s (9600, 19200, 57600 or 115200).
+        protocol: the drives' protocol generation (see :class:`ProtocolSetting`).
     """
 
     transport: ClassVar[WireProtocol] = WireProtocol.RS485
     port: str
     baudrate: int = 115_200
+    protocol: ProtocolSetting = ProtocolSetting.AUTO
 
 
 BusConfig: TypeAlias = CanBusConfig | Rs485BusConfig
