@@ -4,6 +4,7 @@ units through the drive's gear, the communication-loss protection (0xB3) that cu
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import signal
@@ -11,6 +12,7 @@ import subprocess
 import sys
 import time
 import uuid
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -61,6 +63,26 @@ from tests.test_emulator_bus import start_cli
 C = CommandV3
 ROOT = Path(__file__).resolve().parent.parent
 GEAR = 6.0
+
+
+@contextlib.contextmanager
+def v3_drives(link: Path, ids: str = "1,2") -> Iterator[None]:
+    """``rmd-motion emulate --protocol v3`` on an slcan pty at ``link`` for the duration."""
+    process = start_cli("--ids", ids, "--protocol", "v3", "--slcan-link", str(link))
+    try:
+        assert process.stdout is not None
+        assert process.stdout.readline().startswith(f"slcan: {link}")
+        assert "emulating motors" in process.stdout.readline()
+        yield
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.communicate(timeout=10)
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "motion.cli", *args], capture_output=True, text=True, timeout=30, check=False
+    )
 
 
 def _emulator(**kwargs: object) -> Emulator:
@@ -295,41 +317,22 @@ def test_the_transport_exchanges_v3_batches_with_the_same_matching(wire: WirePro
 
 def test_a_can_transport_talks_to_v3_drives_in_another_process(tmp_path: Path) -> None:
     link = tmp_path / "slcan"
-    process = start_cli("--ids", "1-3", "--protocol", "v3", "--slcan-link", str(link))
-    try:
-        assert process.stdout is not None
-        process.stdout.readline()
-        process.stdout.readline()
+    with v3_drives(link, "1-3"):
         bus = CanTransport("slcan", str(link), 1_000_000, family=ProtocolFamily.V3, sleep_after_open=0)
         with bus:
             batch = [Request(i, BareV3(C.READ_STATUS_2)) for i in (1, 2, 3)] + [Request(2, BareV3(C.READ_MODEL))]
             replies = bus.transact(batch, time.monotonic() + 0.5)
             assert [type(r.message) for r in replies] == [MotorStateV3] * 3 + [MotorModel]
             assert [r.motor_id for r in replies] == [1, 2, 3, 2]
-    finally:
-        process.send_signal(signal.SIGTERM)
-        process.communicate(timeout=10)
 
 
 def test_scan_names_each_drives_generation_firmware_and_model(tmp_path: Path) -> None:
     link = tmp_path / "slcan"
-    process = start_cli("--ids", "1,2", "--protocol", "v3", "--slcan-link", str(link))
-    try:
-        assert process.stdout is not None
-        process.stdout.readline()
-        process.stdout.readline()
-        arm2 = ROOT / "configs" / "arm2.yaml"
-        command = ["scan", "--config", str(arm2), "--interface", "slcan", "--channel", str(link), "--ids", "1-3"]
-        result = subprocess.run(
-            [sys.executable, "-m", "motion.cli", *command, "--json"],
-            capture_output=True,
-            text=True,
-            timeout=30,
-            check=False,
+    arm2 = str(ROOT / "configs" / "arm2.yaml")
+    with v3_drives(link):
+        result = _cli(
+            "scan", "--config", arm2, "--interface", "slcan", "--channel", str(link), "--ids", "1-3", "--json"
         )
-    finally:
-        process.send_signal(signal.SIGTERM)
-        process.communicate(timeout=10)
     assert result.returncode == 0, result.stderr
     drives = json.loads(result.stdout)["drives"]
     assert [(d["motor_id"], d["protocol"], d["model"]) for d in drives] == [
@@ -378,18 +381,9 @@ def test_bus_protocol_is_validated() -> None:
 
 def test_a_command_on_a_bus_of_v3_drives_says_why_it_cannot_drive_them(tmp_path: Path) -> None:
     link = tmp_path / "slcan"
-    process = start_cli("--ids", "1,2", "--protocol", "v3", "--slcan-link", str(link))
-    try:
-        assert process.stdout is not None
-        process.stdout.readline()
-        process.stdout.readline()
-        arm2 = ROOT / "configs" / "arm2.yaml"
-        command = ["status", "--config", str(arm2), "--interface", "slcan", "--channel", str(link)]
-        result = subprocess.run(
-            [sys.executable, "-m", "motion.cli", *command], capture_output=True, text=True, timeout=30, check=False
+    with v3_drives(link):
+        result = _cli(
+            "status", "--config", str(ROOT / "configs" / "arm2.yaml"), "--interface", "slcan", "--channel", str(link)
         )
-    finally:
-        process.send_signal(signal.SIGTERM)
-        process.communicate(timeout=10)
     assert result.returncode == 3, result.stderr
     assert "answer in the V3-driver protocol" in result.stderr

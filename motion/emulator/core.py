@@ -471,24 +471,32 @@ def _pick(value: W | Mapping[int, W] | None, motor_id: int, default: Callable[[]
     return value
 
 
-def _encode_can(reply: Message, motor_id: int, corruption: Corruption | None) -> CanFrame:
-    frame = can_frame.encode_reply(reply, motor_id)
-    return frame if corruption is None else corrupt_can(frame, corruption, motor_id)
+def _can_encoder(encode: Callable[[Message, int], CanFrame]) -> Callable[[Message, int, Corruption | None], CanFrame]:
+    """A family's CAN reply encoder, with a ``corrupt`` fault's damage applied."""
+
+    def encode_reply(reply: Message, motor_id: int, corruption: Corruption | None) -> CanFrame:
+        frame = encode(reply, motor_id)
+        return frame if corruption is None else corrupt_can(frame, corruption, motor_id)
+
+    return encode_reply
 
 
-def _encode_rs485(reply: Message, motor_id: int, corruption: Corruption | None) -> bytes:
-    raw = rs485_frame.encode_reply(reply, motor_id)
-    return raw if corruption is None else corrupt_rs485(raw, corruption)
+def _rs485_encoder(
+    encode: Callable[[Message, int], bytes], corrupt: Callable[[bytes, Corruption], bytes]
+) -> Callable[[Message, int, Corruption | None], bytes]:
+    """A family's RS485 reply encoder, with a ``corrupt`` fault's damage applied."""
+
+    def encode_reply(reply: Message, motor_id: int, corruption: Corruption | None) -> bytes:
+        raw = encode(reply, motor_id)
+        return raw if corruption is None else corrupt(raw, corruption)
+
+    return encode_reply
 
 
-def _encode_can_v3(reply: Message, motor_id: int, corruption: Corruption | None) -> CanFrame:
-    frame = frames_v3.encode_can_reply(reply, motor_id)
-    return frame if corruption is None else corrupt_can(frame, corruption, motor_id)
-
-
-def _encode_rs485_v3(reply: Message, motor_id: int, corruption: Corruption | None) -> bytes:
-    raw = frames_v3.encode_rs485_reply(reply, motor_id)
-    return raw if corruption is None else corrupt_rs485_v3(raw, corruption)
+_encode_can = _can_encoder(can_frame.encode_reply)
+_encode_can_v3 = _can_encoder(frames_v3.encode_can_reply)
+_encode_rs485 = _rs485_encoder(rs485_frame.encode_reply, corrupt_rs485)
+_encode_rs485_v3 = _rs485_encoder(frames_v3.encode_rs485_reply, corrupt_rs485_v3)
 
 
 def _v3_id(decoded: tuple[int | None, Message], sent: Outgoing[W]) -> tuple[int, Message]:
