@@ -28,6 +28,7 @@ from motion.protocol import MultiTurnAngle, MultiTurnPositionSpeed, SpeedControl
 from motion.protocol.messages import Message
 from motion.protocol.table import Direction, ProtocolFamily, WireProtocol
 from motion.protocol.v3 import COMMANDS_V3, frames
+from motion.protocol.v3.frames import Rs485ParserV3
 from motion.protocol.v3.messages import (
     AccelerationIndex,
     AccelerationRead,
@@ -54,10 +55,12 @@ from motion.protocol.v3.messages import (
     ReadWrite,
     Status1V3,
     SystemErrorFlags,
+    VersionDate,
 )
 from motion.transport.base import Request
 from motion.transport.can_endpoint import CanEndpoint
 from motion.transport.can_transport import CanTransport
+from motion.transport.rs485_transport import Rs485Transport
 from tests.test_emulator_bus import start_cli
 
 C = CommandV3
@@ -280,7 +283,6 @@ def test_emulate_serves_v3_drives_on_an_slcan_link_in_its_own_process(tmp_path: 
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--ids", "1", "--rs485-link", "x", "--protocol", "v3"], "CAN links"),
         (["--ids", "1", "--virtual-channel", "c", "--brakes", "1"], "--brakes needs --protocol v3"),
         (["--ids", "1", "--virtual-channel", "c", "--protocol", "v3", "--brakes", "2"], "brakes [2]"),
         (["--ids", "1", "--virtual-channel", "c", "--protocol", "v4"], "invalid choice: 'v4'"),
@@ -387,3 +389,37 @@ def test_a_command_on_a_bus_of_v3_drives_says_why_it_cannot_drive_them(tmp_path:
         )
     assert result.returncode == 3, result.stderr
     assert "answer in the V3-driver protocol" in result.stderr
+
+
+def test_the_v3_rs485_parser_finds_frames_in_split_joined_and_garbage_laden_input() -> None:
+    frame_a = frames.encode_rs485_reply(MotorStateV3(C.READ_STATUS_2, 40, 1.5, 10, 3), 1)
+    frame_b = frames.encode_rs485_reply(BareV3(C.MOTOR_OFF), 2)
+    corrupt = bytearray(frame_a)
+    corrupt[6] ^= 0x10
+    parser = Rs485ParserV3()
+    parser.feed(b"\x00\x3e\x3e\x05" + frame_a[:5])
+    assert parser.next_frame() is None  # a frame in progress
+    parser.feed(frame_a[5:] + bytes(corrupt) + b"\x3e\x01\x09" + frame_b)
+    assert [parser.next_frame(), parser.next_frame(), parser.next_frame()] == [frame_a, frame_b, None]
+    assert parser.bad_data_checksums >= 1 and parser.bad_lengths >= 2 and parser.frames == 2
+    parser.feed(frame_b[:7])
+    assert parser.next_frame(flush=True) is None and parser.truncated >= 1 and parser.pending == 0
+
+
+def test_an_rs485_transport_talks_to_v3_drives_in_another_process(tmp_path: Path) -> None:
+    link = tmp_path / "rs485"
+    process = start_cli("--ids", "1,2", "--protocol", "v3", "--rs485-link", str(link))
+    try:
+        assert process.stdout is not None
+        assert process.stdout.readline().startswith(f"rs485: {link}")
+        process.stdout.readline()
+        with Rs485Transport(str(link), family=ProtocolFamily.V3) as bus:
+            batch = [Request(1, BareV3(C.READ_STATUS_2)), Request(2, MultiTurnPositionSpeed(5.0, 100.0))]
+            batch.append(Request(2, BareV3(C.READ_VERSION_DATE)))
+            replies = bus.transact(batch, time.monotonic() + 0.5)
+            assert [type(r.message) for r in replies] == [MotorStateV3, MotorStateV3, VersionDate]
+            assert bus.counters[2].replied == 2 and bus.bus_counters.bad_frames == 0
+    finally:
+        process.send_signal(signal.SIGTERM)
+        _, stderr = process.communicate(timeout=10)
+    assert "rs485: 3 requests, 3 replies, 0 protocol errors" in stderr

@@ -219,7 +219,7 @@ def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = Fal
         choices=[f.value for f in ProtocolFamily],
         default=ProtocolFamily.V2.value,
         help="the drives' protocol generation: v2 (the CAN v2.3 / RS485 v1.62 documents) or v3 (driver V3, "
-        "V4.2 document: replies on 0x240+id; CAN links and --ids only so far) (default %(default)s)",
+        "V4.2 document: replies on 0x240+id, RS485 frames with a CRC16; with --ids so far) (default %(default)s)",
     )
     parser.add_argument(
         "--brakes",
@@ -242,8 +242,8 @@ def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -
         ValueError: conflicting options, or drives or faults the emulator rejects (ConfigError is one).
     """
     family = ProtocolFamily(args.protocol)
-    if family is ProtocolFamily.V3 and (args.rs485_link or getattr(args, "config", None) is not None):
-        raise ValueError("--protocol v3 is emulated with --ids on CAN links (--slcan-link, --virtual-channel) so far")
+    if family is ProtocolFamily.V3 and getattr(args, "config", None) is not None:
+        raise ValueError("--protocol v3 is emulated with --ids so far (not with --config)")
     if args.brakes and family is not ProtocolFamily.V3:
         raise ValueError("--brakes needs --protocol v3 (the older drives have no brake commands)")
     if getattr(args, "config", None) is None:

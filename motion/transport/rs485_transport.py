@@ -35,7 +35,9 @@ import serial
 
 from motion.errors import DecodeError, EncodeError, TransportError
 from motion.protocol import MultiMotorTorque, Rs485Parser, rs485_frame
-from motion.protocol.table import Direction
+from motion.protocol.table import Direction, ProtocolFamily
+from motion.protocol.v3 import frames as frames_v3
+from motion.protocol.v3.frames import Rs485ParserV3
 from motion.transport.base import Request, Transport
 
 #: Baud rates RMD RS485 drives support (v1.62: 115200 is the factory default).
@@ -53,6 +55,8 @@ class Rs485Transport(Transport):
         clock: time source of the deadlines (see :class:`~motion.transport.base.Transport`).
         exclusive: lock the port against other processes (``flock``), so that two programs cannot share a line.
         write_timeout_s: how long a write may block before the port counts as failed.
+        family: the drives' protocol generation (``v3``: ``3E id 08 <8 bytes> CRC16`` frames,
+            :mod:`motion.protocol.v3`).
 
     Raises:
         EncodeError: the baud rate is not one RMD drives support (checked before the port is touched).
@@ -67,10 +71,11 @@ class Rs485Transport(Transport):
         clock: Callable[[], float] = time.monotonic,
         exclusive: bool = True,
         write_timeout_s: float = 0.1,
+        family: ProtocolFamily = ProtocolFamily.V2,
     ) -> None:
         if baudrate not in BAUDRATES:
             raise EncodeError("baudrate", ", ".join(map(str, BAUDRATES)), baudrate, "RMD RS485 v1.62 baud rates")
-        super().__init__(clock=clock)
+        super().__init__(clock=clock, family=family)
         self.port = port
         self.baudrate = baudrate
         try:
@@ -89,7 +94,9 @@ class Rs485Transport(Transport):
             self._fds: list[int] = [self._serial.fileno()]
         except (serial.SerialException, OSError, ValueError) as exc:
             raise TransportError(f"cannot open RS485 port {port!r} at {baudrate} baud: {exc}") from exc
-        self._parser = Rs485Parser()
+        v3 = self.family is ProtocolFamily.V3
+        self._parser: Rs485Parser | Rs485ParserV3 = Rs485ParserV3() if v3 else Rs485Parser()
+        self._encode = frames_v3.encode_rs485_request if v3 else rs485_frame.encode_request
         self._frames: list[bytes] = []
         self._motors: list[int] = []
         self._seen_candidates = 0
@@ -108,7 +115,7 @@ class Rs485Transport(Transport):
                 raise EncodeError(
                     "message", "a single-motor request (RS485 has no broadcast)", "MultiMotorTorque (CAN ID 0x280)"
                 )
-            frames.append(rs485_frame.encode_request(request.message, request.motor_id))
+            frames.append(self._encode(request.message, request.motor_id))
             motors.append(request.motor_id)
 
     def _exchange(self, deadline_s: float) -> None:
@@ -154,6 +161,9 @@ class Rs485Transport(Transport):
 
     def _take_frames(self, *, flush: bool) -> None:
         parser = self._parser
+        if isinstance(parser, Rs485ParserV3):
+            self._take_frames_v3(parser, flush=flush)
+            return
         while (frame := parser.next_frame(flush=flush)) is not None:
             try:
                 message = rs485_frame.decode_frame(frame, Direction.REPLY)
@@ -161,6 +171,21 @@ class Rs485Transport(Transport):
                 self.motor_counters(frame.motor_id).bad_frames += 1
                 continue
             self._offer(frame.motor_id, message)
+
+    def _take_frames_v3(self, parser: Rs485ParserV3, *, flush: bool) -> None:
+        while (raw := parser.next_frame(flush=flush)) is not None:
+            try:
+                motor_id, message = frames_v3.decode_rs485_reply(raw)
+            except DecodeError:
+                if raw[1] == frames_v3.RS485_BROADCAST_ID:
+                    self.bus_counters.bad_frames += 1
+                else:
+                    self.motor_counters(raw[1]).bad_frames += 1  # the parser checked the id: 1..32 here
+                continue
+            if motor_id is None:  # a 0x79 reply on 0xCD: not the control loop's
+                self.bus_counters.unknown_id_frames += 1
+                continue
+            self._offer(motor_id, message)
 
     def _corrupt_since_last_check(self) -> int:
         """Corrupt frames the parser rejected since the last call; noise without any frame candidate counts one."""

@@ -374,3 +374,85 @@ def decode_rs485_reply(raw: bytes) -> tuple[int | None, Message]:
     """
     address, payload = _rs485_split(raw)
     return (None if address == RS485_BROADCAST_ID else address), decode_payload(payload, Direction.REPLY)
+
+
+class Rs485ParserV3:
+    """Finds V3 RS485 frames (``3E id 08 DATA[0..7] crc16``, 13 bytes) in a byte stream: feed it whatever the port
+    returned, take frames out (as their 13 bytes, head to CRC, checked). Resynchronises after garbage, truncated frames
+    and bad CRCs one byte at a time, and counts what it dropped, under the names of the older family's parser
+    (:class:`motion.protocol.Rs485Parser`) so that a transport reads either alike.
+
+    Attributes:
+        dropped_bytes: bytes discarded while resynchronising.
+        bad_header_checksums: always 0 (a V3 frame has no header checksum; its CRC covers the header).
+        bad_data_checksums: candidates whose CRC failed.
+        bad_lengths: candidates whose length byte is not 8 or whose id is neither 1..32 nor 0xCD.
+        truncated: incomplete candidates given up on by ``next_frame(flush=True)``.
+        frames: valid frames returned.
+    """
+
+    def __init__(self) -> None:
+        self._buffer = bytearray()
+        self.dropped_bytes = 0
+        self.bad_header_checksums = 0
+        self.bad_data_checksums = 0
+        self.bad_lengths = 0
+        self.truncated = 0
+        self.frames = 0
+
+    @property
+    def pending(self) -> int:
+        """Bytes buffered and not yet returned or dropped (a frame in progress)."""
+        return len(self._buffer)
+
+    def feed(self, chunk: bytes | bytearray) -> None:
+        """Append received bytes."""
+        self._buffer += chunk
+
+    def discard(self) -> int:
+        """Drop everything buffered; returns the count."""
+        n = len(self._buffer)
+        self.dropped_bytes += n
+        self._buffer.clear()
+        return n
+
+    def _drop(self, n: int) -> None:
+        del self._buffer[:n]
+        self.dropped_bytes += n
+
+    def next_frame(self, *, flush: bool = False) -> bytes | None:
+        """The next valid frame's bytes, or None if the buffer holds no complete one yet.
+
+        Args:
+            flush: no more bytes are coming for now: an incomplete candidate is truncated, its first byte dropped.
+        """
+        buf = self._buffer
+        while True:
+            start = buf.find(RS485_HEAD)
+            if start < 0:
+                self._drop(len(buf))
+                return None
+            if start:
+                self._drop(start)
+            if len(buf) >= 3 and (
+                buf[2] != CAN_PAYLOAD_BYTES
+                or not (buf[1] == RS485_BROADCAST_ID or MOTOR_ID_MIN <= buf[1] <= MOTOR_ID_MAX)
+            ):
+                self.bad_lengths += 1
+                self._drop(1)
+                continue
+            if len(buf) < RS485_FRAME_BYTES:
+                if not flush or not buf:
+                    return None
+                self.truncated += 1
+                self._drop(1)
+                continue
+            body = buf[: RS485_FRAME_BYTES - 2]
+            if crc16(body) != int.from_bytes(buf[RS485_FRAME_BYTES - 2 : RS485_FRAME_BYTES], "little"):
+                self.bad_data_checksums += 1
+                self._drop(1)
+                continue
+            frame = bytes(buf[:RS485_FRAME_BYTES])
+            del buf[:RS485_FRAME_BYTES]
+            self.frames += 1
+            return frame
