@@ -170,18 +170,15 @@ def decode_reply(raw: bytes) -> tuple[int, Message]:
     return frame.motor_id, decode_frame(frame, Direction.REPLY)
 
 
-class Rs485Parser:
-    """Incremental frame parser for a byte stream; never raises on input.
-
-    ``feed(chunk)`` appends bytes; ``next_frame()`` returns the next checksum-valid :class:`Rs485Frame` or None
-    when more bytes are needed. Bytes that cannot start a valid frame are dropped one at a time, so a frame that
-    follows garbage, a truncated frame or a corrupted frame is still found.
+class StreamBuffer:
+    """The buffer and the counters of an incremental frame parser (this family's :class:`Rs485Parser` and the V3
+    family's): what the parsers share; each finds its own frames in ``_buffer``.
 
     Attributes:
         dropped_bytes: bytes discarded while resynchronising.
         bad_header_checksums: candidate headers whose checksum failed.
         bad_data_checksums: candidate frames whose data checksum failed.
-        bad_lengths: candidate headers with a data length above 60 or a motor id outside 1..32.
+        bad_lengths: candidates with an impossible length or motor id.
         truncated: incomplete candidates given up on by ``next_frame(flush=True)``.
         frames: valid frames returned.
     """
@@ -214,6 +211,23 @@ class Rs485Parser:
     def _drop(self, n: int) -> None:
         del self._buffer[:n]
         self.dropped_bytes += n
+
+
+class Rs485Parser(StreamBuffer):
+    """Incremental frame parser for a byte stream; never raises on input.
+
+    ``feed(chunk)`` appends bytes; ``next_frame()`` returns the next checksum-valid :class:`Rs485Frame` or None
+    when more bytes are needed. Bytes that cannot start a valid frame are dropped one at a time, so a frame that
+    follows garbage, a truncated frame or a corrupted frame is still found.
+
+    Attributes:
+        dropped_bytes: bytes discarded while resynchronising.
+        bad_header_checksums: candidate headers whose checksum failed.
+        bad_data_checksums: candidate frames whose data checksum failed.
+        bad_lengths: candidate headers with a data length above 60 or a motor id outside 1..32.
+        truncated: incomplete candidates given up on by ``next_frame(flush=True)``.
+        frames: valid frames returned.
+    """
 
     def next_frame(self, *, flush: bool = False) -> Rs485Frame | None:
         """Return the next valid frame, or None if the buffer holds no complete one yet.

@@ -22,6 +22,7 @@ from motion.errors import DecodeError, EncodeError
 from motion.protocol.can_frame import CanFrame
 from motion.protocol.compiled import FALLBACK_ERRORS, build_codec
 from motion.protocol.messages import Message
+from motion.protocol.rs485_frame import StreamBuffer
 from motion.protocol.table import (
     CAN_PAYLOAD_BYTES,
     MOTOR_ID_MAX,
@@ -376,7 +377,7 @@ def decode_rs485_reply(raw: bytes) -> tuple[int | None, Message]:
     return (None if address == RS485_BROADCAST_ID else address), decode_payload(payload, Direction.REPLY)
 
 
-class Rs485ParserV3:
+class Rs485ParserV3(StreamBuffer):
     """Finds V3 RS485 frames (``3E id 08 DATA[0..7] crc16``, 13 bytes) in a byte stream: feed it whatever the port
     returned, take frames out (as their 13 bytes, head to CRC, checked). Resynchronises after garbage, truncated frames
     and bad CRCs one byte at a time, and counts what it dropped, under the names of the older family's parser
@@ -390,35 +391,6 @@ class Rs485ParserV3:
         truncated: incomplete candidates given up on by ``next_frame(flush=True)``.
         frames: valid frames returned.
     """
-
-    def __init__(self) -> None:
-        self._buffer = bytearray()
-        self.dropped_bytes = 0
-        self.bad_header_checksums = 0
-        self.bad_data_checksums = 0
-        self.bad_lengths = 0
-        self.truncated = 0
-        self.frames = 0
-
-    @property
-    def pending(self) -> int:
-        """Bytes buffered and not yet returned or dropped (a frame in progress)."""
-        return len(self._buffer)
-
-    def feed(self, chunk: bytes | bytearray) -> None:
-        """Append received bytes."""
-        self._buffer += chunk
-
-    def discard(self) -> int:
-        """Drop everything buffered; returns the count."""
-        n = len(self._buffer)
-        self.dropped_bytes += n
-        self._buffer.clear()
-        return n
-
-    def _drop(self, n: int) -> None:
-        del self._buffer[:n]
-        self.dropped_bytes += n
 
     def next_frame(self, *, flush: bool = False) -> bytes | None:
         """The next valid frame's bytes, or None if the buffer holds no complete one yet.
