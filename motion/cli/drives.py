@@ -8,7 +8,7 @@ releases the torque: an arm under gravity falls unless it has brakes).
 from __future__ import annotations
 
 import argparse
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
@@ -57,6 +57,8 @@ from motion.protocol.table import (
 )
 from motion.protocol.v3.messages import BareV3, CommandV3, MotorModel, Status1V3, VersionDate
 from motion.transport import Request, Transport
+from motion.transport.can_transport import CanPort, CanTransport
+from motion.transport.detect import detect_can
 
 if TYPE_CHECKING:
     from motion.api import Arm
@@ -120,19 +122,18 @@ def _model_text(info: ProductInfo | None) -> str:
 _V3_SCAN_READS: Final = (CommandV3.READ_STATUS_1, CommandV3.READ_VERSION_DATE, CommandV3.READ_MODEL)
 
 
-def _scan_v3(bus: Transport, ids: Sequence[int]) -> tuple[dict[int, Status1V3], dict[int, str]]:
-    """Status, firmware date and model of V3 drives (the bus speaks their generation for the exchange)."""
-    previous, bus.family = bus.family, ProtocolFamily.V3
-    try:
-        requests = [Request(i, BareV3(c)) for i in ids for c in _V3_SCAN_READS]
-        replies = bus.transact(requests, bus.clock() + SCAN_CAN_S)
-    finally:
-        bus.family = previous
+def _scan_v3(
+    port: CanPort, clock: Callable[[], float], ids: Sequence[int]
+) -> tuple[dict[int, Status1V3], dict[int, str]]:
+    """Status, firmware date and model of V3 drives, through a second transport on the same port that speaks their
+    generation."""
+    requests = [Request(i, BareV3(c)) for i in ids for c in _V3_SCAN_READS]
+    with CanTransport.over(port, clock=clock, family=ProtocolFamily.V3, owns_port=False) as bus:
+        replies = bus.transact(requests, clock() + SCAN_CAN_S)
     status = {r.motor_id: r.message for r in replies if isinstance(r.message, Status1V3)}
     dates = {r.motor_id: r.message.date for r in replies if isinstance(r.message, VersionDate)}
     models = {r.motor_id: r.message.model for r in replies if isinstance(r.message, MotorModel)}
-    text = {i: f"{models.get(i, '?')} firmware {dates.get(i, '?')}" for i in status}
-    return status, text
+    return status, {i: f"{models.get(i, '?')} firmware {dates.get(i, '?')}" for i in status}
 
 
 def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
@@ -145,14 +146,12 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
     v3_models: dict[int, str] = {}
     with session.open_bus(check=False) as bus:
         # A real CAN bus: the reply ids tell the generations apart (a simulated bus knows its drives' generation).
-        from motion.transport.can_transport import CanTransport  # noqa: PLC0415 - python-can only for CAN
-        from motion.transport.detect import detect_can  # noqa: PLC0415
-
-        generations = detect_can(bus.port, ids, SCAN_CAN_S) if isinstance(bus, CanTransport) else {}
-        v3_ids = sorted(i for i, f in generations.items() if f is ProtocolFamily.V3)
-        if v3_ids:
-            v3_status, v3_models = _scan_v3(bus, v3_ids)
-        older = [i for i in ids if i not in v3_ids]
+        if isinstance(bus, CanTransport):
+            generations = detect_can(bus.port, ids, SCAN_CAN_S)
+            v3_ids = sorted(i for i, f in generations.items() if f is ProtocolFamily.V3)
+            if v3_ids:
+                v3_status, v3_models = _scan_v3(bus.port, bus.clock, v3_ids)
+        older = [i for i in ids if i not in v3_status]
         window = SCAN_RS485_PER_ID_S * len(older) if rs485 else SCAN_CAN_S
         replies = bus.transact([Request(i, Bare(Command.READ_STATUS_1)) for i in older], bus.clock() + window)
         found = {r.motor_id: r.message for r in replies if isinstance(r.message, Status1)}
@@ -161,38 +160,36 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
             requests = [Request(i, Bare(Command.READ_MODEL)) for i in sorted(found)]
             replies = bus.transact(requests, bus.clock() + SCAN_RS485_PER_ID_S * len(requests))
             models = {r.motor_id: r.message for r in replies if isinstance(r.message, ProductInfo)}
-        where = bus.describe()
+        where, family = bus.describe(), bus.family
     names = session.names
     answered: dict[int, Status1 | Status1V3] = {**found, **v3_status}
-    drives = [
-        {
-            "motor_id": motor_id,
-            "joint": names.get(motor_id),
-            "protocol": (ProtocolFamily.V3 if motor_id in v3_status else bus.family).value,
-            "voltage_v": status.voltage_v,
-            "temperature_c": status.temperature_c,
-            "errors": flag_names(status.errors),
-            "model": asdict(models[motor_id]) if motor_id in models else v3_models.get(motor_id),
-        }
-        for motor_id, status in sorted(answered.items())
-    ]
+    drives: list[dict[str, object]] = []
+    rows: list[tuple[object, ...]] = []
+    for motor_id, status in sorted(answered.items()):
+        protocol = (ProtocolFamily.V3 if motor_id in v3_status else family).value
+        flags = flag_names(status.errors)
+        model = asdict(models[motor_id]) if motor_id in models else v3_models.get(motor_id)
+        drives.append(
+            {
+                "motor_id": motor_id,
+                "joint": names.get(motor_id),
+                "protocol": protocol,
+                "voltage_v": status.voltage_v,
+                "temperature_c": status.temperature_c,
+                "errors": flags,
+                "model": model,
+            }
+        )
+        model_text = v3_models.get(motor_id) or _model_text(models.get(motor_id))
+        rows.append(
+            (motor_id, names.get(motor_id, "-"), protocol, f"{status.voltage_v:.1f} V", f"{status.temperature_c} °C",
+             ",".join(flags) or "ok", model_text)
+        )  # fmt: skip
     missing = [_label(j) for j in session.config.joints if j.motor_id not in answered]
     if args.json:
         print_json({"bus": where, "drives": drives, "missing": missing})
     else:
         print(f"{where}: {len(drives)} of {len(ids)} ids answered")
-        rows = [
-            (
-                d["motor_id"],
-                d["joint"] or "-",
-                d["protocol"],
-                f"{d['voltage_v']:.1f} V",
-                f"{d['temperature_c']} °C",
-                ",".join(d["errors"]) or "ok",  # type: ignore[arg-type]
-                v3_models.get(motor_id) or _model_text(models.get(motor_id)),
-            )
-            for d, motor_id in zip(drives, sorted(answered), strict=True)
-        ]
         print_table(("id", "joint", "protocol", "voltage", "temp", "flags", "model"), rows)
     if v3_status:
         warn(

@@ -414,12 +414,7 @@ class EmulatedDrive:
         elif command is Command.MOTOR_OFF:
             self._turn_off()
         elif command is Command.MOTOR_STOP:
-            if self.state is RunState.RUNNING:
-                self.state = RunState.STOPPED
-                self._hold_deg = None
-                if self.setpoint is not None and self.setpoint.mode not in (DriveLoop.SPEED, DriveLoop.POSITION):
-                    self._speed_ref = self._speed_dps
-                    self._speed_integral = _clamp(self.iq_a, self.model.current_limit_a)
+            self._stop()
         elif command is Command.MOTOR_RUN:
             if self.state is RunState.STOPPED and self.setpoint is not None:
                 self.state = RunState.RUNNING
@@ -427,6 +422,15 @@ class EmulatedDrive:
             setpoint = self._setpoint_of(command, message)
             if setpoint is not None:
                 self._run(setpoint)
+
+    def _stop(self) -> None:
+        """0x81: a running drive brakes to a standstill and holds there, its closed loop kept."""
+        if self.state is RunState.RUNNING:
+            self.state = RunState.STOPPED
+            self._hold_deg = None
+            if self.setpoint is not None and self.setpoint.mode not in (DriveLoop.SPEED, DriveLoop.POSITION):
+                self._speed_ref = self._speed_dps
+                self._speed_integral = _clamp(self.iq_a, self.model.current_limit_a)
 
     def _setpoint_of(self, command: Command, message: Message) -> Setpoint | None:
         """The setpoint of a control command, targets converted to shaft angles; None for other requests."""

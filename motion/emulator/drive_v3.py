@@ -293,9 +293,7 @@ class EmulatedDriveV3(EmulatedDrive):
         elif command is CommandV3.MOTOR_OFF:
             self._turn_off()
         elif command is CommandV3.MOTOR_STOP:
-            if self.state is RunState.RUNNING:
-                self.state = RunState.STOPPED
-                self._hold_deg = None
+            self._stop()
         else:
             setpoint = self._setpoint_v3(message)
             if setpoint is not None:

@@ -14,7 +14,7 @@ from typing import Final
 
 from motion.errors import DecodeError
 from motion.protocol.compiled import CODECS, FALLBACK_ERRORS, MULTI_TORQUE_DECODE, Encoder, frozen_builder
-from motion.protocol.messages import Command, Message, MultiMotorTorque
+from motion.protocol.messages import Message, MultiMotorTorque
 from motion.protocol.table import (
     CAN_ID_BASE,
     CAN_MULTI_TORQUE_ID,
@@ -29,6 +29,7 @@ from motion.protocol.table import (
     command_of,
     layout_for,
     pack_fields,
+    spec_and_layout,
     unpack_fields,
 )
 
@@ -140,11 +141,10 @@ def _decode(data: bytes, direction: Direction) -> Message:
 
 
 def _decode_checked(data: bytes, direction: Direction) -> Message:
-    code = data[0]
-    spec = COMMANDS.get(Command(code)) if code in Command._value2member_map_ else None
-    layout = spec.layout(WireProtocol.CAN, direction) if spec is not None else None
-    if spec is None or layout is None:
-        raise DecodeError(f"0x{code:02X} is not a CAN v2.3 {direction.value} command", data)
+    found = spec_and_layout(COMMANDS, data[0], WireProtocol.CAN, direction)
+    if found is None:
+        raise DecodeError(f"0x{data[0]:02X} is not a CAN v2.3 {direction.value} command", data)
+    spec, layout = found
     return unpack_fields(layout, data, spec.code, first=1, check_reserved=direction is Direction.REQUEST)
 
 

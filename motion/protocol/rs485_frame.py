@@ -13,7 +13,7 @@ from typing import Final
 
 from motion.errors import DecodeError
 from motion.protocol.compiled import CODECS, FALLBACK_ERRORS
-from motion.protocol.messages import Command, Message
+from motion.protocol.messages import Message
 from motion.protocol.table import (
     COMMANDS,
     MOTOR_ID_MAX,
@@ -25,6 +25,7 @@ from motion.protocol.table import (
     command_of,
     layout_for,
     pack_fields,
+    spec_and_layout,
     unpack_fields,
 )
 
@@ -135,10 +136,10 @@ def decode_frame(frame: Rs485Frame, direction: Direction) -> Message:
         message = compiled.decode(frame.data)
         if message is not None:
             return message
-    spec = COMMANDS.get(Command(code)) if code in Command._value2member_map_ else None
-    layout = spec.layout(WireProtocol.RS485, direction) if spec is not None else None
-    if spec is None or layout is None:
+    found = spec_and_layout(COMMANDS, code, WireProtocol.RS485, direction)
+    if found is None:
         raise DecodeError(f"0x{code:02X} is not an RS485 v1.62 {direction.value} command", frame.to_bytes())
+    spec, layout = found
     if len(frame.data) != layout.length:
         raise DecodeError(
             f"0x{code:02X} {direction.value} carries {layout.length} data bytes, got {len(frame.data)}",

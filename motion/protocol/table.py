@@ -535,6 +535,17 @@ def command_of(message: Message) -> Command | None:
     return command
 
 
+def spec_and_layout(
+    commands: Mapping[Any, CommandSpec], code: int, transport: WireProtocol, direction: Direction
+) -> tuple[CommandSpec, Layout] | None:
+    """What a command byte is in a family's table (:data:`COMMANDS`, or the V3 family's) on ``transport`` in
+    ``direction``: its spec and layout, or None when the family has no such frame. (The tables are keyed by IntEnum
+    members, which a plain int finds.)"""
+    spec = commands.get(code)
+    layout = spec.layout(transport, direction) if spec is not None else None
+    return None if spec is None or layout is None else (spec, layout)
+
+
 def check_motor_id(motor_id: int) -> int:
     """Return ``motor_id`` if it is a valid drive id (1..32).
 

@@ -37,7 +37,7 @@ def take_in_can_frame(transport: Transport, frame: CanFrame) -> None:
     arbitration_id = frame.arbitration_id
     if transport.frame_tap is not None:
         transport.frame_tap(transport.clock(), True, arbitration_id, frame.data)
-    if transport.family is not ProtocolFamily.V2:
+    if transport.family is not _OLDER_FAMILY:
         _take_in_v3(transport, frame)
         return
     motor_id = arbitration_id - CAN_ID_BASE
@@ -77,6 +77,7 @@ def _take_in_v3(transport: Transport, frame: CanFrame) -> None:
 # Looked up once, not for every frame.
 _decode_reply: Final = can_frame.decode_reply
 _REPLY_DECODERS: Final = CODECS[WireProtocol.CAN, Direction.REPLY].decoders
+_OLDER_FAMILY: Final = ProtocolFamily.V2
 _FIRST_MOTOR_ID: Final = MOTOR_ID_MIN
 _LAST_MOTOR_ID: Final = MOTOR_ID_MAX
 
@@ -138,15 +139,20 @@ class CanTransport(Transport):
         *,
         clock: Callable[[], float] = time.monotonic,
         family: ProtocolFamily = ProtocolFamily.V2,
+        owns_port: bool = True,
     ) -> CanTransport:
-        """The transport over ``port``, already open (closing the transport closes it)."""
+        """The transport over ``port``, already open: closing the transport closes it, unless ``owns_port`` is False
+        (a second transport on the same bus, e.g. speaking the other generation to some of its drives)."""
         transport = cls.__new__(cls)
-        transport._adopt(port, clock, family)
+        transport._adopt(port, clock, family, owns_port=owns_port)
         return transport
 
-    def _adopt(self, port: CanPort, clock: Callable[[], float], family: ProtocolFamily) -> None:
+    def _adopt(
+        self, port: CanPort, clock: Callable[[], float], family: ProtocolFamily, *, owns_port: bool = True
+    ) -> None:
         super().__init__(clock=clock, family=family)
         self._endpoint: CanPort = port
+        self._owns_port = owns_port
         self._frames: list[CanFrame] = []
 
     @property
@@ -194,4 +200,5 @@ class CanTransport(Transport):
                 take_in(self, received[0])
 
     def _close(self) -> None:
-        self._endpoint.close()
+        if self._owns_port:
+            self._endpoint.close()

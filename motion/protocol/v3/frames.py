@@ -32,9 +32,10 @@ from motion.protocol.table import (
     WireProtocol,
     check_motor_id,
     pack_fields,
+    spec_and_layout,
     unpack_fields,
 )
-from motion.protocol.v3.messages import CanIdCommand, CanIdReply, CommandV3, MotionCommand, MotionState
+from motion.protocol.v3.messages import CanIdCommand, CanIdReply, MotionCommand, MotionState
 from motion.protocol.v3.table import COMMANDS_V3, RS485_COMMANDS
 
 #: Single-motor requests go on ``CAN_REQUEST_BASE + id``.
@@ -63,8 +64,8 @@ _CODECS = {d: build_codec(WireProtocol.CAN, d, COMMANDS_V3) for d in Direction}
 
 def _layout(message: Message, direction: Direction) -> Layout:
     code: object = getattr(message, "command", None)
-    spec = COMMANDS_V3.get(CommandV3(code)) if isinstance(code, int) and code in CommandV3._value2member_map_ else None
-    layout = spec.layout(WireProtocol.CAN, direction) if spec is not None else None
+    found = spec_and_layout(COMMANDS_V3, code, WireProtocol.CAN, direction) if isinstance(code, int) else None
+    layout = found[1] if found is not None else None
     if layout is None or type(message) is not layout.cls:
         what = f"0x{int(code):02X}" if isinstance(code, int) else type(message).__name__
         raise EncodeError("message", f"a {direction.value} of the V3 family's commands", what)
@@ -105,11 +106,10 @@ def decode_payload(data: bytes, direction: Direction) -> Message:
     message = decoder(data) if decoder is not None else None
     if message is not None:
         return message
-    code = data[0]
-    spec = COMMANDS_V3.get(CommandV3(code)) if code in CommandV3._value2member_map_ else None
-    layout = spec.layout(WireProtocol.CAN, direction) if spec is not None else None
-    if spec is None or layout is None:
-        raise DecodeError(f"0x{code:02X} is not a V3 {direction.value} command", data)
+    found = spec_and_layout(COMMANDS_V3, data[0], WireProtocol.CAN, direction)
+    if found is None:
+        raise DecodeError(f"0x{data[0]:02X} is not a V3 {direction.value} command", data)
+    spec, layout = found
     return unpack_fields(layout, data, spec.code, first=1, check_reserved=direction is Direction.REQUEST)
 
 
@@ -239,7 +239,9 @@ def encode_can_reply(message: Message, motor_id: int) -> CanFrame:
     """
     check_motor_id(motor_id)
     if isinstance(message, MotionState):
-        return CanFrame(MOTION_REPLY_BASE + message.motor_id, encode_motion_state(message))
+        if message.motor_id != motor_id:
+            raise EncodeError("motor_id", f"{motor_id} (the drive that replies)", message.motor_id)
+        return CanFrame(MOTION_REPLY_BASE + motor_id, encode_motion_state(message))
     data = encode_payload(message, Direction.REPLY)
     return CanFrame(CAN_ID_SETTING_ID if isinstance(message, CanIdReply) else CAN_REPLY_BASE + motor_id, data)
 
@@ -340,18 +342,30 @@ def encode_rs485_reply(message: Message, motor_id: int) -> bytes:
     return _rs485_frame(RS485_BROADCAST_ID if isinstance(message, CanIdReply) else check_motor_id(motor_id), payload)
 
 
+def _header_ok(head: bytes | bytearray) -> bool:
+    """Whether the first 3 bytes are ``3E id 08`` with an id 1..32 or 0xCD."""
+    address = head[1]
+    return (
+        head[0] == RS485_HEAD
+        and head[2] == CAN_PAYLOAD_BYTES
+        and (address == RS485_BROADCAST_ID or MOTOR_ID_MIN <= address <= MOTOR_ID_MAX)
+    )
+
+
+def _crc_ok(frame: bytes | bytearray) -> bool:
+    """Whether a 13-byte frame's CRC (low byte first) matches its other bytes."""
+    return crc16(frame[:-2]) == int.from_bytes(frame[-2:], "little")
+
+
 def _rs485_split(raw: bytes) -> tuple[int, bytes]:
     raw = bytes(raw)
     if len(raw) != RS485_FRAME_BYTES:
         raise DecodeError(f"a V3 RS485 frame is {RS485_FRAME_BYTES} bytes, got {len(raw)}", raw)
-    if raw[0] != RS485_HEAD or raw[2] != CAN_PAYLOAD_BYTES:
-        raise DecodeError(f"expected 3E <id> 08 at the start, got {raw[:3].hex(' ')}", raw)
-    if crc16(raw[:-2]) != int.from_bytes(raw[-2:], "little"):
+    if not _header_ok(raw):
+        raise DecodeError(f"expected 3E <id 1..32 or CD> 08 at the start, got {raw[:3].hex(' ')}", raw)
+    if not _crc_ok(raw):
         raise DecodeError(f"CRC16 0x{int.from_bytes(raw[-2:], 'little'):04X} != 0x{crc16(raw[:-2]):04X}", raw)
-    address = raw[1]
-    if address != RS485_BROADCAST_ID and not MOTOR_ID_MIN <= address <= MOTOR_ID_MAX:
-        raise DecodeError(f"id {address} is neither {MOTOR_ID_MIN}..{MOTOR_ID_MAX} nor 0xCD", raw)
-    return address, raw[3:-2]
+    return raw[1], raw[3:-2]
 
 
 def decode_rs485_request(raw: bytes) -> tuple[int | None, Message]:
@@ -406,10 +420,7 @@ class Rs485ParserV3(StreamBuffer):
                 return None
             if start:
                 self._drop(start)
-            if len(buf) >= 3 and (
-                buf[2] != CAN_PAYLOAD_BYTES
-                or not (buf[1] == RS485_BROADCAST_ID or MOTOR_ID_MIN <= buf[1] <= MOTOR_ID_MAX)
-            ):
+            if len(buf) >= 3 and not _header_ok(buf):
                 self.bad_lengths += 1
                 self._drop(1)
                 continue
@@ -419,8 +430,7 @@ class Rs485ParserV3(StreamBuffer):
                 self.truncated += 1
                 self._drop(1)
                 continue
-            body = buf[: RS485_FRAME_BYTES - 2]
-            if crc16(body) != int.from_bytes(buf[RS485_FRAME_BYTES - 2 : RS485_FRAME_BYTES], "little"):
+            if not _crc_ok(buf[:RS485_FRAME_BYTES]):
                 self.bad_data_checksums += 1
                 self._drop(1)
                 continue
