@@ -13,10 +13,15 @@ from kinematics.plant import ArmPlant
 from motion.compose import emulator_for
 from motion.config import ArmConfig
 from motion.emulator import Emulator, Fault
+from motion.protocol.table import ProtocolFamily
 
 
 def arm_emulator(
-    config: ArmConfig, *, initial_deg: Sequence[float] | None = None, faults: Iterable[Fault] = ()
+    config: ArmConfig,
+    *,
+    initial_deg: Sequence[float] | None = None,
+    faults: Iterable[Fault] = (),
+    family: ProtocolFamily = ProtocolFamily.V2,
 ) -> tuple[Emulator, ArmPlant]:
     """Emulated drives of ``config`` coupled through the arm's rigid-body dynamics (forward dynamics with gravity).
 
@@ -27,6 +32,7 @@ def arm_emulator(
         config: the arm.
         initial_deg: joint angles at start, degrees, configuration order (default all zero).
         faults: faults to schedule on the emulated drives.
+        family: the drives' protocol generation.
 
     Returns:
         The emulator (attach it to a bus) and its plant (to read the true joint angles).
@@ -35,4 +41,4 @@ def arm_emulator(
     plant = ArmPlant(build_arm(config), config, start)
     inertia = np.diag(mass_matrix(build_arm(config), start)) * (180.0 / math.pi)  # kg·m² per joint
     loads = {name: float(inertia[i]) for i, name in enumerate(config.joint_names)}
-    return emulator_for(config, plant=plant, load_inertia_kgm2=loads, faults=faults), plant
+    return emulator_for(config, plant=plant, load_inertia_kgm2=loads, faults=faults, family=family), plant

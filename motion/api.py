@@ -37,12 +37,12 @@ from motion.compose import (
     arm_figure,
     build_controller,
     build_supervisor,
-    check_generation,
     check_rate,
     emulated_frames,
     feedforward_for,
     identify_position_loops,
     load_turn_records,
+    negotiate_family,
     offer_stored_tracking,
     open_bus,
     rehearsal_watchdog,
@@ -52,7 +52,7 @@ from motion.compose import (
     turns_store,
 )
 from motion.config import ArmConfig, load_config_or_example
-from motion.config.schema import CanBusConfig, ControlMode
+from motion.config.schema import CanBusConfig, ControlMode, ProtocolSetting
 from motion.control.clock import Clock
 from motion.control.controller import Controller
 from motion.control.ratecheck import RateCheck, measure_rate
@@ -65,6 +65,7 @@ from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedCl
 from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
 from motion.homing import HomingResult, corrected_turns, homed_joints, homing_variant, seek_stop
 from motion.protocol import WireProtocol
+from motion.protocol.table import ProtocolFamily
 from motion.safety import ArmState, Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
 from motion.transmission import FloatArray
@@ -92,6 +93,28 @@ def _end_process(process: subprocess.Popen[str]) -> None:
         process.communicate()
 
 
+def emulated_family(config: ArmConfig, protocol: ProtocolFamily | str | None) -> ProtocolFamily:
+    """The generation emulated drives speak: ``protocol``, else v3 where ``bus.protocol`` says v3, else v2.
+
+    Raises:
+        ConfigError: an unknown generation, or one that contradicts ``bus.protocol``.
+    """
+    setting = config.bus.protocol
+    if protocol is None:
+        return ProtocolFamily.V3 if setting is ProtocolSetting.V3 else ProtocolFamily.V2
+    try:
+        family = ProtocolFamily(protocol)
+    except ValueError:
+        raise ConfigError(config.source, "<emulated_protocol>", f"{protocol!r} is not one of v2, v3") from None
+    if setting is not ProtocolSetting.AUTO and setting.value != family.value:
+        raise ConfigError(
+            config.source,
+            "<emulated_protocol>",
+            f"bus.protocol is {setting.value}: the emulated drives cannot speak {family.value} (use auto)",
+        )
+    return family
+
+
 @contextmanager
 def emulator_process(
     config: ArmConfig,
@@ -100,9 +123,11 @@ def emulator_process(
     latency_ms: float | None = None,
     faults: Sequence[Fault] = (),
     start_pose: Mapping[str, float] | None = None,
+    protocol: ProtocolFamily = ProtocolFamily.V2,
 ) -> Iterator[dict[str, object]]:
     """The drives of ``config``'s file, emulated in real time in a process of their own (``rmd-motion emulate``) on
-    a slcan (CAN) or RS485 pseudo-terminal; yields the bus overrides that reach them. Ended on exit.
+    a slcan (CAN) or RS485 pseudo-terminal, speaking ``protocol``; yields the bus overrides that reach them. Ended on
+    exit.
 
     Raises:
         MotionError: the configuration was not read from a file.
@@ -115,7 +140,7 @@ def emulator_process(
     link = folder / "link"
     can = isinstance(config.bus, CanBusConfig)
     command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(source)]
-    command += ["--slcan-link" if can else "--rs485-link", str(link)]
+    command += ["--slcan-link" if can else "--rs485-link", str(link), "--protocol", protocol.value]
     if log is not None:
         command += ["--log", os.fspath(log)]
     if latency_ms is not None:
@@ -298,12 +323,15 @@ class Arm:
         home: Sequence[str] = (),
         start_pose: Mapping[str, float] | None = None,
         view: bool | ViewOptions = False,
+        emulated_protocol: ProtocolFamily | str | None = None,
     ) -> None:
         self.config = config
         self._view_options = ViewOptions() if view is True else (view or None)
         #: The live page while connected with ``view=`` (see :mod:`motion.view`; ``view.url`` says where).
         self.view: LiveView | None = None
         self._start_pose = self._check_start_pose(config, start_pose, emulate, initial_deg)
+        #: The emulated drives' protocol generation (the controller tells it at connect as with real drives).
+        self.emulated_family = emulated_family(config, emulated_protocol)
         self._forget_turns = forget_turns
         self._home = tuple(home)
         if self._home:
@@ -408,7 +436,7 @@ class Arm:
                 if self.emulation == "realtime":
                     self._start_emulator_process()
                 self.bus = self._stack.enter_context(open_bus(self.config, **self._overrides))
-                check_generation(self.bus, self.config)
+            self.bus = self._negotiate(self.bus)
             self._clock = clock
             if self.telemetry is not None:
                 self.telemetry.tap(self.bus)
@@ -430,6 +458,13 @@ class Arm:
             self._stack.close()
             raise
         return self
+
+    def _negotiate(self, bus: Transport) -> Transport:
+        """The bus in the drives' protocol generation (:func:`motion.compose.negotiate_family`)."""
+        spoken = negotiate_family(bus, self.config)
+        if spoken is not bus:
+            self._stack.enter_context(spoken)
+        return spoken
 
     def _open_view(self, options: ViewOptions) -> None:
         controller = self.controller
@@ -552,7 +587,9 @@ class Arm:
         from kinematics.emulation import arm_emulator  # noqa: PLC0415 - as above
 
         initial = self._start_pose if self._start_pose is not None else self._initial
-        self.emulator, self.plant = arm_emulator(self.config, initial_deg=initial, faults=self._faults)
+        self.emulator, self.plant = arm_emulator(
+            self.config, initial_deg=initial, faults=self._faults, family=self.emulated_family
+        )
         if self._start_pose is not None:
             self.emulator.power_cycle()  # powered up there: each drive counts its turns from this pose
         bus_config = self.config.bus
@@ -564,14 +601,22 @@ class Arm:
             self.frame_log = self._stack.enter_context(FrameLog(self._emulator_log, clock=simulation.now))
             simulation.frame_log = self.frame_log
         self.simulation = simulation
-        return SimulatedBus(simulation), SimulatedClock(simulation)
+        # the bus opens in the configured generation (auto: the older) and is told the drives' at connect
+        opened = ProtocolFamily.V3 if self.config.bus.protocol is ProtocolSetting.V3 else ProtocolFamily.V2
+        return SimulatedBus(simulation, opened), SimulatedClock(simulation)
 
     def _start_emulator_process(self) -> None:
         if self._initial is not None:
             raise MotionError("initial_deg applies to simulated emulation only (emulate=True)")
         pose = None if self._start_pose is None else dict(zip(self.config.joint_names, self._start_pose, strict=True))
         self._overrides = self._stack.enter_context(
-            emulator_process(self.config, log=self._emulator_log, faults=self._faults, start_pose=pose)
+            emulator_process(
+                self.config,
+                log=self._emulator_log,
+                faults=self._faults,
+                start_pose=pose,
+                protocol=self.emulated_family,
+            )
         )
 
     def close(self) -> None:

@@ -26,6 +26,8 @@ from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, HaltPolic
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
+from motion.control.drivesetup import DriveSetup, link_timeout_ms
+from motion.control.family import FAMILIES
 from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
 from motion.control.tracking import MoveRecord, PositionLoop, PositionLoopFit, fit_position_loop
 from motion.control.turns import (
@@ -74,9 +76,21 @@ def joint_limits(config: ArmConfig) -> JointLimits:
     )
 
 
-def axis_specs(config: ArmConfig) -> tuple[AxisSpec, ...]:
-    """The controller's view of every joint."""
-    return tuple(AxisSpec(j.name, j.motor_id, j.encoder_bits, j.kp_nm_per_deg, j.kd_nm_per_dps) for j in config.joints)
+def axis_specs(config: ArmConfig, family: ProtocolFamily = ProtocolFamily.V2) -> tuple[AxisSpec, ...]:
+    """The controller's view of every joint, for drives of ``family``: a drive that reports its output shaft (V3)
+    has the joint's whole reduction inside (the actuator's output is the joint; :mod:`motion.control.family`)."""
+    output_shaft = FAMILIES[family].output_shaft
+    return tuple(
+        AxisSpec(
+            j.name,
+            j.motor_id,
+            j.encoder_bits,
+            j.kp_nm_per_deg,
+            j.kd_nm_per_dps,
+            drive_gear_ratio=j.gear_ratio if output_shaft else 1.0,
+        )
+        for j in config.joints
+    )
 
 
 def wire_protocol(config: ArmConfig) -> WireProtocol:
@@ -90,54 +104,56 @@ def controller_options(config: ArmConfig) -> ControllerOptions:
 
 
 def open_bus(config: ArmConfig, **overrides: object) -> Transport:
-    """Open the configured bus; ``overrides`` replace configured values (e.g. ``channel=`` of an emulator).
+    """Open the configured bus, speaking the configured protocol generation (``auto``: the older one until
+    :func:`negotiate_family`); ``overrides`` replace configured values (e.g. ``channel=`` of an emulator).
 
     Raises:
         TransportError: the bus or port could not be opened.
     """
     bus = config.bus
+    family = ProtocolFamily.V3 if bus.protocol is ProtocolSetting.V3 else ProtocolFamily.V2
     if isinstance(bus, CanBusConfig):
         settings: dict[str, object] = {"interface": bus.interface, "channel": bus.channel, "bitrate": bus.bitrate}
-        return open_transport("can", **(settings | overrides))
-    return open_transport("rs485", **({"port": bus.port, "baudrate": bus.baudrate} | overrides))
+        return open_transport("can", **(settings | {"family": family} | overrides))
+    return open_transport("rs485", **({"port": bus.port, "baudrate": bus.baudrate, "family": family} | overrides))
 
 
 #: Connect: the window in which the configured drives answer the generation check on a CAN bus, s.
 GENERATION_CHECK_WINDOW_S = 0.1
 
 
-def check_generation(bus: Transport, config: ArmConfig) -> None:
-    """Refuse a bus whose drives speak a protocol generation this controller does not drive (issue 17).
+def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
+    """The transport that speaks to the configured drives in their protocol generation (issue 17): ``bus`` itself,
+    or one over the same link in the other generation (:meth:`Transport.with_family`, which takes the link over).
 
-    ``bus.protocol: auto`` on a real CAN bus: the configured drives are asked for their status once at the frame level
+    On CAN (a real bus or a simulated one) the configured drives are asked for their status once at the frame level
     and their reply ids tell the generation (:mod:`motion.transport.detect`); drives that do not answer are left to
-    the connect's own reads. RS485 and simulated buses, and ``v2``, are not probed.
+    the connect's own reads (which name them). ``bus.protocol: auto`` follows what answered (nothing: the older
+    family); ``v2`` / ``v3`` are checked against it. An RS485 line cannot be probed (the generations frame
+    differently): ``auto`` there is the older family, ``v3`` is taken as told.
 
     Raises:
-        TransportError: V3-driver drives (not controlled yet), drives of both generations, or ``bus.protocol: v3``.
+        TransportError: drives of both generations on one bus (each named), or drives that answer in the other
+            generation than ``bus.protocol`` says.
     """
-    setting = config.bus.protocol
-    if setting is ProtocolSetting.V3:
-        raise TransportError(
-            "bus.protocol is v3: rmd-motion reads V3-driver drives (rmd-motion scan) but does not control them yet"
-        )
-    # The CAN backend is imported where it is used (python-can only for a CAN bus).
-    from motion.transport.can_transport import CanTransport  # noqa: PLC0415
-    from motion.transport.detect import describe_mixed, detect_can  # noqa: PLC0415
+    from motion.transport.detect import describe_mixed  # noqa: PLC0415 - the CAN backend only where it is used
 
-    if setting is ProtocolSetting.V2 or not isinstance(bus, CanTransport):
-        return
-    found = detect_can(bus.port, [j.motor_id for j in config.joints], GENERATION_CHECK_WINDOW_S)
-    newer = sorted(i for i, family in found.items() if family is ProtocolFamily.V3)
-    if not newer:
-        return
-    names = ", ".join(f"{j.name} (motor {j.motor_id})" for j in config.joints if j.motor_id in newer)
-    if len(newer) < len(found):
+    setting = config.bus.protocol
+    found = bus.probe_families([j.motor_id for j in config.joints], GENERATION_CHECK_WINDOW_S) or {}
+    answered = set(found.values())
+    if len(answered) > 1:
         raise TransportError(f"drives of both protocol generations on one bus ({describe_mixed(found)}): refused")
-    raise TransportError(
-        f"{names} answer in the V3-driver protocol (V4.2: replies on 0x240 + id): rmd-motion reads them "
-        "(rmd-motion scan) but does not control them yet"
-    )
+    detected = answered.pop() if answered else None
+    if setting is ProtocolSetting.AUTO:
+        wanted = detected or ProtocolFamily.V2
+    else:
+        wanted = ProtocolFamily(setting.value)
+        if detected is not None and detected is not wanted:
+            raise TransportError(
+                f"bus.protocol is {setting.value}, but the drives answer in the {detected.value} protocol "
+                f"({describe_mixed(found)}): set bus.protocol to {detected.value} or auto"
+            )
+    return bus if bus.family is wanted else bus.with_family(wanted)
 
 
 def feedforward_for(config: ArmConfig) -> Feedforward | None:
@@ -208,7 +224,7 @@ def build_controller(
     """A controller for ``config`` on ``bus`` (call ``read_positions()`` before moving). In torque mode with a
     feed-forward, the tracking model learns the joints' inertia from the arm's model."""
     controller = Controller(
-        axis_specs(config),
+        axis_specs(config, bus.family),
         config.transmission(),
         joint_limits(config),
         bus,
@@ -273,8 +289,9 @@ def emulator_for(
     plant: Plant | None = None,
     load_inertia_kgm2: Mapping[str, float] | None = None,
     faults: Iterable[Fault] = (),
+    family: ProtocolFamily = ProtocolFamily.V2,
 ) -> Emulator:
-    """Emulated drives matching ``config``.
+    """Emulated drives matching ``config``, speaking ``family`` (V3: the joints with ``brake`` have one).
 
     Args:
         config: the arm.
@@ -297,7 +314,10 @@ def emulator_for(
         for j in config.joints
     }
     stops = {j.motor_id: hard_stops(j) for j in config.joints if j.homing is not None}
-    return Emulator(models.keys(), model=models, load=loads, plant=plant, faults=faults, stops=stops)
+    braked = [j.motor_id for j in config.joints if j.brake] if family is ProtocolFamily.V3 else []
+    return Emulator(
+        models.keys(), model=models, load=loads, plant=plant, faults=faults, stops=stops, family=family, brakes=braked
+    )
 
 
 def hard_stops(joint: JointConfig) -> tuple[float, float]:
@@ -343,11 +363,17 @@ def build_supervisor(config: ArmConfig, controller: Controller, *, observe: bool
     """The safety supervisor of ``controller`` (after ``read_positions()``): the thresholds of ``config``, the
     collision observer when a joint has a threshold (or ``observe``: residuals recorded, e.g. to calibrate), and
     gravity compensation for the ``comply`` reaction."""
+    ids = [j.motor_id for j in config.joints]
+    braked = [j.motor_id for j in config.joints if j.brake]
+    timeout_ms = link_timeout_ms(
+        config.control.period_s, None if config.safety.link_timeout_ms is None else config.safety.link_timeout_ms / 1e3
+    )
     return Supervisor(
         controller,
         safety_settings(config),
         observer=collision_observer_for(config, always=observe),
         gravity=gravity_for(config),
+        drives=DriveSetup(controller.bus, controller.family, ids, braked, timeout_ms),
     )
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from motion.compose import check_generation
+from motion.compose import negotiate_family
 from motion.config import ArmConfig, parse_config
 from motion.config.schema import ProtocolSetting
 from motion.emulator import DriveModel, Emulator, Fault, InjectedFault, LoadModel, VirtualCanAttachment
@@ -352,7 +352,7 @@ def _arm2(protocol: str | None = None) -> ArmConfig:
     return parse_config(yaml.safe_load(text), source="arm2.yaml", base_dir=ROOT / "configs")
 
 
-def test_connect_refuses_v3_drives_and_a_mixed_bus_naming_each_drives_generation() -> None:
+def test_connect_tells_the_generation_and_refuses_a_mixed_bus_or_a_wrong_setting_naming_each_drive() -> None:
     channel = uuid.uuid4().hex
     older = Emulator([1], model=DriveModel(), load=LoadModel())
     newer = Emulator([2], model=DriveModel(), load=LoadModel(), family=ProtocolFamily.V3)
@@ -361,18 +361,19 @@ def test_connect_refuses_v3_drives_and_a_mixed_bus_naming_each_drives_generation
         VirtualCanAttachment(newer, channel),
         CanTransport("virtual", channel, None) as bus,
     ):
-        with pytest.raises(TransportError, match=r"both protocol generations .*motor 1: v2, motor 2: v3"):
-            check_generation(bus, _arm2())
-        check_generation(bus, _arm2("v2"))  # told, not probed
-        with pytest.raises(TransportError, match="does not control them yet"):
-            check_generation(bus, _arm2("v3"))
-    refused = r"shoulder \(motor 1\), elbow \(motor 2\) answer in the V3-driver"
-    with (
-        VirtualCanAttachment(_emulator(), channel),
-        CanTransport("virtual", channel, None) as bus,
-        pytest.raises(TransportError, match=refused),
-    ):
-        check_generation(bus, _arm2())
+        for setting in (None, "v2", "v3"):
+            with pytest.raises(TransportError, match=r"both protocol generations .*motor 1: v2, motor 2: v3"):
+                negotiate_family(bus, _arm2(setting))
+    with VirtualCanAttachment(_emulator(), channel), CanTransport("virtual", channel, None) as bus:
+        spoken = negotiate_family(bus, _arm2())
+        assert spoken is not bus and spoken.family is ProtocolFamily.V3
+        assert negotiate_family(spoken, _arm2("v3")) is spoken
+        with pytest.raises(TransportError, match=r"bus.protocol is v2, but the drives answer in the v3 protocol"):
+            negotiate_family(spoken, _arm2("v2"))
+    with VirtualCanAttachment(older, channel), CanTransport("virtual", channel, None) as bus:
+        assert negotiate_family(bus, _arm2()) is bus
+        with pytest.raises(TransportError, match=r"bus.protocol is v3, but the drives answer in the v2 protocol"):
+            negotiate_family(bus, _arm2("v3"))
 
 
 def test_bus_protocol_is_validated() -> None:
@@ -388,7 +389,7 @@ def test_a_command_on_a_bus_of_v3_drives_says_why_it_cannot_drive_them(tmp_path:
             "status", "--config", str(ROOT / "configs" / "arm2.yaml"), "--interface", "slcan", "--channel", str(link)
         )
     assert result.returncode == 3, result.stderr
-    assert "answer in the V3-driver protocol" in result.stderr
+    assert "the drives answer in the v3 protocol (V3 driver): this command speaks the older one" in result.stderr
 
 
 def test_the_v3_rs485_parser_finds_frames_in_split_joined_and_garbage_laden_input() -> None:

@@ -34,6 +34,7 @@ from motion.cli.protocol_demo import protocol_demo
 from motion.config import ArmConfig, load_config_or_example
 from motion.emulator import Emulator, Fault
 from motion.emulator.cli import EmulatorFactory, add_emulate_arguments, parse_ids, run_emulate
+from motion.emulator.drive_v3 import EmulatedDriveV3
 from motion.errors import (
     ConfigError,
     DecodeError,
@@ -44,6 +45,7 @@ from motion.errors import (
     TransportError,
 )
 from motion.protocol import MultiTurnPositionSpeed, WireProtocol
+from motion.protocol.table import ProtocolFamily
 
 DESCRIPTION: Final = "Multi-axis motion control of MyActuator RMD drives over CAN or RS485."
 EPILOG: Final = """\
@@ -62,10 +64,13 @@ EMULATED_HOLD_SPEED_SHARE: Final = 0.1
 # ---------------------------------------------------------------------------------------------------- emulate
 
 
-def arm_emulator_factory(config: ArmConfig, start_pose: Mapping[str, float] | None = None) -> EmulatorFactory:
-    """Drives of ``config`` coupled through its Pinocchio model, holding the start pose (as if braked): each joint at
-    0 deg (or the limit nearest to it), or, with ``start_pose``, the joints named there, where the drives power up
-    (their multi-turn angles restart from the single-turn readings).
+def arm_emulator_factory(
+    config: ArmConfig, start_pose: Mapping[str, float] | None = None, family: ProtocolFamily = ProtocolFamily.V2
+) -> EmulatorFactory:
+    """Drives of ``config`` speaking ``family``, coupled through its Pinocchio model, holding the start pose (as if
+    braked; V3 joints with a brake are held by it): each joint at 0 deg (or the limit nearest to it), or, with
+    ``start_pose``, the joints named there, where the drives power up (their multi-turn angles restart from the
+    single-turn readings).
 
     Without the hold, the emulated arm would fall under gravity from the moment the emulator starts until a host
     takes control; a real arm rests on its brakes or its stops instead.
@@ -76,13 +81,18 @@ def arm_emulator_factory(config: ArmConfig, start_pose: Mapping[str, float] | No
 
         pose = start_pose or {}
         start = [pose.get(j.name, min(max(0.0, j.position_min_deg), j.position_max_deg)) for j in config.joints]
-        emulator, _plant = arm_emulator(config, initial_deg=start, faults=faults)
+        emulator, _plant = arm_emulator(config, initial_deg=start, faults=faults, family=family)
         if start_pose:
             emulator.power_cycle()
         for joint in config.joints:
             drive = emulator.drives[joint.motor_id]
             speed = joint.velocity_limit_dps * joint.gear_ratio * EMULATED_HOLD_SPEED_SHARE
-            drive.handle(MultiTurnPositionSpeed(drive.angle_deg, speed), WireProtocol.CAN)  # no link faults at power-on
+            # (straight to the drive: no link faults at power-on)
+            if not isinstance(drive, EmulatedDriveV3):
+                drive.handle(MultiTurnPositionSpeed(drive.angle_deg, speed), WireProtocol.CAN)
+            elif not joint.brake:  # a V3 drive takes output-shaft values
+                gear = drive.model.gear_ratio
+                drive.handle_v3(MultiTurnPositionSpeed(drive.angle_deg / gear, speed / gear), 0.0)
         return emulator
 
     return build
@@ -96,7 +106,8 @@ def emulate(args: argparse.Namespace, interrupts: Interrupts) -> int:
             raise UsageError("--start-pose needs --config (the joints it names)")
         return run_emulate(args, None)
     config = load_config_or_example(args.config)
-    return run_emulate(args, arm_emulator_factory(config, parse_pose(config, args.start_pose)))
+    family = ProtocolFamily(args.protocol)
+    return run_emulate(args, arm_emulator_factory(config, parse_pose(config, args.start_pose), family))
 
 
 # ---------------------------------------------------------------------------------------------------- demo, plot

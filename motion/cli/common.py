@@ -16,10 +16,11 @@ from dataclasses import dataclass
 from enum import IntFlag
 from typing import Any, Final
 
-from motion.compose import check_generation, open_bus
+from motion.compose import negotiate_family, open_bus
 from motion.config import ArmConfig, CanBusConfig, JointConfig, load_config_or_example
 from motion.errors import TransportError
 from motion.protocol import Message
+from motion.protocol.table import ProtocolFamily
 from motion.transport import Request, Transport
 from motion.view import DEFAULT_HOST, DEFAULT_PORT, PORTS, ViewOptions, host_warning
 
@@ -135,8 +136,9 @@ class Session:
         return cls(config, overrides)
 
     def open_bus(self, *, check: bool = True) -> Transport:
-        """Open the configured bus with the overrides and (``check``) refuse drives this controller does not drive
-        (:func:`motion.compose.check_generation`; ``scan`` reads any).
+        """Open the configured bus with the overrides and (``check``) refuse drives this command cannot talk to
+        (:func:`motion.compose.negotiate_family`; the drive-level commands speak the older generation, ``scan`` reads
+        any).
 
         Raises:
             TransportError: the bus or port could not be opened, or its drives were refused.
@@ -144,7 +146,13 @@ class Session:
         bus = open_bus(self.config, **self.overrides)
         if check:
             try:
-                check_generation(bus, self.config)
+                spoken = negotiate_family(bus, self.config)
+                if spoken.family is not ProtocolFamily.V2:
+                    spoken.close()
+                    raise TransportError(
+                        f"the drives answer in the {spoken.family.value} protocol (V3 driver): this command speaks the "
+                        "older one; move, run, demo and scan drive and read V3 drives"
+                    )
             except TransportError:
                 bus.close()
                 raise

@@ -73,6 +73,8 @@ _Allowed = _Range | _OneOf
 _ANY = _Range()
 _POSITIVE = _Range(lo=0, lo_open=True)
 _NON_NEGATIVE = _Range(lo=0)
+#: The longest communication-loss time accepted, ms (a minute: beyond it the protection protects nothing).
+LINK_TIMEOUT_MAX_MS = 60_000
 
 
 class _Invalid(Exception):
@@ -344,6 +346,9 @@ def _safety(node: _Node, control: schema.ControlConfig) -> schema.SafetyConfig:
         # the observer's discrete update is stable and does not overshoot up to the deadbeat gain 1 per cycle
         collision_gain_per_cycle=node.number("collision_gain_per_cycle", _Range(0, 1, lo_open=True)),
         collision_window_cycles=node.integer("collision_window_cycles", _Range(0, 100)),
+        link_timeout_ms=(
+            node.number("link_timeout_ms", _Range(0, LINK_TIMEOUT_MAX_MS)) if node.has("link_timeout_ms") else None
+        ),
     )
 
 
@@ -392,6 +397,7 @@ def _joint(node: _Node, mode: schema.ControlMode) -> schema.JointConfig:
             node.number("collision_threshold_nm", _POSITIVE) if node.has("collision_threshold_nm") else None
         ),
         power_on_window_deg=node.interval("power_on_window_deg") if node.has("power_on_window_deg") else None,
+        brake=node.flag("brake"),
         emulation=_emulation(node.child("emulation", schema.EmulationConfig), rotor_inertia, viscous, coulomb),
     )
     if joint.position_min_deg >= joint.position_max_deg:

@@ -282,6 +282,8 @@ class JointConfig:
             narrower than ``360 / gear_ratio`` (None: no window; the drive's turn count is assumed, see
             :mod:`motion.control.turns`).
         homing: the joint's hard stop and how to home against it (None: the joint cannot be homed).
+        brake: the joint has a holding brake its drive controls (V3-driver drives, 0x77 / 0x78): released when the
+            loop starts, locked when the arm has halted and at the end.
         emulation: emulator plant parameters.
     """
 
@@ -307,6 +309,7 @@ class JointConfig:
     collision_threshold_nm: float | None = None
     power_on_window_deg: tuple[float, float] | None = None
     homing: HomingConfig | None = None
+    brake: bool = False
     emulation: EmulationConfig = field(default_factory=EmulationConfig)
 
     @property
@@ -341,6 +344,10 @@ class SafetyConfig:
         collision_window_cycles: the thresholds apply to the residual's change over this many cycles (0..100; 0: to
             the residual itself), which cancels slowly varying model errors (see :mod:`motion.safety.watchdog`); a
             collision must be detected within the window.
+        link_timeout_ms: V3-driver drives: the communication-loss time set in each drive at start (0xB3), in
+            milliseconds: a drive that gets no frame for this long cuts its output and locks its brake by itself
+            (the host died, the cable dropped); 0 leaves the protection off; None: five control periods, at least
+            20 ms (:mod:`motion.control.drivesetup`).
     """
 
     following_error_deg: float
@@ -350,6 +357,7 @@ class SafetyConfig:
     collision_reaction: HaltPolicy | None = None
     collision_gain_per_cycle: float = 0.5
     collision_window_cycles: int = 8
+    link_timeout_ms: float | None = None
 
 
 @dataclass(frozen=True, slots=True)

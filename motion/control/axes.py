@@ -3,7 +3,8 @@
 The multi-turn position is read once with 0x92 at start; after that it is tracked by unwrapping the encoder of
 every reply: a change of the encoder by more than half a revolution between two replies is taken as a wrap. This
 holds while the rotor turns less than half a revolution between two replies of the same motor (at 200 Hz and one
-missed reply: 18 000 deg/s rotor speed, above any RMD drive's rated speed).
+missed reply: 18 000 deg/s rotor speed, above any RMD drive's rated speed). Drives whose motion replies carry whole
+degrees and no encoder (the V3 family) are read with 0x92 in every cycle instead (:mod:`motion.control.family`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,9 @@ from typing import Any, cast
 import numpy as np
 from numpy.typing import NDArray
 
-from motion.protocol import MotorState
+from motion.control.family import FAMILIES, DriveFamily
+from motion.protocol import MotorState, MultiTurnAngle
+from motion.protocol.table import ProtocolFamily
 from motion.transmission import ArmTransmission, FloatArray
 
 #: Width of the encoder fields of the replies, bits.
@@ -32,6 +35,9 @@ class AxisSpec:
         encoder_bits: encoder resolution (counts per rotor revolution = 2**bits).
         kp_nm_per_deg: torque-mode position gain, N·m per degree of joint error.
         kd_nm_per_dps: torque-mode velocity gain, N·m per deg/s of joint velocity error.
+        drive_gear_ratio: motor-shaft degrees per degree the drive reports and takes (1 for a drive that reports its
+            motor, as the older family's do; its own reduction for a drive that reports its output shaft, as V3-driver
+            drives do: :mod:`motion.control.family`).
     """
 
     name: str
@@ -39,6 +45,7 @@ class AxisSpec:
     encoder_bits: int = 14
     kp_nm_per_deg: float = 0.0
     kd_nm_per_dps: float = 0.0
+    drive_gear_ratio: float = 1.0
 
 
 def _cells(array: NDArray[Any]) -> MutableSequence[Any]:
@@ -52,10 +59,20 @@ class AxisStates:
     Args:
         specs: the axes, in joint order.
         transmission: the joint <-> motor mapping, same order.
+        family: the drives' protocol family: whether the angle comes from the encoder of every motion reply (tracked
+            across wraps) or from a 0x92 read in every cycle (motion replies in whole degrees).
     """
 
-    def __init__(self, specs: Sequence[AxisSpec], transmission: ArmTransmission) -> None:
+    def __init__(
+        self,
+        specs: Sequence[AxisSpec],
+        transmission: ArmTransmission,
+        family: DriveFamily = FAMILIES[ProtocolFamily.V2],
+    ) -> None:
         n = len(specs)
+        self.family = family
+        self._angle_every_cycle = family.angle_every_cycle
+        self._state_type = family.state_type
         self.specs = tuple(specs)
         self.transmission = transmission
         self.index = {spec.motor_id: i for i, spec in enumerate(specs)}
@@ -81,6 +98,11 @@ class AxisStates:
         arrays += (self.temperature_c, self.last_reply_s, self.q_deg, self.qd_dps, self.fresh)
         self._cells = tuple(_cells(array) for array in arrays)
         self._none_fresh = np.zeros(n, dtype=bool).data
+        # Output-shaft drives: motor degrees per degree the drive reports, and the per-axis conversions.
+        self._drive_terms = tuple(
+            (float(spec.drive_gear_ratio), t.joint_deg, t.joint_rate)
+            for spec, t in zip(specs, transmission.transmissions, strict=True)
+        )
 
     def initialise(self, i: int, multi_turn_deg: float, encoder: int) -> None:
         """Anchor axis ``i``: the 0x92 angle and an encoder reading taken at (nearly) the same moment."""
@@ -88,16 +110,20 @@ class AxisStates:
         self.encoder[i] = encoder
         self._refresh_joint(i)
 
-    def update(self, i: int, state: MotorState, received_s: float) -> None:
-        """Take one 0x9C / 0xA1..0xA8 reply of axis ``i``."""
+    def update(self, i: int, state: object, received_s: float) -> None:
+        """Take one 0x9C / 0xA1..0xA8 reply of axis ``i`` (the family's motion reply)."""
         self.absorb(((self.specs[i].motor_id, None, state, received_s),), keep_fresh=True)
 
     def absorb(self, replies: Iterable[tuple[int, object, object, float | None]], *, keep_fresh: bool = False) -> None:
         """Take a cycle's replies (:class:`~motion.transport.Reply` tuples: motor id, request, message, time).
 
-        Every :class:`MotorState` that arrived for an axis refreshes it; :attr:`fresh` then marks those axes (and
-        only those, unless ``keep_fresh``). Anything else is ignored.
+        Every motion reply (the family's, e.g. :class:`MotorState`) that arrived for an axis refreshes it; :attr:`fresh`
+        then marks those axes (and only those, unless ``keep_fresh``). Where the family reads the angle in every
+        cycle, a :class:`MultiTurnAngle` sets it. Anything else is ignored.
         """
+        if self._angle_every_cycle:
+            self._absorb_read_angles(replies, keep_fresh)
+            return
         # The control cycle's hot path: the arrays' cells and the per-axis terms are looked up once, and the
         # arithmetic is done in Python floats and ints (a numpy scalar costs several times as much per operation),
         # with the same operations in the same order as the arrays would do them, so the results are the same float64s.
@@ -127,6 +153,33 @@ class AxisStates:
             fresh[i] = True
             q_deg[i] = joint_deg(motor_deg)
             qd_dps[i] = joint_rate(speed_dps)
+
+    def _absorb_read_angles(
+        self, replies: Iterable[tuple[int, object, object, float | None]], keep_fresh: bool
+    ) -> None:
+        """:meth:`absorb` for drives whose motion replies carry whole degrees: the angle from 0x92, the rest from the
+        motion reply, both in the drive's (output-shaft) units converted to the motor's."""
+        index, terms, state_type = self.index, self._drive_terms, self._state_type
+        _encoders, motor_degs, speeds, iqs, temperatures, last_reply_s, q_deg, qd_dps, fresh = self._cells
+        if not keep_fresh:
+            fresh[:] = self._none_fresh
+        for motor_id, _request, message, received_s in replies:
+            i = index.get(motor_id)
+            if i is None or received_s is None:
+                continue
+            drive_gear, joint_deg, joint_rate = terms[i]
+            if message.__class__ is MultiTurnAngle:
+                motor_deg = message.angle_deg * drive_gear
+                motor_degs[i] = motor_deg
+                q_deg[i] = joint_deg(motor_deg)
+            elif message.__class__ is state_type:
+                speed_dps = message.speed_dps * drive_gear  # type: ignore[attr-defined]
+                speeds[i] = speed_dps
+                iqs[i] = message.iq_a  # type: ignore[attr-defined]
+                temperatures[i] = message.temperature_c  # type: ignore[attr-defined]
+                last_reply_s[i] = received_s
+                fresh[i] = True
+                qd_dps[i] = joint_rate(speed_dps)
 
     def _refresh_joint(self, i: int) -> None:
         t = self.transmission.transmissions[i]

@@ -27,13 +27,14 @@ from numpy.typing import NDArray
 from motion.config.schema import ControlMode
 from motion.control.axes import AxisSpec, AxisStates
 from motion.control.clock import Clock, MonotonicClock, is_simulated
+from motion.control.family import FAMILIES
 from motion.control.scheduler import CycleFn, FixedRateLoop, LoopStatistics
 from motion.control.snapshot import JOINT_ROWS, CycleSnapshot, frozen
 from motion.control.tracking import ExpectedTracking
 from motion.errors import MotionError, MotionFault, PlanningError, TransportError
 from motion.protocol import (
-    Bare,
     Command,
+    Message,
     MotorState,
     MultiMotorTorque,
     MultiTurnAngle,
@@ -43,7 +44,7 @@ from motion.protocol import (
 )
 from motion.protocol.compiled import frozen_builder
 from motion.protocol.scales import iq_amps
-from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, Direction, field_range
+from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS
 from motion.trajectory import Follower, JointLimits, Path, Planner, State
 from motion.transmission import ArmTransmission, FloatArray
 from motion.transport.base import Reply, Request, Transport
@@ -57,13 +58,6 @@ _POLL_S = 0.002
 
 def _never() -> bool:
     return False
-
-
-# The largest max speed 0xA4 carries on each wire (CAN: whole dps in uint16; RS485: 0.01 dps in uint32).
-_MAX_SPEED_DPS = {
-    wire: field_range(Command.MULTI_TURN_POSITION_SPEED, Direction.REQUEST, wire, "max_speed_dps")[1]
-    for wire in WireProtocol
-}
 
 
 @dataclass(frozen=True, slots=True)
@@ -206,8 +200,18 @@ class Controller:
         self.kp = np.array([s.kp_nm_per_deg for s in self.specs])
         self.kd = np.array([s.kd_nm_per_dps for s in self.specs])
         self.ids = tuple(s.motor_id for s in self.specs)
+        #: What the drives' protocol family changes in control (:mod:`motion.control.family`).
+        self.family = family = FAMILIES[bus.family]
         #: Where each joint should be at the latest measurement (the drives' or the PD loop's lag modelled).
-        self.tracking = ExpectedTracking(options.mode, transmission, self.kp, self.kd, self.ids)
+        self.tracking = ExpectedTracking(
+            options.mode, transmission, self.kp, self.kd, self.ids, read_drives=family.reads_loop_settings
+        )
+        # The fine angle read in every cycle's batch, for families whose motion replies lack it (empty: none).
+        self._angle_reads = (
+            [Request(i, family.bare(Command.READ_MULTI_TURN_ANGLE)) for i in self.ids]
+            if family.angle_every_cycle
+            else []
+        )
         self._pending: Pending | None = None
         self.rejected: PlanningError | None = None
         self._lock = threading.Lock()
@@ -238,6 +242,7 @@ class Controller:
             if options.mode is ControlMode.TORQUE
             and options.protocol is WireProtocol.CAN
             and options.multi_motor_frame
+            and family.multi_torque_frame
             and len(in_multi) == len(MULTI_TORQUE_MOTOR_IDS)
             else []
         )
@@ -247,7 +252,7 @@ class Controller:
         # deg, zero offset, floor), and the builder of the mode's batch.
         velocity_limit = np.abs(transmission.motor_rate(np.array(limits.velocity_dps)))
         self._speed_floor_dps = velocity_limit * options.speed_floor_share
-        self._speed_ceiling_dps = float(_MAX_SPEED_DPS[options.protocol])
+        self._speed_ceiling_dps = family.speed_ceiling_dps(options.protocol)
         self._speed_headroom = options.speed_headroom
         self._set_frame(transmission)
         self._reply_budget = options.reply_budget
@@ -265,16 +270,27 @@ class Controller:
     def _set_frame(self, transmission: ArmTransmission) -> None:
         """Use ``transmission`` for every angle read and every target sent (before :meth:`read_positions`)."""
         self.transmission = transmission
-        self.axes = AxisStates(self.specs, transmission)
+        self.axes = AxisStates(self.specs, transmission, self.family)
+        # Per axis: motor id, motor deg per joint deg (as ArmTransmission has them), zero offset, speed floor, the
+        # drive's degrees per motor degree (1, or 1 / its reduction where it takes output-shaft angles) and the speed
+        # cap's ceiling in motor deg/s.
         self._position_axes = tuple(
             zip(
                 self.ids,
-                [t.direction * t.gear_ratio for t in transmission.transmissions],  # as ArmTransmission has them
+                [t.direction * t.gear_ratio for t in transmission.transmissions],
                 [t.zero_offset_deg for t in transmission.transmissions],
                 self._speed_floor_dps.tolist(),
+                [1.0 / s.drive_gear_ratio for s in self.specs],
+                [self._speed_ceiling_dps * s.drive_gear_ratio for s in self.specs],
                 strict=True,
             )
         )
+
+    @property
+    def angle_reads(self) -> list[Request]:
+        """The reads every cycle's batch carries besides the set-points (0x92 per joint for the V3 family; else
+        none): a copy."""
+        return list(self._angle_reads)
 
     def set_turns(self, turns: Sequence[int]) -> None:
         """Keep ``turns`` whole motor turns per joint between this controller's frame and the drives' (see
@@ -290,14 +306,20 @@ class Controller:
         self._set_frame(self.base_transmission.with_turns(self.turns))
 
     def read_angles(self, timeout_s: float = 0.2) -> dict[int, float]:
-        """Every drive's multi-turn reading (0x92), motor degrees in the drive's own frame, by motor id.
+        """Every drive's multi-turn reading (0x92), motor degrees in the drive's own frame, by motor id (an
+        output-shaft reading times the drive's reduction).
 
         Raises:
             TransportError: a drive did not answer by ``timeout_s``.
         """
-        request = Bare(Command.READ_MULTI_TURN_ANGLE)
+        request = self.family.bare(Command.READ_MULTI_TURN_ANGLE)
         replies = self.bus.transact([Request(mid, request) for mid in self.ids], self.clock.now() + timeout_s)
-        angles = {r.motor_id: r.message.angle_deg for r in replies if isinstance(r.message, MultiTurnAngle)}
+        gear = {s.motor_id: s.drive_gear_ratio for s in self.specs}
+        angles = {
+            r.motor_id: r.message.angle_deg * gear[r.motor_id]
+            for r in replies
+            if isinstance(r.message, MultiTurnAngle) and r.motor_id in gear
+        }
         missing = [s.name for s in self.specs if s.motor_id not in angles]
         if missing:
             raise TransportError(f"no reply to the multi-turn angle read (0x92) from joint(s) {', '.join(missing)}")
@@ -312,26 +334,27 @@ class Controller:
         Raises:
             TransportError: a drive did not answer both requests by ``timeout_s``.
         """
-        requests = [
-            Request(mid, m)
-            for mid in self.ids
-            for m in (Bare(Command.READ_MULTI_TURN_ANGLE), Bare(Command.READ_STATUS_2))
-        ]
+        family = self.family
+        reads = (family.bare(Command.READ_MULTI_TURN_ANGLE), family.bare(Command.READ_STATUS_2))
+        requests = [Request(mid, m) for mid in self.ids for m in reads]
         replies = self.bus.transact(requests, self.clock.now() + timeout_s)
         angles: dict[int, float] = {}
-        encoders: dict[int, MotorState] = {}
+        states: dict[int, Message] = {}
         for reply in replies:
             if isinstance(reply.message, MultiTurnAngle):
                 angles[reply.motor_id] = reply.message.angle_deg
-            elif isinstance(reply.message, MotorState):
-                encoders[reply.motor_id] = reply.message
-        missing = [s.name for s in self.specs if s.motor_id not in angles or s.motor_id not in encoders]
+            elif isinstance(reply.message, family.state_type):
+                states[reply.motor_id] = reply.message
+        missing = [s.name for s in self.specs if s.motor_id not in angles or s.motor_id not in states]
         if missing:
             raise TransportError(f"no reply to the start-up reads from joint(s) {', '.join(missing)}")
         now = self.clock.now()
         for i, spec in enumerate(self.specs):
-            self.axes.initialise(i, angles[spec.motor_id], encoders[spec.motor_id].encoder)
-            self.axes.update(i, encoders[spec.motor_id], now)
+            state = states[spec.motor_id]
+            # (a motion reply without an encoder: the V3 family's angle comes from 0x92 in every cycle)
+            encoder = state.encoder if isinstance(state, MotorState) else 0
+            self.axes.initialise(i, angles[spec.motor_id] * spec.drive_gear_ratio, encoder)
+            self.axes.update(i, state, now)
         q = self.axes.positions()
         self.follower = Follower(self.planner, q)
         self.reference = State.at_rest(q)
@@ -449,19 +472,21 @@ class Controller:
     def _position_requests(self, ref: State) -> list[Request]:
         # Python floats per joint: for a few joints a numpy call costs more than the arithmetic. The operations and
         # their order are those of ArmTransmission.motor_deg / motor_rate, so the results are the same float64s.
-        headroom, ceiling = self._speed_headroom, self._speed_ceiling_dps
+        # An output-shaft drive takes the motor-side values divided by its reduction (the factor is 1.0 otherwise:
+        # the same float64s).
+        headroom = self._speed_headroom
         new_request, new_position = _NEW_REQUEST, _NEW_POSITION
         angles: list[float] = []
         caps: list[float] = []
         requests: list[Request] = []
-        for (motor_id, motor_per_joint, offset_deg, floor_dps), q_deg, qd_dps in zip(
+        for (motor_id, motor_per_joint, offset_deg, floor_dps, to_drive, ceiling), q_deg, qd_dps in zip(
             self._position_axes, ref.position.tolist(), ref.velocity.tolist(), strict=True
         ):
             angle = (q_deg - offset_deg) * motor_per_joint
             cap = min(abs(qd_dps * motor_per_joint) * headroom + floor_dps, ceiling)
             angles.append(angle)
             caps.append(cap)
-            requests.append(new_request(motor_id, new_position(angle, cap)))
+            requests.append(new_request(motor_id, new_position(angle * to_drive, cap * to_drive)))
         record = self.setpoints
         record.motor_angle_deg[:] = angles
         record.max_speed_dps[:] = caps
@@ -553,6 +578,8 @@ class Controller:
         return replies
 
     def _exchange(self, requests: list[Request], start_s: float, deadline_s: float, commanded: bool) -> list[Reply]:
+        if self._angle_reads:
+            requests.extend(self._angle_reads)
         replies = self.bus.transact(requests, start_s + self._reply_budget * (deadline_s - start_s))
         if self.tracking.unread:
             replies = self.tracking.take_replies(replies)

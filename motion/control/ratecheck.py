@@ -38,7 +38,7 @@ import numpy as np
 from motion.control.clock import is_simulated
 from motion.control.controller import Controller
 from motion.errors import ConfigError, TransportError
-from motion.protocol import Bare, Command
+from motion.protocol import Command
 from motion.transport.base import Reply, Request
 
 #: Exchanges measured by default (a few dozen: about 0.1 s of bus time for six joints at 1 Mbit/s).
@@ -179,7 +179,10 @@ def measure_rate(
     if not (math.isfinite(margin) and margin >= 1.0):
         raise ValueError(f"margin: {margin!r} must be >= 1")
     ids = controller.ids
-    batch = [Request(i, Bare(Command.READ_STATUS_2)) for i in ids] + [Request(ids[0], Bare(Command.READ_STATUS_1))]
+    # A cycle's frames: one motion read per joint as the set-points, the family's angle reads, one status read.
+    bare = controller.family.bare
+    batch = [Request(i, bare(Command.READ_STATUS_2)) for i in ids] + controller.angle_reads
+    batch.append(Request(ids[0], bare(Command.READ_STATUS_1)))
     clock, bus = controller.clock, controller.bus
     round_trips = np.empty(samples)
     rehearsals = 1 if simulated else REHEARSALS_PER_EXCHANGE

@@ -83,6 +83,9 @@ class ExpectedTracking:
         transmission: the joints' transmissions (gear ratios and torque limits).
         kp_nm_per_deg: torque mode: the PD stiffness per joint.
         kd_nm_per_dps: torque mode: the PD damping per joint.
+        ids: the motor ids, in joint order.
+        read_drives: read each drive's loop settings (0x30, 0x33) in the first cycles; False keeps the prior until an
+            identification is offered (drives of a family without those shapes).
 
     Attributes:
         expected_deg: where each joint should be at the latest cycle's measurement, deg (read-only between cycles).
@@ -98,6 +101,8 @@ class ExpectedTracking:
         kp_nm_per_deg: FloatArray,
         kd_nm_per_dps: FloatArray,
         ids: Sequence[int],
+        *,
+        read_drives: bool = True,
     ) -> None:
         n = len(transmission)
         self.mode = mode
@@ -123,7 +128,7 @@ class ExpectedTracking:
         self.identified = [False] * n
         self._joint_of = {motor_id: j for j, motor_id in enumerate(ids)}
         self._reads = [[Request(i, Bare(c)) for c in _READS] for i in ids]
-        self._unread = list(range(n))
+        self._unread = list(range(n)) if read_drives else []
         self._read_turn = 0
         self._attempts = [0] * n
         self._gains: list[PidGains | None] = [None] * n

@@ -36,6 +36,7 @@ from motion.emulator.attach import (
     VirtualCanAttachment,
 )
 from motion.emulator.core import Emulator
+from motion.emulator.drive_v3 import EmulatedDriveV3
 from motion.emulator.faults import Fault, parse_fault
 from motion.emulator.framelog import FrameLog
 from motion.emulator.model import DriveModel
@@ -242,8 +243,8 @@ def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -
         ValueError: conflicting options, or drives or faults the emulator rejects (ConfigError is one).
     """
     family = ProtocolFamily(args.protocol)
-    if family is ProtocolFamily.V3 and getattr(args, "config", None) is not None:
-        raise ValueError("--protocol v3 is emulated with --ids so far (not with --config)")
+    if args.brakes and getattr(args, "config", None) is not None:
+        raise ValueError("--brakes applies to --ids only: with --config each joint's brake is configured (brake: true)")
     if args.brakes and family is not ProtocolFamily.V3:
         raise ValueError("--brakes needs --protocol v3 (the older drives have no brake commands)")
     if getattr(args, "config", None) is None:
@@ -348,6 +349,9 @@ def run_emulate(args: argparse.Namespace, factory: EmulatorFactory | None = None
             f"{s.unanswered} unanswered, {s.corrupted} corrupted, {s.undelivered} undelivered",
             file=sys.stderr,
         )
+    stops = [drive.link_losses for drive in emulator.drives.values() if isinstance(drive, EmulatedDriveV3)]
+    if stops:  # the drives' own stops when no frame came for their communication-loss time (0xB3)
+        print(f"{sum(stops)} communication-loss stops", flush=True)
     return EXIT_COMMUNICATION if failed else EXIT_OK
 
 

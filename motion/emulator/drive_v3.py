@@ -70,7 +70,7 @@ from motion.protocol.v3.messages import (
     SystemErrorFlags,
     VersionDate,
 )
-from motion.protocol.v3.table import COMMANDS_V3
+from motion.protocol.v3.table import COMMANDS_V3, field_range
 
 #: What an emulated V3 drive reports as its firmware date (0xB2) and model (0xB5).
 VERSION_DATE: Final = 20240528
@@ -79,10 +79,7 @@ MODEL_NAME: Final = "EMU-V3"
 
 def _reply_limits(command: CommandV3, name: str) -> tuple[float, float]:
     """Smallest and largest value a field of a V3 reply carries (the table's declaration)."""
-    layout = COMMANDS_V3[command].layout(WireProtocol.CAN, Direction.REPLY)
-    assert layout is not None
-    spec = next(f for f in layout.fields if f.name == name)
-    return spec.physical(spec.lo), spec.physical(spec.hi)
+    return field_range(command, Direction.REPLY, name)
 
 
 #: Reply values saturate at what their fields carry (a drive cannot report more), instead of failing to encode.
@@ -149,8 +146,10 @@ class EmulatedDriveV3(EmulatedDrive):
     # --- power, gains, errors -------------------------------------------------------------------------------------
 
     def power_cycle(self) -> None:
-        """Off and on (0x76 too): RAM from ROM, brake locked, errors cleared."""
+        """Off and on (0x76 too): RAM from ROM, brake locked, errors cleared, the runtime (0xB1) counted again from the
+        last instant the drive knows (its latest frame)."""
         self.pid_floats = dict(self.pid_floats_rom)
+        self.powered_on_s = self.last_frame_s
         super().power_cycle()
         self.brake = BrakeCommand.LOCK
         self._use_accelerations()

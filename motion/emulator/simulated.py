@@ -37,6 +37,7 @@ from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3 import frames as frames_v3
 from motion.transport.base import Request, Transport
 from motion.transport.can_transport import take_in_can_frame
+from motion.transport.detect import expected_answers, generations, probe_frames
 
 #: Default CAN bit rate, bit/s (RMD drives run at 1 Mbit/s).
 DEFAULT_BITRATE: Final = 1_000_000
@@ -213,8 +214,8 @@ class SimulatedBus(Transport):
     Its clock is the simulation's (pass ``simulation`` as the controller's clock too).
     """
 
-    def __init__(self, simulation: Simulation) -> None:
-        super().__init__(clock=simulation.now, family=simulation.emulator.family)
+    def __init__(self, simulation: Simulation, family: ProtocolFamily | None = None) -> None:
+        super().__init__(clock=simulation.now, family=simulation.emulator.family if family is None else family)
         self.simulation = simulation
         self._can = simulation.protocol is WireProtocol.CAN
         v3 = self.family is ProtocolFamily.V3
@@ -223,6 +224,33 @@ class SimulatedBus(Transport):
         self._decode_rs485 = frames_v3.decode_rs485_reply if v3 else rs485_frame.decode_reply
         self._wires: list[CanFrame | bytes] = []
         self._motors: list[int] = []
+
+    def probe_families(self, ids: Sequence[int], window_s: float) -> dict[int, ProtocolFamily] | None:
+        """See :meth:`Transport.probe_families`: the probe goes over the simulated CAN wire (RS485: None)."""
+        if not self._can:
+            return None
+        sim = self.simulation
+        sim.arrived_by(sim.now_s)  # what was sent before is nobody's answer
+        for frame in probe_frames(ids):
+            sim.submit(frame)
+        wanted, end = expected_answers(ids), sim.now_s + window_s
+        found: set[int] = set()
+        while len(found) < len(set(ids)):
+            arrival = sim.next_arrival(end)
+            if arrival is None:
+                sim.sleep_until(end)
+                break
+            sim.now_s = arrival.time_s
+            wire = arrival.wire
+            if isinstance(wire, CanFrame) and wanted.get(wire.arbitration_id) == wire.data[0]:
+                found.add(wire.arbitration_id)
+        return generations(found)
+
+    def with_family(self, family: ProtocolFamily) -> SimulatedBus:
+        """See :meth:`Transport.with_family`."""
+        bus = SimulatedBus(self.simulation, family)
+        bus.frame_tap = self.frame_tap
+        return bus
 
     def describe(self) -> str:
         """``"simulated can"`` or ``"simulated rs485"``."""

@@ -26,15 +26,18 @@ import atexit
 import logging
 import threading
 import weakref
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Final
 
 from motion.config.schema import HaltPolicy
 from motion.control.controller import Controller, Feedforward
+from motion.control.drivesetup import DriveSetup, link_timeout_ms
+from motion.control.family import BARE_TYPES, STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
-from motion.protocol import Bare, Command, MotorState, Status1
+from motion.protocol import Command, Message
+from motion.protocol.v3.messages import CommandV3
 from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
 from motion.trajectory import State
@@ -47,6 +50,10 @@ logger = logging.getLogger("motion.safety")
 _HALT_WINDOW_S = 0.002
 #: Real time allowed on top of the collision check's arming cycles before motion is let go anyway (with a warning).
 _ARMING_SLACK_S = 0.25
+# How long the drives' settings at start and end may take (a few exchanges), s.
+_SETUP_WINDOW_S = 0.2
+#: A braked joint at rest after a halt (its brake then locks), joint deg/s.
+BRAKE_REST_DPS = 1.0
 
 
 class Reaction(StrEnum):
@@ -82,6 +89,9 @@ class Supervisor:
         observer: the collision observer (:func:`motion.compose.collision_observer_for`), or None.
         gravity: gravity compensation ``(q_deg, qd_dps, qdd_dps2) -> tau_nm`` for the ``comply`` reaction
             (:func:`motion.compose.gravity_for`); without it a collision halts every axis with 0x81.
+        drives: the drive-side settings of the session (:mod:`motion.control.drivesetup`: V3 drives' planning
+            accelerations, communication-loss time and brakes), applied at :meth:`start` and restored before the bus
+            closes; None: the family's defaults, without brakes.
     """
 
     def __init__(
@@ -91,8 +101,17 @@ class Supervisor:
         *,
         observer: CollisionObserver | None = None,
         gravity: Feedforward | None = None,
+        drives: DriveSetup | None = None,
     ) -> None:
         self.controller = controller
+        family = controller.family
+        self.drives = drives or DriveSetup(
+            controller.bus,
+            family,
+            [s.motor_id for s in controller.specs],
+            (),
+            link_timeout_ms(controller.period_s, None),
+        )
         self.settings = settings
         self.watchdog = Watchdog(controller, settings, observer)
         if observer is not None:  # the collision signal goes out in every snapshot (views, status)
@@ -114,11 +133,19 @@ class Supervisor:
         self._clear_done = threading.Event()
         self._clear_result: MotionFault | None = None
         # 0x9A (flags, voltage, temperature) and 0x92 (the multi-turn angle: a drive that restarted) in turn
-        reads = (Command.READ_STATUS_1, Command.READ_MULTI_TURN_ANGLE)
-        self._status_reads = [Request(i, Bare(command)) for i in self.ids for command in reads]
+        # (the V3 family: 0x9A and 0xB1, its runtime, which starts again when the drive restarted)
+        self._bare = bare = family.bare
+        reads = (Command.READ_STATUS_1, family.restart_read)
+        self._status_reads = [Request(i, bare(command)) for i in self.ids for command in reads]
         self._round_robin = 0  # a counter of its own: the cycle index k jumps over skipped cycles
-        self._state_reads = [Request(i, Bare(Command.READ_STATUS_2)) for i in self.ids]
-        self._finalizer = weakref.finalize(self, _emergency_stop, controller, self.ids)
+        self._state_reads = [Request(i, bare(Command.READ_STATUS_2)) for i in self.ids]
+        # Clearing: 0x9B where the family has it (its reply is the status); else the drives clear level-2 errors
+        # themselves, and the status is read.
+        clear = Command.CLEAR_ERRORS if family.clears_errors else Command.READ_STATUS_1
+        self._clear_requests = [Request(i, bare(clear)) for i in self.ids]
+        # The braked joints locked since the halt (their brakes are released again by a clear).
+        self._locked: set[int] = set()
+        self._finalizer = weakref.finalize(self, _emergency_stop, controller, self.ids, self._bare)
         atexit.register(self._finalizer)
 
     # ------------------------------------------------------------------------------------------------ API
@@ -144,8 +171,10 @@ class Supervisor:
 
     def start(self) -> None:
         """Start the guarded loop (closing the bus first halts every axis and ends the loop)."""
-        self.watchdog.start(self.controller.clock.now())
+        clock = self.controller.clock
+        self.drives.apply(clock.now() + _SETUP_WINDOW_S)
         self.controller.bus.close_hooks.append(self._before_bus_close)
+        self.watchdog.start(clock.now())
         self.controller.start(self.cycle)
         self._await_collision_check()
 
@@ -174,10 +203,11 @@ class Supervisor:
             # stop to every axis now, before the port goes (the loop has ended, nothing else will send it)
             try:
                 self.controller.bus.transact(
-                    [Request(i, Bare(Command.MOTOR_STOP)) for i in self.ids], self.controller.clock.now() + 0.02
+                    [Request(i, self._bare(Command.MOTOR_STOP)) for i in self.ids], self.controller.clock.now() + 0.02
                 )
             except Exception as exc:  # the port is going anyway: leave a trace
                 logger.error("halt before the bus closed failed: %s: %s", type(exc).__name__, exc)
+        self.drives.restore(self.controller.clock.now() + _SETUP_WINDOW_S)
 
     def _refuse_if_faulted(self) -> None:
         if self.machine.state.faulted:
@@ -478,10 +508,10 @@ class Supervisor:
 
     def _send_halt(self, deadline_s: float) -> None:
         """The halt to the drives that have not acknowledged it; HALTED once none is left."""
-        requests = [Request(i, Bare(self._halt_code)) for i in sorted(self.unacknowledged)]
+        requests = [Request(i, self._bare(self._halt_code)) for i in sorted(self.unacknowledged)]
         replies = self.controller.bus.transact(requests, deadline_s)
         for reply in replies:
-            if isinstance(reply.message, Bare) and reply.message.command == self._halt_code:
+            if isinstance(reply.message, BARE_TYPES) and reply.message.command == self._halt_code:
                 self.unacknowledged.discard(reply.motor_id)
         if not self.unacknowledged:
             self.machine.fire(ArmEvent.ACKNOWLEDGED)
@@ -546,12 +576,28 @@ class Supervisor:
             logger.error("drives %s did not acknowledge the halt", sorted(self.unacknowledged))
             self.unacknowledged.clear()
             self.machine.fire(ArmEvent.ACKNOWLEDGED)
-        # HALTED: keep reading the drives (reads do not move them) so that positions and flags stay current.
-        controller.step(start_s, deadline_s, extra=self._state_reads, command=False, apply_pending=False)
+        # HALTED: keep reading the drives (reads do not move them) so that positions and flags stay current; lock
+        # the brakes of the joints that have come to rest.
+        reads = self._state_reads + self._brakes_to_lock() if self.drives.braked_ids else self._state_reads
+        replies = controller.step(start_s, deadline_s, extra=reads, command=False, apply_pending=False)
+        for reply in replies:
+            message = reply.message
+            if isinstance(message, BARE_TYPES) and message.command == CommandV3.LOCK_BRAKE:
+                self._locked.add(reply.motor_id)
+
+    def _brakes_to_lock(self) -> list[Request]:
+        """0x78 to the braked joints that are at rest and not locked yet (a brake is not a stopping device)."""
+        speeds = self.controller.axes.qd_dps
+        index = self.watchdog.index
+        return [
+            Request(i, self._bare(CommandV3.LOCK_BRAKE))
+            for i in self.drives.braked_ids
+            if i not in self._locked and abs(speeds[index[i]]) <= BRAKE_REST_DPS
+        ]
 
     def _do_clear(self, start_s: float, deadline_s: float) -> None:
         controller = self.controller
-        requests = [Request(i, Bare(Command.CLEAR_ERRORS)) for i in self.ids] + self._state_reads
+        requests = self._clear_requests + self._state_reads
         replies: list[Reply] = controller.bus.transact(requests, max(deadline_s, controller.clock.now() + 0.005))
         controller.absorb(replies)
         problems = self._clear_problems(replies)
@@ -566,6 +612,9 @@ class Supervisor:
                 FaultKind.CLEAR_FAILED, time_s=controller.clock.now(), detail="no follower"
             )
             return
+        if self._locked:
+            self.drives.release_brakes(max(deadline_s, controller.clock.now() + 0.005))
+            self._locked.clear()
         controller.discard_pending()  # nothing queued while faulted may start after the clear
         controller.follower.hold_at(q)
         controller.reference = State.at_rest(q)
@@ -581,8 +630,8 @@ class Supervisor:
         settings = self.settings
         limits = dict(zip(self.ids, settings.temperature_limit_c, strict=True))
         problems = []
-        status = {r.motor_id: r.message for r in replies if isinstance(r.message, Status1)}
-        state = {r.motor_id: r.message for r in replies if isinstance(r.message, MotorState)}
+        status = {r.motor_id: r.message for r in replies if isinstance(r.message, STATUS_TYPES)}
+        state = {r.motor_id: r.message for r in replies if isinstance(r.message, STATE_TYPES)}
         for motor_id in self.ids:
             s, m = status.get(motor_id), state.get(motor_id)
             name = names[motor_id]
@@ -606,12 +655,12 @@ class Supervisor:
         return problems
 
 
-def _emergency_stop(controller: Controller, ids: tuple[int, ...]) -> None:
+def _emergency_stop(controller: Controller, ids: tuple[int, ...], bare: Callable[[int], Message]) -> None:
     """Garbage collection / process exit: end the loop, then 0x81 to every axis (best effort, never raises)."""
     try:
         controller.shutdown(1.0)
         if not controller.bus.closed:
-            requests = [Request(i, Bare(Command.MOTOR_STOP)) for i in ids]
+            requests = [Request(i, bare(Command.MOTOR_STOP)) for i in ids]
             controller.bus.transact(requests, controller.clock.now() + 0.02)
     except Exception as exc:  # at exit there is nobody to raise to; leave a trace
         logger.error("emergency stop failed: %s: %s", type(exc).__name__, exc)

@@ -35,8 +35,10 @@ from numpy.typing import ArrayLike
 
 from motion.config.schema import HaltPolicy
 from motion.control.controller import Controller
+from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionFault
-from motion.protocol import ErrorFlags, MotorState, MultiTurnAngle, Status1
+from motion.protocol import MultiTurnAngle, Status1
+from motion.protocol.v3.messages import Runtime, Status1V3
 from motion.trajectory import State
 from motion.transmission import FloatArray
 from motion.transport import Reply
@@ -134,6 +136,9 @@ class Watchdog:
         self._corrupt: list[collections.deque[float]] = [collections.deque() for _ in range(n)]
         self._overruns_seen = 0
         self._overrun_streak = 0
+        # The family's restart sign: the 0x92 angle against the tracked encoder, or the runtime going back (0xB1).
+        self._angle_shows_restart = not controller.family.angle_every_cycle
+        self._runtime_ms = [-1] * n
         self._counters = [controller.bus.motor_counters(motor_id) for motor_id in self.ids]
         # Following error: work arrays, and whether a cycle has run since start() (the first has no expectation).
         self._following = False
@@ -245,7 +250,7 @@ class Watchdog:
             message = reply.message
             if i is None or message is None:
                 continue
-            if isinstance(message, Status1):
+            if isinstance(message, STATUS_TYPES):
                 try:
                     self._check_status(i, message)
                 except MotionFault as fault:
@@ -253,8 +258,11 @@ class Watchdog:
                         raise
                     held = held or fault
             elif isinstance(message, MultiTurnAngle):
-                self._check_frame(i, message)
-            elif isinstance(message, MotorState) and message.temperature_c >= self.temperature_limit[i]:
+                if self._angle_shows_restart:
+                    self._check_frame(i, message)
+            elif isinstance(message, Runtime):
+                self._check_runtime(i, message)
+            elif isinstance(message, STATE_TYPES) and message.temperature_c >= self.temperature_limit[i]:
                 held = held or self._fault(
                     FaultKind.TEMPERATURE,
                     i,
@@ -398,11 +406,33 @@ class Watchdog:
                 "its encoder did not: it restarted (power), and its turn offset is lost",
             )
 
-    def _check_status(self, i: int, status: Status1) -> None:
-        if status.errors & ErrorFlags.OVER_TEMPERATURE:
-            raise self._fault(FaultKind.DRIVE_OVER_TEMPERATURE, i, status.temperature_c, None, "drive error flag bit 3")
-        if status.errors & ErrorFlags.LOW_VOLTAGE:
-            raise self._fault(FaultKind.DRIVE_LOW_VOLTAGE, i, status.voltage_v, None, "drive error flag bit 0")
+    def _check_runtime(self, i: int, reading: Runtime) -> None:
+        """A V3 drive's runtime (0xB1) counts from its power-up: less than the last reading means it restarted, its
+        multi-turn count then lost unless it keeps it (and the brake locked, the output off).
+
+        Raises:
+            MotionFault: kind ``drive_restarted`` (never held).
+        """
+        last = self._runtime_ms[i]
+        self._runtime_ms[i] = reading.runtime_ms
+        if reading.runtime_ms < last:
+            raise self._fault(
+                FaultKind.DRIVE_RESTARTED,
+                i,
+                reading.runtime_ms / 1000.0,
+                last / 1000.0,
+                f"the drive's runtime (0xB1) went back from {last} ms to {reading.runtime_ms} ms: it restarted (power)",
+            )
+
+    def _check_status(self, i: int, status: Status1 | Status1V3) -> None:
+        family = self.controller.family
+        errors = int(status.errors)
+        if errors & family.over_temperature:
+            raise self._fault(
+                FaultKind.DRIVE_OVER_TEMPERATURE, i, status.temperature_c, None, f"drive error {status.errors!r}"
+            )
+        if errors & family.low_voltage:
+            raise self._fault(FaultKind.DRIVE_LOW_VOLTAGE, i, status.voltage_v, None, f"drive error {status.errors!r}")
         if status.errors:
             raise self._fault(
                 FaultKind.DRIVE_ERROR, i, float(status.errors), None, f"drive error flags {status.errors!r}"

@@ -221,6 +221,25 @@ class Transport(ABC):
         self._exchange(deadline_s)
         return self._finish()
 
+    def probe_families(self, ids: Sequence[int], window_s: float) -> dict[int, ProtocolFamily] | None:
+        """Each of ``ids`` that answers a status read within ``window_s``, with the protocol generation its answer
+        shows (:mod:`motion.transport.detect`); None where this transport cannot tell (RS485: both generations
+        frame differently, a probe of one is garbage to the other).
+
+        Raises:
+            TransportError: the bus failed.
+        """
+        return None
+
+    def with_family(self, family: ProtocolFamily) -> Transport:
+        """A transport over the same link speaking ``family``, which takes the link over (closing it closes the
+        link; this one then no longer does).
+
+        Raises:
+            TransportError: this transport cannot hand its link over.
+        """
+        raise TransportError(f"{self.describe()} cannot switch to the {ProtocolFamily(family).value} protocol family")
+
     def close(self) -> None:
         """Run the close hooks, then release the bus or port; safe to call more than once."""
         if not self._closed:

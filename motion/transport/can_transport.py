@@ -160,6 +160,19 @@ class CanTransport(Transport):
         """The port the frames go through (a :class:`CanEndpoint` unless one was given to :meth:`over`)."""
         return self._endpoint
 
+    def probe_families(self, ids: Sequence[int], window_s: float) -> dict[int, ProtocolFamily] | None:
+        """See :meth:`Transport.probe_families` (frame level, on :attr:`port`)."""
+        from motion.transport.detect import detect_can  # noqa: PLC0415 - detect builds on this module
+
+        return detect_can(self._endpoint, ids, window_s)
+
+    def with_family(self, family: ProtocolFamily) -> CanTransport:
+        """See :meth:`Transport.with_family`."""
+        transport = CanTransport.over(self._endpoint, clock=self.clock, family=family, owns_port=self._owns_port)
+        transport.frame_tap = self.frame_tap
+        self._owns_port = False
+        return transport
+
     def describe(self) -> str:
         """``"can INTERFACE:CHANNEL"``."""
         return f"can {self._endpoint.interface}:{self._endpoint.channel}"

@@ -11,7 +11,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterable, Mapping
 
-from motion.protocol import Bare, Command, can_frame
+from motion.protocol import Bare, CanFrame, Command, can_frame
 from motion.protocol.table import CAN_ID_BASE, ProtocolFamily
 from motion.protocol.v3 import frames as frames_v3
 from motion.protocol.v3.messages import CommandV3
@@ -37,6 +37,31 @@ def _collect(port: CanPort, window_s: float, wanted: Mapping[int, int]) -> dict[
     return found
 
 
+def probe_frames(ids: Iterable[int]) -> list[CanFrame]:
+    """The status read (0x9A, the same 8 bytes in both families) to each id, as CAN frames."""
+    return [can_frame.encode_request(Bare(Command.READ_STATUS_1), motor_id) for motor_id in sorted(set(ids))]
+
+
+def expected_answers(ids: Iterable[int]) -> dict[int, int]:
+    """The arbitration ids an answer to :func:`probe_frames` may come on (either generation's), each with the command
+    byte it must carry."""
+    id_list = sorted(set(ids))
+    older = {CAN_ID_BASE + i: int(Command.READ_STATUS_1) for i in id_list}
+    newer = {frames_v3.CAN_REPLY_BASE + i: int(CommandV3.READ_STATUS_1) for i in id_list}
+    return older | newer
+
+
+def generations(arbitration_ids: Iterable[int]) -> dict[int, ProtocolFamily]:
+    """The motor id and generation of each answer's arbitration id (one of :func:`expected_answers`)."""
+    found: dict[int, ProtocolFamily] = {}
+    for arbitration_id in sorted(arbitration_ids):
+        if arbitration_id >= frames_v3.CAN_REPLY_BASE:
+            found[arbitration_id - frames_v3.CAN_REPLY_BASE] = ProtocolFamily.V3
+        else:
+            found[arbitration_id - CAN_ID_BASE] = ProtocolFamily.V2
+    return found
+
+
 def detect_can(port: CanPort, ids: Iterable[int], window_s: float) -> dict[int, ProtocolFamily]:
     """Each id that answers a status read within ``window_s``, with the generation its reply id shows.
 
@@ -46,17 +71,9 @@ def detect_can(port: CanPort, ids: Iterable[int], window_s: float) -> dict[int, 
     id_list = sorted(set(ids))
     while port.recv(0.0) is not None:  # what was queued before is nobody's answer
         pass
-    for motor_id in id_list:
-        port.send(can_frame.encode_request(Bare(Command.READ_STATUS_1), motor_id), SEND_TIMEOUT_MIN_S)
-    older = {CAN_ID_BASE + i: int(Command.READ_STATUS_1) for i in id_list}
-    newer = {frames_v3.CAN_REPLY_BASE + i: int(CommandV3.READ_STATUS_1) for i in id_list}
-    found = _collect(port, window_s, older | newer)
-    return {
-        arbitration_id - (CAN_ID_BASE if arbitration_id in older else frames_v3.CAN_REPLY_BASE): (
-            ProtocolFamily.V2 if arbitration_id in older else ProtocolFamily.V3
-        )
-        for arbitration_id in sorted(found)
-    }
+    for frame in probe_frames(id_list):
+        port.send(frame, SEND_TIMEOUT_MIN_S)
+    return generations(_collect(port, window_s, expected_answers(id_list)))
 
 
 def describe_mixed(families: Mapping[int, ProtocolFamily]) -> str:
