@@ -185,15 +185,19 @@ def measure_modes(config: ArmConfig, bus: Transport) -> dict[str, RateCheck]:
     return checks
 
 
-def realtime_capacity(config: ArmConfig) -> dict[str, RateCheck]:
+def realtime_capacity(config: ArmConfig, drives: ProtocolFamily = ProtocolFamily.V2) -> dict[str, RateCheck]:
     """What this host holds in real time for ``config``'s joints, per mode, against its drives emulated in a process
-    of their own (the demo's honest real-time figure).
+    of their own speaking ``drives`` (the demo's honest real-time figure).
 
     Raises:
         MotionError: the configuration was not read from a file.
         TransportError: the emulator process did not start or did not answer.
     """
-    with emulator_process(config) as overrides, open_bus(config, **overrides) as bus:
+    with (
+        emulator_process(config, protocol=drives) as overrides,
+        open_bus(config, **overrides) as opened,
+        negotiate_family(opened, config) as bus,
+    ):
         return measure_modes(config, bus)
 
 

@@ -7,6 +7,10 @@ and a plot:
 2. ``torque``: from where the path ended, the arm holds against gravity, makes a coordinated move and holds again in
    torque mode with gravity feed-forward (the same configuration with ``control.mode: torque``).
 
+``--drives v3`` runs both on emulated V3-driver drives (the newer protocol family, told at connect as with real
+drives), with ``configs/arm6_v3.yaml``: the same arm on those drives (at 125 Hz: they report whole degrees, so every
+cycle also reads the fine angle, twice the frames of the older family; see the file's header).
+
 The configuration is the packaged example (:func:`motion.config.example_config`), the same file in a wheel, an
 editable install and a source checkout: the demo runs from any directory.
 """
@@ -26,10 +30,13 @@ from motion.config import ArmConfig, example_config, load_config
 from motion.config.schema import ControlMode
 from motion.errors import ConfigError, MotionError, MotionFault, TransportError
 from motion.plot import plot_log
+from motion.protocol.table import ProtocolFamily
 from motion.telemetry import TelemetryLog, TelemetryOptions
 from motion.view import ViewOptions
 
 CONFIG_NAME = "arm6.yaml"
+#: The configuration of each drive generation's runs.
+CONFIG_NAMES = {ProtocolFamily.V2: CONFIG_NAME, ProtocolFamily.V3: "arm6_v3.yaml"}
 DEFAULT_OUT_DIR = "rmd-motion-demo"
 
 #: The position-mode path, joint angles in configuration order (deg).
@@ -63,13 +70,13 @@ class PhaseResult:
     final_deg: tuple[float, ...]
 
 
-def config_path() -> Path:
-    """The example configuration (see the module docstring).
+def config_path(drives: ProtocolFamily = ProtocolFamily.V2) -> Path:
+    """The example configuration of the runs on ``drives`` (see the module docstring).
 
     Raises:
         ConfigError: the examples are not installed.
     """
-    return example_config(CONFIG_NAME)
+    return example_config(CONFIG_NAMES[drives])
 
 
 def _follow_path(arm: Arm) -> None:
@@ -91,10 +98,13 @@ def _run_phase(
     *,
     view: ViewOptions | None = None,
     view_wait_s: float = 0.0,
+    drives: ProtocolFamily = ProtocolFamily.V2,
 ) -> PhaseResult:
     log_path, trace_path, png_path = (out_dir / f"{name}{suffix}" for suffix in (".npz", ".log", ".png"))
     telemetry = TelemetryOptions(log_path, trace_path)
-    arm = Arm(config, emulate=True, initial_deg=initial_deg, telemetry=telemetry, view=view or False)
+    arm = Arm(
+        config, emulate=True, initial_deg=initial_deg, telemetry=telemetry, view=view or False, emulated_protocol=drives
+    )
     fault = None
     with arm:
         if arm.view is not None:
@@ -149,10 +159,13 @@ def _summary_row(result: PhaseResult) -> tuple[str, ...]:
     )
 
 
-def _print_summary(config: Path, results: Sequence[PhaseResult], elapsed_s: float) -> None:
+def _print_summary(
+    config: Path, results: Sequence[PhaseResult], elapsed_s: float, drives: ProtocolFamily, rate_hz: float
+) -> None:
     table = [_HEADER, *(_summary_row(result) for result in results)]
     widths = [max(len(row[c]) for row in table) for c in range(len(_HEADER))]
-    print(f"rmd-motion demo: the 6-DOF arm of {config} on emulated CAN drives")
+    kind = "V3-driver CAN drives (protocol v3)" if drives is ProtocolFamily.V3 else "CAN drives"
+    print(f"rmd-motion demo: the 6-DOF arm of {config} on emulated {kind} at {rate_hz:g} Hz")
     for row in table:
         print("  " + "  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True)).rstrip())
     print("  (limited: cycles in which a joint's current limit clipped its torque command)")
@@ -162,10 +175,10 @@ def _print_summary(config: Path, results: Sequence[PhaseResult], elapsed_s: floa
             print(f"  {path}")
 
 
-def _print_realtime(config: ArmConfig) -> None:
+def _print_realtime(config: ArmConfig, drives: ProtocolFamily) -> None:
     """What this host holds in real time: the rate check against the arm's drives emulated in their own process."""
     try:
-        checks = realtime_capacity(config)
+        checks = realtime_capacity(config, drives)
     except (MotionError, OSError) as exc:  # informative only: the demo's result does not depend on it
         print(f"real time on this host: not measured ({exc})")
         return
@@ -181,13 +194,20 @@ def _print_realtime(config: ArmConfig) -> None:
     )
 
 
-def run_demo(out_dir: Path | None = None, *, quiet: bool = False, view: ViewOptions | None = None) -> int:
+def run_demo(
+    out_dir: Path | None = None,
+    *,
+    quiet: bool = False,
+    view: ViewOptions | None = None,
+    drives: ProtocolFamily = ProtocolFamily.V2,
+) -> int:
     """Run the demo and write its logs, traces and plots to ``out_dir`` (default ``./rmd-motion-demo``).
 
     Args:
         out_dir: where the files go (created if needed).
         quiet: print nothing but errors.
         view: show each run live in the browser (:mod:`motion.view`), paced to the wall clock.
+        drives: the emulated drives' protocol generation (V3: with ``arm6_v3.yaml``).
 
     Returns:
         The exit code: 0 done, 1 a motion fault halted the arm (its run is still recorded and plotted), 2 the
@@ -196,7 +216,7 @@ def run_demo(out_dir: Path | None = None, *, quiet: bool = False, view: ViewOpti
     start = time.monotonic()
     target = (Path(DEFAULT_OUT_DIR) if out_dir is None else Path(out_dir)).resolve()
     try:
-        path = config_path()
+        path = config_path(drives)
         position = load_config(path)
         target.mkdir(parents=True, exist_ok=True)
     except (ConfigError, OSError) as exc:
@@ -208,11 +228,16 @@ def run_demo(out_dir: Path | None = None, *, quiet: bool = False, view: ViewOpti
     )
     results: list[PhaseResult] = []
     try:
-        results.append(_run_phase("position", position, target, _follow_path, None, view=view, view_wait_s=VIEW_WAIT_S))
+        results.append(
+            _run_phase(
+                "position", position, target, _follow_path, None, view=view, view_wait_s=VIEW_WAIT_S, drives=drives
+            )
+        )
         if results[-1].fault is None:
+            final = results[-1].final_deg
             results.append(
                 _run_phase(
-                    "torque", torque, target, _gravity_move, results[-1].final_deg, view=view, view_wait_s=VIEW_REOPEN_S
+                    "torque", torque, target, _gravity_move, final, view=view, view_wait_s=VIEW_REOPEN_S, drives=drives
                 )
             )
     except MotionFault as exc:  # outside a motion (while connecting or closing)
@@ -225,8 +250,8 @@ def run_demo(out_dir: Path | None = None, *, quiet: bool = False, view: ViewOpti
         print(f"rmd-motion demo: {exc}", file=sys.stderr)
         return 2
     if not quiet:
-        _print_summary(path, results, time.monotonic() - start)
-        _print_realtime(position)
+        _print_summary(path, results, time.monotonic() - start, drives, position.control.rate_hz)
+        _print_realtime(position, drives)
     fault = results[-1].fault
     if fault is not None:
         print(f"rmd-motion demo: motion fault in the {results[-1].name} run: {fault}", file=sys.stderr)

@@ -136,7 +136,8 @@ def _title(log: TelemetryLog) -> str:
     error = log.following_error_deg()[log.active_rows()]
     worst = f", max following error {np.nanmax(np.abs(error)):.3f} deg" if error.size else ""
     return (
-        f"{meta.get('config', '?')}: {meta['mode']} mode over {meta.get('transport', '?')}{emulated}, "
+        f"{meta.get('config', '?')}: {meta['mode']} mode over {meta.get('transport', '?')}"
+        f"{' (' + meta['protocol'] + ' drives)' if meta.get('protocol', 'v2') != 'v2' else ''}{emulated}, "
         f"{log.cycles} cycles in {log.duration_s:.2f} s{worst}"
     )
 

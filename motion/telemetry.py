@@ -389,6 +389,7 @@ class Recorder:
         return _schema_meta(controller.options.mode.value, controller.options.rate_hz, joints) | {
             "t0_s": self.t0_s,
             "t0_wall_unix_s": self.t0_wall_unix_s,
+            "protocol": controller.family.family.value,
             "loop": dataclasses.asdict(controller.loop.statistics()),
             "counters": {str(mid): dataclasses.asdict(c) for mid, c in sorted(controller.bus.counters.items())},
         }

@@ -38,8 +38,8 @@ ARM2 = _mapping("arm2.yaml")
 ARM6 = _mapping("arm6.yaml")
 
 
-def test_there_are_four_examples() -> None:
-    assert [p.name for p in EXAMPLES] == ["arm2.yaml", "arm2_rs485.yaml", "arm6.yaml", "bench1.yaml"]
+def test_there_are_five_examples() -> None:
+    assert [p.name for p in EXAMPLES] == ["arm2.yaml", "arm2_rs485.yaml", "arm6.yaml", "arm6_v3.yaml", "bench1.yaml"]
 
 
 @pytest.mark.parametrize("path", EXAMPLES, ids=lambda p: p.name)

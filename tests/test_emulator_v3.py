@@ -382,14 +382,24 @@ def test_bus_protocol_is_validated() -> None:
     assert _arm2().bus.protocol is ProtocolSetting.AUTO
 
 
-def test_a_command_on_a_bus_of_v3_drives_says_why_it_cannot_drive_them(tmp_path: Path) -> None:
+def test_the_drive_commands_on_a_bus_of_v3_drives_read_and_halt_them_or_say_why_they_cannot(tmp_path: Path) -> None:
     link = tmp_path / "slcan"
+    config = str(ROOT / "configs" / "arm2.yaml")
+    bus = ("--config", config, "--interface", "slcan", "--channel", str(link))
     with v3_drives(link):
-        result = _cli(
-            "status", "--config", str(ROOT / "configs" / "arm2.yaml"), "--interface", "slcan", "--channel", str(link)
-        )
-    assert result.returncode == 3, result.stderr
-    assert "the drives answer in the v3 protocol (V3 driver): this command speaks the older one" in result.stderr
+        status = _cli("status", *bus, "--json")
+        stop = _cli("stop", *bus)
+        refused = _cli("hold", *bus)
+    assert status.returncode == 0, status.stderr
+    joints = json.loads(status.stdout)["joints"]
+    assert [(j["name"], j["errors"], j["voltage_v"] > 20) for j in joints] == [
+        ("shoulder", [], True),
+        ("elbow", [], True),
+    ]
+    assert stop.returncode == 0, stop.stderr
+    assert "motor stop (0x81) acknowledged by shoulder (motor 1), elbow (motor 2)" in stop.stdout
+    assert refused.returncode == 3, refused.stderr
+    assert "the drives answer in the v3 protocol (V3 driver): this command speaks the older one" in refused.stderr
 
 
 def test_the_v3_rs485_parser_finds_frames_in_split_joined_and_garbage_laden_input() -> None:

@@ -20,6 +20,7 @@ from motion.control.controller import Controller
 from motion.demo import run_demo
 from motion.plot import figure, plot_log
 from motion.protocol import MultiTurnPositionSpeed, TorqueControl, can_frame, rs485_frame
+from motion.protocol.table import ProtocolFamily
 from motion.telemetry import (
     CYCLE_COLUMNS,
     FAULT_COLUMNS,
@@ -290,9 +291,12 @@ def test_empty_and_invalid_logs(tmp_path: Path) -> None:
         load_log(tmp_path / "missing.npz")
 
 
-def test_demo_runs_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    assert run_demo(tmp_path / "demo") == 0
+@pytest.mark.parametrize("drives", list(ProtocolFamily))
+def test_demo_runs_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str], drives: ProtocolFamily) -> None:
+    assert run_demo(tmp_path / "demo", drives=drives) == 0
     out = capsys.readouterr().out
+    kind = "V3-driver CAN drives (protocol v3) at 125 Hz" if drives is ProtocolFamily.V3 else "CAN drives at 250 Hz"
+    assert f"on emulated {kind}" in out
     for name in ("position", "torque"):
         for suffix in (".npz", ".log", ".png"):
             path = tmp_path / "demo" / f"{name}{suffix}"
@@ -300,10 +304,11 @@ def test_demo_runs_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]
             assert str(path) in out
         log = load_log(tmp_path / "demo" / f"{name}.npz")
         assert log.meta["mode"] == name and list(log["fault_kind"]) == ["close"]
+        assert log.meta["protocol"] == drives.value
         assert np.abs(log.following_error_deg()[log.active_rows()]).max() < log.meta["following_error_limit_deg"]
     assert "max following error" in out and "jitter p50/p99/max" in out
     # simulated time: a second run writes the same arrays, bit for bit (host-time fields aside: named wall/busy/...)
-    assert run_demo(tmp_path / "again", quiet=True) == 0
+    assert run_demo(tmp_path / "again", quiet=True, drives=drives) == 0
     for name in ("position", "torque"):
         first, second = (np.load(tmp_path / run / f"{name}.npz") for run in ("demo", "again"))
         assert first.files == second.files

@@ -119,7 +119,7 @@ def demo(args: argparse.Namespace, interrupts: Interrupts) -> int:
         return protocol_demo()
     from motion.demo import run_demo  # noqa: PLC0415 - Pinocchio and matplotlib load only for the demo
 
-    return run_demo(args.out, quiet=args.quiet, view=view_options(args))
+    return run_demo(args.out, quiet=args.quiet, view=view_options(args), drives=ProtocolFamily(args.drives))
 
 
 def view(args: argparse.Namespace, interrupts: Interrupts) -> int:
@@ -311,6 +311,13 @@ def build_parser() -> argparse.ArgumentParser:
         "--out", type=Path, metavar="DIR", help="where the logs, traces and plots go (default ./rmd-motion-demo)"
     )
     demo_parser.add_argument("--quiet", action="store_true", help="print nothing but errors")
+    demo_parser.add_argument(
+        "--drives",
+        choices=[f.value for f in ProtocolFamily],
+        default=ProtocolFamily.V2.value,
+        help="the emulated drives' protocol generation: v2 (default) or v3 (driver V3, as `emulate --protocol v3`; "
+        "the controller tells it at connect)",
+    )
     demo_parser.add_argument(
         "--protocol", action="store_true", help="instead: one control cycle encoded and decoded on both transports"
     )

@@ -135,28 +135,29 @@ class Session:
             overrides["sleep_after_open"] = 0
         return cls(config, overrides)
 
-    def open_bus(self, *, check: bool = True) -> Transport:
-        """Open the configured bus with the overrides and (``check``) refuse drives this command cannot talk to
-        (:func:`motion.compose.negotiate_family`; the drive-level commands speak the older generation, ``scan`` reads
-        any).
+    def open_bus(self, *, check: bool = True, v3: bool = False) -> Transport:
+        """Open the configured bus with the overrides and (``check``) speak the drives' generation
+        (:func:`motion.compose.negotiate_family`; the returned transport owns the port), refusing V3 drives unless
+        the command speaks their protocol (``v3``; ``scan`` reads any generation and does not ask).
 
         Raises:
             TransportError: the bus or port could not be opened, or its drives were refused.
         """
         bus = open_bus(self.config, **self.overrides)
-        if check:
-            try:
-                spoken = negotiate_family(bus, self.config)
-                if spoken.family is not ProtocolFamily.V2:
-                    spoken.close()
-                    raise TransportError(
-                        f"the drives answer in the {spoken.family.value} protocol (V3 driver): this command speaks the "
-                        "older one; move, run, demo and scan drive and read V3 drives"
-                    )
-            except TransportError:
-                bus.close()
-                raise
-        return bus
+        if not check:
+            return bus
+        try:
+            spoken = negotiate_family(bus, self.config)
+        except TransportError:
+            bus.close()
+            raise
+        if spoken.family is not ProtocolFamily.V2 and not v3:
+            spoken.close()
+            raise TransportError(
+                f"the drives answer in the {spoken.family.value} protocol (V3 driver): this command speaks the older "
+                "one; status, stop, off, check, move, run, demo and scan speak theirs"
+            )
+        return spoken
 
     @property
     def names(self) -> dict[int, str]:

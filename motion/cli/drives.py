@@ -29,6 +29,7 @@ from motion.cli.common import (
 from motion.compose import build_controller, load_turn_records, resolve_frames, save_turn_records
 from motion.config import CanBusConfig, JointConfig
 from motion.config.schema import ControlMode
+from motion.control.family import FAMILIES
 from motion.control.ratecheck import RateError
 from motion.control.tracking import PositionLoopFit
 from motion.control.turns import CONTINUITY_MOTOR_DEG, joint_angle
@@ -95,7 +96,7 @@ def _ask(
 def _ask_once(
     session: Session, joints: Sequence[JointConfig], message: Message, expect: type[Message]
 ) -> dict[int, Any]:
-    """Open the bus, :func:`_ask`, release the bus."""
+    """Open the bus (drives of the older generation), :func:`_ask`, release the bus."""
     with session.open_bus() as bus:
         return _ask(bus, session, joints, message, expect)
 
@@ -209,7 +210,7 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """Every joint's position, speed, current, temperature, voltage and flags, read without moving anything."""
     session = Session.from_args(args)
     config = session.config
-    with session.open_bus() as bus:
+    with session.open_bus(v3=True) as bus:
         # The controller's start-up reads (0x92 + 0x9C) give the joint angles exactly as a motion command sees them;
         # its loop is never started.
         controller = build_controller(config, bus)
@@ -217,7 +218,10 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
         turns = resolve_frames(controller, config, records=records)
         controller.read_positions()
         save_turn_records(config, bus.describe(), controller, (j.source for j in turns))
-        status1: dict[int, Status1] = _ask(bus, session, config.joints, Bare(Command.READ_STATUS_1), Status1)
+        family = controller.family
+        status1: dict[int, Status1 | Status1V3] = _ask(
+            bus, session, config.joints, family.bare(Command.READ_STATUS_1), family.status_type
+        )
         where = bus.describe()
     axes = controller.axes
     joints: list[dict[str, object]] = []
@@ -269,7 +273,9 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
 def _halt(args: argparse.Namespace, code: Command) -> int:
     session = Session.from_args(args)
     joints = session.config.joints
-    _ask_once(session, joints, Bare(code), Bare)
+    with session.open_bus(v3=True) as bus:  # the same byte in both generations
+        message = FAMILIES[bus.family].bare(code)
+        _ask(bus, session, joints, message, type(message))
     print(f"{code.name.lower().replace('_', ' ')} (0x{code:02X}) acknowledged by {', '.join(map(_label, joints))}")
     return EXIT_OK
 
@@ -438,7 +444,7 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
     if args.identify and config.control.mode is not ControlMode.POSITION:
         mode = config.control.mode.value
         raise UsageError(f"--identify: {config.source} runs in {mode} mode; identification needs position mode")
-    with session.open_bus() as bus:
+    with session.open_bus(v3=True) as bus:
         checks = measure_modes(config, bus)
         where = bus.describe()
     configured = checks[config.control.mode.value]
