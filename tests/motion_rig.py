@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import subprocess
+import sys
 import uuid
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
@@ -20,18 +21,30 @@ import pytest
 
 from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
-from motion.compose import build_controller, build_supervisor, feedforward_for, open_bus
+from motion.compose import build_controller, build_supervisor, feedforward_for, negotiate_family, open_bus
 from motion.config import ArmConfig, load_config
-from motion.config.schema import CanBusConfig, ControlMode
+from motion.config.schema import CanBusConfig, ControlMode, ProtocolSetting
 from motion.control.controller import Controller
 from motion.emulator import Emulator, FrameLog, Rs485Attachment, SlcanAttachment, VirtualCanAttachment
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.emulator.timing import TimingModel
 from motion.protocol import Message, MultiTurnPositionSpeed, WireProtocol, can_frame, rs485_frame
+from motion.protocol.table import ProtocolFamily
+from motion.protocol.v3 import frames as frames_v3
 from motion.safety import Supervisor
 from motion.transport import Transport
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+#: The drives' generation of :func:`emulated_arm` when not given (a module's tests run on both by setting it:
+#: :func:`each_family`).
+DEFAULT_FAMILY = ProtocolFamily.V2
+
+
+def each_family(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> ProtocolFamily:
+    """Body of a fixture parametrized over both generations: the module's emulated arms speak ``request.param``."""
+    family = ProtocolFamily(request.param)
+    monkeypatch.setattr(sys.modules[__name__], "DEFAULT_FAMILY", family)
+    return family
 
 
 @dataclass
@@ -44,6 +57,7 @@ class Rig:
     cycle_starts: list[float]
     supervisor: Supervisor | None = None
     log_start_s: float = 0.0
+    family: ProtocolFamily = ProtocolFamily.V2
 
     def sleep(self, duration_s: float) -> None:
         """Let ``duration_s`` pass with the loop running (simulated time, or a real sleep)."""
@@ -74,13 +88,19 @@ def emulated_arm(
     supervised: bool = False,
     observe: bool = False,
     latency_s: float | None = None,
+    family: ProtocolFamily | None = None,
 ) -> Iterator[Rig]:
     """Run ``config`` on emulated drives over ``attachment`` (``sim``: the simulated bus of the configured protocol,
     in simulated time; or in real time on an in-process attachment: virtual | slcan | rs485); the controller is
     started, under a safety :class:`Supervisor` if ``supervised`` (with the collision observer where the configuration
     sets thresholds, or ``observe``). ``latency_s``: the drives' reply latency in simulated time (default the
-    emulator's)."""
-    emulator, plant = arm_emulator(config)
+    emulator's). ``family``: the drives' protocol generation (default :data:`DEFAULT_FAMILY`), told at connect on CAN
+    (RS485 is configured to it).
+    """
+    family = DEFAULT_FAMILY if family is None else family
+    if family is ProtocolFamily.V3 and not isinstance(config.bus, CanBusConfig):
+        config = dataclasses.replace(config, bus=dataclasses.replace(config.bus, protocol=ProtocolSetting.V3))
+    emulator, plant = arm_emulator(config, family=family)
     log_path = tmp_path / f"frames-{uuid.uuid4().hex[:8]}.log"
     clock = None
     with ExitStack() as stack:
@@ -90,7 +110,8 @@ def emulated_arm(
             simulation = Simulation(emulator, wire, timing=timing)
             log = stack.enter_context(FrameLog(log_path, clock=simulation.now))
             simulation.frame_log = log
-            bus: Transport = stack.enter_context(SimulatedBus(simulation))
+            opened = ProtocolFamily.V3 if config.bus.protocol is ProtocolSetting.V3 else ProtocolFamily.V2
+            bus: Transport = stack.enter_context(SimulatedBus(simulation, opened))
             clock = SimulatedClock(simulation)
         else:
             log = stack.enter_context(FrameLog(log_path))
@@ -108,6 +129,10 @@ def emulated_arm(
             link = tmp_path / f"rs485-{uuid.uuid4().hex[:8]}"
             stack.enter_context(Rs485Attachment(emulator, link, frame_log=log))
             bus = stack.enter_context(open_bus(config, port=str(link)))
+        spoken = negotiate_family(bus, config)
+        if spoken is not bus:
+            bus = stack.enter_context(spoken)
+        assert bus.family is family
         ff = feedforward_for(config) if use_feedforward else None
         controller = build_controller(config, bus, feedforward=ff, clock=clock)
         controller.read_positions()
@@ -119,7 +144,7 @@ def emulated_arm(
         else:
             controller.start()
         try:
-            yield Rig(config, controller, plant, emulator, log_path, starts, supervisor, log.start_s)
+            yield Rig(config, controller, plant, emulator, log_path, starts, supervisor, log.start_s, family)
         finally:
             if supervisor is not None:
                 supervisor.close()
@@ -129,6 +154,9 @@ def emulated_arm(
 
 def logged_requests(rig: Rig) -> Iterator[tuple[float, int | None, Message]]:
     """Every request the emulated drives received: (time of the rig's clock, motor id or None for 0x280, message)."""
+    v3 = rig.family is ProtocolFamily.V3
+    decode_can = frames_v3.decode_can_request if v3 else can_frame.decode_request
+    decode_rs485 = frames_v3.decode_rs485_request if v3 else rs485_frame.decode_request
     for line in rig.frame_log.read_text().splitlines():
         fields = line.split(maxsplit=3)
         if len(fields) < 4 or fields[1] != "IN":
@@ -136,10 +164,10 @@ def logged_requests(rig: Rig) -> Iterator[tuple[float, int | None, Message]]:
         wire = fields[3].split(" | ")[0]
         if ":" in wire:
             ident, data = wire.split(":")
-            request = can_frame.decode_request(int(ident, 16), bytes.fromhex(data))
+            request = decode_can(int(ident, 16), bytes.fromhex(data))
             yield rig.log_start_s + float(fields[0]), request.motor_id, request.message
         else:
-            motor_id, message = rs485_frame.decode_request(bytes.fromhex(wire))
+            motor_id, message = decode_rs485(bytes.fromhex(wire))
             yield rig.log_start_s + float(fields[0]), motor_id, message
 
 
@@ -163,11 +191,13 @@ def commanded_positions(rig: Rig) -> np.ndarray:
     period = 1.0 / config.control.rate_hz
     column = {j.motor_id: i for i, j in enumerate(config.joints)}
     transmissions = [j.transmission() for j in config.joints]
+    # a V3 drive takes output-shaft angles (motor degrees / its reduction)
+    drive_gear = [j.gear_ratio if rig.family is ProtocolFamily.V3 else 1.0 for j in config.joints]
     per_joint: list[list[float]] = [[] for _ in config.joints]
     for _, motor_id, message in logged_requests(rig):
         if isinstance(message, MultiTurnPositionSpeed) and motor_id in column:
             i = column[motor_id]
-            per_joint[i].append(transmissions[i].joint_deg(message.angle_deg))
+            per_joint[i].append(transmissions[i].joint_deg(message.angle_deg * drive_gear[i]))
     count = min(len(values) for values in per_joint)
     assert count > 0, "no 0xA4 frames in the log"
     starts = np.array(rig.cycle_starts[:count])

@@ -73,6 +73,7 @@ class Emulated:
     process: subprocess.Popen[str]
     log: Path
     bus_args: list[str]
+    protocol: str = "v2"
 
     def log_size(self) -> int:
         return self.log.stat().st_size
@@ -154,6 +155,21 @@ def can_arm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Emulated]:
         yield emulated
 
 
+@pytest.fixture(scope="module", params=["v2", "v3"])
+def any_arm(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Emulated]:
+    """arm2's drives over slcan in either protocol generation (issue 17: the commands that speak both)."""
+    protocol = str(request.param)
+    with running_emulator(tmp_path_factory.mktemp(protocol), ARM2, "--slcan-link", "--protocol", protocol) as emulated:
+        emulated.protocol = protocol
+        yield emulated
+
+
+@pytest.fixture(scope="module")
+def any_arm_200hz(any_arm: Emulated, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """arm2.yaml at a rate this host holds on :func:`any_arm`'s drives, at most 200 Hz."""
+    return rate_that_holds(ARM2, any_arm, tmp_path_factory.mktemp("config"), 200.0)
+
+
 @pytest.fixture(scope="module")
 def rs485_arm(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Emulated]:
     with running_emulator(tmp_path_factory.mktemp("rs485"), ARM2_RS485, "--rs485-link") as emulated:
@@ -222,21 +238,25 @@ def positions(config: Path, emulated: Emulated) -> dict[str, float]:
 # ---------------------------------------------------------------------------------------------------- CAN
 
 
-def test_scan_finds_both_drives(can_arm: Emulated) -> None:
+def test_scan_finds_both_drives(any_arm: Emulated) -> None:
+    can_arm = any_arm
     result = cli("scan", "--config", ARM2, *can_arm.bus_args, "--json")
     assert result.returncode == 0, result.stderr
     data = json.loads(result.stdout)
     assert [d["motor_id"] for d in data["drives"]] == [1, 2]
     assert [d["joint"] for d in data["drives"]] == ["shoulder", "elbow"]
-    assert all(d["voltage_v"] >= 20.0 and d["errors"] == [] and d["model"] is None for d in data["drives"])
+    assert all(d["voltage_v"] >= 20.0 and d["errors"] == [] for d in data["drives"])
+    assert all(d["protocol"] == can_arm.protocol for d in data["drives"])
+    # (a V3 drive names its model and firmware date; the older ones answer no model read on CAN)
+    assert all((d["model"] is None) is (can_arm.protocol == "v2") for d in data["drives"])
     assert data["missing"] == []
     text = cli("scan", "--config", ARM2, *can_arm.bus_args, "--ids", "1-3")
     assert text.returncode == 0, text.stderr
     assert "2 of 3 ids answered" in text.stdout and "shoulder" in text.stdout and "elbow" in text.stdout
 
 
-def test_status_json(can_arm: Emulated) -> None:
-    joints = status_json(ARM2, can_arm)
+def test_status_json(any_arm: Emulated) -> None:
+    joints = status_json(ARM2, any_arm)
     assert list(joints) == ["shoulder", "elbow"]
     keys = {"motor_id", "position_deg", "velocity_dps", "iq_a", "temperature_c", "voltage_v", "errors"}
     for joint in joints.values():
@@ -255,7 +275,8 @@ def test_example_configs_are_found_from_any_directory(can_arm: Emulated, tmp_pat
     )
 
 
-def test_move_then_status_shows_the_joints_there(can_arm: Emulated, arm2_200hz: Path, tmp_path: Path) -> None:
+def test_move_then_status_shows_the_joints_there(any_arm: Emulated, any_arm_200hz: Path, tmp_path: Path) -> None:
+    can_arm, arm2_200hz = any_arm, any_arm_200hz
     log, trace, png = tmp_path / "move.npz", tmp_path / "move.candump", tmp_path / "move.png"
     result = cli(
         "move", "--config", arm2_200hz, *can_arm.bus_args, "shoulder=20", "elbow=-30", "--json",
@@ -348,7 +369,8 @@ def test_pid_and_accel_get_and_set(can_arm: Emulated) -> None:
     assert cli("accel", "set", "--config", ARM2, *can_arm.bus_args, "shoulder", str(original)).returncode == 0
 
 
-def test_run_program(can_arm: Emulated, arm2_200hz: Path, tmp_path: Path) -> None:
+def test_run_program(any_arm: Emulated, any_arm_200hz: Path, tmp_path: Path) -> None:
+    can_arm, arm2_200hz = any_arm, any_arm_200hz
     program = tmp_path / "program.yaml"
     program.write_text(
         "steps:\n"
@@ -394,7 +416,8 @@ def test_run_validates_the_whole_program_first(can_arm: Emulated, tmp_path: Path
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
-def test_ctrl_c_during_a_move_halts_every_axis(can_arm: Emulated, arm2_200hz: Path, signum: signal.Signals) -> None:
+def test_ctrl_c_during_a_move_halts_every_axis(any_arm: Emulated, any_arm_200hz: Path, signum: signal.Signals) -> None:
+    can_arm, arm2_200hz = any_arm, any_arm_200hz
     process = subprocess.Popen(
         [sys.executable, "-m", "motion.cli", "move", "--config", str(arm2_200hz), *can_arm.bus_args, *SLOW_MOVE],
         stdout=subprocess.PIPE,

@@ -152,7 +152,9 @@ def test_drive_faults_are_the_same_kinds_on_both_families(family: str, fault: st
 
 
 def test_a_v3_drive_that_restarted_is_seen_by_its_runtime_going_back() -> None:
-    # (the older family sees a restart only when the drive's turn count jumped: its 0x92 against the encoder)
+    # (the older family sees a restart only when the drive's turn count jumped: its 0x92 against the encoder; a V3
+    # drive's fine angle read in every cycle shows a jump of whole turns at once, tests/test_safety.py; here the
+    # elbow restarts before its first motor turn, so only the runtime shows it)
     arm = Arm(arm2(), emulate=True, emulated_protocol="v3", faults=[parse_fault("power_cycle:2@0.3")])
     with arm, pytest.raises(MotionFault) as caught:
         arm.move_to({"shoulder": 60.0, "elbow": -60.0})

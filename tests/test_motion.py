@@ -1,6 +1,7 @@
 """Coordinated motion on emulated arms in simulated time over the modelled CAN and RS485 wires (issue 5): position
 and torque mode, the commanded stream checked against the limits from the frames on the bus, gravity feed-forward,
-waypoints, re-targeting and stops.
+waypoints, re-targeting and stops; on drives of both protocol generations (issue 17: V3-driver drives read the fine
+angle in every cycle, so their arms run at rates their bus holds).
 
 The emulated drives turn the arm's own Pinocchio model (forward dynamics with gravity), so gravity loads them.
 """
@@ -13,9 +14,13 @@ import numpy as np
 import pytest
 
 from motion.config.schema import ControlMode
+from motion.protocol.table import ProtocolFamily
 from tests.motion_rig import Rig, arm_config, commanded_positions, emulated_arm
 
 SETTLE_S = 0.6
+V2, V3 = ProtocolFamily.V2, ProtocolFamily.V3
+#: Both generations, for the tests that apply to both.
+FAMILIES = pytest.mark.parametrize("family", [V2, V3], ids=["v2", "v3"])
 
 
 def _finite_difference_bounds(stream: np.ndarray, rig: Rig, stride: int) -> None:
@@ -28,7 +33,8 @@ def _finite_difference_bounds(stream: np.ndarray, rig: Rig, stride: int) -> None
     config = rig.config
     h = stride / config.control.rate_hz
     rows = stream[::stride]  # a skipped cycle is a NaN row: differences across it are NaN and left out
-    lsb = np.array([0.01 / j.gear_ratio for j in config.joints])
+    # (a V3 drive takes output-shaft angles in 0.01 deg: one LSB is 0.01 joint deg)
+    lsb = np.array([0.01 / (1.0 if rig.family is V3 else j.gear_ratio) for j in config.joints])
     limits = [
         np.array([j.velocity_limit_dps for j in config.joints]),
         np.array([j.acceleration_limit_dps2 for j in config.joints]),
@@ -65,28 +71,38 @@ def _settle(rig: Rig, target: list[float], tolerance_deg: float) -> None:
     assert np.abs(rig.controller.axes.q_deg - true).max() < 0.05  # tracked multi-turn position = true angle
 
 
+@FAMILIES
 @pytest.mark.parametrize("name", ["arm2.yaml", "arm6.yaml", "arm2_rs485.yaml"])
-def test_position_mode_reaches_target_within_limits_all_joints_together(name: str, tmp_path: Path) -> None:
-    config = arm_config(name, mode=ControlMode.POSITION, rate_hz=100 if "rs485" in name else 200)
+def test_position_mode_reaches_target_within_limits_all_joints_together(
+    name: str, family: ProtocolFamily, tmp_path: Path
+) -> None:
+    rates = {
+        "arm2.yaml": 200,
+        "arm6.yaml": 200 if family is V2 else 125,
+        "arm2_rs485.yaml": 100 if family is V2 else 50,
+    }
+    config = arm_config(name, mode=ControlMode.POSITION, rate_hz=rates[name])
     target = [30.0, -45.0] if len(config.joints) == 2 else [40.0, -20.0, 30.0, -50.0, 25.0, 60.0]
-    with emulated_arm(config, "sim", tmp_path) as rig:
+    with emulated_arm(config, "sim", tmp_path, family=family) as rig:
         rig.controller.move_to(target)
         _settle(rig, target, tolerance_deg=0.05)
     stream = commanded_positions(rig)
     assert np.allclose(stream[-1], target, atol=0.002)
     for stride in (1, 4):
         _finite_difference_bounds(stream, rig, stride)
-    # every joint's commanded stream stops changing in the same cycle (time-synchronised arrival)
+    # every joint's commanded stream stops changing in the same cycle (time-synchronised arrival), give or take the
+    # cycles in which the jerk-limited approach moves less than the wire's step (V3: 0.01 joint deg, not 0.01 motor)
     moving = np.abs(np.diff(stream, axis=0)) > 1e-9
     last_change = [int(np.nonzero(moving[:, j])[0].max()) for j in range(stream.shape[1])]
-    assert max(last_change) - min(last_change) <= 1, last_change
+    assert max(last_change) - min(last_change) <= (1 if family is V2 else 2), last_change
 
 
-def test_torque_mode_gravity_feedforward_holds_and_without_it_sags(tmp_path: Path) -> None:
+@FAMILIES
+def test_torque_mode_gravity_feedforward_holds_and_without_it_sags(family: ProtocolFamily, tmp_path: Path) -> None:
     config = arm_config("arm2.yaml", mode=ControlMode.TORQUE, rate_hz=250)
     error = {}
     for use_ff in (True, False):
-        with emulated_arm(config, "sim", tmp_path, use_feedforward=use_ff) as rig:
+        with emulated_arm(config, "sim", tmp_path, use_feedforward=use_ff, family=family) as rig:
             held = rig.controller.reference.position.copy()  # the start position, held by the PD (+ g(q))
             rig.sleep(1.2)
             error[use_ff] = np.abs(rig.plant.joint_positions_deg() - held).max()
@@ -97,10 +113,16 @@ def test_torque_mode_gravity_feedforward_holds_and_without_it_sags(tmp_path: Pat
     assert error[False] > 5.0, error
 
 
-@pytest.mark.parametrize("name", ["arm2.yaml", "arm2_rs485.yaml"])
-def test_torque_mode_move_reaches_target(name: str, tmp_path: Path) -> None:
-    config = arm_config(name, mode=ControlMode.TORQUE, rate_hz=100 if "rs485" in name else 250)
-    with emulated_arm(config, "sim", tmp_path) as rig:
+# (not V3 over RS485: its fine-angle exchange halves a 115200-baud line's rate, below what torque mode's PD needs)
+@pytest.mark.parametrize(
+    ("name", "family"),
+    [("arm2.yaml", V2), ("arm2_rs485.yaml", V2), ("arm2.yaml", V3)],
+    ids=["can-v2", "rs485-v2", "can-v3"],
+)
+def test_torque_mode_move_reaches_target(name: str, family: ProtocolFamily, tmp_path: Path) -> None:
+    rate = 100 if "rs485" in name else 250
+    config = arm_config(name, mode=ControlMode.TORQUE, rate_hz=rate)
+    with emulated_arm(config, "sim", tmp_path, family=family) as rig:
         rig.controller.move_to([20.0, -30.0], speed_scale=0.7)
         _settle(rig, [20.0, -30.0], tolerance_deg=0.3)
 
@@ -117,10 +139,11 @@ def test_torque_mode_arm6_uses_multi_motor_frame(tmp_path: Path) -> None:
     assert not any(" 141: a1" in line and " IN " in line for line in lines)
 
 
-def test_waypoints_retarget_and_stop_in_position_mode(tmp_path: Path) -> None:
+@FAMILIES
+def test_waypoints_retarget_and_stop_in_position_mode(family: ProtocolFamily, tmp_path: Path) -> None:
     config = arm_config("arm2.yaml", mode=ControlMode.POSITION, rate_hz=200)
     waypoints = [[20.0, -20.0], [40.0, -40.0], [60.0, -30.0]]
-    with emulated_arm(config, "sim", tmp_path) as rig:
+    with emulated_arm(config, "sim", tmp_path, family=family) as rig:
         ctl = rig.controller
         ctl.follow(waypoints)
         _settle(rig, waypoints[-1], tolerance_deg=0.05)

@@ -22,14 +22,21 @@ from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller
 from motion.emulator import Fault, InjectedFault
 from motion.errors import MotionError, MotionFault, PlanningError, TransportError
-from motion.protocol import Bare, Command, MultiTurnPositionSpeed
+from motion.protocol import Command, MultiTurnPositionSpeed
+from motion.protocol.table import ProtocolFamily
 from motion.safety import ArmEvent, ArmState, InvalidTransition, Reaction, StateMachine, Supervisor
 from motion.safety.states import SAFE_STATE, TRANSITIONS
 from motion.trajectory import JointLimits, Planner, State
 from motion.trajectory import Path as TrajectoryPath
 from motion.transmission import FloatArray
 from motion.transport import Reply, Request
-from tests.motion_rig import CONFIGS, Rig, arm_config, emulated_arm, logged_requests, received
+from tests.motion_rig import CONFIGS, Rig, arm_config, each_family, emulated_arm, logged_requests, received
+
+
+@pytest.fixture(autouse=True, params=["v2", "v3"])
+def family(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> ProtocolFamily:
+    """Every test here on drives of both protocol generations (issue 17)."""
+    return each_family(request, monkeypatch)
 
 
 def _config(policy: HaltPolicy = HaltPolicy.STOP, mode: ControlMode = ControlMode.POSITION, **safety: Any) -> ArmConfig:
@@ -66,7 +73,7 @@ def _move_and_catch(
     first = rig.controller.loop.next_cycle  # the first cycle that can see what is injected now
     if status_read_of is not None:
         reads, last = supervisor._status_reads, supervisor._round_robin  # the read that went out last
-        wanted = Request(status_read_of, Bare(read))
+        wanted = Request(status_read_of, rig.controller.family.bare(read))
         detected_in = next(j for j in range(1, len(reads) + 1) if reads[(last + j) % len(reads)] == wanted)
     inject()
     with pytest.raises(MotionFault) as info:
@@ -130,9 +137,10 @@ def test_drive_over_temperature_flag(tmp_path: Path) -> None:
         _assert_refused_until_clear(rig, fault, persists=True)
 
 
-def test_a_drive_that_restarts_mid_move_halts_every_axis(tmp_path: Path) -> None:
+def test_a_drive_that_restarts_mid_move_halts_every_axis(family: ProtocolFamily, tmp_path: Path) -> None:
     # issue 16: a brown-out of one drive: its multi-turn angle restarts from the single-turn reading, and every
-    # target in the old frame would be off by whole turns; seen in the first 0x92 read that goes to it
+    # target in the old frame would be off by whole turns; seen in the first 0x92 read that goes to it (V3: which is
+    # the next cycle's, as every cycle reads it)
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         elbow = rig.emulator.drives[2]
 
@@ -140,7 +148,11 @@ def test_a_drive_that_restarts_mid_move_halts_every_axis(tmp_path: Path) -> None
             assert elbow.angle_deg > 360.0  # past the first turn (in it, a restart changes nothing)
             elbow.power_cycle()
 
-        fault = _move_and_catch(rig, power_cycle, status_read_of=2, read=Command.READ_MULTI_TURN_ANGLE, after_s=1.2)
+        if family is ProtocolFamily.V2:
+            read = Command.READ_MULTI_TURN_ANGLE
+            fault = _move_and_catch(rig, power_cycle, status_read_of=2, read=read, after_s=1.2)
+        else:
+            fault = _move_and_catch(rig, power_cycle, detected_in=1, after_s=1.2)
         assert fault.kind == "drive_restarted" and fault.joint == "elbow"
         assert fault.value is not None and abs(fault.value - round(fault.value)) < 0.05 and round(fault.value) != 0
         _assert_halted_in_detection_cycle(rig)
@@ -195,7 +207,11 @@ def test_measured_temperature_and_voltage_against_configured_limits(
         (InjectedFault.CORRUPT, "corrupt_frames", 3),
     ],
 )
-def test_missing_and_corrupt_replies(kind: InjectedFault, expected: str, cycles: int, tmp_path: Path) -> None:
+def test_missing_and_corrupt_replies(
+    kind: InjectedFault, expected: str, cycles: int, family: ProtocolFamily, tmp_path: Path
+) -> None:
+    if kind is InjectedFault.CORRUPT and family is ProtocolFamily.V3:
+        cycles = 2  # a V3 drive answers twice per cycle (its set-point and the fine angle): 4 frames by the 2nd
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         fault = _move_and_catch(rig, lambda: _inject(rig, kind, 1, duration_s=60.0), detected_in=cycles)
         assert fault.kind == expected and fault.joint == "shoulder"

@@ -139,6 +139,9 @@ class Watchdog:
         # The family's restart sign: the 0x92 angle against the tracked encoder, or the runtime going back (0xB1).
         self._angle_shows_restart = not controller.family.angle_every_cycle
         self._runtime_ms = [-1] * n
+        # ... and the fine angle read in every cycle (motor deg, when), for a jump no speed explains
+        self._drive_gear = [s.drive_gear_ratio for s in specs]
+        self._last_angle: list[tuple[float, float] | None] = [None] * n
         self._counters = [controller.bus.motor_counters(motor_id) for motor_id in self.ids]
         # Following error: work arrays, and whether a cycle has run since start() (the first has no expectation).
         self._following = False
@@ -168,6 +171,7 @@ class Watchdog:
         """Reset the reply clocks (at loop start or after a clear)."""
         self.last_good_s[:] = now_s
         self.misses[:] = 0
+        self._last_angle = [None] * len(self.ids)
         # The counter objects live as long as the transport: look them up once, not every cycle.
         self._counters = [self.controller.bus.motor_counters(motor_id) for motor_id in self.ids]
         for i, counter in enumerate(self._counters):
@@ -260,6 +264,8 @@ class Watchdog:
             elif isinstance(message, MultiTurnAngle):
                 if self._angle_shows_restart:
                     self._check_frame(i, message)
+                else:
+                    self._check_angle_jump(i, message, now_s)
             elif isinstance(message, Runtime):
                 self._check_runtime(i, message)
             elif isinstance(message, STATE_TYPES) and message.temperature_c >= self.temperature_limit[i]:
@@ -404,6 +410,30 @@ class Watchdog:
                 None,
                 f"the drive's multi-turn angle (0x92) jumped by {jump:.1f} motor deg ({jump / 360.0:+.2f} turns) while "
                 "its encoder did not: it restarted (power), and its turn offset is lost",
+            )
+
+    def _check_angle_jump(self, i: int, reading: MultiTurnAngle, now_s: float) -> None:
+        """A fine angle read in every cycle (V3) that jumped from the last one by more than half a motor turn beyond
+        what the reported speed covers in between: the drive restarted and counts its turns anew (the runtime
+        read, :meth:`_check_runtime`, sees it too, a round-robin later).
+
+        Raises:
+            MotionFault: kind ``drive_restarted`` (never held).
+        """
+        motor_deg = reading.angle_deg * self._drive_gear[i]
+        last, self._last_angle[i] = self._last_angle[i], (motor_deg, now_s)
+        if last is None:
+            return
+        jump = motor_deg - last[0]
+        reach = abs(float(self.controller.axes.motor_speed_dps[i])) * (now_s - last[1])
+        if abs(jump) > RESTART_JUMP_MOTOR_DEG + reach:
+            raise self._fault(
+                FaultKind.DRIVE_RESTARTED,
+                i,
+                round(jump / 360.0, 2),
+                None,
+                f"the drive's multi-turn angle (0x92) jumped by {jump:.1f} motor deg between two cycles, beyond what "
+                "its speed covers: it restarted (power), and its turn offset is lost",
             )
 
     def _check_runtime(self, i: int, reading: Runtime) -> None:
