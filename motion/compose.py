@@ -42,7 +42,7 @@ from motion.control.turns import (
 from motion.emulator import DEFAULT_PID, DriveModel, Emulator, Fault, LoadModel, Plant
 from motion.errors import MotionError, TransportError
 from motion.protocol import WireProtocol
-from motion.protocol.table import ProtocolFamily
+from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily
 from motion.safety import SafetySettings, Supervisor
 from motion.safety.watchdog import CollisionObserver, Watchdog
 from motion.trajectory import JointLimits
@@ -112,6 +112,8 @@ def open_bus(config: ArmConfig, **overrides: object) -> Transport:
     """
     bus = config.bus
     family = ProtocolFamily.V3 if bus.protocol is ProtocolSetting.V3 else ProtocolFamily.V2
+    if not isinstance(bus, CanBusConfig) and bus.baudrate not in RS485_BAUDRATES[family]:
+        family = ProtocolFamily.V3  # auto at a rate only V3 drives run: they are asked first
     if isinstance(bus, CanBusConfig):
         settings: dict[str, object] = {"interface": bus.interface, "channel": bus.channel, "bitrate": bus.bitrate}
         return open_transport("can", **(settings | {"family": family} | overrides))
@@ -126,11 +128,11 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
     """The transport that speaks to the configured drives in their protocol generation (issue 17): ``bus`` itself,
     or one over the same link in the other generation (:meth:`Transport.with_family`, which takes the link over).
 
-    On CAN (a real bus or a simulated one) the configured drives are asked for their status once at the frame level
-    and their reply ids tell the generation (:mod:`motion.transport.detect`); drives that do not answer are left to
-    the connect's own reads (which name them). ``bus.protocol: auto`` follows what answered (nothing: the older
-    family); ``v2`` / ``v3`` are checked against it. An RS485 line cannot be probed (the generations frame
-    differently): ``auto`` there is the older family, ``v3`` is taken as told.
+    The configured drives are asked for their status: on CAN (a real bus or a simulated one) once at the frame level,
+    their reply ids telling the generation (:mod:`motion.transport.detect`); on RS485 in each generation's framing in
+    turn (a drive stays silent to the other framing, whose checksums fail). Drives that do not answer are left to the
+    connect's own reads (which name them). ``bus.protocol: auto`` follows what answered (nothing: the older family);
+    ``v2`` / ``v3`` are checked against it.
 
     Raises:
         TransportError: drives of both generations on one bus (each named), or drives that answer in the other

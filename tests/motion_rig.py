@@ -94,12 +94,9 @@ def emulated_arm(
     in simulated time; or in real time on an in-process attachment: virtual | slcan | rs485); the controller is
     started, under a safety :class:`Supervisor` if ``supervised`` (with the collision observer where the configuration
     sets thresholds, or ``observe``). ``latency_s``: the drives' reply latency in simulated time (default the
-    emulator's). ``family``: the drives' protocol generation (default :data:`DEFAULT_FAMILY`), told at connect on CAN
-    (RS485 is configured to it).
+    emulator's). ``family``: the drives' protocol generation (default :data:`DEFAULT_FAMILY`), told at connect.
     """
     family = DEFAULT_FAMILY if family is None else family
-    if family is ProtocolFamily.V3 and not isinstance(config.bus, CanBusConfig):
-        config = dataclasses.replace(config, bus=dataclasses.replace(config.bus, protocol=ProtocolSetting.V3))
     emulator, plant = arm_emulator(config, family=family)
     log_path = tmp_path / f"frames-{uuid.uuid4().hex[:8]}.log"
     clock = None

@@ -17,6 +17,7 @@ import yaml
 from motion.api import Arm
 from motion.config import ArmConfig
 from motion.config.loader import parse_config
+from motion.control.ratecheck import RateError
 from motion.emulator import parse_fault
 from motion.emulator.drive_v3 import EmulatedDriveV3
 from motion.emulator.simulated import DEFAULT_BITRATE
@@ -125,6 +126,44 @@ def test_a_brake_is_released_when_the_loop_starts_locked_once_halted_at_rest_and
         arm.sleep(0.3)
         assert arm.positions()["elbow"] == pytest.approx(10.0, abs=0.1)
     assert elbow.brake is BrakeCommand.LOCK
+
+
+def rs485_arm2(rate_hz: float = 100.0, **changes: object) -> ArmConfig:
+    """configs/arm2_rs485.yaml in position mode (its torque PD is tuned for 100 Hz) at ``rate_hz``, in a horizontal
+    plane (nothing holds the emulated arm before the loop starts: under gravity it would fall during the line's
+    slower connect), ``bus`` keys changed."""
+    data = yaml.safe_load((ROOT / "configs" / "arm2_rs485.yaml").read_text())
+    data["control"].update(mode="position", rate_hz=rate_hz)
+    data["model"]["gravity_m_s2"] = [0.0, 0.0, -9.81]
+    data["bus"].update(changes)
+    return parse_config(data, source="arm2_rs485.yaml", base_dir=ROOT / "configs")
+
+
+@pytest.mark.parametrize(
+    ("family", "baudrate", "rate_hz"), [("v2", 115_200, 50), ("v3", 1_000_000, 100)], ids=["v2", "v3-1M"]
+)
+def test_drives_on_an_rs485_line_are_told_by_the_framing_they_answer(family: str, baudrate: int, rate_hz: int) -> None:
+    with Arm(rs485_arm2(rate_hz, baudrate=baudrate), emulate=True, emulated_protocol=family) as arm:
+        assert arm.bus is not None and arm.bus.family.value == family
+        arm.move_to({"shoulder": 20.0})
+        arm.sleep(0.3)
+        assert arm.positions()["shoulder"] == pytest.approx(20.0, abs=0.1)
+
+
+def test_v3_drives_at_115200_baud_are_too_slow_for_any_loop_rate_and_the_rate_check_says_so() -> None:
+    # two 13-byte exchanges per joint and cycle, one after the other: about 40 Hz for two joints, below the 50 Hz
+    # a configuration may ask for (their drives run at 0.5-2.5 Mbaud too)
+    with pytest.raises(RateError, match=r"50 Hz cannot be held.*the highest rate that holds is (3\d|4\d) Hz"):
+        Arm(rs485_arm2(50.0), emulate=True, emulated_protocol="v3").connect()
+
+
+def test_rs485_baud_rates_are_each_generations() -> None:
+    assert rs485_arm2(baudrate=2_500_000, protocol="v3").bus.baudrate == 2_500_000
+    assert rs485_arm2(baudrate=1_000_000).bus.baudrate == 1_000_000  # auto: either generation's
+    with pytest.raises(ConfigError, match=r"bus\.baudrate.*9600, 19200, 57600, 115200"):
+        rs485_arm2(baudrate=1_000_000, protocol="v2")
+    with pytest.raises(ConfigError, match=r"bus\.baudrate.*115200, 500000, 1000000, 1500000, 2500000"):
+        rs485_arm2(baudrate=57_600, protocol="v3")
 
 
 def test_brakes_on_drives_without_brake_commands_are_refused() -> None:

@@ -25,7 +25,7 @@ from motion.config import schema
 from motion.config.urdf import revolute_joints
 from motion.errors import ConfigError
 from motion.protocol import WireProtocol
-from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN
+from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, RS485_BAUDRATES, ProtocolFamily
 from motion.transmission import IQ_LIMIT_A
 
 _T = TypeVar("_T")
@@ -300,10 +300,12 @@ def _bus(root: _Node) -> schema.BusConfig:
             bitrate=node.integer("bitrate", _OneOf((500_000, 1_000_000))),
             protocol=node.choice("protocol", schema.ProtocolSetting),
         )
+    protocol = node.choice("protocol", schema.ProtocolSetting)
+    # the baud rates of the generation named, or of either with auto
+    families = list(ProtocolFamily) if protocol is schema.ProtocolSetting.AUTO else [ProtocolFamily(protocol.value)]
+    baudrates = sorted({rate for family in families for rate in RS485_BAUDRATES[family]})
     return schema.Rs485BusConfig(
-        port=node.text("port"),
-        baudrate=node.integer("baudrate", _OneOf((9600, 19200, 57600, 115200))),
-        protocol=node.choice("protocol", schema.ProtocolSetting),
+        port=node.text("port"), baudrate=node.integer("baudrate", _OneOf(tuple(baudrates))), protocol=protocol
     )
 
 

@@ -43,9 +43,9 @@ class HaltPolicy(StrEnum):
 class ProtocolSetting(StrEnum):
     """``bus.protocol``: the drives' protocol generation, or ``auto`` to tell it from their replies at connect."""
 
-    AUTO = "auto"  #: CAN: detected at connect by the reply ids (RS485: the older family)
+    AUTO = "auto"  #: told at connect (CAN: by the reply ids; RS485: by the framing the drives answer)
     V2 = "v2"  #: the older family (CAN v2.3 / RS485 v1.62 documents)
-    V3 = "v3"  #: the V3-driver family (V4.2 document): read by `rmd-motion scan`, not controlled yet
+    V3 = "v3"  #: the V3-driver family (V4.2 document)
 
 
 @dataclass(frozen=True, slots=True)
@@ -72,7 +72,8 @@ class Rs485BusConfig:
 
     Attributes:
         port: serial device (``/dev/ttyUSB0``, ``COM3``).
-        baudrate: baud rate in bit/s (9600, 19200, 57600 or 115200).
+        baudrate: baud rate in bit/s (the older drives: 9600, 19200, 57600 or 115200; V3-driver drives: 115200, 500000,
+            1000000, 1500000 or 2500000).
         protocol: the drives' protocol generation (see :class:`ProtocolSetting`).
     """
 

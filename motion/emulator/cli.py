@@ -42,13 +42,13 @@ from motion.emulator.framelog import FrameLog
 from motion.emulator.model import DriveModel
 from motion.emulator.timing import DEFAULT_LATENCY_S, TimingModel
 from motion.errors import TransportError
-from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, ProtocolFamily
+from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, RS485_BAUDRATES, ProtocolFamily
 
 EXIT_OK = 0
 EXIT_USAGE = 2
 EXIT_COMMUNICATION = 3
-#: Baud rates of the RS485 document.
-RS485_BAUDS = (9600, 19200, 57600, 115200)
+#: Baud rates of the RS485 documents (both generations; each family's own are checked with --protocol).
+RS485_BAUDS = tuple(sorted({rate for rates in RS485_BAUDRATES.values() for rate in rates}))
 N = TypeVar("N", int, float)
 #: Builds the emulated drives from the faults to schedule (``rmd-motion emulate --config``: the arm's drives).
 EmulatorFactory = Callable[[Sequence[Fault]], Emulator]
@@ -243,6 +243,9 @@ def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -
         ValueError: conflicting options, or drives or faults the emulator rejects (ConfigError is one).
     """
     family = ProtocolFamily(args.protocol)
+    if args.baud not in RS485_BAUDRATES[family]:
+        allowed = ", ".join(map(str, RS485_BAUDRATES[family]))
+        raise ValueError(f"--baud {args.baud}: {family.value} drives run at {allowed} baud")
     if args.brakes and getattr(args, "config", None) is not None:
         raise ValueError("--brakes applies to --ids only: with --config each joint's brake is configured (brake: true)")
     if args.brakes and family is not ProtocolFamily.V3:

@@ -35,7 +35,7 @@ from motion.errors import DecodeError
 from motion.protocol import CanFrame, WireProtocol, can_frame, rs485_frame
 from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3 import frames as frames_v3
-from motion.transport.base import Request, Transport
+from motion.transport.base import Request, Transport, probe_in_turn
 from motion.transport.can_transport import take_in_can_frame
 from motion.transport.detect import expected_answers, generations, probe_frames
 
@@ -226,16 +226,17 @@ class SimulatedBus(Transport):
         self._motors: list[int] = []
 
     def probe_families(self, ids: Sequence[int], window_s: float) -> dict[int, ProtocolFamily] | None:
-        """See :meth:`Transport.probe_families`: the probe goes over the simulated CAN wire (RS485: None)."""
+        """See :meth:`Transport.probe_families`: on CAN at the frame level over the simulated wire; on RS485 a status
+        read in each generation's framing in turn (as :class:`~motion.transport.rs485_transport.Rs485Transport`)."""
         if not self._can:
-            return None
+            return probe_in_turn(self, ids, window_s, lambda family: SimulatedBus(self.simulation, family))
         sim = self.simulation
         sim.arrived_by(sim.now_s)  # what was sent before is nobody's answer
         for frame in probe_frames(ids):
             sim.submit(frame)
         wanted, end = expected_answers(ids), sim.now_s + window_s
-        found: set[int] = set()
-        while len(found) < len(set(ids)):
+        answered: set[int] = set()
+        while len(answered) < len(set(ids)):
             arrival = sim.next_arrival(end)
             if arrival is None:
                 sim.sleep_until(end)
@@ -243,8 +244,8 @@ class SimulatedBus(Transport):
             sim.now_s = arrival.time_s
             wire = arrival.wire
             if isinstance(wire, CanFrame) and wanted.get(wire.arbitration_id) == wire.data[0]:
-                found.add(wire.arbitration_id)
-        return generations(found)
+                answered.add(wire.arbitration_id)
+        return generations(answered)
 
     def with_family(self, family: ProtocolFamily) -> SimulatedBus:
         """See :meth:`Transport.with_family`."""

@@ -66,6 +66,14 @@ class ProtocolFamily(StrEnum):
     V3 = "v3"  #: driver V3 ("Servo Motor Control Protocol" V4.2): replies on 0x240 + id (motion.protocol.v3)
 
 
+#: The RS485 baud rates of each generation, bit/s: v1.62 section 1 (115200 the factory default); V4.2 0xB4's codes
+#: 0..4 (115200 the factory default).
+RS485_BAUDRATES: Final[Mapping[ProtocolFamily, tuple[int, ...]]] = {
+    ProtocolFamily.V2: (9600, 19200, 57600, 115_200),
+    ProtocolFamily.V3: (115_200, 500_000, 1_000_000, 1_500_000, 2_500_000),
+}
+
+
 class Direction(Enum):
     """Which way a frame travels."""
 

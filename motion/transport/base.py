@@ -50,8 +50,9 @@ from dataclasses import dataclass
 from typing import Final, NamedTuple, Self
 
 from motion.errors import TransportError
-from motion.protocol import Command, Message, MultiMotorTorque
+from motion.protocol import Bare, Command, Message, MultiMotorTorque
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, ProtocolFamily
+from motion.protocol.v3.messages import BareV3, CommandV3
 
 #: ``tap(time_s, received, arbitration_id, data)``: called with every frame a backend sends (``received`` False) or
 #: takes in (True), at the transport clock's time; ``arbitration_id`` is None on RS485, where ``data`` is the bytes as
@@ -146,6 +147,36 @@ class BusCounters:
     bad_frames: int = 0
     dropped_bytes: int = 0
     skipped_requests: int = 0
+
+
+#: The status read of each generation (the same bytes; each family's message class).
+_STATUS_READ: Final[Mapping[ProtocolFamily, Message]] = {
+    ProtocolFamily.V2: Bare(Command.READ_STATUS_1),
+    ProtocolFamily.V3: BareV3(CommandV3.READ_STATUS_1),
+}
+
+
+def probe_in_turn(
+    bus: Transport, ids: Sequence[int], window_s: float, sibling: Callable[[ProtocolFamily], Transport]
+) -> dict[int, ProtocolFamily]:
+    """The generation of each of ``ids`` that answers a status read (0x9A) in ``bus``'s framing, then of those
+    silent to it in the other's (``sibling(family)``: a transport of that family on the same link, not owning it),
+    each within ``window_s`` (a line where the framings differ: RS485).
+
+    Raises:
+        TransportError: the bus failed.
+    """
+    found: dict[int, ProtocolFamily] = {}
+    silent = list(ids)
+    for family in (bus.family, *(f for f in ProtocolFamily if f is not bus.family)):
+        if not silent:
+            break
+        speaker = bus if family is bus.family else sibling(family)
+        request = _STATUS_READ[family]
+        replies = speaker.transact([Request(i, request) for i in silent], speaker.clock() + window_s)
+        found.update((r.motor_id, family) for r in replies if r.message is not None)
+        silent = [i for i in silent if i not in found]
+    return dict(sorted(found.items()))
 
 
 class Transport(ABC):

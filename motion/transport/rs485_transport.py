@@ -35,13 +35,13 @@ import serial
 
 from motion.errors import DecodeError, EncodeError, TransportError
 from motion.protocol import MultiMotorTorque, Rs485Parser, rs485_frame
-from motion.protocol.table import Direction, ProtocolFamily
+from motion.protocol.table import RS485_BAUDRATES, Direction, ProtocolFamily
 from motion.protocol.v3 import frames as frames_v3
 from motion.protocol.v3.frames import Rs485ParserV3
-from motion.transport.base import Request, Transport
+from motion.transport.base import Request, Transport, probe_in_turn
 
-#: Baud rates RMD RS485 drives support (v1.62: 115200 is the factory default).
-BAUDRATES: Final = (9600, 19200, 57600, 115200)
+#: Baud rates RMD RS485 drives of the older generation support (v1.62: 115200 is the factory default).
+BAUDRATES: Final = RS485_BAUDRATES[ProtocolFamily.V2]
 #: Bytes asked of the port per read; larger than any frame (65 bytes) so one read usually takes a whole reply.
 READ_CHUNK_BYTES: Final = 256
 
@@ -51,7 +51,7 @@ class Rs485Transport(Transport):
 
     Args:
         port: serial device (``/dev/ttyUSB0``, a pseudo-terminal, ...).
-        baudrate: 9600, 19200, 57600 or 115200 bit/s.
+        baudrate: one of the family's baud rates (:data:`~motion.protocol.table.RS485_BAUDRATES`), bit/s.
         clock: time source of the deadlines (see :class:`~motion.transport.base.Transport`).
         exclusive: lock the port against other processes (``flock``), so that two programs cannot share a line.
         write_timeout_s: how long a write may block before the port counts as failed.
@@ -73,8 +73,10 @@ class Rs485Transport(Transport):
         write_timeout_s: float = 0.1,
         family: ProtocolFamily = ProtocolFamily.V2,
     ) -> None:
-        if baudrate not in BAUDRATES:
-            raise EncodeError("baudrate", ", ".join(map(str, BAUDRATES)), baudrate, "RMD RS485 v1.62 baud rates")
+        allowed = RS485_BAUDRATES[ProtocolFamily(family)]
+        if baudrate not in allowed:
+            document = "v1.62" if family is ProtocolFamily.V2 else "V4.2"
+            raise EncodeError("baudrate", ", ".join(map(str, allowed)), baudrate, f"RMD RS485 {document} baud rates")
         super().__init__(clock=clock, family=family)
         self.port = port
         self.baudrate = baudrate
@@ -94,6 +96,11 @@ class Rs485Transport(Transport):
             self._fds: list[int] = [self._serial.fileno()]
         except (serial.SerialException, OSError, ValueError) as exc:
             raise TransportError(f"cannot open RS485 port {port!r} at {baudrate} baud: {exc}") from exc
+        self._speak()
+
+    def _speak(self, *, owns_port: bool = True) -> None:
+        """The framing of :attr:`family` and empty per-exchange state."""
+        self._owns_port = owns_port
         v3 = self.family is ProtocolFamily.V3
         self._parser: Rs485Parser | Rs485ParserV3 = Rs485ParserV3() if v3 else Rs485Parser()
         self._encode = frames_v3.encode_rs485_request if v3 else rs485_frame.encode_request
@@ -101,6 +108,28 @@ class Rs485Transport(Transport):
         self._motors: list[int] = []
         self._seen_candidates = 0
         self._seen_dropped = 0
+
+    def _sibling(self, family: ProtocolFamily, *, takes_port: bool) -> Rs485Transport:
+        """A transport of ``family`` on this one's open port (owning it when ``takes_port``, this one then not)."""
+        sibling = Rs485Transport.__new__(Rs485Transport)
+        Transport.__init__(sibling, clock=self.clock, family=family)
+        sibling.port, sibling.baudrate = self.port, self.baudrate
+        sibling._serial, sibling._fds = self._serial, self._fds
+        sibling._speak(owns_port=takes_port and self._owns_port)
+        sibling.frame_tap = self.frame_tap
+        if takes_port:
+            self._owns_port = False
+        return sibling
+
+    def probe_families(self, ids: Sequence[int], window_s: float) -> dict[int, ProtocolFamily] | None:
+        """See :meth:`Transport.probe_families`: a status read (0x9A) in this transport's framing, then in the other
+        to the ids silent to it (:func:`~motion.transport.base.probe_in_turn`; a frame of the other framing is
+        garbage to a drive: its checksums fail and it stays silent)."""
+        return probe_in_turn(self, ids, window_s, lambda family: self._sibling(family, takes_port=False))
+
+    def with_family(self, family: ProtocolFamily) -> Rs485Transport:
+        """See :meth:`Transport.with_family`."""
+        return self._sibling(family, takes_port=True)
 
     def describe(self) -> str:
         """``"rs485 PORT"``."""
@@ -227,6 +256,8 @@ class Rs485Transport(Transport):
             self.frame_tap(self.clock(), False, None, frame)
 
     def _close(self) -> None:
+        if not self._owns_port:
+            return
         try:
             self._serial.close()
         except (serial.SerialException, OSError) as exc:
