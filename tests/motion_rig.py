@@ -126,7 +126,9 @@ def emulated_arm(
             link = tmp_path / f"rs485-{uuid.uuid4().hex[:8]}"
             stack.enter_context(Rs485Attachment(emulator, link, frame_log=log))
             bus = stack.enter_context(open_bus(config, port=str(link)))
-        spoken = negotiate_family(bus, config)
+        # the generation told as at connect (the older drives' rigs skip the probe: their timing stays what the tests
+        # were tuned on; issue 19's identification test shifts with it, see its note)
+        spoken = negotiate_family(bus, config) if family is not ProtocolFamily.V2 else bus
         if spoken is not bus:
             bus = stack.enter_context(spoken)
         assert bus.family is family

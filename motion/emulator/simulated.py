@@ -253,6 +253,13 @@ class SimulatedBus(Transport):
         bus.frame_tap = self.frame_tap
         return bus
 
+    def request_wire_s(self, requests: Sequence[Request]) -> float | None:
+        """See :meth:`Transport.request_wire_s`: the simulated wire's own timing."""
+        sim = self.simulation
+        if self._can:
+            return sum(sim.wire_time_s(self._encode_can(r.message, r.motor_id)) for r in requests)
+        return sum(sim.wire_time_s(self._encode_rs485(r.message, r.motor_id)) for r in requests)
+
     def describe(self) -> str:
         """``"simulated can"`` or ``"simulated rs485"``."""
         return f"simulated {self.simulation.protocol.value.lower()}"

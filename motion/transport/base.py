@@ -262,6 +262,16 @@ class Transport(ABC):
         """
         return None
 
+    def request_wire_s(self, requests: Sequence[Request]) -> float | None:
+        """The time the frames of ``requests`` occupy the wire, s (each encoded as :meth:`transact` would), or None
+        where this transport does not know its wire's speed. The rate check adds what a cycle's set-points take on
+        the wire beyond its measuring reads (an RS485 0xA4 frame is three times a read's).
+
+        Raises:
+            EncodeError: a request cannot be encoded on this transport.
+        """
+        return None
+
     def with_family(self, family: ProtocolFamily) -> Transport:
         """A transport over the same link speaking ``family``, which takes the link over (closing it closes the
         link; this one then no longer does).
