@@ -27,7 +27,7 @@ import numpy as np
 
 from motion.api import Arm, realtime_capacity
 from motion.config import ArmConfig, example_config, load_config
-from motion.config.schema import ControlMode
+from motion.config.schema import ControlMode, ProtocolSetting
 from motion.errors import ConfigError, MotionError, MotionFault, TransportError
 from motion.plot import plot_log
 from motion.protocol.table import ProtocolFamily
@@ -218,6 +218,8 @@ def run_demo(
     try:
         path = config_path(drives)
         position = load_config(path)
+        # the controller tells the drives' generation at connect, as with real drives (the file names it)
+        position = dataclasses.replace(position, bus=dataclasses.replace(position.bus, protocol=ProtocolSetting.AUTO))
         target.mkdir(parents=True, exist_ok=True)
     except (ConfigError, OSError) as exc:
         print(f"rmd-motion demo: {exc}", file=sys.stderr)

@@ -3,8 +3,10 @@
 Two figures are measured, with requests that move nothing:
 
 - **the bus round trip**: ``transact`` of a batch shaped like the cycle's (one read per joint, answered like a
-  set-point, plus the cycle's 0x9A status read), repeated; from the first frame out to the last reply in, on the
-  transport's clock (real time on hardware and real-time emulation, simulated time in a simulation);
+  set-point, the family's fine-angle reads (V3), plus the cycle's 0x9A status read), repeated; from the first frame
+  out to the last reply in, on the transport's clock (real time on hardware and real-time emulation, simulated time
+  in a simulation); where the set-points take longer on the wire than the reads standing in for them (RS485: an 0xA4
+  frame is 18 bytes, a read 5), the difference is added at the wire's speed (``Transport.request_wire_s``);
 - **the host's own work per cycle** beyond the exchange (whose encoding and decoding the round trip already holds):
   a guarded cycle at rest rehearsed on each measuring exchange's replies, with nothing sent - the set-points (in
   torque mode with the feed-forward, i.e. Pinocchio), the replies absorbed, the tracking model, the watchdog with the
