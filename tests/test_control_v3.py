@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from motion.api import Arm
+from motion.compose import build_supervisor
 from motion.config import ArmConfig
 from motion.config.loader import parse_config
 from motion.config.schema import Rs485BusConfig
@@ -83,6 +84,24 @@ def test_a_move_on_v3_drives_detected_at_connect_reaches_its_target_with_the_ses
     for drive in drives:
         output = round(drive.model.acceleration_dps2 / drive.model.gear_ratio)
         assert drive.accelerations[AccelerationIndex.POSITION_ACCELERATION] == output
+
+
+def test_sessions_one_after_another_on_one_bus_restore_what_was_there_before_the_first() -> None:
+    # (homing runs a supervisor of its own before the arm's: each restores at its close, the next reads that)
+    with Arm(arm2(), emulate=True, emulated_protocol="v3") as arm:
+        assert arm.supervisor is not None and arm.controller is not None
+        drive = v3_drive(arm, 1)
+        factory = round(drive.model.acceleration_dps2 / drive.model.gear_ratio)
+        arm.supervisor.close()
+        restored = (dict(drive.accelerations), drive.communication_timeout_ms)
+        arm.controller.read_positions()
+        arm.supervisor = build_supervisor(arm.config, arm.controller)
+        arm.supervisor.start()
+        running = (drive.accelerations[AccelerationIndex.POSITION_ACCELERATION], drive.communication_timeout_ms)
+    assert restored[0][AccelerationIndex.POSITION_ACCELERATION] == factory and restored[1] == 0
+    assert running == (0, 20)
+    assert drive.accelerations[AccelerationIndex.POSITION_ACCELERATION] == factory
+    assert drive.communication_timeout_ms == 0
 
 
 def test_every_cycle_reads_the_fine_angle_because_the_motion_replies_carry_whole_degrees() -> None:

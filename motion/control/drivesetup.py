@@ -116,7 +116,10 @@ class DriveSetup:
 
     def restore(self, deadline_s: float) -> None:
         """Lock the brakes, write back the planning accelerations, turn the protection off; best effort (a drive
-        that does not answer is logged: the bus is closing)."""
+        that does not answer is logged: the bus is closing). Once: a second call (the supervisor's close, then the
+        bus's) sends nothing, and a later :meth:`apply` reads what this one wrote back."""
+        if not self.applied and self.brakes_locked:
+            return
         requests = self.brake_requests(CommandV3.LOCK_BRAKE) if self.braked_ids else []
         requests += [
             Request(motor_id, PlanningAcceleration(CommandV3.WRITE_ACCELERATION, AccelerationIndex(index), value))
@@ -128,9 +131,11 @@ class DriveSetup:
             return
         try:
             self._ask(requests, deadline_s, "restore")
-            self.brakes_locked = True
         except TransportError as exc:
             logger.error("the drives' settings were not all restored: %s", exc)
+        finally:
+            self.applied, self.brakes_locked = False, True
+            self.saved_accelerations.clear()
 
     def _ask(self, requests: list[Request], deadline_s: float, what: str) -> list[Reply]:
         replies = self.bus.transact(requests, deadline_s)

@@ -312,12 +312,15 @@ class Supervisor:
         return self._clear_result
 
     def close(self, timeout_s: float = 2.0) -> None:
-        """Halt every axis with 0x81, end the loop (the bus stays open for its owner to close)."""
+        """Halt every axis with 0x81, end the loop, restore the drives' settings (:mod:`motion.control.drivesetup`);
+        the bus stays open for its owner to close."""
         if self.machine.state is ArmState.CLOSED:
             return
         if self.controller.loop.running and not self.machine.state.faulted:
             self.estop(FaultKind.CLOSE, timeout_s)
         self.controller.shutdown(timeout_s)
+        if not self.controller.bus.closed:  # (else its close hook has restored them)
+            self.drives.restore(self.controller.clock.now() + _SETUP_WINDOW_S)
         self._finalizer()
         self.machine.fire(ArmEvent.CLOSE)
 

@@ -403,14 +403,7 @@ class Watchdog:
         """
         jump = reading.angle_deg - float(self.controller.axes.motor_deg[i])
         if abs(jump) > RESTART_JUMP_MOTOR_DEG:
-            raise self._fault(
-                FaultKind.DRIVE_RESTARTED,
-                i,
-                round(jump / 360.0, 2),
-                None,
-                f"the drive's multi-turn angle (0x92) jumped by {jump:.1f} motor deg ({jump / 360.0:+.2f} turns) while "
-                "its encoder did not: it restarted (power), and its turn offset is lost",
-            )
+            raise self._restarted(i, jump, f"({jump / 360.0:+.2f} turns) while its encoder did not")
 
     def _check_angle_jump(self, i: int, reading: MultiTurnAngle, now_s: float) -> None:
         """A fine angle read in every cycle (V3) that jumped from the last one by more than half a motor turn beyond
@@ -427,14 +420,18 @@ class Watchdog:
         jump = motor_deg - last[0]
         reach = abs(float(self.controller.axes.motor_speed_dps[i])) * (now_s - last[1])
         if abs(jump) > RESTART_JUMP_MOTOR_DEG + reach:
-            raise self._fault(
-                FaultKind.DRIVE_RESTARTED,
-                i,
-                round(jump / 360.0, 2),
-                None,
-                f"the drive's multi-turn angle (0x92) jumped by {jump:.1f} motor deg between two cycles, beyond what "
-                "its speed covers: it restarted (power), and its turn offset is lost",
-            )
+            raise self._restarted(i, jump, "between two cycles, beyond what its speed covers")
+
+    def _restarted(self, i: int, jump_deg: float, how: str) -> MotionFault:
+        """The ``drive_restarted`` fault of joint ``i`` whose 0x92 angle jumped by ``jump_deg`` motor degrees."""
+        return self._fault(
+            FaultKind.DRIVE_RESTARTED,
+            i,
+            round(jump_deg / 360.0, 2),
+            None,
+            f"the drive's multi-turn angle (0x92) jumped by {jump_deg:.1f} motor deg {how}: it restarted (power), and "
+            "its turn offset is lost",
+        )
 
     def _check_runtime(self, i: int, reading: Runtime) -> None:
         """A V3 drive's runtime (0xB1) counts from its power-up: less than the last reading means it restarted, its
