@@ -12,9 +12,10 @@ import subprocess
 import sys
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -24,7 +25,7 @@ from motion.config.schema import ProtocolSetting
 from motion.emulator import DriveModel, Emulator, Fault, InjectedFault, LoadModel, VirtualCanAttachment
 from motion.emulator.simulated import SimulatedBus, Simulation
 from motion.errors import ConfigError, TransportError
-from motion.protocol import MultiTurnAngle, MultiTurnPositionSpeed, SpeedControl, TorqueControl
+from motion.protocol import CanFrame, MultiTurnAngle, MultiTurnPositionSpeed, SpeedControl, TorqueControl
 from motion.protocol.messages import Message
 from motion.protocol.table import Direction, ProtocolFamily, WireProtocol
 from motion.protocol.v3 import COMMANDS_V3, frames
@@ -326,6 +327,51 @@ def test_a_can_transport_talks_to_v3_drives_in_another_process(tmp_path: Path) -
             replies = bus.transact(batch, time.monotonic() + 0.5)
             assert [type(r.message) for r in replies] == [MotorStateV3] * 3 + [MotorModel]
             assert [r.motor_id for r in replies] == [1, 2, 3, 2]
+
+
+def _active_reply_times(port: CanEndpoint, clock: Callable[[], float], seconds: float) -> list[tuple[int, float]]:
+    """(motor id, time) of every 0x92 reply received within ``seconds``."""
+    seen: list[tuple[int, float]] = []
+    end = clock() + seconds
+    while (left := end - clock()) > 0:
+        received = port.recv(left)
+        if received is not None and received[0].data[:1] == bytes((C.READ_MULTI_TURN_ANGLE,)):
+            seen.append((received[0].arbitration_id - frames.CAN_REPLY_BASE, received[1]))
+    return seen
+
+
+def test_active_replies_come_every_interval_without_requests_in_simulated_time() -> None:
+    emulator = _emulator()
+    simulation = Simulation(emulator, WireProtocol.CAN)
+    bus = SimulatedBus(simulation)
+    on = ActiveReply(ActiveReplyCommand.READ_MULTI_TURN_ANGLE, 1, 10.0)
+    bus.transact([Request(1, on)], simulation.now_s + 0.002)  # (0xB6 has no reply: the slot times out)
+    start, times = simulation.now_s, []
+    while (arrival := simulation.next_arrival(start + 0.1)) is not None:
+        simulation.now_s = arrival.time_s
+        assert isinstance(arrival.wire, CanFrame) and arrival.wire.arbitration_id == frames.CAN_REPLY_BASE + 1
+        times.append(arrival.time_s)
+    assert len(times) == 10 and np.allclose(np.diff(times), 0.010)
+    # a request for the read it sends by itself gets no answer; the other drive answers as before
+    replies = bus.transact([Request(i, BareV3(C.READ_MULTI_TURN_ANGLE)) for i in (1, 2)], simulation.now_s + 0.002)
+    assert replies[0].message is None and isinstance(replies[1].message, MultiTurnAngle)  # (the next comes in 8 ms)
+    bus.transact([Request(1, ActiveReply(ActiveReplyCommand.READ_MULTI_TURN_ANGLE, 0, 10.0))], simulation.now_s + 0.002)
+    simulation.sleep_until(simulation.now_s + 0.05)
+    assert simulation.arrived_by(simulation.now_s) == []  # stopped
+
+
+def test_active_replies_come_from_v3_drives_in_another_process(tmp_path: Path) -> None:
+    link = tmp_path / "slcan"
+    with v3_drives(link), CanEndpoint("slcan", str(link), 1_000_000, sleep_after_open=0) as port:
+        on = ActiveReply(ActiveReplyCommand.READ_MULTI_TURN_ANGLE, 1, 20.0)
+        port.send(frames.encode_can_request(on, 2), 0.1)
+        seen = _active_reply_times(port, time.monotonic, 0.5)
+        port.send(frames.encode_can_request(ActiveReply(ActiveReplyCommand.READ_MULTI_TURN_ANGLE, 0, 20.0), 2), 0.1)
+        time.sleep(0.05)
+        after = _active_reply_times(port, time.monotonic, 0.2)
+    assert {motor for motor, _ in seen} == {2}
+    assert 15 <= len(seen) <= 26, len(seen)  # every 20 ms for half a second (a busy host delays some)
+    assert after == []
 
 
 def test_scan_names_each_drives_generation_firmware_and_model(tmp_path: Path) -> None:

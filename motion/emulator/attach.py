@@ -162,10 +162,18 @@ class Attachment(ABC, Generic[W, R]):
                 self.emulator.sync(now)
                 for item in received:
                     self._on_input(item, now)
+                self._unsolicited(now)
                 self._flush()
         except Exception as exc:
             logger.exception("%s: emulator attachment stopped", self.channel)
             self.failure = exc
+
+    def _unsolicited(self, now_s: float) -> None:
+        """Schedule the frames the drives send without a request (none on this link)."""
+
+    def _schedule(self, outgoing: Outgoing[W], ready_s: float) -> None:
+        self._seq += 1
+        heapq.heappush(self._pending, _Pending(ready_s, self._seq, self.timing.bus_time, outgoing))
 
     def _log(self, direction: str, wire: str, decoded: str) -> None:
         if self._frame_log is not None:
@@ -189,9 +197,7 @@ class Attachment(ABC, Generic[W, R]):
             self.stats.unanswered += 1
         request_end = self._bus.occupy(arrival_s, request_time_s) if self.timing.bus_time else arrival_s
         for outgoing in exchange.replies:
-            self._seq += 1
-            ready = request_end + self.timing.latency_s + outgoing.delay_s
-            heapq.heappush(self._pending, _Pending(ready, self._seq, self.timing.bus_time, outgoing))
+            self._schedule(outgoing, request_end + self.timing.latency_s + outgoing.delay_s)
 
     def _flush(self) -> None:
         now = time.monotonic()
@@ -254,6 +260,11 @@ class _CanAttachment(Attachment[CanFrame, CanFrame]):
             self._bad(_can_text(item), exc)
             return
         self._accept(exchange, _can_text(item), self._wire_time(item), now_s)
+
+    def _unsolicited(self, now_s: float) -> None:
+        """V3 drives' replies without requests (0xB6), due by now (the loop wakes every tick)."""
+        for outgoing in self.emulator.active_replies():
+            self._schedule(outgoing, now_s)
 
     def _wire_time(self, wire: CanFrame) -> float:
         return can_frame_time_s(wire.arbitration_id, wire.data, self.bitrate)

@@ -356,6 +356,27 @@ class Emulator:
                 corruption = f.corruption
         return lost, delay_s, corruption
 
+    # --- replies without requests (0xB6) --------------------------------------------------------------------------
+
+    def next_active_reply_s(self) -> float | None:
+        """When the next reply a V3 drive sends by itself (0xB6) is due, simulation time; None: none is set up."""
+        with self._lock:
+            return min(
+                (t for _, d in self._v3 if (t := d.next_active_reply_s()) is not None),
+                default=None,
+            )
+
+    def active_replies(self, at_s: float | None = None) -> list[Outgoing[CanFrame]]:
+        """The CAN frames the V3 drives send by themselves (0xB6) that are due by the present simulation time (or
+        ``at_s``, where the emulator was advanced to: its whole steps may stop short of it), in ascending drive id."""
+        with self._lock:
+            now = self.time_s if at_s is None else max(self.time_s, at_s)
+            return [
+                Outgoing(drive.motor_id, _encode_can_v3(message, drive.motor_id, None), message)
+                for _, drive in self._v3
+                for message in drive.active_replies_due(now)
+            ]
+
     # --- requests -------------------------------------------------------------------------------------------------
 
     def handle_can(self, frame: CanFrame) -> Exchange[CanFrame]:

@@ -45,6 +45,7 @@ from motion.protocol.v3.frames import MOTION_RANGES
 from motion.protocol.v3.messages import (
     AccelerationIndex,
     AccelerationRead,
+    ActiveReply,
     BareV3,
     BrakeCommand,
     CanIdCommand,
@@ -140,6 +141,8 @@ class EmulatedDriveV3(EmulatedDrive):
         self.powered_on_s = 0.0
         #: Times the communication-loss protection cut the output.
         self.link_losses = 0
+        #: 0xB6: the reads sent without requests, each with its interval and next time, s (RAM: a restart ends them).
+        self.active_replies: dict[int, tuple[float, float]] = {}
         self._motion: MotionCommand | None = None
         super().__init__(motor_id, model, tuned_inertia_kgm2)
 
@@ -150,6 +153,7 @@ class EmulatedDriveV3(EmulatedDrive):
         last instant the drive knows (its latest frame)."""
         self.pid_floats = dict(self.pid_floats_rom)
         self.powered_on_s = self.last_frame_s
+        self.active_replies = {}
         super().power_cycle()
         self.brake = BrakeCommand.LOCK
         self._use_accelerations()
@@ -257,7 +261,7 @@ class EmulatedDriveV3(EmulatedDrive):
         command = CommandV3(code)  # type: ignore[arg-type]
         self._execute_v3(command, message, now_s)
         layout = spec.layout(WireProtocol.CAN, Direction.REPLY)
-        if layout is None:
+        if layout is None or int(command) in self.active_replies:  # (0xB6: its replies come by themselves only)
             return None
         if layout.echo:
             return message
@@ -287,6 +291,12 @@ class EmulatedDriveV3(EmulatedDrive):
                 self._turn_off()
         elif isinstance(message, CommunicationTimeout):
             self.communication_timeout_ms = message.timeout_ms
+        elif isinstance(message, ActiveReply):
+            interval_s = message.interval_ms / 1000.0
+            if message.enabled and interval_s > 0:
+                self.active_replies[int(message.reply_command)] = (interval_s, now_s + interval_s)
+            else:
+                self.active_replies.pop(int(message.reply_command), None)
         elif isinstance(message, FunctionControl):
             self.functions[int(message.index)] = message.value
         elif command is CommandV3.MOTOR_OFF:
@@ -300,6 +310,25 @@ class EmulatedDriveV3(EmulatedDrive):
                 self._run(setpoint)
 
     # --- replies --------------------------------------------------------------------------------------------------
+
+    def next_active_reply_s(self) -> float | None:
+        """When the next 0xB6 reply is due (simulation time), or None."""
+        return min((due for _interval, due in self.active_replies.values()), default=None)
+
+    def active_replies_due(self, now_s: float) -> list[Message]:
+        """The 0xB6 replies due by ``now_s``, each read as at ``now_s``; one per command (a slot missed while the
+        emulator fell behind is not sent late), the next one interval after its due time."""
+        out: list[Message] = []
+        for command, (interval_s, due_s) in list(self.active_replies.items()):
+            if due_s > now_s:
+                continue
+            code = CommandV3(command)
+            layout = COMMANDS_V3[code].layout(WireProtocol.CAN, Direction.REPLY)
+            assert layout is not None  # every read 0xB6 takes has a reply
+            out.append(self._reply_v3(code, layout.cls, BareV3(code)))
+            missed = math.floor((now_s - due_s) / interval_s)
+            self.active_replies[command] = (interval_s, due_s + (missed + 1) * interval_s)
+        return out
 
     def _temperature(self) -> int:
         coldest, hottest = _TEMPERATURE_C

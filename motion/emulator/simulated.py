@@ -161,9 +161,15 @@ class Simulation:
 
     def _run_bus(self, limit_s: float, *, stop_at_arrival: bool = False) -> None:
         """Put the waiting frames on the bus, in order, while the next one starts by ``limit_s``."""
-        queue = self._queue
-        while queue:
-            start = max(queue[0].ready_s, self._busy_until_s)
+        queue, emulator = self._queue, self.emulator
+        while True:
+            start = max(queue[0].ready_s, self._busy_until_s) if queue else math.inf
+            due = emulator.next_active_reply_s()  # (V3 drives' replies without requests, 0xB6; CAN only)
+            if due is not None and due <= limit_s and due <= start:
+                emulator.advance_to(due)
+                for outgoing in emulator.active_replies(due):
+                    self._push(due + self.timing.latency_s, False, outgoing.wire, outgoing)
+                continue
             if start > limit_s:
                 return
             frame = heapq.heappop(queue)
