@@ -172,8 +172,9 @@ class Supervisor:
     def start(self) -> None:
         """Start the guarded loop (closing the bus first halts every axis and ends the loop)."""
         clock = self.controller.clock
-        self.drives.apply(clock.now() + _SETUP_WINDOW_S)
+        # (the hook first: a setup that fails half-way is restored when the bus closes)
         self.controller.bus.close_hooks.append(self._before_bus_close)
+        self.drives.apply(clock.now() + _SETUP_WINDOW_S)
         self.watchdog.start(clock.now())
         self.controller.start(self.cycle)
         self._await_collision_check()
