@@ -15,7 +15,7 @@ import json
 import logging
 import math
 import os
-from collections.abc import Callable, Collection, Iterable, Mapping
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import fields
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -43,11 +43,12 @@ from motion.emulator import DEFAULT_PID, DriveModel, Emulator, Fault, LoadModel,
 from motion.errors import MotionError, TransportError
 from motion.protocol import WireProtocol
 from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily
+from motion.protocol.v3.messages import BareV3, CommandV3, MotorModel, VersionDate
 from motion.safety import SafetySettings, Supervisor
 from motion.safety.watchdog import CollisionObserver, Watchdog
 from motion.trajectory import JointLimits
 from motion.transmission import FloatArray
-from motion.transport import Reply, Transport, open_transport
+from motion.transport import Reply, Request, Transport, open_transport
 
 if TYPE_CHECKING:
     from kinematics.figure import ArmFigure
@@ -155,7 +156,24 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
                 f"bus.protocol is {setting.value}, but the drives answer in the {detected.value} protocol "
                 f"({describe_mixed(found)}): set bus.protocol to {detected.value} or auto"
             )
-    return bus if bus.family is wanted else bus.with_family(wanted)
+    spoken = bus if bus.family is wanted else bus.with_family(wanted)
+    if wanted is ProtocolFamily.V3 and found:
+        logger.info("V3-driver drives: %s", describe_v3_drives(spoken, sorted(found)))
+    return spoken
+
+
+def describe_v3_drives(bus: Transport, ids: Sequence[int]) -> str:
+    """``"motor 1 X8S2V10 firmware 20240528, ..."``: each V3 drive's model (0xB5) and firmware date (0xB2), as read
+    now (a drive that does not answer is named so).
+
+    Raises:
+        TransportError: the bus failed.
+    """
+    reads = (BareV3(CommandV3.READ_MODEL), BareV3(CommandV3.READ_VERSION_DATE))
+    replies = bus.transact([Request(i, m) for i in ids for m in reads], bus.clock() + GENERATION_CHECK_WINDOW_S)
+    models = {r.motor_id: r.message.model for r in replies if isinstance(r.message, MotorModel)}
+    dates = {r.motor_id: r.message.date for r in replies if isinstance(r.message, VersionDate)}
+    return ", ".join(f"motor {i} {models.get(i, '(no model)')} firmware {dates.get(i, '(no date)')}" for i in ids)
 
 
 def feedforward_for(config: ArmConfig) -> Feedforward | None:

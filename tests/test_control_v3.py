@@ -3,6 +3,7 @@ of a session, brakes, faults onto the same kinds as the older family, and the dr
 
 from __future__ import annotations
 
+import logging
 import os
 import signal
 import subprocess
@@ -61,9 +62,13 @@ def v3_drive(arm: Arm, motor_id: int) -> EmulatedDriveV3:
     return drive
 
 
-def test_a_move_on_v3_drives_detected_at_connect_reaches_its_target_with_the_sessions_drive_settings() -> None:
+def test_a_move_on_v3_drives_detected_at_connect_reaches_its_target_with_the_sessions_drive_settings(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
     arm = Arm(arm2(), emulate=True, emulated_protocol="v3")
-    with arm:
+    with caplog.at_level(logging.INFO, logger="motion.config"), arm:
+        # the connect names each V3 drive's model and firmware date
+        assert "V3-driver drives: motor 1 EMU-V3 firmware 20240528, motor 2 EMU-V3 firmware 20240528" in caplog.text
         assert arm.bus is not None and arm.bus.family is V3  # told by the reply ids (bus.protocol: auto)
         assert arm.controller is not None and arm.controller.family.family is V3
         drives = [v3_drive(arm, i) for i in (1, 2)]
