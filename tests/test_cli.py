@@ -462,7 +462,8 @@ def test_ctrl_c_during_a_move_halts_every_axis(any_arm: Emulated, any_arm_200hz:
     assert abs(reached["shoulder"] - 60.0) > 5.0, "the move went on after the interrupt"
 
 
-def test_hold_stop_clear(can_arm: Emulated) -> None:
+def test_hold_stop_clear(any_arm: Emulated) -> None:
+    can_arm = any_arm
     for command, expected in [
         ("stop", "motor stop (0x81) acknowledged by shoulder (motor 1), elbow (motor 2)"),
         ("clear", "shoulder (motor 1): clear"),

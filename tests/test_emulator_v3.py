@@ -435,7 +435,8 @@ def test_the_drive_commands_on_a_bus_of_v3_drives_read_and_halt_them_or_say_why_
     with v3_drives(link):
         status = _cli("status", *bus, "--json")
         stop = _cli("stop", *bus)
-        refused = _cli("hold", *bus)
+        held = _cli("hold", *bus)
+        refused = _cli("pid", "get", *bus, "shoulder")
     assert status.returncode == 0, status.stderr
     joints = json.loads(status.stdout)["joints"]
     assert [(j["name"], j["errors"], j["voltage_v"] > 20) for j in joints] == [
@@ -444,6 +445,8 @@ def test_the_drive_commands_on_a_bus_of_v3_drives_read_and_halt_them_or_say_why_
     ]
     assert stop.returncode == 0, stop.stderr
     assert "motor stop (0x81) acknowledged by shoulder (motor 1), elbow (motor 2)" in stop.stdout
+    assert held.returncode == 0, held.stderr
+    assert "holding (drive position loop, 0xA4): shoulder at 0.00 deg" in held.stdout
     assert refused.returncode == 3, refused.stderr
     assert "the drives answer in the v3 protocol (V3 driver): this command speaks the older one" in refused.stderr
 

@@ -40,7 +40,6 @@ from motion.protocol import (
     Command,
     EncoderOffset,
     Message,
-    MotorState,
     MultiTurnAngle,
     MultiTurnPositionSpeed,
     PidGains,
@@ -295,25 +294,30 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """Every drive holds its present angle in its own position loop (0xA4), also after the command ends."""
     session = Session.from_args(args)
     joints = session.config.joints
-    with session.open_bus() as bus:
+    with session.open_bus(v3=True) as bus:
+        family = FAMILIES[bus.family]
+        # (a V3 drive reads and takes output-shaft degrees: motor degrees / its reduction)
+        gear = {j.motor_id: j.gear_ratio if family.output_shaft else 1.0 for j in joints}
         angles: dict[int, MultiTurnAngle] = _ask(
-            bus, session, joints, Bare(Command.READ_MULTI_TURN_ANGLE), MultiTurnAngle
+            bus, session, joints, family.bare(Command.READ_MULTI_TURN_ANGLE), MultiTurnAngle
         )
         requests = [
             Request(
                 j.motor_id,
                 MultiTurnPositionSpeed(
-                    angles[j.motor_id].angle_deg, j.velocity_limit_dps * j.gear_ratio * HOLD_SPEED_SHARE
+                    angles[j.motor_id].angle_deg,
+                    j.velocity_limit_dps * j.gear_ratio * HOLD_SPEED_SHARE / gear[j.motor_id],
                 ),
             )
             for j in joints
         ]
-        exchange(bus, requests, session.names, MotorState)
+        exchange(bus, requests, session.names, family.state_type)
         records = load_turn_records(session.config, bus.describe())
 
     def joint_deg(joint: JointConfig) -> str:
         """The joint angle with the turns the last session recorded, while the drive continues from it."""
-        reading, record = angles[joint.motor_id].angle_deg, records.get(joint.name)
+        reading = angles[joint.motor_id].angle_deg * gear[joint.motor_id]
+        record = records.get(joint.name)
         if record is None or abs(reading - record.reading_deg) > CONTINUITY_MOTOR_DEG:
             return f"{joint_angle(joint.transmission(), reading, 0):.2f} deg (turns not known)"
         return f"{joint_angle(joint.transmission(), reading, record.turns):.2f} deg"
@@ -324,10 +328,14 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
 
 
 def clear(args: argparse.Namespace, interrupts: Interrupts) -> int:
-    """0x9B to every joint; a flag whose cause persists stays set (exit 1)."""
+    """0x9B to every joint; a flag whose cause persists stays set (exit 1). V3 drives have no 0x9B (their level-2
+    errors clear by themselves once the cause is gone): their error words are read and reported the same way."""
     session = Session.from_args(args)
     joints = session.config.joints
-    replies: dict[int, Status1] = _ask_once(session, joints, Bare(Command.CLEAR_ERRORS), Status1)
+    with session.open_bus(v3=True) as bus:
+        family = FAMILIES[bus.family]
+        request = family.bare(Command.CLEAR_ERRORS if family.clears_errors else Command.READ_STATUS_1)
+        replies: dict[int, Status1 | Status1V3] = _ask(bus, session, joints, request, family.status_type)
     left = {j.name: flag_names(replies[j.motor_id].errors) for j in joints if replies[j.motor_id].errors}
     for joint in joints:
         print(f"{_label(joint)}: {', '.join(left.get(joint.name, [])) or 'clear'}")
