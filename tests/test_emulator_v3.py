@@ -436,7 +436,9 @@ def test_the_drive_commands_on_a_bus_of_v3_drives_read_and_halt_them_or_say_why_
         status = _cli("status", *bus, "--json")
         stop = _cli("stop", *bus)
         held = _cli("hold", *bus)
-        refused = _cli("pid", "get", *bus, "shoulder")
+        gains = _cli("pid", "get", *bus, "--json")
+        accelerations = _cli("accel", "get", *bus, "elbow", "--json")
+        refused = _cli("pid", "set", *bus, "shoulder", "1", "2", "3", "4", "5", "6")
     assert status.returncode == 0, status.stderr
     joints = json.loads(status.stdout)["joints"]
     assert [(j["name"], j["errors"], j["voltage_v"] > 20) for j in joints] == [
@@ -447,6 +449,12 @@ def test_the_drive_commands_on_a_bus_of_v3_drives_read_and_halt_them_or_say_why_
     assert "motor stop (0x81) acknowledged by shoulder (motor 1), elbow (motor 2)" in stop.stdout
     assert held.returncode == 0, held.stderr
     assert "holding (drive position loop, 0xA4): shoulder at 0.00 deg" in held.stdout
+    assert gains.returncode == 0, gains.stderr
+    shoulder = json.loads(gains.stdout)["shoulder"]
+    assert list(shoulder) == [i.name.lower() for i in PidIndex] and shoulder["position_kd"] == 0.0
+    assert accelerations.returncode == 0, accelerations.stderr
+    assert list(json.loads(accelerations.stdout)) == ["elbow"]
+    assert json.loads(accelerations.stdout)["elbow"]["position_acceleration"] > 0
     assert refused.returncode == 3, refused.stderr
     assert "the drives answer in the v3 protocol (V3 driver): this command speaks the older one" in refused.stderr
 

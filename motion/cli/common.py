@@ -155,7 +155,7 @@ class Session:
             spoken.close()
             raise TransportError(
                 f"the drives answer in the {spoken.family.value} protocol (V3 driver): this command speaks the older "
-                "one; status, stop, off, hold, clear, check, move, run, demo and scan speak theirs"
+                "one; status, stop, off, hold, clear, pid get, accel get, check, move, run, demo and scan speak theirs"
             )
         return spoken
 

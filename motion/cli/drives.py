@@ -55,7 +55,19 @@ from motion.protocol.table import (
     field_names,
     field_range,
 )
-from motion.protocol.v3.messages import BareV3, CommandV3, MotorModel, Status1V3, VersionDate
+from motion.protocol.v3.messages import (
+    AccelerationIndex,
+    AccelerationRead,
+    BareV3,
+    CommandV3,
+    MotorModel,
+    PidIndex,
+    PidParameter,
+    PidRead,
+    PlanningAcceleration,
+    Status1V3,
+    VersionDate,
+)
 from motion.transport import Request, Transport
 from motion.transport.can_transport import CanPort, CanTransport
 from motion.transport.detect import detect_can
@@ -366,7 +378,11 @@ def pid(args: argparse.Namespace, interrupts: Interrupts) -> int:
     session = Session.from_args(args)
     if args.action == "get":
         joints = session.joints(args.joints)
-        gains: dict[int, PidGains] = _ask_once(session, joints, Bare(Command.READ_PID), PidGains)
+        with session.open_bus(v3=True) as bus:
+            if bus.family is ProtocolFamily.V3:  # float32 parameters by index (0x30)
+                reads = [(i.name.lower(), PidRead(i)) for i in PidIndex]
+                return _print_v3_parameters(bus, session, joints, reads, PidParameter, as_json=args.json)
+            gains: dict[int, PidGains] = _ask(bus, session, joints, Bare(Command.READ_PID), PidGains)
         if args.json:
             print_json({j.name: {f: getattr(gains[j.motor_id], f) for f in PID_FIELDS} for j in joints})
         else:
@@ -391,6 +407,32 @@ def pid(args: argparse.Namespace, interrupts: Interrupts) -> int:
     return EXIT_OK
 
 
+def _print_v3_parameters(
+    bus: Transport,
+    session: Session,
+    joints: Sequence[JointConfig],
+    reads: Sequence[tuple[str, Message]],
+    expect: type[PidParameter] | type[PlanningAcceleration],
+    *,
+    as_json: bool,
+) -> int:
+    """V3 drives' parameters read one index at a time (each ``reads`` entry: a column and its request), printed as a
+    table or JSON by joint."""
+    values: dict[int, dict[str, float]] = {j.motor_id: {} for j in joints}
+    for column, request in reads:
+        for motor_id, reply in _ask(bus, session, joints, request, expect).items():
+            values[motor_id][column] = reply.value if isinstance(reply, PidParameter) else reply.acceleration_dps2
+    if as_json:
+        print_json({j.name: values[j.motor_id] for j in joints})
+    else:
+        columns = [column for column, _ in reads]
+        print_table(
+            ("joint", "motor", *columns),
+            [(j.name, j.motor_id, *(values[j.motor_id][c] for c in columns)) for j in joints],
+        )
+    return EXIT_OK
+
+
 def accel_value_arg(text: str) -> int:
     """argparse type of an acceleration limit: a whole number of motor deg/s² >= 0 (0: no limit)."""
     if not text.isdigit() or int(text) > ACCELERATION_MAX_DPS2:
@@ -403,7 +445,11 @@ def accel(args: argparse.Namespace, interrupts: Interrupts) -> int:
     session = Session.from_args(args)
     if args.action == "get":
         joints = session.joints(args.joints)
-        limits: dict[int, Acceleration] = _ask_once(session, joints, Bare(Command.READ_ACCELERATION), Acceleration)
+        with session.open_bus(v3=True) as bus:
+            if bus.family is ProtocolFamily.V3:  # planning accelerations by index (0x42), output shaft deg/s²
+                reads = [(i.name.lower(), AccelerationRead(i)) for i in AccelerationIndex]
+                return _print_v3_parameters(bus, session, joints, reads, PlanningAcceleration, as_json=args.json)
+            limits: dict[int, Acceleration] = _ask(bus, session, joints, Bare(Command.READ_ACCELERATION), Acceleration)
         values = {j.name: limits[j.motor_id].acceleration_dps2 for j in joints}
         if args.json:
             print_json({n: {"motor_dps2": v, "joint_dps2": v / session.joint(n).gear_ratio} for n, v in values.items()})
