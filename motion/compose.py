@@ -40,7 +40,7 @@ from motion.control.turns import (
     turn_joint_deg,
 )
 from motion.emulator import DEFAULT_PID, DriveModel, Emulator, Fault, LoadModel, Plant
-from motion.errors import MotionError, TransportError
+from motion.errors import ConfigError, MotionError, TransportError
 from motion.protocol import WireProtocol
 from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily
 from motion.protocol.v3.messages import BareV3, CommandV3, MotorModel, VersionDate
@@ -382,9 +382,21 @@ def rehearsal_watchdog(config: ArmConfig, controller: Controller) -> Watchdog:
 def build_supervisor(config: ArmConfig, controller: Controller, *, observe: bool = False) -> Supervisor:
     """The safety supervisor of ``controller`` (after ``read_positions()``): the thresholds of ``config``, the
     collision observer when a joint has a threshold (or ``observe``: residuals recorded, e.g. to calibrate), and
-    gravity compensation for the ``comply`` reaction."""
+    gravity compensation for the ``comply`` reaction.
+
+    Raises:
+        ConfigError: a joint has ``brake: true`` but its drive's generation has no brake commands.
+    """
     ids = [j.motor_id for j in config.joints]
     braked = [j.motor_id for j in config.joints if j.brake]
+    if braked and not controller.family.brakes:
+        i, joint = next((i, j) for i, j in enumerate(config.joints) if j.brake)
+        raise ConfigError(
+            config.source,
+            f"joints[{i}].brake",
+            f"{joint.name} has a brake, but the drives answer in the {controller.family.family.value} protocol, which "
+            "has no brake commands (0x77 / 0x78 are the V3 driver's)",
+        )
     timeout_ms = link_timeout_ms(
         config.control.period_s, None if config.safety.link_timeout_ms is None else config.safety.link_timeout_ms / 1e3
     )

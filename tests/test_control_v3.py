@@ -193,7 +193,7 @@ def test_rs485_baud_rates_are_each_generations() -> None:
 
 
 def test_brakes_on_drives_without_brake_commands_are_refused() -> None:
-    with pytest.raises(ConfigError, match=r"joints\[\]\.brake.*the v2 drives have no brake commands"):
+    with pytest.raises(ConfigError, match=r"joints\[1\]\.brake: elbow has a brake, but the drives answer in the v2"):
         Arm(arm2(brake="elbow"), emulate=True).connect()
 
 
