@@ -254,8 +254,8 @@ class Transport(ABC):
 
     def probe_families(self, ids: Sequence[int], window_s: float) -> dict[int, ProtocolFamily] | None:
         """Each of ``ids`` that answers a status read within ``window_s``, with the protocol generation its answer
-        shows (:mod:`motion.transport.detect`); None where this transport cannot tell (RS485: both generations
-        frame differently, a probe of one is garbage to the other).
+        shows (:mod:`motion.transport.detect`; on RS485 in each framing in turn, :func:`probe_in_turn`); None where
+        this transport cannot tell.
 
         Raises:
             TransportError: the bus failed.
