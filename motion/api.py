@@ -45,6 +45,7 @@ from motion.compose import (
     negotiate_family,
     offer_stored_tracking,
     open_bus,
+    opening_family,
     rehearsal_watchdog,
     resolve_frames,
     save_turn_records,
@@ -94,14 +95,15 @@ def _end_process(process: subprocess.Popen[str]) -> None:
 
 
 def emulated_family(config: ArmConfig, protocol: ProtocolFamily | str | None) -> ProtocolFamily:
-    """The generation emulated drives speak: ``protocol``, else v3 where ``bus.protocol`` says v3, else v2.
+    """The generation emulated drives speak: ``protocol``, else the one the bus opens in
+    (:func:`motion.compose.opening_family`: the configured one; with ``auto`` the older, or V3 at a V3-only baud rate).
 
     Raises:
         ConfigError: an unknown generation, or one that contradicts ``bus.protocol``.
     """
     setting = config.bus.protocol
     if protocol is None:
-        return ProtocolFamily.V3 if setting is ProtocolSetting.V3 else ProtocolFamily.V2
+        return opening_family(config)
     try:
         family = ProtocolFamily(protocol)
     except ValueError:
@@ -606,8 +608,7 @@ class Arm:
             simulation.frame_log = self.frame_log
         self.simulation = simulation
         # the bus opens in the configured generation (auto: the older) and is told the drives' at connect
-        opened = ProtocolFamily.V3 if self.config.bus.protocol is ProtocolSetting.V3 else ProtocolFamily.V2
-        return SimulatedBus(simulation, opened), SimulatedClock(simulation)
+        return SimulatedBus(simulation, opening_family(self.config)), SimulatedClock(simulation)
 
     def _start_emulator_process(self) -> None:
         if self._initial is not None:

@@ -104,6 +104,17 @@ def controller_options(config: ArmConfig) -> ControllerOptions:
     return ControllerOptions(mode=config.control.mode, rate_hz=config.control.rate_hz, protocol=wire_protocol(config))
 
 
+def opening_family(config: ArmConfig) -> ProtocolFamily:
+    """The generation a bus opens in before :func:`negotiate_family` asks the drives: the one ``bus.protocol`` names;
+    with ``auto`` the older, unless the RS485 baud rate is one only V3 drives run at."""
+    bus = config.bus
+    if bus.protocol is not ProtocolSetting.AUTO:
+        return ProtocolFamily(bus.protocol.value)
+    if not isinstance(bus, CanBusConfig) and bus.baudrate not in RS485_BAUDRATES[ProtocolFamily.V2]:
+        return ProtocolFamily.V3
+    return ProtocolFamily.V2
+
+
 def open_bus(config: ArmConfig, **overrides: object) -> Transport:
     """Open the configured bus, speaking the configured protocol generation (``auto``: the older one until
     :func:`negotiate_family`); ``overrides`` replace configured values (e.g. ``channel=`` of an emulator).
@@ -112,9 +123,7 @@ def open_bus(config: ArmConfig, **overrides: object) -> Transport:
         TransportError: the bus or port could not be opened.
     """
     bus = config.bus
-    family = ProtocolFamily.V3 if bus.protocol is ProtocolSetting.V3 else ProtocolFamily.V2
-    if not isinstance(bus, CanBusConfig) and bus.baudrate not in RS485_BAUDRATES[family]:
-        family = ProtocolFamily.V3  # auto at a rate only V3 drives run: they are asked first
+    family = opening_family(config)
     if isinstance(bus, CanBusConfig):
         settings: dict[str, object] = {"interface": bus.interface, "channel": bus.channel, "bitrate": bus.bitrate}
         return open_transport("can", **(settings | {"family": family} | overrides))

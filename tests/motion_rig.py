@@ -21,9 +21,16 @@ import pytest
 
 from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
-from motion.compose import build_controller, build_supervisor, feedforward_for, negotiate_family, open_bus
+from motion.compose import (
+    build_controller,
+    build_supervisor,
+    feedforward_for,
+    negotiate_family,
+    open_bus,
+    opening_family,
+)
 from motion.config import ArmConfig, load_config
-from motion.config.schema import CanBusConfig, ControlMode, ProtocolSetting
+from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.emulator import Emulator, FrameLog, Rs485Attachment, SlcanAttachment, VirtualCanAttachment
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
@@ -107,8 +114,7 @@ def emulated_arm(
             simulation = Simulation(emulator, wire, timing=timing)
             log = stack.enter_context(FrameLog(log_path, clock=simulation.now))
             simulation.frame_log = log
-            opened = ProtocolFamily.V3 if config.bus.protocol is ProtocolSetting.V3 else ProtocolFamily.V2
-            bus: Transport = stack.enter_context(SimulatedBus(simulation, opened))
+            bus: Transport = stack.enter_context(SimulatedBus(simulation, opening_family(config)))
             clock = SimulatedClock(simulation)
         else:
             log = stack.enter_context(FrameLog(log_path))

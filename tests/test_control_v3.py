@@ -26,7 +26,7 @@ from motion.emulator.drive_v3 import EmulatedDriveV3
 from motion.emulator.simulated import DEFAULT_BITRATE
 from motion.errors import ConfigError, FaultKind, MotionFault
 from motion.protocol.table import ProtocolFamily
-from motion.protocol.v3.messages import AccelerationIndex, BareV3, BrakeCommand, CommandV3, MotorStateV3
+from motion.protocol.v3.messages import AccelerationIndex, BareV3, BrakeCommand, CommandV3, MotorStateV3, Runtime
 from motion.safety import ArmState
 from motion.transport.base import Request
 from motion.transport.can_transport import CanTransport
@@ -76,7 +76,6 @@ def test_a_move_on_v3_drives_detected_at_connect_reaches_its_target_with_the_ses
             assert drive.communication_timeout_ms == 20
             assert drive.accelerations[AccelerationIndex.POSITION_ACCELERATION] == 0
             assert drive.accelerations[AccelerationIndex.POSITION_DECELERATION] == 0
-        before = {i: dict(v3_drive(arm, i).accelerations) for i in (1, 2)}
         arm.move_to({"shoulder": 30.0, "elbow": -20.0})
         arm.sleep(0.3)
         q = arm.positions()
@@ -85,10 +84,10 @@ def test_a_move_on_v3_drives_detected_at_connect_reaches_its_target_with_the_ses
     for drive in drives:  # restored at close: the protection off, the accelerations as they were read
         assert drive.communication_timeout_ms == 0
         assert drive.link_losses == 0
-    assert before  # (the settings read at connect are the model's, output side)
-    for drive in drives:
+    for drive in drives:  # both indexes written back as they were read (the model's, output side)
         output = round(drive.model.acceleration_dps2 / drive.model.gear_ratio)
         assert drive.accelerations[AccelerationIndex.POSITION_ACCELERATION] == output
+        assert drive.accelerations[AccelerationIndex.POSITION_DECELERATION] == output
 
 
 def test_sessions_one_after_another_on_one_bus_restore_what_was_there_before_the_first() -> None:
@@ -225,6 +224,19 @@ def test_a_v3_drive_that_restarted_is_seen_by_its_runtime_going_back() -> None:
         arm.move_to({"shoulder": 60.0, "elbow": -60.0})
     assert caught.value.kind is FaultKind.DRIVE_RESTARTED and caught.value.joint == "elbow"
     assert "runtime (0xB1) went back" in str(caught.value)
+
+
+def test_a_runtime_that_wraps_after_49_days_is_no_restart() -> None:
+    with Arm(arm2(), emulate=True, emulated_protocol="v3") as arm:
+        drive = v3_drive(arm, 1)
+        drive.powered_on_s = drive.last_frame_s - (2**32 - 300) / 1000.0  # 0.3 s before its uint32 of ms wraps
+        before = drive.handle_v3(BareV3(CommandV3.READ_RUNTIME), drive.last_frame_s)
+        arm.move_to({"shoulder": 20.0})
+        arm.sleep(0.5)
+        after = drive.handle_v3(BareV3(CommandV3.READ_RUNTIME), drive.last_frame_s)
+        assert isinstance(before, Runtime) and isinstance(after, Runtime)
+        assert before.runtime_ms > 2**32 - 400 and after.runtime_ms < 2000  # it wrapped while the arm moved
+        assert arm.supervisor is not None and arm.supervisor.fault is None
 
 
 def test_the_emulated_protocol_must_agree_with_the_configured_one() -> None:

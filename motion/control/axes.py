@@ -70,7 +70,6 @@ class AxisStates:
         family: DriveFamily = FAMILIES[ProtocolFamily.V2],
     ) -> None:
         n = len(specs)
-        self.family = family
         self._angle_every_cycle = family.angle_every_cycle
         self._state_type = family.state_type
         self.specs = tuple(specs)

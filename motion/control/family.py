@@ -25,7 +25,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Final
 
-from motion.protocol import Bare, Command, ErrorFlags, Message, MotorState, MultiTurnPositionSpeed, Status1
+from motion.protocol import Bare, Command, ErrorFlags, Message, MotorState, Status1
 from motion.protocol.table import Direction, ProtocolFamily, WireProtocol, field_range
 from motion.protocol.v3.messages import (
     AccelerationIndex,
@@ -147,6 +147,3 @@ STATUS_TYPES: Final = (Status1, Status1V3)
 STATE_TYPES: Final = (MotorState, MotorStateV3)
 #: Every family's message of a command without data (the echo of 0x80, 0x81, 0x77, 0x78, ...).
 BARE_TYPES: Final = (Bare, BareV3)
-
-#: The message of an 0xA4 set-point, the same class in both families (its layout on the wire is the family's).
-POSITION_MESSAGE: Final = MultiTurnPositionSpeed

@@ -38,7 +38,9 @@ from motion.control.controller import Controller
 from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionFault
 from motion.protocol import MultiTurnAngle, Status1
-from motion.protocol.v3.messages import Runtime, Status1V3
+from motion.protocol.table import Direction
+from motion.protocol.v3.messages import CommandV3, Runtime, Status1V3
+from motion.protocol.v3.table import field_range
 from motion.trajectory import State
 from motion.transmission import FloatArray
 from motion.transport import Reply
@@ -48,6 +50,10 @@ POSITION_LIMIT_TOLERANCE_DEG = 0.1
 #: A drive's multi-turn reading this far from the angle tracked from its encoder (motor degrees, half a turn) means
 #: it restarted; the two are read in the same exchange, so motion between them is a few degrees at most.
 RESTART_JUMP_MOTOR_DEG = 180.0
+#: Where a V3 drive's runtime (0xB1, ms) wraps (one past its field's largest value, as the table declares it), and
+#: the slack given to the host's clock against the drive's, ms.
+RUNTIME_WRAP_MS = field_range(CommandV3.READ_RUNTIME, Direction.REPLY, "runtime_ms")[1] + 1
+RUNTIME_SLACK_MS = 1000.0
 # Window of the corrupt-frame count, s.
 CORRUPT_WINDOW_S = 1.0
 # Expected joint speed above which a joint counts as moving for the following-error check, deg/s.
@@ -139,9 +145,12 @@ class Watchdog:
         # The family's restart sign: the 0x92 angle against the tracked encoder, or the runtime going back (0xB1).
         self._angle_shows_restart = not controller.family.angle_every_cycle
         self._runtime_ms = [-1] * n
-        # ... and the fine angle read in every cycle (motor deg, when), for a jump no speed explains
+        self._runtime_s = [math.nan] * n  # when it was read
+        # ... and the fine angle read in every cycle (motor deg, and when: NaN before the first), for a jump no speed
+        # explains (two lists: no tuple per joint and cycle)
         self._drive_gear = [s.drive_gear_ratio for s in specs]
-        self._last_angle: list[tuple[float, float] | None] = [None] * n
+        self._last_angle_deg = [math.nan] * n
+        self._last_angle_s = [math.nan] * n
         self._counters = [controller.bus.motor_counters(motor_id) for motor_id in self.ids]
         # Following error: work arrays, and whether a cycle has run since start() (the first has no expectation).
         self._following = False
@@ -171,7 +180,7 @@ class Watchdog:
         """Reset the reply clocks (at loop start or after a clear)."""
         self.last_good_s[:] = now_s
         self.misses[:] = 0
-        self._last_angle = [None] * len(self.ids)
+        self._last_angle_s[:] = [math.nan] * len(self.ids)
         # The counter objects live as long as the transport: look them up once, not every cycle.
         self._counters = [self.controller.bus.motor_counters(motor_id) for motor_id in self.ids]
         for i, counter in enumerate(self._counters):
@@ -267,7 +276,7 @@ class Watchdog:
                 else:
                     self._check_angle_jump(i, message, now_s)
             elif isinstance(message, Runtime):
-                self._check_runtime(i, message)
+                self._check_runtime(i, message, now_s)
             elif isinstance(message, STATE_TYPES) and message.temperature_c >= self.temperature_limit[i]:
                 held = held or self._fault(
                     FaultKind.TEMPERATURE,
@@ -414,11 +423,10 @@ class Watchdog:
             MotionFault: kind ``drive_restarted`` (never held).
         """
         motor_deg = reading.angle_deg * self._drive_gear[i]
-        last, self._last_angle[i] = self._last_angle[i], (motor_deg, now_s)
-        if last is None:
-            return
-        jump = motor_deg - last[0]
-        reach = abs(float(self.controller.axes.motor_speed_dps[i])) * (now_s - last[1])
+        jump = motor_deg - self._last_angle_deg[i]
+        elapsed_s = now_s - self._last_angle_s[i]  # NaN before the first reading: no comparison holds
+        self._last_angle_deg[i], self._last_angle_s[i] = motor_deg, now_s
+        reach = abs(float(self.controller.axes.motor_speed_dps[i])) * elapsed_s
         if abs(jump) > RESTART_JUMP_MOTOR_DEG + reach:
             raise self._restarted(i, jump, "between two cycles, beyond what its speed covers")
 
@@ -433,16 +441,19 @@ class Watchdog:
             "its turn offset is lost",
         )
 
-    def _check_runtime(self, i: int, reading: Runtime) -> None:
+    def _check_runtime(self, i: int, reading: Runtime, now_s: float) -> None:
         """A V3 drive's runtime (0xB1) counts from its power-up: less than the last reading means it restarted, its
         multi-turn count then lost unless it keeps it (and the brake locked, the output off).
 
         Raises:
             MotionFault: kind ``drive_restarted`` (never held).
         """
-        last = self._runtime_ms[i]
-        self._runtime_ms[i] = reading.runtime_ms
-        if reading.runtime_ms < last:
+        last, last_s = self._runtime_ms[i], self._runtime_s[i]
+        self._runtime_ms[i], self._runtime_s[i] = reading.runtime_ms, now_s
+        # the uint32 of milliseconds wraps after 49.7 days: a smaller reading the elapsed time carries past the wrap
+        # is the count going on
+        wrapped = last + (now_s - last_s) * 1000.0 + RUNTIME_SLACK_MS >= RUNTIME_WRAP_MS
+        if reading.runtime_ms < last and not wrapped:
             raise self._fault(
                 FaultKind.DRIVE_RESTARTED,
                 i,
