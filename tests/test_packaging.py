@@ -161,7 +161,8 @@ def test_version_is_the_package_version(capsys: pytest.CaptureFixture[str]) -> N
     with pytest.raises(SystemExit) as info:
         main(["--version"])
     assert info.value.code == 0
-    assert capsys.readouterr().out == f"rmd-motion {importlib.metadata.version('rmd-motion')}\n"
+    version = importlib.metadata.version("rmd-motion")
+    assert capsys.readouterr().out == f"rmd-motion {version} (C accelerator in use)\n"
     assert motion.__version__ == importlib.metadata.version("rmd-motion")
 
 

@@ -44,7 +44,7 @@ from motion.errors import (
     PlanningError,
     TransportError,
 )
-from motion.protocol import MultiTurnPositionSpeed, WireProtocol
+from motion.protocol import MultiTurnPositionSpeed, WireProtocol, compiled
 from motion.protocol.table import ProtocolFamily
 
 DESCRIPTION: Final = "Multi-axis motion control of MyActuator RMD drives over CAN or RS485."
@@ -245,12 +245,20 @@ def _settings_commands(sub: argparse._SubParsersAction[argparse.ArgumentParser])
     zero.add_argument("--yes", action="store_true", help="confirm the ROM write (flash wear; needs a power cycle)")
 
 
+def version_text() -> str:
+    """``rmd-motion VERSION (...)``: the version, and whether the optional C accelerator is in use."""
+    if compiled.ACCELERATED:
+        return f"rmd-motion {__version__} (C accelerator in use)"
+    why = "not built" if compiled.SlotBuilder is None else f"turned off by {compiled.PURE_PYTHON_ENV}"
+    return f"rmd-motion {__version__} (pure Python: the C accelerator is {why})"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``rmd-motion``."""
     parser = argparse.ArgumentParser(
         prog="rmd-motion", description=DESCRIPTION, epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter
     )
-    parser.add_argument("--version", action="version", version=f"rmd-motion {__version__}")
+    parser.add_argument("--version", action="version", version=version_text())
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     scan = _command(sub, "scan", drives.scan, "list the motor ids that answer on the bus (0x9A; RS485 also 0x12)")

@@ -28,11 +28,13 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Final
 
 import numpy as np
 
 from motion.config.schema import ControlMode
 from motion.protocol import Acceleration, Bare, Command, PidGains
+from motion.protocol.compiled import SPEEDUPS
 from motion.transmission import ArmTransmission, FloatArray
 from motion.transport.base import Reply, Request, Transport
 
@@ -354,6 +356,9 @@ class ExpectedTracking:
     # ------------------------------------------------------------------------------------------------ models
 
     def _position_step(self, dt: float) -> None:
+        if _C_CHASE is not None:
+            _C_CHASE(self._x, self._v, dt, self._target, self._cap, self.angle_gain_per_s, self._accel, MAX_STEP_S)
+            return
         chase(
             self._x,
             self._v,
@@ -410,6 +415,11 @@ def chase_work(shape: int) -> ChaseWork:
     return (np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape))
 
 
+#: ``chase`` of the C extension (``motion/_speedups.c``: the same operations per entry in the same order, so the same
+#: results to the bit), None where the extension is not used.
+_C_CHASE: Final = None if SPEEDUPS is None else SPEEDUPS.chase
+
+
 def chase(
     x: FloatArray,
     v: FloatArray,
@@ -420,10 +430,21 @@ def chase(
     gain: FloatArray,
     accel: FloatArray,
     work: ChaseWork,
+    accelerated: bool = True,
 ) -> None:
     """The position-loop model over ``dt`` seconds, in place: angles ``x`` (deg) and speeds ``v`` (deg/s) chase
     ``target`` at ``min(gain |e|, sqrt(2 accel |e|), cap)``, the speed slewed at ``accel`` (arrays of one shape, one
-    entry per joint or per candidate of :func:`fit_position_loop`; ``work`` from :func:`chase_work`)."""
+    entry per joint or per candidate of :func:`fit_position_loop`; ``work`` from :func:`chase_work`).
+
+    With ``accelerated`` (and the C extension in use) the C twin of the numpy steps below runs on one-dimensional
+    float64 arrays of one length (it checks them all before it changes anything; the numpy steps take anything else,
+    broadcasting included)."""
+    if accelerated and _C_CHASE is not None:
+        try:
+            _C_CHASE(x, v, dt, target, cap, gain, accel, MAX_STEP_S)
+            return
+        except (TypeError, ValueError):
+            pass
     steps = max(1, math.ceil(dt / MAX_STEP_S - 1e-9))
     h = dt / steps
     e, s, w, two_accel, slew, no_slew = work

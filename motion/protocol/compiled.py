@@ -14,14 +14,22 @@ raise only :class:`~motion.errors.DecodeError`) hold for the fast path by constr
 paths on every command.
 
 Messages are frozen, slotted dataclasses. Their generated ``__init__`` sets each field through
-``object.__setattr__`` (it must get past the frozen ``__setattr__``); the decoders set the same slots through the
-classes' own slot descriptors, which is about twice as fast and builds an equal object. Classes with a
-``__post_init__`` or a field without a default that the layout does not carry are built through ``__init__``.
+``object.__setattr__`` (it must get past the frozen ``__setattr__``); the decoders build an equal object without it,
+through :func:`frozen_builder`: with the optional C extension :mod:`motion._speedups` one call that allocates the
+object and fills its slots (about ten times faster than ``__init__``), without it ``object.__new__`` and the classes'
+own slot descriptors (about twice as fast). Classes with a ``__post_init__`` or a field without a default that the
+layout does not carry are built through ``__init__``.
+
+With the C extension, each CAN layout also gets a C twin of its encoder and decoder (:func:`native_layout`, the
+table's values handed over as they are: ``CompiledLayout.native``), and :mod:`motion.protocol.can_frame`'s two hot
+calls are C objects on top of them that defer to the Python path for anything unusual, as the Python fast path defers
+to the checked one. The tests compare the C twins with the Python fast path on every layout, valid and odd values.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -49,6 +57,48 @@ Decoder = Callable[[bytes], Message | None]
 
 T = TypeVar("T")
 
+try:
+    from motion import _speedups
+except ImportError:  # built without a C compiler (the extension is optional): the Python twins run
+    _speedups = None  # type: ignore[assignment]
+
+#: Set (to anything but "" or "0") to run the Python twins even where the C extension is built (tests, comparisons).
+PURE_PYTHON_ENV: Final = "RMD_MOTION_PURE_PYTHON"
+#: The C extension's builder class (see ``motion/_speedups.c``), None where it is not built.
+SlotBuilder: Final = None if _speedups is None else _speedups.SlotBuilder
+#: The C extension where it is built and not turned off by :data:`PURE_PYTHON_ENV`, else None: what the hot path
+#: uses (:func:`frozen_builder`, the tracking model's ``chase``).
+SPEEDUPS: Final = _speedups if os.environ.get(PURE_PYTHON_ENV, "") in ("", "0") else None
+#: Whether the C extension ``motion._speedups`` is used.
+ACCELERATED: Final = SPEEDUPS is not None
+
+
+def frozen_builder(cls: type[T], *, accelerated: bool = ACCELERATED) -> Callable[..., T]:
+    """A positional constructor of a frozen, slotted dataclass without ``__post_init__`` that sets the slots
+    directly (see the module docstring); the class itself when that does not apply. Every field is required.
+
+    Args:
+        cls: the class.
+        accelerated: use the C extension's ``SlotBuilder`` (default: where it is built
+            and :data:`PURE_PYTHON_ENV` is not set); False gives the pure-Python builder.
+    """
+    if hasattr(cls, "__post_init__") or not hasattr(cls, "__slots__") or not dataclasses.is_dataclass(cls):
+        return cls
+    fields = dataclasses.fields(cls)
+    if accelerated and SlotBuilder is not None:
+        return SlotBuilder(cls, tuple(f.name for f in fields))
+    env: dict[str, Any] = {"new": object.__new__, "C": cls}
+    names = [f"a{i}" for i in range(len(fields))]
+    for i, fld in enumerate(fields):
+        env[f"S{i}"] = cls.__dict__[fld.name].__set__
+    sets = "; ".join(f"S{i}(o, {name})" for i, name in enumerate(names))
+    source = f"def build({', '.join(names)}):\n    o = new(C); {sets}; return o"
+    namespace: dict[str, Any] = {}
+    exec(compile(source, f"<build {cls.__name__}>", "exec"), env, namespace)
+    builder: Callable[..., T] = namespace["build"]
+    return builder
+
+
 #: What the fast encoders may raise on unusual input (every one means: take the checked path).
 FALLBACK_ERRORS: Final = (TypeError, ValueError, OverflowError, AttributeError, struct.error)
 
@@ -71,6 +121,8 @@ class CompiledLayout:
         packer: the precompiled struct of the whole payload.
         encode: the fast encoder (see :data:`Encoder`).
         decode: the fast decoder (see :data:`Decoder`).
+        native: the C extension's twin of both (a ``CLayout``: ``encode(message)``, ``decode(payload)`` with the same
+            results or None), where the extension is used and can take the layout; else None.
     """
 
     layout: Layout
@@ -79,6 +131,7 @@ class CompiledLayout:
     packer: struct.Struct
     encode: Encoder
     decode: Decoder
+    native: Any = None
 
 
 def _compilable(layout: Layout) -> bool:
@@ -167,11 +220,20 @@ def _constructor(cls: type[Message], names: list[str], env: dict[str, Any]) -> C
             return None
         env[f"D{i}"] = fld.default
         defaults[fld.name] = f"D{i}"
+    fields = [fld.name for fld in dataclasses.fields(cls)]
+    if ACCELERATED:
+        env["B"] = frozen_builder(cls)
+
+        def build_accelerated(values: list[str]) -> str:
+            given = dict(zip(names, values, strict=True)) | defaults
+            return f"return B({', '.join(given[n] for n in fields)})"
+
+        return build_accelerated
     env["new"] = object.__new__
     env["C"] = cls
-    setters = {fld.name: f"S{i}" for i, fld in enumerate(dataclasses.fields(cls))}
-    for fld in dataclasses.fields(cls):
-        env[setters[fld.name]] = cls.__dict__[fld.name].__set__
+    setters = {name: f"S{i}" for i, name in enumerate(fields)}
+    for name in fields:
+        env[setters[name]] = cls.__dict__[name].__set__
 
     def build(values: list[str]) -> str:
         given = dict(zip(names, values, strict=True)) | defaults
@@ -242,6 +304,52 @@ def _decoder(
     return decoder
 
 
+_NATIVE_KINDS: Final = {Kind.INT: 0, Kind.REAL: 1, Kind.ENUM: 2, Kind.FLAGS: 3}
+
+
+def native_layout(layout: Layout, command: IntEnum | None, size: int, *, lead: bool, decodes: bool) -> Any:
+    """The C extension's ``CLayout`` of ``layout`` (the table's values handed over as they are), or None where the
+    extension is not used or cannot take it (fields wider than 4 bytes). ``decodes``: False gives one that only
+    encodes (a request's reserved bytes are checked on the Python path alone)."""
+    if SPEEDUPS is None or any(f.width > 4 or f.kind not in _NATIVE_KINDS for f in layout.fields):
+        return None
+    ordered = sorted(layout.fields, key=lambda f: f.offset)
+    specs = tuple(
+        (
+            f.name,
+            _NATIVE_KINDS[f.kind],
+            f.num,
+            f.den,
+            f.lo,
+            f.hi,
+            f.offset,
+            f.width,
+            f.signed,
+            f.enum,
+            f.enum._value2member_map_ if f.enum is not None else None,  # the live map (IntFlag adds to it)
+        )
+        for f in ordered
+    )
+    index = {f.name: i for i, f in enumerate(ordered)}
+    sources: list[int] = []
+    constants: list[Any] = []
+    builder: Any = frozen_builder(layout.cls) if decodes else None
+    for fld in dataclasses.fields(layout.cls):
+        if fld.name in index:
+            sources.append(index[fld.name])
+            constants.append(None)
+        elif fld.name == "command" and layout.has_command_field:
+            sources.append(-1)
+            constants.append(command)
+        elif fld.default is not dataclasses.MISSING:
+            sources.append(-1)
+            constants.append(fld.default)
+        else:
+            builder = None  # a field neither carried nor defaulted: the Python path decides
+    code = int(command) if lead and command is not None else -1
+    return SPEEDUPS.CLayout(code, size, specs, layout.uncarried, builder, tuple(sources), tuple(constants))
+
+
 def compile_layout(
     layout: Layout, command: IntEnum | None, transport: WireProtocol, direction: Direction
 ) -> CompiledLayout | None:
@@ -260,6 +368,7 @@ def compile_layout(
         packer=packer,
         encode=_encoder(layout, command, ordered, packer, lead=lead),
         decode=_decoder(layout, command, ordered, packer, lead=lead, check_reserved=direction is Direction.REQUEST),
+        native=native_layout(layout, command, size, lead=lead, decodes=direction is Direction.REPLY) if can else None,
     )
 
 
@@ -272,11 +381,16 @@ class Codec:
             dispatcher on ``message.command``.
         decoders: by command byte (256 entries; None where the checked path must decide).
         layouts: the compiled layouts by command byte (None where none).
+        native_single: the C twins of ``encoders`` for classes of one command (``CLayout``; empty without the C
+            extension).
+        native_shared: for classes that serve several commands, their C twins by command value.
     """
 
     encoders: Mapping[type[Message], Encoder]
     decoders: tuple[Decoder | None, ...]
     layouts: tuple[CompiledLayout | None, ...]
+    native_single: Mapping[type[Message], Any] = dataclasses.field(default_factory=dict)
+    native_shared: Mapping[type[Message], Mapping[int, Any]] = dataclasses.field(default_factory=dict)
 
 
 def _dispatcher(by_command: dict[int, Encoder]) -> Encoder:
@@ -293,8 +407,8 @@ def _dispatcher(by_command: dict[int, Encoder]) -> Encoder:
 def build_codec(transport: WireProtocol, direction: Direction, commands: Mapping[Any, CommandSpec] = COMMANDS) -> Codec:
     """Compile every layout of ``commands`` (a family's table; :data:`COMMANDS` is the older family's) for
     ``transport`` in ``direction``."""
-    single: dict[type[Message], Encoder] = {}
-    shared: dict[type[Message], dict[int, Encoder]] = {}
+    single: dict[type[Message], CompiledLayout] = {}
+    shared: dict[type[Message], dict[int, CompiledLayout]] = {}
     layouts: list[CompiledLayout | None] = [None] * 256
     for spec in commands.values():
         layout = spec.layout(transport, direction)
@@ -305,18 +419,23 @@ def build_codec(transport: WireProtocol, direction: Direction, commands: Mapping
             continue
         layouts[spec.code] = compiled
         if layout.has_command_field:
-            shared.setdefault(layout.cls, {})[int(spec.code)] = compiled.encode
+            shared.setdefault(layout.cls, {})[int(spec.code)] = compiled
         else:
-            single[layout.cls] = compiled.encode
-    encoders: dict[type[Message], Encoder] = dict(single)
-    for cls, by_command in shared.items():
-        encoders[cls] = _dispatcher(by_command)
+            single[layout.cls] = compiled
     if commands is COMMANDS and transport is WireProtocol.CAN and direction is Direction.REQUEST:
         multi = compile_layout(MULTI_TORQUE_LAYOUT, None, transport, direction)
         if multi is not None:
-            encoders[MultiMotorTorque] = multi.encode
+            single[MultiMotorTorque] = multi
+    encoders: dict[type[Message], Encoder] = {cls: c.encode for cls, c in single.items()}
+    for cls, by_command in shared.items():
+        encoders[cls] = _dispatcher({code: c.encode for code, c in by_command.items()})
+    native_single = {cls: c.native for cls, c in single.items() if c.native is not None}
+    native_shared = {
+        cls: {code: c.native for code, c in by_command.items() if c.native is not None}
+        for cls, by_command in shared.items()
+    }
     decoders = tuple(c.decode if c is not None else None for c in layouts)
-    return Codec(encoders, decoders, tuple(layouts))
+    return Codec(encoders, decoders, tuple(layouts), native_single, native_shared)
 
 
 #: The fast paths, by transport and direction.
@@ -325,21 +444,3 @@ CODECS: Final[Mapping[tuple[WireProtocol, Direction], Codec]] = {
 }
 #: The 0x280 frame's decoder (a request without a command byte).
 MULTI_TORQUE_DECODE: Final = compile_layout(MULTI_TORQUE_LAYOUT, None, WireProtocol.CAN, Direction.REQUEST)
-
-
-def frozen_builder(cls: type[T]) -> Callable[..., T]:
-    """A positional constructor of a frozen, slotted dataclass without ``__post_init__`` that sets the slots
-    directly (see the module docstring); the class itself when that does not apply. Every field is required."""
-    if hasattr(cls, "__post_init__") or not hasattr(cls, "__slots__") or not dataclasses.is_dataclass(cls):
-        return cls
-    fields = dataclasses.fields(cls)
-    env: dict[str, Any] = {"new": object.__new__, "C": cls}
-    names = [f"a{i}" for i in range(len(fields))]
-    for i, fld in enumerate(fields):
-        env[f"S{i}"] = cls.__dict__[fld.name].__set__
-    sets = "; ".join(f"S{i}(o, {name})" for i, name in enumerate(names))
-    source = f"def build({', '.join(names)}):\n    o = new(C); {sets}; return o"
-    namespace: dict[str, Any] = {}
-    exec(compile(source, f"<build {cls.__name__}>", "exec"), env, namespace)
-    builder: Callable[..., T] = namespace["build"]
-    return builder

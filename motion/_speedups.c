@@ -1,0 +1,1040 @@
+/*
+ * motion._speedups: the optional C accelerator of the control cycle's hot path (issue 12). Two pieces, each the C twin
+ * of a Python function that stays the reference and the fallback (the package builds and runs without this module;
+ * tests compare the two on every input they use):
+ *
+ * SlotBuilder, the C half of motion.protocol.compiled.frozen_builder. A SlotBuilder(cls, names) is a callable that
+ * builds an instance of a slotted class from positional values, one per name, without running __init__: it allocates
+ * the instance and stores each value in the slot the class's member descriptor of that name points at. That is what
+ * the pure-Python builder does with object.__new__ and one descriptor __set__ per field (about 230 ns for a five-field
+ * message on the machines of bench/README.md); here it is one call (about 30 ns). Frozen dataclasses refuse assignment
+ * in their __setattr__, which neither builder calls: the result is the object the class's own __init__ would build
+ * from the same values. What a builder accepts is checked once, when it is made: a class whose instances have no
+ * variable part, and for each name an object slot (a member descriptor of type Py_T_OBJECT_EX, writable) of that class
+ * or one of its bases. Anything else raises TypeError. A call checks the number of values (TypeError otherwise).
+ *
+ * chase, the C twin of motion.control.tracking.chase (the drives' position-loop model, stepped every cycle): the same
+ * floating-point operations in the same order per joint, so the results are the numpy version's to the bit (NaN
+ * propagation of numpy's minimum / maximum included).
+ *
+ * Exit plan: none upstream; this is our own code, optional by design.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <structmember.h>
+#include <math.h>
+#include <stddef.h>
+#include <string.h>
+
+#ifndef Py_T_OBJECT_EX
+#define Py_T_OBJECT_EX T_OBJECT_EX
+#endif
+#ifndef Py_READONLY
+#define Py_READONLY READONLY
+#endif
+
+typedef struct {
+    PyObject_VAR_HEAD
+    vectorcallfunc vectorcall;
+    PyTypeObject *cls;
+    PyObject *names;
+    Py_ssize_t offsets[1]; /* ob_size of them: where each value goes in an instance */
+} SlotBuilder;
+
+static PyObject *
+builder_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
+{
+    SlotBuilder *b = (SlotBuilder *)self;
+    Py_ssize_t n = Py_SIZE(b);
+    Py_ssize_t given = PyVectorcall_NARGS(nargsf);
+    if (given != n || (kwnames != NULL && PyTuple_GET_SIZE(kwnames) != 0)) {
+        PyErr_Format(PyExc_TypeError, "the builder of %s takes %zd positional values, got %zd%s", b->cls->tp_name, n,
+                     given, kwnames != NULL && PyTuple_GET_SIZE(kwnames) != 0 ? " and keywords" : "");
+        return NULL;
+    }
+    PyObject *instance = b->cls->tp_alloc(b->cls, 0); /* zero-filled: every slot starts empty */
+    if (instance == NULL) {
+        return NULL;
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject **slot = (PyObject **)((char *)instance + b->offsets[i]);
+        PyObject *old = *slot; /* NULL, unless a name is given twice */
+        *slot = Py_NewRef(args[i]);
+        Py_XDECREF(old);
+    }
+    return instance;
+}
+
+static int
+builder_traverse(PyObject *self, visitproc visit, void *arg)
+{
+    SlotBuilder *b = (SlotBuilder *)self;
+    Py_VISIT(b->cls);
+    Py_VISIT(b->names);
+    return 0;
+}
+
+static int
+builder_clear(PyObject *self)
+{
+    SlotBuilder *b = (SlotBuilder *)self;
+    Py_CLEAR(b->cls);
+    Py_CLEAR(b->names);
+    return 0;
+}
+
+static void
+builder_dealloc(PyObject *self)
+{
+    PyObject_GC_UnTrack(self);
+    builder_clear(self);
+    Py_TYPE(self)->tp_free(self);
+}
+
+static PyObject *
+builder_repr(PyObject *self)
+{
+    SlotBuilder *b = (SlotBuilder *)self;
+    return PyUnicode_FromFormat("<SlotBuilder of %s: %R>", b->cls->tp_name, b->names);
+}
+
+/* The offset of the object slot ``name`` of ``cls``, or -1 with TypeError set. */
+static Py_ssize_t
+slot_offset(PyTypeObject *cls, PyObject *name)
+{
+    if (!PyUnicode_Check(name)) {
+        PyErr_Format(PyExc_TypeError, "slot names must be str, got %R", name);
+        return -1;
+    }
+    PyObject *descriptor = PyObject_GetAttr((PyObject *)cls, name); /* a member descriptor is its own class value */
+    if (descriptor == NULL) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError, "%s has no slot %R", cls->tp_name, name);
+        return -1;
+    }
+    Py_ssize_t offset = -1;
+    if (!Py_IS_TYPE(descriptor, &PyMemberDescr_Type)) {
+        PyErr_Format(PyExc_TypeError, "%s.%U is not a slot (a %s)", cls->tp_name, name, Py_TYPE(descriptor)->tp_name);
+    }
+    else {
+        PyMemberDescrObject *member = (PyMemberDescrObject *)descriptor;
+        PyMemberDef *def = member->d_member;
+        if (!PyType_IsSubtype(cls, PyDescr_TYPE(member))) {
+            PyErr_Format(PyExc_TypeError, "%s.%U is a slot of another class", cls->tp_name, name);
+        }
+        else if (def->type != Py_T_OBJECT_EX || (def->flags & Py_READONLY) || def->offset <= 0 ||
+                 (size_t)def->offset + sizeof(PyObject *) > (size_t)cls->tp_basicsize) {
+            PyErr_Format(PyExc_TypeError, "%s.%U is not a writable object slot", cls->tp_name, name);
+        }
+        else {
+            offset = def->offset;
+        }
+    }
+    Py_DECREF(descriptor);
+    return offset;
+}
+
+static PyObject *
+builder_new(PyTypeObject *type, PyObject *args, PyObject *kwargs)
+{
+    PyObject *cls;
+    PyObject *names;
+    static char *keywords[] = {"cls", "names", NULL};
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "O!O!:SlotBuilder", keywords, &PyType_Type, &cls, &PyTuple_Type,
+                                     &names)) {
+        return NULL;
+    }
+    PyTypeObject *target = (PyTypeObject *)cls;
+    if (target->tp_itemsize != 0 || target->tp_alloc == NULL) {
+        PyErr_Format(PyExc_TypeError, "%s instances have a variable size: no slot builder", target->tp_name);
+        return NULL;
+    }
+    Py_ssize_t n = PyTuple_GET_SIZE(names);
+    SlotBuilder *b = PyObject_GC_NewVar(SlotBuilder, type, n);
+    if (b == NULL) {
+        return NULL;
+    }
+    b->vectorcall = builder_call;
+    b->cls = (PyTypeObject *)Py_NewRef(cls);
+    b->names = Py_NewRef(names);
+    for (Py_ssize_t i = 0; i < n; i++) {
+        b->offsets[i] = slot_offset(target, PyTuple_GET_ITEM(names, i));
+        if (b->offsets[i] < 0) {
+            Py_DECREF(b);
+            return NULL;
+        }
+    }
+    PyObject_GC_Track(b);
+    return (PyObject *)b;
+}
+
+static PyMemberDef builder_members[] = {
+    {"cls", Py_T_OBJECT_EX, offsetof(SlotBuilder, cls), Py_READONLY, "the class built"},
+    {"names", Py_T_OBJECT_EX, offsetof(SlotBuilder, names), Py_READONLY, "the slots set, in argument order"},
+    {NULL},
+};
+
+static PyTypeObject SlotBuilderType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "motion._speedups.SlotBuilder",
+    .tp_doc = PyDoc_STR("SlotBuilder(cls, names): builds cls from one positional value per slot name, "
+                        "without __init__."),
+    .tp_basicsize = offsetof(SlotBuilder, offsets),
+    .tp_itemsize = sizeof(Py_ssize_t),
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC | Py_TPFLAGS_HAVE_VECTORCALL,
+    .tp_new = builder_new,
+    .tp_dealloc = builder_dealloc,
+    .tp_traverse = builder_traverse,
+    .tp_clear = builder_clear,
+    .tp_repr = builder_repr,
+    .tp_call = PyVectorcall_Call,
+    .tp_vectorcall_offset = offsetof(SlotBuilder, vectorcall),
+    .tp_members = builder_members,
+};
+
+/* ------------------------------------------------------------------------------------------------------ chase */
+
+/* numpy's minimum and maximum of two doubles: a NaN in either gives NaN (the first NaN). */
+static inline double
+np_minimum(double a, double b)
+{
+    return (a <= b || isnan(a)) ? a : b;
+}
+
+static inline double
+np_maximum(double a, double b)
+{
+    return (a >= b || isnan(a)) ? a : b;
+}
+
+/* A C-contiguous float64 buffer of n entries (n < 0: take its length), or -1 with the error set. */
+static int
+take_array(PyObject *obj, Py_buffer *view, int writable, const char *name, Py_ssize_t *n)
+{
+    int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) < 0) {
+        PyErr_Format(PyExc_TypeError, "chase: %s must be a C-contiguous%s float64 array", name,
+                     writable ? ", writable" : "");
+        return -1;
+    }
+    if (view->itemsize != sizeof(double) || view->format == NULL || strcmp(view->format, "d") != 0 || view->ndim != 1) {
+        PyErr_Format(PyExc_TypeError, "chase: %s must be a one-dimensional float64 array", name);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    Py_ssize_t length = view->len / (Py_ssize_t)sizeof(double);
+    if (*n >= 0 && length != *n) {
+        PyErr_Format(PyExc_ValueError, "chase: %s has %zd entries, x has %zd", name, length, *n);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    *n = length;
+    return 0;
+}
+
+#define CHASE_ARRAYS 6
+
+static PyObject *
+chase(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    /* chase(x, v, dt, target, cap, gain, accel, max_step) */
+    if (nargs != 8) {
+        PyErr_Format(PyExc_TypeError, "chase takes 8 positional arguments (x, v, dt, target, cap, gain, accel, "
+                     "max_step), got %zd", nargs);
+        return NULL;
+    }
+    double dt = PyFloat_AsDouble(args[2]);
+    if (dt == -1.0 && PyErr_Occurred()) {
+        return NULL;
+    }
+    double max_step = PyFloat_AsDouble(args[7]);
+    if (max_step == -1.0 && PyErr_Occurred()) {
+        return NULL;
+    }
+    if (!(max_step > 0.0) || !isfinite(dt)) {
+        PyErr_SetString(PyExc_ValueError, "chase: max_step must be > 0 and dt finite");
+        return NULL;
+    }
+    static const char *names[CHASE_ARRAYS] = {"x", "v", "target", "cap", "gain", "accel"};
+    PyObject *objects[CHASE_ARRAYS] = {args[0], args[1], args[3], args[4], args[5], args[6]};
+    Py_buffer views[CHASE_ARRAYS];
+    Py_ssize_t n = -1;
+    int taken = 0;
+    for (; taken < CHASE_ARRAYS; taken++) {
+        if (take_array(objects[taken], &views[taken], taken < 2, names[taken], &n) < 0) {
+            break;
+        }
+    }
+    if (taken == CHASE_ARRAYS) {
+        double *x = views[0].buf, *v = views[1].buf;
+        const double *target = views[2].buf, *cap = views[3].buf, *gain = views[4].buf, *accel = views[5].buf;
+        /* as the Python: steps = max(1, ceil(dt / MAX_STEP_S - 1e-9)); h = dt / steps */
+        double steps_f = ceil(dt / max_step - 1e-9);
+        long long steps = steps_f < 1.0 ? 1 : (long long)steps_f;
+        double h = dt / (double)steps;
+        for (Py_ssize_t i = 0; i < n; i++) {
+            double xi = x[i], vi = v[i];
+            double two_accel = accel[i] * 2.0, slew = accel[i] * h, no_slew = -slew;
+            for (long long k = 0; k < steps; k++) {
+                double e = target[i] - xi;
+                double s = fabs(e);
+                double w = sqrt(s * two_accel); /* braking curve: sqrt(2 a |e|) */
+                s *= gain[i];
+                s = np_minimum(s, w);
+                s = np_minimum(s, cap[i]);
+                s = copysign(s, e); /* the speed the drive asks for */
+                w = np_maximum(np_minimum(s - vi, slew), no_slew);
+                vi += w;
+                xi += vi * h;
+            }
+            x[i] = xi;
+            v[i] = vi;
+        }
+    }
+    for (int i = 0; i < taken; i++) {
+        PyBuffer_Release(&views[i]);
+    }
+    if (taken != CHASE_ARRAYS) {
+        return NULL;
+    }
+    Py_RETURN_NONE;
+}
+
+/* ------------------------------------------------------------------------------------------------------ codec */
+
+/*
+ * The CAN codec's fast path in C: the twin of the encoders and decoders motion.protocol.compiled generates from the
+ * table, one CLayout per layout (made from the table by the Python side, checked once here), and the two public CAN
+ * calls built on them (CanRequestEncoder: can_frame.encode_request; CanReplyDecoder: can_frame.decode_reply). Like
+ * the Python fast path they never decide an error: anything unusual (a value of another type, out of range, not
+ * finite; an odd id or payload; a command without a layout) goes to the Python function given as ``fallback``, which
+ * gives the same result or raises the same error.
+ */
+
+enum { KIND_INT = 0, KIND_REAL = 1, KIND_ENUM = 2, KIND_FLAGS = 3 };
+
+/* Largest magnitude of a raw value times its scale numerator that a double holds exactly (2^53). */
+#define EXACT_DOUBLE_INT 9007199254740992LL
+#define MAX_PAYLOAD 64
+#define MAX_VALUES 32
+
+typedef struct {
+    PyObject *name; /* the message attribute */
+    int kind;
+    long long num, den; /* physical = raw * num / den */
+    long long lo, hi;   /* the valid raw range */
+    Py_ssize_t offset;  /* in the payload */
+    int width;          /* 1, 2 or 4 bytes, little-endian */
+    int is_signed;
+    PyObject *enum_cls; /* ENUM / FLAGS: the class an encoded value must be exactly; else NULL */
+    PyObject *members;  /* ENUM / FLAGS: value -> member (decode); else NULL */
+} FieldSpec;
+
+typedef struct {
+    PyObject_HEAD
+    int command;          /* the command byte at payload[0], or -1 (none: RS485 data, the 0x280 frame) */
+    Py_ssize_t size;      /* payload bytes */
+    Py_ssize_t nfields;
+    FieldSpec *fields;
+    PyObject *uncarried;  /* names that must be None for the fast path to encode */
+    PyObject *builder;    /* builds the message from nvalues values; None: no decode */
+    Py_ssize_t nvalues;
+    Py_ssize_t *sources;  /* per builder value: the field's index, or -1 for constants[i] */
+    PyObject *constants;  /* tuple of nvalues */
+    PyObject *value_key;  /* "_value_" */
+} CLayout;
+
+static PyTypeObject CLayoutType;
+
+static int
+clayout_traverse(PyObject *self, visitproc visit, void *arg)
+{
+    CLayout *L = (CLayout *)self;
+    for (Py_ssize_t i = 0; i < L->nfields; i++) {
+        Py_VISIT(L->fields[i].name);
+        Py_VISIT(L->fields[i].enum_cls);
+        Py_VISIT(L->fields[i].members);
+    }
+    Py_VISIT(L->uncarried);
+    Py_VISIT(L->builder);
+    Py_VISIT(L->constants);
+    Py_VISIT(L->value_key);
+    return 0;
+}
+
+static int
+clayout_clear(PyObject *self)
+{
+    CLayout *L = (CLayout *)self;
+    for (Py_ssize_t i = 0; i < L->nfields; i++) {
+        Py_CLEAR(L->fields[i].name);
+        Py_CLEAR(L->fields[i].enum_cls);
+        Py_CLEAR(L->fields[i].members);
+    }
+    Py_CLEAR(L->uncarried);
+    Py_CLEAR(L->builder);
+    Py_CLEAR(L->constants);
+    Py_CLEAR(L->value_key);
+    return 0;
+}
+
+static void
+clayout_dealloc(PyObject *self)
+{
+    CLayout *L = (CLayout *)self;
+    PyObject_GC_UnTrack(self);
+    clayout_clear(self);
+    PyMem_Free(L->fields);
+    PyMem_Free(L->sources);
+    Py_TYPE(self)->tp_free(self);
+}
+
+static int
+field_from_tuple(FieldSpec *f, PyObject *spec, Py_ssize_t size)
+{
+    PyObject *name, *enum_cls, *members;
+    int kind, is_signed, width;
+    long long num, den, lo, hi;
+    Py_ssize_t offset;
+    if (!PyTuple_Check(spec) || !PyArg_ParseTuple(spec, "UiLLLLnipOO;a field: (name, kind, num, den, lo, hi, offset, "
+                                                  "width, signed, enum class, members)", &name, &kind, &num, &den, &lo,
+                                                  &hi, &offset, &width, &is_signed, &enum_cls, &members)) {
+        if (!PyErr_Occurred()) {
+            PyErr_SetString(PyExc_TypeError, "a field must be a tuple");
+        }
+        return -1;
+    }
+    if (kind < KIND_INT || kind > KIND_FLAGS) {
+        PyErr_Format(PyExc_ValueError, "field %U: kind %d is not 0..3", name, kind);
+        return -1;
+    }
+    if (width != 1 && width != 2 && width != 4) {
+        PyErr_Format(PyExc_ValueError, "field %U: width %d is not 1, 2 or 4", name, width);
+        return -1;
+    }
+    long long type_lo = is_signed ? -(1LL << (8 * width - 1)) : 0;
+    long long type_hi = is_signed ? (1LL << (8 * width - 1)) - 1 : (1LL << (8 * width)) - 1;
+    if (offset < 0 || offset + width > size || lo > hi || lo < type_lo || hi > type_hi || num < 1 || den < 1 ||
+        num > (1LL << 20) || den > (1LL << 40)) {
+        PyErr_Format(PyExc_ValueError, "field %U: offset, range or scale out of bounds", name);
+        return -1;
+    }
+    int is_enum = kind == KIND_ENUM || kind == KIND_FLAGS;
+    if (is_enum && (!PyType_Check(enum_cls) || !PyDict_Check(members))) {
+        PyErr_Format(PyExc_TypeError, "field %U: an enum field needs its class and a dict of its members", name);
+        return -1;
+    }
+    f->name = Py_NewRef(name);
+    f->kind = kind;
+    f->num = num;
+    f->den = den;
+    f->lo = lo;
+    f->hi = hi;
+    f->offset = offset;
+    f->width = width;
+    f->is_signed = is_signed;
+    f->enum_cls = is_enum ? Py_NewRef(enum_cls) : NULL;
+    f->members = is_enum ? Py_NewRef(members) : NULL;
+    return 0;
+}
+
+static PyObject *
+clayout_new(PyTypeObject *type, PyObject *args, PyObject *kwargs)
+{
+    int command;
+    Py_ssize_t size;
+    PyObject *fields, *uncarried, *builder, *sources, *constants;
+    static char *keywords[] = {"command", "size", "fields", "uncarried", "builder", "sources", "constants", NULL};
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "inO!O!OO!O!:CLayout", keywords, &command, &size, &PyTuple_Type,
+                                     &fields, &PyTuple_Type, &uncarried, &builder, &PyTuple_Type, &sources,
+                                     &PyTuple_Type, &constants)) {
+        return NULL;
+    }
+    if (command < -1 || command > 255 || size < 1 || size > MAX_PAYLOAD) {
+        PyErr_Format(PyExc_ValueError, "CLayout: command %d or size %zd out of range", command, size);
+        return NULL;
+    }
+    Py_ssize_t nfields = PyTuple_GET_SIZE(fields), nvalues = PyTuple_GET_SIZE(sources);
+    if (nfields > MAX_VALUES || nvalues > MAX_VALUES || PyTuple_GET_SIZE(constants) != nvalues ||
+        (builder != Py_None && !PyCallable_Check(builder))) {
+        PyErr_SetString(PyExc_ValueError, "CLayout: too many fields, or sources and constants of different lengths, "
+                                          "or a builder that is not callable");
+        return NULL;
+    }
+    CLayout *L = PyObject_GC_New(CLayout, type);
+    if (L == NULL) {
+        return NULL;
+    }
+    L->command = command;
+    L->size = size;
+    L->nfields = 0;
+    L->fields = PyMem_Calloc(nfields ? nfields : 1, sizeof(FieldSpec));
+    L->sources = PyMem_Calloc(nvalues ? nvalues : 1, sizeof(Py_ssize_t));
+    L->uncarried = Py_NewRef(uncarried);
+    L->builder = builder == Py_None ? NULL : Py_NewRef(builder);
+    L->nvalues = nvalues;
+    L->constants = Py_NewRef(constants);
+    L->value_key = PyUnicode_InternFromString("_value_");
+    if (L->fields == NULL || L->sources == NULL || L->value_key == NULL) {
+        Py_DECREF(L);
+        return PyErr_Occurred() ? NULL : PyErr_NoMemory();
+    }
+    for (Py_ssize_t i = 0; i < nfields; i++) {
+        if (field_from_tuple(&L->fields[i], PyTuple_GET_ITEM(fields, i), size) < 0) {
+            Py_DECREF(L);
+            return NULL;
+        }
+        L->nfields = i + 1;
+    }
+    for (Py_ssize_t i = 0; i < PyTuple_GET_SIZE(uncarried); i++) {
+        if (!PyUnicode_Check(PyTuple_GET_ITEM(uncarried, i))) {
+            PyErr_SetString(PyExc_TypeError, "CLayout: uncarried names must be str");
+            Py_DECREF(L);
+            return NULL;
+        }
+    }
+    for (Py_ssize_t i = 0; i < nvalues; i++) {
+        Py_ssize_t source = PyLong_AsSsize_t(PyTuple_GET_ITEM(sources, i));
+        if ((source == -1 && PyErr_Occurred()) || source < -1 || source >= nfields) {
+            PyErr_Clear();
+            PyErr_Format(PyExc_ValueError, "CLayout: source %zd is neither -1 nor a field index", i);
+            Py_DECREF(L);
+            return NULL;
+        }
+        L->sources[i] = source;
+    }
+    PyObject_GC_Track(L);
+    return (PyObject *)L;
+}
+
+/* An attribute of ``o``: a new reference; NULL with no error set for "take the Python path" (AttributeError). */
+static PyObject *
+get_attribute(PyObject *o, PyObject *name)
+{
+    PyObject *value = PyObject_GetAttr(o, name);
+    if (value == NULL && PyErr_ExceptionMatches(PyExc_AttributeError)) {
+        PyErr_Clear();
+    }
+    return value;
+}
+
+/* The payload of ``message`` into ``buffer`` (L->size bytes): 1 done, 0 take the Python path, -1 error set. */
+static int
+encode_payload(CLayout *L, PyObject *message, unsigned char *buffer)
+{
+    memset(buffer, 0, (size_t)L->size);
+    if (L->command >= 0) {
+        buffer[0] = (unsigned char)L->command;
+    }
+    for (Py_ssize_t i = 0; i < PyTuple_GET_SIZE(L->uncarried); i++) {
+        PyObject *value = get_attribute(message, PyTuple_GET_ITEM(L->uncarried, i));
+        if (value == NULL) {
+            return PyErr_Occurred() ? -1 : 0;
+        }
+        Py_DECREF(value);
+        if (value != Py_None) {
+            return 0;
+        }
+    }
+    for (Py_ssize_t i = 0; i < L->nfields; i++) {
+        FieldSpec *f = &L->fields[i];
+        PyObject *value = get_attribute(message, f->name);
+        if (value == NULL) {
+            return PyErr_Occurred() ? -1 : 0;
+        }
+        long long raw = 0;
+        int usable = 0;
+        if (f->kind == KIND_INT) {
+            if (PyLong_CheckExact(value)) {
+                int overflow = 0;
+                raw = PyLong_AsLongLongAndOverflow(value, &overflow);
+                usable = !overflow && !(raw == -1 && PyErr_Occurred());
+            }
+        }
+        else if (f->kind == KIND_REAL) {
+            /* as the Python: round(value * den / num), half to even, for a float only */
+            if (PyFloat_CheckExact(value)) {
+                double x = PyFloat_AS_DOUBLE(value);
+                if (f->den != 1) {
+                    x = x * (double)f->den;
+                }
+                if (f->num != 1) {
+                    x = x / (double)f->num;
+                }
+                if (isfinite(x) && x > -9.0e18 && x < 9.0e18) {
+                    raw = (long long)rint(x);
+                    usable = 1;
+                }
+            }
+        }
+        else if (Py_IS_TYPE(value, (PyTypeObject *)f->enum_cls)) {
+            PyObject *number = PyObject_GetAttr(value, L->value_key);
+            if (number == NULL) {
+                Py_DECREF(value);
+                return -1;
+            }
+            if (PyLong_Check(number)) {
+                int overflow = 0;
+                raw = PyLong_AsLongLongAndOverflow(number, &overflow);
+                usable = !overflow && !(raw == -1 && PyErr_Occurred());
+            }
+            Py_DECREF(number);
+        }
+        Py_DECREF(value);
+        if (PyErr_Occurred()) {
+            return -1;
+        }
+        if (!usable || raw < f->lo || raw > f->hi) {
+            return 0;
+        }
+        unsigned long long bits = (unsigned long long)raw;
+        for (int b = 0; b < f->width; b++) {
+            buffer[f->offset + b] = (unsigned char)(bits >> (8 * b));
+        }
+    }
+    return 1;
+}
+
+/* The message of ``payload`` (L->size bytes): a new reference; NULL with no error set: take the Python path. */
+static PyObject *
+decode_payload(CLayout *L, const unsigned char *payload)
+{
+    if (L->builder == NULL) {
+        return NULL;
+    }
+    PyObject *values[MAX_VALUES];
+    Py_ssize_t made = 0;
+    PyObject *result = NULL;
+    for (; made < L->nfields; made++) {
+        FieldSpec *f = &L->fields[made];
+        unsigned long long bits = 0;
+        for (int b = f->width - 1; b >= 0; b--) {
+            bits = (bits << 8) | payload[f->offset + b];
+        }
+        long long raw = (long long)bits;
+        if (f->is_signed && (bits >> (8 * f->width - 1)) & 1) {
+            raw -= 1LL << (8 * f->width);
+        }
+        if (raw < f->lo || raw > f->hi) {
+            goto done;
+        }
+        PyObject *value = NULL;
+        if (f->kind == KIND_INT) {
+            value = PyLong_FromLongLong(raw);
+        }
+        else if (f->kind == KIND_REAL) {
+            /* as the Python: raw * num / den, the product exact, the quotient correctly rounded */
+            long long product = raw * f->num;
+            if (product >= EXACT_DOUBLE_INT || product <= -EXACT_DOUBLE_INT) {
+                goto done;
+            }
+            value = PyFloat_FromDouble((double)product / (double)f->den);
+        }
+        else {
+            PyObject *key = PyLong_FromLongLong(raw);
+            if (key == NULL) {
+                goto done;
+            }
+            value = PyDict_GetItemWithError(f->members, key);
+            if (value != NULL) {
+                Py_INCREF(value);
+            }
+            else if (!PyErr_Occurred() && f->kind == KIND_FLAGS) {
+                value = PyObject_CallOneArg(f->enum_cls, key); /* a combination not seen before */
+            }
+            Py_DECREF(key);
+        }
+        if (value == NULL) {
+            goto done;
+        }
+        values[made] = value;
+    }
+    PyObject *arguments[MAX_VALUES];
+    for (Py_ssize_t i = 0; i < L->nvalues; i++) {
+        Py_ssize_t source = L->sources[i];
+        arguments[i] = source >= 0 ? values[source] : PyTuple_GET_ITEM(L->constants, i);
+    }
+    result = PyObject_Vectorcall(L->builder, arguments, (size_t)L->nvalues, NULL);
+done:
+    for (Py_ssize_t i = 0; i < made; i++) {
+        Py_DECREF(values[i]);
+    }
+    return result;
+}
+
+static PyObject *
+clayout_encode(PyObject *self, PyObject *message)
+{
+    CLayout *L = (CLayout *)self;
+    unsigned char buffer[MAX_PAYLOAD];
+    int done = encode_payload(L, message, buffer);
+    if (done < 0) {
+        return NULL;
+    }
+    if (done == 0) {
+        Py_RETURN_NONE;
+    }
+    return PyBytes_FromStringAndSize((const char *)buffer, L->size);
+}
+
+static PyObject *
+clayout_decode(PyObject *self, PyObject *data)
+{
+    CLayout *L = (CLayout *)self;
+    if (!PyBytes_Check(data) || PyBytes_GET_SIZE(data) != L->size) {
+        PyErr_Format(PyExc_TypeError, "CLayout.decode takes bytes of the layout's size, %zd", L->size);
+        return NULL;
+    }
+    PyObject *message = decode_payload(L, (const unsigned char *)PyBytes_AS_STRING(data));
+    if (message == NULL && !PyErr_Occurred()) {
+        Py_RETURN_NONE;
+    }
+    return message;
+}
+
+static PyMethodDef clayout_methods[] = {
+    {"encode", clayout_encode, METH_O, PyDoc_STR("encode(message) -> payload bytes, or None: take the Python path")},
+    {"decode", clayout_decode, METH_O, PyDoc_STR("decode(payload) -> message, or None: take the Python path")},
+    {NULL, NULL, 0, NULL},
+};
+
+static PyTypeObject CLayoutType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "motion._speedups.CLayout",
+    .tp_doc = PyDoc_STR("CLayout(command, size, fields, uncarried, builder, sources, constants): one layout of the "
+                        "table, encoded and decoded in C (see motion.protocol.compiled)."),
+    .tp_basicsize = sizeof(CLayout),
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC,
+    .tp_new = clayout_new,
+    .tp_dealloc = clayout_dealloc,
+    .tp_traverse = clayout_traverse,
+    .tp_clear = clayout_clear,
+    .tp_methods = clayout_methods,
+};
+
+/* -- the two public CAN calls -- */
+
+typedef struct {
+    PyObject_HEAD
+    vectorcallfunc vectorcall;
+    PyObject *layouts;  /* encoder: {class: CLayout}; decoder: tuple of 256 (CLayout or None) */
+    PyObject *shared;   /* encoder: {class: {command value: CLayout}} (classes with a command field); decoder: NULL */
+    PyObject *builder;  /* encoder: builds the frame (arbitration id, data) */
+    PyObject *special;  /* encoder: the class sent on special_id (MultiMotorTorque) */
+    PyObject *fallback; /* the Python function, called with the same arguments */
+    PyObject *command_key; /* "command" */
+    PyObject *value_key;   /* "_value_" */
+    long id_base, id_min, id_max, special_id;
+} CanCodec;
+
+static int
+cancodec_traverse(PyObject *self, visitproc visit, void *arg)
+{
+    CanCodec *c = (CanCodec *)self;
+    Py_VISIT(c->layouts);
+    Py_VISIT(c->shared);
+    Py_VISIT(c->builder);
+    Py_VISIT(c->special);
+    Py_VISIT(c->fallback);
+    Py_VISIT(c->command_key);
+    Py_VISIT(c->value_key);
+    return 0;
+}
+
+static int
+cancodec_clear(PyObject *self)
+{
+    CanCodec *c = (CanCodec *)self;
+    Py_CLEAR(c->layouts);
+    Py_CLEAR(c->shared);
+    Py_CLEAR(c->builder);
+    Py_CLEAR(c->special);
+    Py_CLEAR(c->fallback);
+    Py_CLEAR(c->command_key);
+    Py_CLEAR(c->value_key);
+    return 0;
+}
+
+static void
+cancodec_dealloc(PyObject *self)
+{
+    PyObject_GC_UnTrack(self);
+    cancodec_clear(self);
+    Py_TYPE(self)->tp_free(self);
+}
+
+static PyObject *
+take_python_path(CanCodec *c, PyObject *const *args, size_t nargsf, PyObject *kwnames)
+{
+    return PyObject_Vectorcall(c->fallback, args, nargsf, kwnames);
+}
+
+/* The layout of ``message`` (borrowed), or NULL: none (error set if one happened). */
+static CLayout *
+layout_of(CanCodec *c, PyObject *message)
+{
+    PyObject *cls = (PyObject *)Py_TYPE(message);
+    PyObject *layout = PyDict_GetItemWithError(c->layouts, cls);
+    if (layout != NULL || PyErr_Occurred()) {
+        return (CLayout *)layout;
+    }
+    PyObject *by_command = PyDict_GetItemWithError(c->shared, cls);
+    if (by_command == NULL) {
+        return NULL;
+    }
+    PyObject *command = get_attribute(message, c->command_key);
+    if (command == NULL) {
+        return NULL;
+    }
+    PyObject *value = get_attribute(command, c->value_key);
+    Py_DECREF(command);
+    if (value == NULL) {
+        return NULL;
+    }
+    layout = PyDict_GetItemWithError(by_command, value);
+    Py_DECREF(value);
+    return (CLayout *)layout;
+}
+
+/* encode_request(message, motor_id=1) -> CanFrame */
+static PyObject *
+encoder_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
+{
+    CanCodec *c = (CanCodec *)self;
+    Py_ssize_t nargs = PyVectorcall_NARGS(nargsf);
+    if (kwnames != NULL || nargs < 1 || nargs > 2) {
+        return take_python_path(c, args, nargsf, kwnames);
+    }
+    long motor_id = c->id_min;
+    if (nargs == 2) {
+        if (!PyLong_CheckExact(args[1])) {
+            return take_python_path(c, args, nargsf, kwnames);
+        }
+        int overflow = 0;
+        motor_id = PyLong_AsLongAndOverflow(args[1], &overflow);
+        if (overflow || motor_id < c->id_min || motor_id > c->id_max) {
+            PyErr_Clear();
+            return take_python_path(c, args, nargsf, kwnames);
+        }
+    }
+    CLayout *layout = layout_of(c, args[0]);
+    if (layout == NULL) {
+        return PyErr_Occurred() ? NULL : take_python_path(c, args, nargsf, kwnames);
+    }
+    unsigned char buffer[MAX_PAYLOAD];
+    int done = encode_payload(layout, args[0], buffer);
+    if (done <= 0) {
+        return done < 0 ? NULL : take_python_path(c, args, nargsf, kwnames);
+    }
+    long arbitration_id = (PyObject *)Py_TYPE(args[0]) == c->special ? c->special_id : c->id_base + motor_id;
+    PyObject *parts[2];
+    parts[0] = PyLong_FromLong(arbitration_id);
+    parts[1] = PyBytes_FromStringAndSize((const char *)buffer, layout->size);
+    PyObject *frame = NULL;
+    if (parts[0] != NULL && parts[1] != NULL) {
+        frame = PyObject_Vectorcall(c->builder, parts, 2, NULL);
+    }
+    Py_XDECREF(parts[0]);
+    Py_XDECREF(parts[1]);
+    return frame;
+}
+
+/* decode_reply(arbitration_id, data) -> (motor id, message) */
+static PyObject *
+decoder_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
+{
+    CanCodec *c = (CanCodec *)self;
+    Py_ssize_t nargs = PyVectorcall_NARGS(nargsf);
+    if (kwnames != NULL || nargs != 2 || !PyLong_CheckExact(args[0]) || !PyBytes_CheckExact(args[1]) ||
+        PyBytes_GET_SIZE(args[1]) != 8) {
+        return take_python_path(c, args, nargsf, kwnames);
+    }
+    int overflow = 0;
+    long arbitration_id = PyLong_AsLongAndOverflow(args[0], &overflow);
+    if (overflow || arbitration_id < c->id_base + c->id_min || arbitration_id > c->id_base + c->id_max) {
+        PyErr_Clear();
+        return take_python_path(c, args, nargsf, kwnames);
+    }
+    const unsigned char *payload = (const unsigned char *)PyBytes_AS_STRING(args[1]);
+    PyObject *layout = PyTuple_GET_ITEM(c->layouts, payload[0]);
+    if (layout == Py_None || ((CLayout *)layout)->size != 8) {
+        return take_python_path(c, args, nargsf, kwnames);
+    }
+    PyObject *message = decode_payload((CLayout *)layout, payload);
+    if (message == NULL) {
+        return PyErr_Occurred() ? NULL : take_python_path(c, args, nargsf, kwnames);
+    }
+    PyObject *motor_id = PyLong_FromLong(arbitration_id - c->id_base);
+    if (motor_id == NULL) {
+        Py_DECREF(message);
+        return NULL;
+    }
+    PyObject *pair = PyTuple_Pack(2, motor_id, message);
+    Py_DECREF(motor_id);
+    Py_DECREF(message);
+    return pair;
+}
+
+static PyObject *
+cancodec_make(PyTypeObject *type, vectorcallfunc call, PyObject *layouts, PyObject *shared, PyObject *builder,
+              PyObject *special, PyObject *fallback, long id_base, long id_min, long id_max, long special_id)
+{
+    CanCodec *c = PyObject_GC_New(CanCodec, type);
+    if (c == NULL) {
+        return NULL;
+    }
+    c->vectorcall = call;
+    c->layouts = Py_NewRef(layouts);
+    c->shared = Py_XNewRef(shared);
+    c->builder = Py_XNewRef(builder);
+    c->special = Py_XNewRef(special);
+    c->fallback = Py_NewRef(fallback);
+    c->command_key = PyUnicode_InternFromString("command");
+    c->value_key = PyUnicode_InternFromString("_value_");
+    c->id_base = id_base;
+    c->id_min = id_min;
+    c->id_max = id_max;
+    c->special_id = special_id;
+    if (c->command_key == NULL || c->value_key == NULL) {
+        Py_DECREF(c);
+        return NULL;
+    }
+    PyObject_GC_Track(c);
+    return (PyObject *)c;
+}
+
+static PyObject *
+encoder_new(PyTypeObject *type, PyObject *args, PyObject *kwargs)
+{
+    PyObject *layouts, *shared, *builder, *special, *fallback;
+    long id_base, id_min, id_max, special_id;
+    static char *keywords[] = {"layouts", "shared", "frame", "special", "special_id", "id_base", "id_min", "id_max",
+                               "fallback", NULL};
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "O!O!OOllllO:CanRequestEncoder", keywords, &PyDict_Type, &layouts,
+                                     &PyDict_Type, &shared, &builder, &special, &special_id, &id_base, &id_min,
+                                     &id_max, &fallback)) {
+        return NULL;
+    }
+    if (!PyCallable_Check(builder) || !PyCallable_Check(fallback) || id_min > id_max) {
+        PyErr_SetString(PyExc_TypeError, "CanRequestEncoder: frame and fallback must be callable, id_min <= id_max");
+        return NULL;
+    }
+    PyObject *key, *value;
+    Py_ssize_t position = 0;
+    while (PyDict_Next(layouts, &position, &key, &value)) {
+        if (!Py_IS_TYPE(value, &CLayoutType)) {
+            PyErr_SetString(PyExc_TypeError, "CanRequestEncoder: layouts maps classes to CLayout");
+            return NULL;
+        }
+    }
+    position = 0;
+    while (PyDict_Next(shared, &position, &key, &value)) {
+        PyObject *k2, *v2;
+        Py_ssize_t p2 = 0;
+        if (!PyDict_Check(value)) {
+            PyErr_SetString(PyExc_TypeError, "CanRequestEncoder: shared maps classes to {command: CLayout}");
+            return NULL;
+        }
+        while (PyDict_Next(value, &p2, &k2, &v2)) {
+            if (!Py_IS_TYPE(v2, &CLayoutType)) {
+                PyErr_SetString(PyExc_TypeError, "CanRequestEncoder: shared maps classes to {command: CLayout}");
+                return NULL;
+            }
+        }
+    }
+    return cancodec_make(type, encoder_call, layouts, shared, builder, special, fallback, id_base, id_min, id_max,
+                         special_id);
+}
+
+static PyObject *
+decoder_new(PyTypeObject *type, PyObject *args, PyObject *kwargs)
+{
+    PyObject *layouts, *fallback;
+    long id_base, id_min, id_max;
+    static char *keywords[] = {"layouts", "id_base", "id_min", "id_max", "fallback", NULL};
+    if (!PyArg_ParseTupleAndKeywords(args, kwargs, "O!lllO:CanReplyDecoder", keywords, &PyTuple_Type, &layouts,
+                                     &id_base, &id_min, &id_max, &fallback)) {
+        return NULL;
+    }
+    if (PyTuple_GET_SIZE(layouts) != 256 || !PyCallable_Check(fallback) || id_min > id_max) {
+        PyErr_SetString(PyExc_TypeError, "CanReplyDecoder: 256 layouts (CLayout or None), a callable fallback");
+        return NULL;
+    }
+    for (Py_ssize_t i = 0; i < 256; i++) {
+        PyObject *layout = PyTuple_GET_ITEM(layouts, i);
+        if (layout != Py_None && !Py_IS_TYPE(layout, &CLayoutType)) {
+            PyErr_SetString(PyExc_TypeError, "CanReplyDecoder: 256 layouts (CLayout or None), a callable fallback");
+            return NULL;
+        }
+    }
+    return cancodec_make(type, decoder_call, layouts, NULL, NULL, NULL, fallback, id_base, id_min, id_max, 0);
+}
+
+static PyMemberDef cancodec_members[] = {
+    {"fallback", Py_T_OBJECT_EX, offsetof(CanCodec, fallback), Py_READONLY, "the Python function it defers to"},
+    {NULL},
+};
+
+static PyTypeObject CanRequestEncoderType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "motion._speedups.CanRequestEncoder",
+    .tp_doc = PyDoc_STR("encode_request(message, motor_id=1) -> CanFrame, in C (motion.protocol.can_frame)."),
+    .tp_basicsize = sizeof(CanCodec),
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC | Py_TPFLAGS_HAVE_VECTORCALL,
+    .tp_new = encoder_new,
+    .tp_dealloc = cancodec_dealloc,
+    .tp_traverse = cancodec_traverse,
+    .tp_clear = cancodec_clear,
+    .tp_call = PyVectorcall_Call,
+    .tp_vectorcall_offset = offsetof(CanCodec, vectorcall),
+    .tp_members = cancodec_members,
+};
+
+static PyTypeObject CanReplyDecoderType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "motion._speedups.CanReplyDecoder",
+    .tp_doc = PyDoc_STR("decode_reply(arbitration_id, data) -> (motor id, message), in C "
+                        "(motion.protocol.can_frame)."),
+    .tp_basicsize = sizeof(CanCodec),
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC | Py_TPFLAGS_HAVE_VECTORCALL,
+    .tp_new = decoder_new,
+    .tp_dealloc = cancodec_dealloc,
+    .tp_traverse = cancodec_traverse,
+    .tp_clear = cancodec_clear,
+    .tp_call = PyVectorcall_Call,
+    .tp_vectorcall_offset = offsetof(CanCodec, vectorcall),
+    .tp_members = cancodec_members,
+};
+
+static PyMethodDef speedups_methods[] = {
+    {"chase", (PyCFunction)(void (*)(void))chase, METH_FASTCALL,
+     PyDoc_STR("chase(x, v, dt, target, cap, gain, accel, max_step): motion.control.tracking.chase in C, in place.")},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef speedups_module = {
+    PyModuleDef_HEAD_INIT,
+    .m_name = "motion._speedups",
+    .m_doc = PyDoc_STR("The optional C accelerator of the hot path: SlotBuilder (frozen_builder) and chase."),
+    .m_size = -1,
+    .m_methods = speedups_methods,
+};
+
+PyMODINIT_FUNC
+PyInit__speedups(void)
+{
+    PyObject *module = PyModule_Create(&speedups_module);
+    if (module == NULL) {
+        return NULL;
+    }
+    PyTypeObject *types[] = {&SlotBuilderType, &CLayoutType, &CanRequestEncoderType, &CanReplyDecoderType};
+    const char *names[] = {"SlotBuilder", "CLayout", "CanRequestEncoder", "CanReplyDecoder"};
+    for (size_t i = 0; i < sizeof(types) / sizeof(types[0]); i++) {
+        if (PyType_Ready(types[i]) < 0 || PyModule_AddObjectRef(module, names[i], (PyObject *)types[i]) < 0) {
+            Py_DECREF(module);
+            return NULL;
+        }
+    }
+    return module;
+}

@@ -1,0 +1,462 @@
+"""The C half of :func:`motion.protocol.compiled.frozen_builder` (``motion._speedups``, issue 12): it builds the
+object the class's own ``__init__`` builds, for every message class of both families and the hot path's other
+frozen classes; it refuses what it cannot build; it keeps reference counts and the garbage collector right; and the
+package without it (``RMD_MOTION_PURE_PYTHON``) passes the codec's tests through the pure-Python builders. Its
+``chase`` (the tracking model's position-loop step) gives the numpy steps' results to the bit."""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+import math
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from motion.control import tracking
+from motion.control.tracking import chase, chase_work
+from motion.protocol import (
+    Bare,
+    CanFrame,
+    Command,
+    Direction,
+    ErrorFlags,
+    MotorState,
+    MultiMotorTorque,
+    MultiTurnPositionSpeed,
+    Status1,
+    TorqueControl,
+    WireProtocol,
+    can_frame,
+)
+from motion.protocol import compiled as compiled_module
+from motion.protocol.compiled import FALLBACK_ERRORS, PURE_PYTHON_ENV, CompiledLayout, compile_layout, frozen_builder
+from motion.protocol.messages import Message
+from motion.protocol.table import Kind
+from motion.protocol.v3 import messages as v3_messages  # noqa: F401  (the V3 family's message classes)
+from motion.trajectory.planner import State
+from motion.transport.base import Request
+from tests.test_codec_fastpath import CASES, ODD_VALUES, _message
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+def _subclasses(cls: type) -> list[type]:
+    found: list[type] = []
+    sub: type
+    for sub in cls.__subclasses__():
+        found.append(sub)
+        found.extend(_subclasses(sub))
+    return found
+
+
+#: Every frozen slotted dataclass the builders serve: the messages of both families and the hot path's others.
+CLASSES = sorted(
+    {
+        cls
+        for cls in [*_subclasses(Message), CanFrame, Request, State]
+        # (dataclass(slots=True) replaces a class: the one a module names is the slotted one)
+        if getattr(sys.modules[cls.__module__], cls.__qualname__, None) is cls
+        and dataclasses.is_dataclass(cls)
+        and "__slots__" in cls.__dict__
+        and not hasattr(cls, "__post_init__")
+    },
+    key=lambda c: f"{c.__module__}.{c.__qualname__}",
+)
+
+
+def test_the_extension_is_built_here() -> None:
+    # The development install builds it (the project's own files, a C compiler): a silent fallback to the pure-Python
+    # builders would make every speed figure of bench/ a different program's.
+    assert compiled_module.SlotBuilder is not None
+    turned_off = os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0")
+    assert compiled_module.ACCELERATED is not turned_off
+
+
+@pytest.mark.parametrize("cls", CLASSES, ids=lambda c: c.__qualname__)
+@pytest.mark.parametrize("accelerated", [True, False], ids=["C", "python"])
+def test_a_built_object_is_the_one_init_builds(cls: Any, accelerated: bool) -> None:
+    fields = dataclasses.fields(cls)
+    values = [object() for _ in fields]  # neither builder nor __init__ looks at the values
+    build = frozen_builder(cls, accelerated=accelerated)
+    built = build(*values)
+    made = cls(*values)
+    assert type(built) is cls
+    assert built == made
+    assert hash(built) == hash(made)
+    assert repr(built) == repr(made)
+    assert [getattr(built, f.name) for f in fields] == values
+    if fields:
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(built, fields[0].name, 1)
+        assert dataclasses.replace(built, **{fields[0].name: 1}) == cls(1, *values[1:])
+
+
+def test_the_c_builder_is_used_and_checks_its_arguments() -> None:
+    build: Any = frozen_builder(CanFrame, accelerated=True)
+    assert type(build).__name__ == "SlotBuilder"
+    assert build.cls is CanFrame and build.names == ("arbitration_id", "data")
+    assert "CanFrame" in repr(build)
+    with pytest.raises(TypeError, match=r"the builder of .*CanFrame takes 2 positional values, got 1"):
+        build(0x141)
+    with pytest.raises(TypeError, match=r"takes 2 positional values, got 3"):
+        build(0x141, b"", 3)
+    with pytest.raises(TypeError, match=r"got 1 and keywords"):
+        build(0x141, data=b"")
+
+
+def test_the_c_builder_refuses_what_it_cannot_build() -> None:
+    slot_builder: Any = compiled_module.SlotBuilder
+
+    class Plain:  # instances with a __dict__: no slots to fill
+        pass
+
+    class WithSlots:
+        __slots__ = ("a",)
+
+    class Other:
+        __slots__ = ("b",)
+
+    class Short(tuple[int, ...]):  # a variable-size instance
+        __slots__ = ()
+
+    with pytest.raises(TypeError, match=r"Plain has no slot 'a'"):
+        slot_builder(Plain, ("a",))
+    with pytest.raises(TypeError, match=r"WithSlots.__init__ is not a slot"):
+        slot_builder(WithSlots, ("__init__",))
+    WithSlots.b = Other.__dict__["b"]  # type: ignore[attr-defined]  # a slot of an unrelated class
+    with pytest.raises(TypeError, match=r"WithSlots.b is a slot of another class"):
+        slot_builder(WithSlots, ("b",))
+    with pytest.raises(TypeError, match=r"variable size"):
+        slot_builder(Short, ())
+    with pytest.raises(TypeError, match=r"slot names must be str"):
+        slot_builder(WithSlots, (1,))
+    with pytest.raises(TypeError):
+        slot_builder(WithSlots, ["a"])  # names: a tuple
+    with pytest.raises(TypeError, match=r"not a writable object slot"):
+        slot_builder(complex, ("real",))  # a read-only member of a C type
+
+
+def test_the_c_builder_keeps_reference_counts_and_the_collector_right() -> None:
+    build = frozen_builder(CanFrame, accelerated=True)
+    value = object()
+    before = sys.getrefcount(value)
+    frames = [build(value, value) for _ in range(1000)]
+    assert sys.getrefcount(value) == before + 2000
+    del frames
+    assert sys.getrefcount(value) == before
+    frame = build([], b"")
+    assert gc.is_tracked(frame)
+    # A cycle through a built object is collected.
+    marker = object()
+    holder: list[Any] = []
+    looped = build(holder, marker)
+    holder.append(looped)
+    assert any(type(o) is CanFrame and o.data is marker for o in gc.get_objects())
+    del looped, holder
+    gc.collect()
+    assert not any(type(o) is CanFrame and o.data is marker for o in gc.get_objects())
+    # The builder itself: a builder of a class that refers back to it is collected too.
+    count = sum(1 for o in gc.get_objects() if type(o).__name__ == "SlotBuilder")
+
+    @dataclasses.dataclass(frozen=True, slots=True)
+    class Local:
+        x: int
+
+    Local.builder = frozen_builder(Local, accelerated=True)  # type: ignore[attr-defined]
+    assert Local.builder(3) == Local(3)  # type: ignore[attr-defined]
+    del Local
+    gc.collect()
+    assert sum(1 for o in gc.get_objects() if type(o).__name__ == "SlotBuilder") == count
+
+
+def test_without_the_extension_the_codec_tests_pass_on_the_pure_python_builders() -> None:
+    env = dict(os.environ, **{PURE_PYTHON_ENV: "1"})
+    check = subprocess.run(
+        [sys.executable, "-c", "from motion.protocol import compiled; print(compiled.ACCELERATED)"],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    assert check.stdout.strip() == "False"
+    tests = ["tests/test_codec_fastpath.py", "tests/test_protocol_golden.py", "tests/test_protocol_properties.py"]
+    run = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *tests],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-2000:]
+    assert " passed" in run.stdout
+
+
+# ---------------------------------------------------------------------------------------------------------- chase
+
+
+def _chase_both(x: np.ndarray, v: np.ndarray, dt: float, **arrays: Any) -> tuple[tuple[Any, Any], tuple[Any, Any]]:
+    results = []
+    for accelerated in (True, False):
+        xs, vs = x.copy(), v.copy()
+        chase(xs, vs, dt, **arrays, work=chase_work(len(x)), accelerated=accelerated)
+        results.append((xs, vs))
+    return results[0], results[1]
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.dtype == b.dtype and a.tobytes() == b.tobytes()
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_chase_in_c_gives_the_numpy_steps_results_to_the_bit(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    for trial in range(400):
+        n = int(rng.integers(1, 13))
+        x, v, target = rng.normal(0, 100, n), rng.normal(0, 300, n), rng.normal(0, 100, n)
+        cap, gain, accel = np.abs(rng.normal(0, 500, n)), np.abs(rng.normal(0, 60, n)), np.abs(rng.normal(0, 5e3, n))
+        if trial % 5 == 0:
+            accel[:] = 1e12  # the model's "no limit"
+        if trial % 7 == 0:
+            cap[rng.integers(0, n)] = np.inf
+        if trial % 11 == 0:
+            target[rng.integers(0, n)] = np.nan  # propagates as numpy's minimum / maximum propagate it
+        if trial % 13 == 0:
+            x[:] = target  # at the target: zero errors, signed zeros
+        dt = float(rng.choice([0.0, 0.0005, 0.001, 0.002, 0.004, 0.0123, 0.25]))
+        (xc, vc), (xp, vp) = _chase_both(x, v, dt, target=target, cap=cap, gain=gain, accel=accel)
+        assert _same_bits(xc, xp) and _same_bits(vc, vp), (seed, trial)
+        assert not np.array_equal(xc, x, equal_nan=True) or dt == 0.0 or trial % 13 == 0 or np.isnan(target).any()
+
+
+def test_the_tracking_model_steps_with_chase_in_c() -> None:
+    assert tracking._C_CHASE is (None if compiled_module.SPEEDUPS is None else compiled_module.SPEEDUPS.chase)
+    from motion import _speedups
+
+    c_chase: Any = _speedups.chase
+    x, v = np.zeros(3), np.zeros(3)
+    ones = np.ones(3)
+    c_chase(x, v, 0.004, ones * 10.0, ones * 100.0, ones * 50.0, ones * 1e4, tracking.MAX_STEP_S)
+    assert (x > 0).all() and (v > 0).all()
+
+
+def test_chase_in_c_refuses_what_it_cannot_take_and_changes_nothing_then() -> None:
+    from motion import _speedups
+
+    c_chase: Any = _speedups.chase
+    three, ints = np.ones(3), np.ones(3, dtype=np.int64)
+    x, v = np.full(3, 7.0), np.full(3, 3.0)
+    with pytest.raises(TypeError, match=r"chase: accel must be a one-dimensional float64 array"):
+        c_chase(x, v, 0.001, three, three, three, ints, 0.001)  # refused after x and v were taken
+    with pytest.raises(ValueError, match=r"chase: gain has 2 entries, x has 3"):
+        c_chase(x, v, 0.001, three, three, np.ones(2), three, 0.001)
+    with pytest.raises(TypeError, match=r"chase: x must be a C-contiguous, writable float64 array"):
+        c_chase(np.zeros(6)[::2], v, 0.001, three, three, three, three, 0.001)
+    with pytest.raises(TypeError, match=r"chase: v must be a C-contiguous, writable float64 array"):
+        c_chase(x, three.copy()[None, :].repeat(2, 0)[:, 0], 0.001, three, three, three, three, 0.001)
+    with pytest.raises(TypeError, match=r"takes 8 positional arguments"):
+        c_chase(x, v, 0.001)
+    with pytest.raises(ValueError, match=r"max_step must be > 0 and dt finite"):
+        c_chase(x, v, math.inf, three, three, three, three, 0.001)
+    assert (x == 7.0).all() and (v == 3.0).all()
+
+
+def test_chase_takes_what_the_c_one_refuses_through_numpy() -> None:
+    x, v = np.zeros(3), np.zeros(3)
+    cap: Any = np.inf  # a scalar, broadcast by numpy
+    chase(
+        x, v, 0.002, target=np.full(3, 5.0), cap=cap, gain=np.full(3, 50.0), accel=np.full(3, 1e4), work=chase_work(3)
+    )
+    xp, vp = np.zeros(3), np.zeros(3)
+    chase(
+        xp,
+        vp,
+        0.002,
+        target=np.full(3, 5.0),
+        cap=np.full(3, np.inf),
+        gain=np.full(3, 50.0),
+        accel=np.full(3, 1e4),
+        work=chase_work(3),
+        accelerated=False,
+    )
+    assert (x > 0).all() and _same_bits(x, xp) and _same_bits(v, vp)
+
+
+# ---------------------------------------------------------------------------------------------------------- codec
+
+#: Every CAN layout the C extension takes: (command, direction, the compiled layout with its ``native`` twin).
+NATIVE_CASES = [
+    (code, direction, compiled)
+    for code, transport, direction, layout in CASES
+    if transport is WireProtocol.CAN
+    and (compiled := compile_layout(layout, code, transport, direction)) is not None
+    and compiled.native is not None
+]
+NATIVE_IDS = [f"{'280' if c is None else f'{c:02X}'}-{d.value}" for c, d, _ in NATIVE_CASES]
+
+
+def test_the_c_codec_takes_every_can_layout_of_the_hot_path() -> None:
+    assert len(NATIVE_CASES) >= 40
+    assert can_frame.encode_request is not can_frame._encode_request
+    assert type(can_frame.encode_request).__name__ == "CanRequestEncoder"
+    assert type(can_frame.decode_reply).__name__ == "CanReplyDecoder"
+    assert can_frame.encode_request.fallback is can_frame._encode_request  # type: ignore[attr-defined]
+
+
+def _python_fast_encode(compiled: CompiledLayout, message: Any) -> bytes | None:
+    try:
+        return compiled.encode(message)
+    except FALLBACK_ERRORS:
+        return None
+
+
+def _fields(message: Any) -> list[tuple[type, Any]]:
+    return [(type(v), v) for v in (getattr(message, f.name) for f in dataclasses.fields(message))]
+
+
+@pytest.mark.parametrize(("code", "direction", "compiled"), NATIVE_CASES, ids=NATIVE_IDS)
+@settings(max_examples=60, deadline=None)
+@given(data=st.data())
+def test_c_encode_gives_the_python_fast_paths_bytes_or_defers_alike(
+    code: Command | None, direction: Direction, compiled: CompiledLayout, data: st.DataObject
+) -> None:
+    layout = compiled.layout
+    values: dict[str, Any] = {}
+    for f in layout.fields:
+        if f.kind in (Kind.ENUM, Kind.FLAGS):
+            assert f.enum is not None
+            values[f.name] = data.draw(st.one_of(st.sampled_from(list(f.enum)), ODD_VALUES))
+        else:
+            valid = st.integers(f.lo, f.hi).map(f.physical)
+            edges = st.sampled_from([f.lo, f.hi, f.lo - 1, f.hi + 1]).map(f.physical)
+            values[f.name] = data.draw(st.one_of(valid, valid.map(float), edges, edges.map(float), ODD_VALUES))
+    message = _message(compiled, values)
+    assert compiled.native.encode(message) == _python_fast_encode(compiled, message), message
+
+
+@pytest.mark.parametrize(("code", "direction", "compiled"), NATIVE_CASES, ids=NATIVE_IDS)
+@settings(max_examples=60, deadline=None)
+@given(data=st.data())
+def test_c_decode_gives_the_python_fast_paths_message_or_defers_alike(
+    code: Command | None, direction: Direction, compiled: CompiledLayout, data: st.DataObject
+) -> None:
+    payload = bytearray(data.draw(st.binary(min_size=compiled.size, max_size=compiled.size)))
+    if data.draw(st.booleans()):
+        payload = bytearray(b if data.draw(st.booleans()) else 0 for b in payload)
+    if code is not None:
+        payload[0] = code
+    native, python = compiled.native.decode(bytes(payload)), compiled.decode(bytes(payload))
+    if direction is Direction.REQUEST:
+        assert native is None  # a request's reserved bytes are the Python path's to check
+        return
+    assert (native is None) == (python is None)
+    if native is not None:
+        assert type(native) is type(python)
+        assert native == python
+        assert _fields(native) == _fields(python)
+
+
+def _outcome(call: Any, *args: Any, **kwargs: Any) -> Any:
+    try:
+        result = call(*args, **kwargs)
+    except Exception as exc:  # the error's type and text are part of what must agree
+        return (type(exc), str(exc))
+    if isinstance(result, tuple):
+        return result[0], result[1], _fields(result[1])
+    return result
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    arbitration_id=st.one_of(st.integers(0x13E, 0x163), st.sampled_from([0x280, -1, 1 << 70, True, 321.0])),
+    payload=st.one_of(
+        st.binary(min_size=8, max_size=8).map(lambda b: bytes([0x9C]) + b[1:]),
+        st.binary(min_size=8, max_size=8),
+        st.binary(min_size=0, max_size=10),
+        st.binary(min_size=8, max_size=8).map(bytearray),
+    ),
+)
+def test_decode_reply_in_c_answers_and_raises_as_the_python_one(arbitration_id: Any, payload: Any) -> None:
+    assert _outcome(can_frame.decode_reply, arbitration_id, payload) == _outcome(
+        can_frame._decode_reply, arbitration_id, payload
+    )
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    message=st.one_of(
+        st.builds(MultiTurnPositionSpeed, ODD_VALUES, ODD_VALUES),
+        st.builds(MultiTurnPositionSpeed, st.floats(-1e6, 1e6), st.floats(0, 70000)),
+        st.builds(TorqueControl, st.one_of(st.floats(-40, 40), ODD_VALUES)),
+        st.builds(MultiMotorTorque, st.floats(-33, 33), st.floats(-33, 33), st.floats(-33, 33), st.floats(-33, 33)),
+        st.sampled_from(
+            [
+                Bare(Command.READ_STATUS_1),
+                Bare(Command.MOTOR_STOP),
+                Status1(Command.READ_STATUS_1, 30, 24.0, ErrorFlags(0)),
+            ]
+        ),
+    ),
+    motor_id=st.one_of(st.integers(-1, 34), st.sampled_from([True, 1.0, None, 1 << 70])),
+    keyword=st.booleans(),
+)
+def test_encode_request_in_c_answers_and_raises_as_the_python_one(message: Any, motor_id: Any, keyword: bool) -> None:
+    if keyword:
+        assert _outcome(can_frame.encode_request, message, motor_id=motor_id) == _outcome(
+            can_frame._encode_request, message, motor_id=motor_id
+        )
+    else:
+        assert _outcome(can_frame.encode_request, message, motor_id) == _outcome(
+            can_frame._encode_request, message, motor_id
+        )
+    assert _outcome(can_frame.encode_request, message) == _outcome(can_frame._encode_request, message)
+
+
+def test_the_c_codec_keeps_reference_counts() -> None:
+    angle = 12.5
+    message = MultiTurnPositionSpeed(angle, 90.0)
+    before = (sys.getrefcount(message), sys.getrefcount(angle))
+    for _ in range(1000):
+        can_frame.encode_request(message, 2)
+    assert (sys.getrefcount(message), sys.getrefcount(angle)) == before
+    data = can_frame.encode_reply(MotorState(Command.MULTI_TURN_POSITION_SPEED, 31, 0.5, -5, 1000), 3).data
+    member = Command.MULTI_TURN_POSITION_SPEED
+    count = sys.getrefcount(member)
+    replies = [can_frame.decode_reply(0x143, data) for _ in range(1000)]
+    assert sys.getrefcount(member) == count + 1000
+    del replies
+    assert sys.getrefcount(member) == count
+
+
+def test_the_c_codec_refuses_tables_it_cannot_take() -> None:
+    from motion import _speedups
+
+    layout: Any = _speedups.CLayout
+    field = ("x", 0, 1, 1, 0, 255, 1, 1, False, None, None)
+    assert layout(0xA4, 8, (field,), (), None, (), ()).encode(Bare(Command.READ_STATUS_1)) is None
+    with pytest.raises(ValueError, match=r"field x: width 3 is not 1, 2 or 4"):
+        layout(0xA4, 8, ((*field[:7], 3, *field[8:]),), (), None, (), ())
+    with pytest.raises(ValueError, match=r"field x: offset, range or scale out of bounds"):
+        layout(0xA4, 8, ((*field[:6], 8, *field[7:]),), (), None, (), ())  # beyond the payload
+    with pytest.raises(ValueError, match=r"field x: offset, range or scale out of bounds"):
+        layout(0xA4, 8, ((*field[:5], 256, *field[6:]),), (), None, (), ())  # beyond uint8
+    with pytest.raises(ValueError, match=r"field x: kind 7 is not 0..3"):
+        layout(0xA4, 8, ((*field[:1], 7, *field[2:]),), (), None, (), ())
+    with pytest.raises(TypeError, match=r"an enum field needs its class"):
+        layout(0xA4, 8, ((*field[:1], 2, *field[2:]),), (), None, (), ())
+    with pytest.raises(ValueError, match=r"source 0 is neither -1 nor a field index"):
+        layout(0xA4, 8, (field,), (), CanFrame, (1,), (None,))
+    with pytest.raises(TypeError, match=r"256 layouts"):
+        _speedups.CanReplyDecoder((None,) * 255, 0x140, 1, 32, can_frame._decode_reply)
+    with pytest.raises(TypeError, match=r"layouts maps classes to CLayout"):
+        not_layouts: Any = {Bare: 1}
+        _speedups.CanRequestEncoder(not_layouts, {}, CanFrame, MultiMotorTorque, 0x280, 0x140, 1, 32, print)
