@@ -209,27 +209,52 @@ np_maximum(double a, double b)
 
 /* A C-contiguous float64 buffer of n entries (n < 0: take its length), or -1 with the error set. */
 static int
-take_array(PyObject *obj, Py_buffer *view, int writable, const char *name, Py_ssize_t *n)
+take_array(const char *function, PyObject *obj, Py_buffer *view, int writable, const char *name, Py_ssize_t *n)
 {
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
     if (PyObject_GetBuffer(obj, view, flags) < 0) {
-        PyErr_Format(PyExc_TypeError, "chase: %s must be a C-contiguous%s float64 array", name,
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a C-contiguous%s float64 array", function, name,
                      writable ? ", writable" : "");
         return -1;
     }
     if (view->itemsize != sizeof(double) || view->format == NULL || strcmp(view->format, "d") != 0 || view->ndim != 1) {
-        PyErr_Format(PyExc_TypeError, "chase: %s must be a one-dimensional float64 array", name);
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a one-dimensional float64 array", function, name);
         PyBuffer_Release(view);
         return -1;
     }
     Py_ssize_t length = view->len / (Py_ssize_t)sizeof(double);
     if (*n >= 0 && length != *n) {
-        PyErr_Format(PyExc_ValueError, "chase: %s has %zd entries, x has %zd", name, length, *n);
+        PyErr_Format(PyExc_ValueError, "%s: %s has %zd entries, the first array %zd", function, name, length, *n);
         PyBuffer_Release(view);
         return -1;
     }
     *n = length;
     return 0;
+}
+
+/* Two or more float64 arrays of one length (see take_array), released by release_arrays; -1 with the error set. */
+static int
+take_arrays(const char *function, PyObject *const *objects, const char *const *names, int writable_count, int count,
+            Py_buffer *views, Py_ssize_t *n)
+{
+    *n = -1;
+    for (int taken = 0; taken < count; taken++) {
+        if (take_array(function, objects[taken], &views[taken], taken < writable_count, names[taken], n) < 0) {
+            for (int i = 0; i < taken; i++) {
+                PyBuffer_Release(&views[i]);
+            }
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static void
+release_arrays(Py_buffer *views, int count)
+{
+    for (int i = 0; i < count; i++) {
+        PyBuffer_Release(&views[i]);
+    }
 }
 
 #define CHASE_ARRAYS 6
@@ -252,21 +277,18 @@ chase(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
     if (max_step == -1.0 && PyErr_Occurred()) {
         return NULL;
     }
-    if (!(max_step > 0.0) || !isfinite(dt)) {
-        PyErr_SetString(PyExc_ValueError, "chase: max_step must be > 0 and dt finite");
+    if (!(max_step > 0.0) || !isfinite(dt) || dt / max_step > 1e9) {
+        PyErr_SetString(PyExc_ValueError, "chase: max_step must be > 0 and dt finite, at most 1e9 steps");
         return NULL;
     }
     static const char *names[CHASE_ARRAYS] = {"x", "v", "target", "cap", "gain", "accel"};
     PyObject *objects[CHASE_ARRAYS] = {args[0], args[1], args[3], args[4], args[5], args[6]};
     Py_buffer views[CHASE_ARRAYS];
-    Py_ssize_t n = -1;
-    int taken = 0;
-    for (; taken < CHASE_ARRAYS; taken++) {
-        if (take_array(objects[taken], &views[taken], taken < 2, names[taken], &n) < 0) {
-            break;
-        }
+    Py_ssize_t n;
+    if (take_arrays("chase", objects, names, 2, CHASE_ARRAYS, views, &n) < 0) {
+        return NULL;
     }
-    if (taken == CHASE_ARRAYS) {
+    {
         double *x = views[0].buf, *v = views[1].buf;
         const double *target = views[2].buf, *cap = views[3].buf, *gain = views[4].buf, *accel = views[5].buf;
         /* as the Python: steps = max(1, ceil(dt / MAX_STEP_S - 1e-9)); h = dt / steps */
@@ -292,12 +314,7 @@ chase(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
             v[i] = vi;
         }
     }
-    for (int i = 0; i < taken; i++) {
-        PyBuffer_Release(&views[i]);
-    }
-    if (taken != CHASE_ARRAYS) {
-        return NULL;
-    }
+    release_arrays(views, CHASE_ARRAYS);
     Py_RETURN_NONE;
 }
 
@@ -1007,9 +1024,135 @@ static PyTypeObject CanReplyDecoderType = {
     .tp_members = cancodec_members,
 };
 
+/* -------------------------------------------------------------------------------------- the torque-mode model */
+
+/* torque_pd(tau, kp, target, x, kd, ref_v, v): tau = kp * (target - x) + (ref_v - v) * kd, in place */
+static PyObject *
+torque_pd(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    static const char *names[] = {"tau", "kp", "target", "x", "kd", "ref_v", "v"};
+    if (nargs != 7) {
+        PyErr_Format(PyExc_TypeError, "torque_pd takes 7 positional arguments, got %zd", nargs);
+        return NULL;
+    }
+    Py_buffer views[7];
+    Py_ssize_t n;
+    if (take_arrays("torque_pd", args, names, 1, 7, views, &n) < 0) {
+        return NULL;
+    }
+    double *tau = views[0].buf;
+    const double *kp = views[1].buf, *target = views[2].buf, *x = views[3].buf, *kd = views[4].buf;
+    const double *ref_v = views[5].buf, *v = views[6].buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double p = kp[i] * (target[i] - x[i]);
+        double d = (ref_v[i] - v[i]) * kd[i];
+        tau[i] = p + d;
+    }
+    release_arrays(views, 7);
+    Py_RETURN_NONE;
+}
+
+/* clip(values, lo, hi): numpy's maximum(minimum(values, hi), lo), in place */
+static PyObject *
+clip(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    static const char *names[] = {"values", "lo", "hi"};
+    if (nargs != 3) {
+        PyErr_Format(PyExc_TypeError, "clip takes 3 positional arguments, got %zd", nargs);
+        return NULL;
+    }
+    Py_buffer views[3];
+    Py_ssize_t n;
+    if (take_arrays("clip", args, names, 1, 3, views, &n) < 0) {
+        return NULL;
+    }
+    double *values = views[0].buf;
+    const double *lo = views[1].buf, *hi = views[2].buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        values[i] = np_maximum(np_minimum(values[i], hi[i]), lo[i]);
+    }
+    release_arrays(views, 3);
+    Py_RETURN_NONE;
+}
+
+/* torque_step(x, v, a, dt): x += v * dt; x += a * (0.5 * dt * dt); v += a * dt, in place */
+static PyObject *
+torque_step(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    static const char *names[] = {"x", "v", "a"};
+    if (nargs != 4) {
+        PyErr_Format(PyExc_TypeError, "torque_step takes 4 positional arguments (x, v, a, dt), got %zd", nargs);
+        return NULL;
+    }
+    double dt = PyFloat_AsDouble(args[3]);
+    if (dt == -1.0 && PyErr_Occurred()) {
+        return NULL;
+    }
+    Py_buffer views[3];
+    Py_ssize_t n;
+    if (take_arrays("torque_step", args, names, 2, 3, views, &n) < 0) {
+        return NULL;
+    }
+    double *x = views[0].buf, *v = views[1].buf;
+    const double *a = views[2].buf;
+    double half_dt2 = 0.5 * dt * dt;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double xi = x[i] + v[i] * dt;
+        x[i] = xi + a[i] * half_dt2;
+        v[i] = v[i] + a[i] * dt;
+    }
+    release_arrays(views, 3);
+    Py_RETURN_NONE;
+}
+
+/* moved_beyond(a, b, limit): numpy's abs(a - b).max() > limit (a NaN anywhere: False, as NaN > limit is) */
+static PyObject *
+moved_beyond(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    static const char *names[] = {"a", "b"};
+    if (nargs != 3) {
+        PyErr_Format(PyExc_TypeError, "moved_beyond takes 3 positional arguments (a, b, limit), got %zd", nargs);
+        return NULL;
+    }
+    double limit = PyFloat_AsDouble(args[2]);
+    if (limit == -1.0 && PyErr_Occurred()) {
+        return NULL;
+    }
+    Py_buffer views[2];
+    Py_ssize_t n;
+    if (take_arrays("moved_beyond", args, names, 0, 2, views, &n) < 0) {
+        return NULL;
+    }
+    const double *a = views[0].buf, *b = views[1].buf;
+    int beyond = 0, nan = 0;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double moved = fabs(a[i] - b[i]);
+        if (isnan(moved)) {
+            nan = 1;
+        }
+        else if (moved > limit) {
+            beyond = 1;
+        }
+    }
+    release_arrays(views, 2);
+    return PyBool_FromLong(beyond && !nan);
+}
+
 static PyMethodDef speedups_methods[] = {
     {"chase", (PyCFunction)(void (*)(void))chase, METH_FASTCALL,
      PyDoc_STR("chase(x, v, dt, target, cap, gain, accel, max_step): motion.control.tracking.chase in C, in place.")},
+    {"torque_pd", (PyCFunction)(void (*)(void))torque_pd, METH_FASTCALL,
+     PyDoc_STR("torque_pd(tau, kp, target, x, kd, ref_v, v): tau = kp (target - x) + (ref_v - v) kd, in place.")},
+    {"clip", (PyCFunction)(void (*)(void))clip, METH_FASTCALL,
+     PyDoc_STR("clip(values, lo, hi): numpy's maximum(minimum(values, hi), lo), in place.")},
+    {"torque_step", (PyCFunction)(void (*)(void))torque_step, METH_FASTCALL,
+     PyDoc_STR("torque_step(x, v, a, dt): x += v dt; x += a dt^2 / 2; v += a dt, in place.")},
+    {"moved_beyond", (PyCFunction)(void (*)(void))moved_beyond, METH_FASTCALL,
+     PyDoc_STR("moved_beyond(a, b, limit): abs(a - b).max() > limit, as numpy gives it.")},
     {NULL, NULL, 0, NULL},
 };
 

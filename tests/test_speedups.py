@@ -20,6 +20,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from motion.config.schema import ControlMode
 from motion.control import tracking
 from motion.control.tracking import chase, chase_work
 from motion.protocol import (
@@ -43,6 +44,7 @@ from motion.protocol.table import Kind
 from motion.protocol.v3 import messages as v3_messages  # noqa: F401  (the V3 family's message classes)
 from motion.trajectory.planner import State
 from motion.transport.base import Request
+from tests.motion_rig import arm_config, emulated_arm
 from tests.test_codec_fastpath import CASES, ODD_VALUES, _message
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -257,7 +259,7 @@ def test_chase_in_c_refuses_what_it_cannot_take_and_changes_nothing_then() -> No
     x, v = np.full(3, 7.0), np.full(3, 3.0)
     with pytest.raises(TypeError, match=r"chase: accel must be a one-dimensional float64 array"):
         c_chase(x, v, 0.001, three, three, three, ints, 0.001)  # refused after x and v were taken
-    with pytest.raises(ValueError, match=r"chase: gain has 2 entries, x has 3"):
+    with pytest.raises(ValueError, match=r"chase: gain has 2 entries, the first array 3"):
         c_chase(x, v, 0.001, three, three, np.ones(2), three, 0.001)
     with pytest.raises(TypeError, match=r"chase: x must be a C-contiguous, writable float64 array"):
         c_chase(np.zeros(6)[::2], v, 0.001, three, three, three, three, 0.001)
@@ -460,3 +462,35 @@ def test_the_c_codec_refuses_tables_it_cannot_take() -> None:
     with pytest.raises(TypeError, match=r"layouts maps classes to CLayout"):
         not_layouts: Any = {Bare: 1}
         _speedups.CanRequestEncoder(not_layouts, {}, CanFrame, MultiMotorTorque, 0x280, 0x140, 1, 32, print)
+
+
+@pytest.mark.parametrize("mode", [ControlMode.POSITION, ControlMode.TORQUE])
+def test_an_emulated_move_expects_the_same_angles_to_the_bit_with_the_c_model_and_without(
+    mode: ControlMode, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The tracking model's C twins (chase; torque_pd, clip, torque_step, moved_beyond) against its numpy steps, on a
+    # whole arm6 move in simulated time: every cycle's expected angles and speeds, and so everything else, alike.
+    assert tracking._C is not None and tracking._C_CHASE is not None
+    runs: list[list[tuple[float, bytes, bytes, bytes]]] = []
+    for accelerated in (True, False):
+        if not accelerated:
+            monkeypatch.setattr(tracking, "_C", None)
+            monkeypatch.setattr(tracking, "_C_CHASE", None)
+        cycles: list[tuple[float, bytes, bytes, bytes]] = []
+        with emulated_arm(arm_config("arm6.yaml", mode=mode), "sim", tmp_path, supervised=True) as rig:
+
+            def record(controller: Any, start_s: float, _replies: Any, cycles: list[Any] = cycles) -> None:
+                model = controller.tracking
+                cycles.append(
+                    (start_s, model.expected_deg.tobytes(), model.expected_dps.tobytes(), model.lag_deg.tobytes())
+                )
+
+            rig.controller.cycle_hooks.append(record)
+            supervisor = rig.supervisor
+            assert supervisor is not None
+            for target in ([40.0, -30.0, 45.0, 20.0, -25.0, 30.0], [0.0] * 6):
+                supervisor.move_to(target, speed_scale=1.0)
+                assert supervisor.wait(30.0)
+        runs.append(cycles)
+    assert len(runs[0]) > 300
+    assert runs[0] == runs[1]

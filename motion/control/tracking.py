@@ -25,6 +25,7 @@ arrays are preallocated: a cycle allocates nothing.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -336,18 +337,25 @@ class ExpectedTracking:
             np.divide(max_speed_motor_dps, self.gear_ratio, out=self._cap)
         if self.mode is ControlMode.TORQUE and self.inertia_kgm2 is not None:
             np.copyto(self._ref_a, reference_dps2)
-            if self._inertia_of is not None:
-                # The mass matrix changes slowly with the pose: evaluated again once a joint moved by
-                # INERTIA_STEP_DEG (the arm model's work is most of this method's cost).
-                moved = self._e
-                np.subtract(reference_deg, self._inertia_at, out=moved)
-                np.abs(moved, out=moved)
-                if moved.max() > INERTIA_STEP_DEG:
-                    self._set_mass(self._inertia_of(reference_deg))
-                    np.copyto(self._inertia_at, reference_deg)
+            # The mass matrix changes slowly with the pose: evaluated again once a joint moved by INERTIA_STEP_DEG
+            # (the arm model's work is most of this method's cost).
+            if self._inertia_of is not None and self._moved_beyond(reference_deg):
+                self._set_mass(self._inertia_of(reference_deg))
+                np.copyto(self._inertia_at, reference_deg)
             self._torque_law()
         self._commanded = True
         self._t_s = t_s
+
+    def _moved_beyond(self, reference_deg: FloatArray) -> bool:
+        """Whether a joint of ``reference_deg`` is more than INERTIA_STEP_DEG from where the mass was evaluated."""
+        if _C is not None:
+            with contextlib.suppress(TypeError, ValueError):  # (a reference not a float64 array: numpy takes it)
+                moved: bool = _C.moved_beyond(reference_deg, self._inertia_at, INERTIA_STEP_DEG)
+                return moved
+        distance = self._e
+        np.subtract(reference_deg, self._inertia_at, out=distance)
+        np.abs(distance, out=distance)
+        return bool(distance.max() > INERTIA_STEP_DEG)
 
     def stop_commanding(self) -> None:
         """No set-points go out (halted): the model follows the measurement until the next command."""
@@ -377,17 +385,23 @@ class ExpectedTracking:
         mass = self.inertia_kgm2
         assert mass is not None
         tau, e = self._tau, self._e
-        np.subtract(self._target, self._x_law, out=e)
-        np.multiply(self.kp, e, out=tau)
-        np.subtract(self._ref_v, self._v_law, out=e)
-        e *= self.kd
-        tau += e
+        if _C is not None:  # the same operations per joint in the same order (motion/_speedups.c)
+            _C.torque_pd(tau, self.kp, self._target, self._x_law, self.kd, self._ref_v, self._v_law)
+        else:
+            np.subtract(self._target, self._x_law, out=e)
+            np.multiply(self.kp, e, out=tau)
+            np.subtract(self._ref_v, self._v_law, out=e)
+            e *= self.kd
+            tau += e
         if self.inertia_feedforward:
             np.multiply(self._ref_a, _RAD_PER_DEG, out=e)
             np.dot(mass, e, out=self._w)
             tau += self._w
-        np.minimum(tau, self.torque_limit_nm, out=tau)
-        np.maximum(tau, self._negative_limit_nm, out=tau)
+        if _C is not None:
+            _C.clip(tau, self._negative_limit_nm, self.torque_limit_nm)
+        else:
+            np.minimum(tau, self.torque_limit_nm, out=tau)
+            np.maximum(tau, self._negative_limit_nm, out=tau)
         np.dot(self._mass_inv, tau, out=self._accel_dps2)
         self._accel_dps2 *= _DEG_PER_RAD
 
@@ -398,6 +412,9 @@ class ExpectedTracking:
             np.copyto(v, self._ref_v)
             return
         a, step = self._accel_dps2, self._e
+        if _C is not None:
+            _C.torque_step(x, v, a, dt)
+            return
         np.multiply(v, dt, out=step)
         x += step
         np.multiply(a, 0.5 * dt * dt, out=step)
@@ -415,8 +432,11 @@ def chase_work(shape: int) -> ChaseWork:
     return (np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape))
 
 
-#: ``chase`` of the C extension (``motion/_speedups.c``: the same operations per entry in the same order, so the same
-#: results to the bit), None where the extension is not used.
+#: The C extension where it is used (``motion/_speedups.c``: its ``chase``, ``torque_pd``, ``clip``, ``torque_step`` and
+#: ``moved_beyond`` do the numpy steps' operations per entry in the same order, so the results are the same to the
+#: bit), else None.
+_C: Final = SPEEDUPS
+#: ``chase`` of the C extension, None where the extension is not used.
 _C_CHASE: Final = None if SPEEDUPS is None else SPEEDUPS.chase
 
 
