@@ -586,10 +586,10 @@ encode_payload(CLayout *L, PyObject *message, unsigned char *buffer)
             }
         }
         else if (Py_IS_TYPE(value, (PyTypeObject *)f->enum_cls)) {
-            PyObject *number = PyObject_GetAttr(value, L->value_key);
+            PyObject *number = get_attribute(value, L->value_key);
             if (number == NULL) {
                 Py_DECREF(value);
-                return -1;
+                return PyErr_Occurred() ? -1 : 0;
             }
             if (PyLong_Check(number)) {
                 int overflow = 0;
@@ -1169,6 +1169,13 @@ PyInit__speedups(void)
 {
     PyObject *module = PyModule_Create(&speedups_module);
     if (module == NULL) {
+        return NULL;
+    }
+    /* What the Python side expects (motion.protocol.compiled.SPEEDUPS_ABI): a module built from an older source
+       (an editable install not reinstalled) is then not used, rather than half used. Raise it with any change of what
+       the module offers. */
+    if (PyModule_AddIntConstant(module, "ABI", 1) < 0) {
+        Py_DECREF(module);
         return NULL;
     }
     PyTypeObject *types[] = {&SlotBuilderType, &CLayoutType, &CanRequestEncoderType, &CanReplyDecoderType};

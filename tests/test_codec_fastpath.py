@@ -75,6 +75,24 @@ def _fast_encode(compiled: CompiledLayout, message: Any) -> bytes | None:
         return None
 
 
+def draw_message(compiled: CompiledLayout, data: st.DataObject, *, edges: bool = False) -> Any:
+    """A message of the layout with drawn values: valid ones (as the table's type and as floats), odd ones, and with
+    ``edges`` the range's ends and the values just beyond them."""
+    values: dict[str, Any] = {}
+    for f in compiled.layout.fields:
+        if f.kind in (Kind.ENUM, Kind.FLAGS):
+            assert f.enum is not None
+            values[f.name] = data.draw(st.one_of(st.sampled_from(list(f.enum)), ODD_VALUES))
+            continue
+        valid = st.integers(f.lo, f.hi).map(f.physical)
+        choices = [valid, valid.map(float), ODD_VALUES]
+        if edges:
+            ends = st.sampled_from([f.lo, f.hi, f.lo - 1, f.hi + 1]).map(f.physical)
+            choices += [ends, ends.map(float)]
+        values[f.name] = data.draw(st.one_of(*choices))
+    return _message(compiled, values)
+
+
 def _message(compiled: CompiledLayout, values: dict[str, Any]) -> Any:
     kwargs = dict(values)
     if compiled.layout.has_command_field:
@@ -89,15 +107,7 @@ def test_fast_encode_equals_checked_encode_or_defers(
     code: Command | None, transport: WireProtocol, direction: Direction, layout: Layout, data: st.DataObject
 ) -> None:
     compiled = _compiled(code, transport, direction, layout)
-    values: dict[str, Any] = {}
-    for f in layout.fields:
-        if f.kind in (Kind.ENUM, Kind.FLAGS):
-            assert f.enum is not None
-            values[f.name] = data.draw(st.one_of(st.sampled_from(list(f.enum)), ODD_VALUES))
-        else:
-            valid = st.integers(f.lo, f.hi).map(f.physical)
-            values[f.name] = data.draw(st.one_of(valid, valid.map(float), ODD_VALUES))
-    message = _message(compiled, values)
+    message = draw_message(compiled, data)
     fast, checked = _fast_encode(compiled, message), _checked_encode(compiled, message, transport)
     if fast is not None:
         assert fast == checked, message

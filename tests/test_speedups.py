@@ -40,12 +40,11 @@ from motion.protocol import (
 from motion.protocol import compiled as compiled_module
 from motion.protocol.compiled import FALLBACK_ERRORS, PURE_PYTHON_ENV, CompiledLayout, compile_layout, frozen_builder
 from motion.protocol.messages import Message
-from motion.protocol.table import Kind
 from motion.protocol.v3 import messages as v3_messages  # noqa: F401  (the V3 family's message classes)
 from motion.trajectory.planner import State
 from motion.transport.base import Request
 from tests.motion_rig import arm_config, emulated_arm
-from tests.test_codec_fastpath import CASES, ODD_VALUES, _message
+from tests.test_codec_fastpath import CASES, ODD_VALUES, draw_message
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -99,6 +98,33 @@ def test_a_built_object_is_the_one_init_builds(cls: Any, accelerated: bool) -> N
         with pytest.raises(dataclasses.FrozenInstanceError):
             setattr(built, fields[0].name, 1)
         assert dataclasses.replace(built, **{fields[0].name: 1}) == cls(1, *values[1:])
+
+
+def test_a_stale_build_of_the_extension_is_not_used(tmp_path: Path) -> None:
+    # An editable install's module built from an older source (no or another ABI) is left aside, whole, and said so.
+    from motion import _speedups
+
+    stale = tmp_path / "motion"
+    stale.mkdir()
+    (stale / "__init__.py").write_text("")
+    (stale / "_speedups.py").write_text("ABI = 0\n")
+    code = (
+        "import importlib.util, sys\n"
+        f"spec = importlib.util.spec_from_file_location('motion._speedups', {str(stale / '_speedups.py')!r})\n"
+        "module = importlib.util.module_from_spec(spec); spec.loader.exec_module(module)\n"
+        "sys.modules['motion._speedups'] = module\n"
+        "import motion; motion._speedups = module\n"
+        "from motion.protocol import compiled, can_frame\n"
+        "from motion.cli.app import version_text\n"
+        "print(compiled.ACCELERATED, can_frame.encode_request is can_frame._encode_request)\n"
+        "print(version_text())\n"
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False, cwd=ROOT)
+    assert run.returncode == 0, run.stderr
+    lines = run.stdout.splitlines()
+    assert lines[0] == "False True"
+    assert lines[1].endswith("(pure Python: the C accelerator is out of date: reinstall (pip install -e .))")
+    assert _speedups.ABI == compiled_module.SPEEDUPS_ABI  # (the build in use here is current)
 
 
 def test_the_c_builder_is_used_and_checks_its_arguments() -> None:
@@ -331,17 +357,7 @@ def _fields(message: Any) -> list[tuple[type, Any]]:
 def test_c_encode_gives_the_python_fast_paths_bytes_or_defers_alike(
     code: Command | None, direction: Direction, compiled: CompiledLayout, data: st.DataObject
 ) -> None:
-    layout = compiled.layout
-    values: dict[str, Any] = {}
-    for f in layout.fields:
-        if f.kind in (Kind.ENUM, Kind.FLAGS):
-            assert f.enum is not None
-            values[f.name] = data.draw(st.one_of(st.sampled_from(list(f.enum)), ODD_VALUES))
-        else:
-            valid = st.integers(f.lo, f.hi).map(f.physical)
-            edges = st.sampled_from([f.lo, f.hi, f.lo - 1, f.hi + 1]).map(f.physical)
-            values[f.name] = data.draw(st.one_of(valid, valid.map(float), edges, edges.map(float), ODD_VALUES))
-    message = _message(compiled, values)
+    message = draw_message(compiled, data, edges=True)
     assert compiled.native.encode(message) == _python_fast_encode(compiled, message), message
 
 

@@ -249,7 +249,7 @@ def version_text() -> str:
     """``rmd-motion VERSION (...)``: the version, and whether the optional C accelerator is in use."""
     if compiled.ACCELERATED:
         return f"rmd-motion {__version__} (C accelerator in use)"
-    why = "not built" if compiled.SlotBuilder is None else f"turned off by {compiled.PURE_PYTHON_ENV}"
+    why = compiled.SPEEDUPS_MISSING or f"turned off by {compiled.PURE_PYTHON_ENV}"
     return f"rmd-motion {__version__} (pure Python: the C accelerator is {why})"
 
 

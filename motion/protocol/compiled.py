@@ -57,9 +57,21 @@ Decoder = Callable[[bytes], Message | None]
 
 T = TypeVar("T")
 
+#: The C extension's interface version this source expects (``ABI`` in ``motion/_speedups.c``).
+SPEEDUPS_ABI: Final = 1
 try:
     from motion import _speedups
 except ImportError:  # built without a C compiler (the extension is optional): the Python twins run
+    _speedups = None  # type: ignore[assignment]
+#: Why the C extension is not used ("" where it is).
+SPEEDUPS_MISSING: Final = (
+    "not built"
+    if _speedups is None
+    else "out of date: reinstall (pip install -e .)"
+    if getattr(_speedups, "ABI", None) != SPEEDUPS_ABI
+    else ""
+)
+if SPEEDUPS_MISSING:
     _speedups = None  # type: ignore[assignment]
 
 #: Set (to anything but "" or "0") to run the Python twins even where the C extension is built (tests, comparisons).
