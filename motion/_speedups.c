@@ -1,6 +1,6 @@
 /*
- * motion._speedups: the optional C accelerator of the control cycle's hot path (issue 12). Two pieces, each the C twin
- * of a Python function that stays the reference and the fallback (the package builds and runs without this module;
+ * motion._speedups: the optional C accelerator of the control cycle's hot path (issue 12). Each piece is the C twin
+ * of Python code that stays the reference and the fallback (the package builds and runs without this module; the
  * tests compare the two on every input they use):
  *
  * SlotBuilder, the C half of motion.protocol.compiled.frozen_builder. A SlotBuilder(cls, names) is a callable that
@@ -13,9 +13,14 @@
  * variable part, and for each name an object slot (a member descriptor of type Py_T_OBJECT_EX, writable) of that class
  * or one of its bases. Anything else raises TypeError. A call checks the number of values (TypeError otherwise).
  *
- * chase, the C twin of motion.control.tracking.chase (the drives' position-loop model, stepped every cycle): the same
- * floating-point operations in the same order per joint, so the results are the numpy version's to the bit (NaN
- * propagation of numpy's minimum / maximum included).
+ * CLayout, CanRequestEncoder and CanReplyDecoder, the CAN codec's fast path: one CLayout per layout of the table
+ * (handed over by motion.protocol.compiled.native_layout), and can_frame.encode_request / decode_reply on top of them;
+ * anything unusual goes to the Python function they were given (see the codec section below).
+ *
+ * chase, torque_pd, clip, torque_step and moved_beyond, the C twins of the tracking model's numpy steps
+ * (motion.control.tracking: the drives' position-loop model and the torque-mode PD model, stepped every cycle): the
+ * same floating-point operations in the same order per joint, so the results are the numpy version's to the bit (NaN
+ * propagation of numpy's minimum / maximum included; built without contraction of a * b + c, see pyproject.toml).
  *
  * Exit plan: none upstream; this is our own code, optional by design.
  */
@@ -45,6 +50,10 @@ static PyObject *
 builder_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
 {
     SlotBuilder *b = (SlotBuilder *)self;
+    if (b->cls == NULL) { /* cleared by the garbage collector while a finalizer still held it */
+        PyErr_SetString(PyExc_RuntimeError, "a cleared SlotBuilder");
+        return NULL;
+    }
     Py_ssize_t n = Py_SIZE(b);
     Py_ssize_t given = PyVectorcall_NARGS(nargsf);
     if (given != n || (kwnames != NULL && PyTuple_GET_SIZE(kwnames) != 0)) {
@@ -95,6 +104,9 @@ static PyObject *
 builder_repr(PyObject *self)
 {
     SlotBuilder *b = (SlotBuilder *)self;
+    if (b->cls == NULL || b->names == NULL) {
+        return PyUnicode_FromString("<SlotBuilder (cleared)>");
+    }
     return PyUnicode_FromFormat("<SlotBuilder of %s: %R>", b->cls->tp_name, b->names);
 }
 
@@ -680,10 +692,24 @@ done:
     return result;
 }
 
+/* Whether a garbage collector's clear has emptied ``L`` (a finalizer may still call it): RuntimeError set. */
+static int
+clayout_cleared(CLayout *L)
+{
+    if (L->uncarried == NULL || L->constants == NULL || L->value_key == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "a cleared CLayout");
+        return 1;
+    }
+    return 0;
+}
+
 static PyObject *
 clayout_encode(PyObject *self, PyObject *message)
 {
     CLayout *L = (CLayout *)self;
+    if (clayout_cleared(L)) {
+        return NULL;
+    }
     unsigned char buffer[MAX_PAYLOAD];
     int done = encode_payload(L, message, buffer);
     if (done < 0) {
@@ -699,6 +725,9 @@ static PyObject *
 clayout_decode(PyObject *self, PyObject *data)
 {
     CLayout *L = (CLayout *)self;
+    if (clayout_cleared(L)) {
+        return NULL;
+    }
     if (!PyBytes_Check(data) || PyBytes_GET_SIZE(data) != L->size) {
         PyErr_Format(PyExc_TypeError, "CLayout.decode takes bytes of the layout's size, %zd", L->size);
         return NULL;
@@ -787,6 +816,17 @@ take_python_path(CanCodec *c, PyObject *const *args, size_t nargsf, PyObject *kw
     return PyObject_Vectorcall(c->fallback, args, nargsf, kwnames);
 }
 
+/* Whether a garbage collector's clear has emptied ``c`` (a finalizer may still call it): RuntimeError set. */
+static int
+cancodec_cleared(CanCodec *c)
+{
+    if (c->layouts == NULL || c->fallback == NULL || c->command_key == NULL || c->value_key == NULL) {
+        PyErr_SetString(PyExc_RuntimeError, "a cleared CAN codec");
+        return 1;
+    }
+    return 0;
+}
+
 /* The layout of ``message`` (borrowed), or NULL: none (error set if one happened). */
 static CLayout *
 layout_of(CanCodec *c, PyObject *message)
@@ -819,6 +859,9 @@ static PyObject *
 encoder_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
 {
     CanCodec *c = (CanCodec *)self;
+    if (cancodec_cleared(c)) {
+        return NULL;
+    }
     Py_ssize_t nargs = PyVectorcall_NARGS(nargsf);
     if (kwnames != NULL || nargs < 1 || nargs > 2) {
         return take_python_path(c, args, nargsf, kwnames);
@@ -862,6 +905,9 @@ static PyObject *
 decoder_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
 {
     CanCodec *c = (CanCodec *)self;
+    if (cancodec_cleared(c)) {
+        return NULL;
+    }
     Py_ssize_t nargs = PyVectorcall_NARGS(nargsf);
     if (kwnames != NULL || nargs != 2 || !PyLong_CheckExact(args[0]) || !PyBytes_CheckExact(args[1]) ||
         PyBytes_GET_SIZE(args[1]) != 8) {
