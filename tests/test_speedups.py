@@ -1,8 +1,11 @@
-"""The C half of :func:`motion.protocol.compiled.frozen_builder` (``motion._speedups``, issue 12): it builds the
-object the class's own ``__init__`` builds, for every message class of both families and the hot path's other
-frozen classes; it refuses what it cannot build; it keeps reference counts and the garbage collector right; and the
-package without it (``RMD_MOTION_PURE_PYTHON``) passes the codec's tests through the pure-Python builders. Its
-``chase`` (the tracking model's position-loop step) gives the numpy steps' results to the bit."""
+"""The optional C extension ``motion._speedups`` (issue 12) against the Python code it doubles.
+
+Its ``SlotBuilder`` (the C half of :func:`motion.protocol.compiled.frozen_builder`) builds the object the class's own
+``__init__`` builds, for every message class of both families and the hot path's other frozen classes, refuses what it
+cannot build and keeps reference counts and the garbage collector right. Its CAN codec gives the Python fast path's
+bytes and messages on every CAN layout, or defers alike, and the public calls answer and raise as their Python paths.
+Its tracking-model steps give the numpy steps' results to the bit, down to a whole emulated move. A stale build is
+left aside, and the package without the extension (``RMD_MOTION_PURE_PYTHON``) passes the codec's tests."""
 
 from __future__ import annotations
 
