@@ -54,7 +54,7 @@ from motion.config.schema import ControlMode
 from motion.control.controller import Controller, Feedforward
 from motion.control.scheduler import LoopStatistics
 from motion.emulator import DEFAULT_PID, DriveModel
-from motion.emulator.timing import DEFAULT_LATENCY_S, can_frame_bits, rs485_frame_time_s
+from motion.emulator.timing import DEFAULT_LATENCY_S, can_frame_bits
 from motion.protocol import (
     Acceleration,
     Bare,
@@ -71,6 +71,7 @@ from motion.protocol import (
 )
 from motion.protocol.compiled import ACCELERATED, CODECS, frozen_builder
 from motion.protocol.messages import ErrorFlags
+from motion.protocol.rs485_frame import rs485_frame_time_s
 from motion.protocol.table import (
     CAN_ID_BASE,
     CAN_MULTI_TORQUE_ID,

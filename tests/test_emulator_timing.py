@@ -6,8 +6,9 @@ import random
 
 import pytest
 
-from motion.emulator.timing import BusClock, TimingModel, can_frame_bits, can_frame_time_s, rs485_frame_time_s
+from motion.emulator.timing import BusClock, TimingModel, can_frame_bits, can_frame_time_s
 from motion.protocol import Bare, Command, MotorState, can_frame
+from motion.protocol.rs485_frame import rs485_frame_time_s
 
 
 def test_an_all_zero_frame_has_one_stuff_bit_per_five_zeros() -> None:

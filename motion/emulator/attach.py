@@ -31,9 +31,10 @@ from motion.emulator.core import Emulator, Exchange, Outgoing
 from motion.emulator.framelog import FrameLog
 from motion.emulator.pty import PseudoTerminal
 from motion.emulator.slcan import SlcanDevice
-from motion.emulator.timing import BusClock, TimingModel, can_frame_time_s, rs485_frame_time_s
+from motion.emulator.timing import BusClock, TimingModel, can_frame_time_s
 from motion.errors import DecodeError
 from motion.protocol import CanFrame, Rs485Frame, Rs485Parser
+from motion.protocol.rs485_frame import rs485_frame_time_s
 from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3.frames import Rs485ParserV3
 from motion.transport.can_endpoint import CanEndpoint

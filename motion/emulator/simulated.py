@@ -30,9 +30,10 @@ from typing import Final
 
 from motion.emulator.core import Emulator, Exchange, Outgoing
 from motion.emulator.framelog import FrameLog
-from motion.emulator.timing import TimingModel, can_frame_time_s, rs485_frame_time_s
+from motion.emulator.timing import TimingModel, can_frame_time_s
 from motion.errors import DecodeError
 from motion.protocol import CanFrame, WireProtocol, can_frame, rs485_frame
+from motion.protocol.rs485_frame import rs485_frame_time_s
 from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3 import frames as frames_v3
 from motion.transport.base import Request, Transport, probe_in_turn

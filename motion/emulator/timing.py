@@ -25,8 +25,6 @@ DEFAULT_LATENCY_S: Final = 0.0002
 _CAN_UNSTUFFED_TAIL_BITS: Final = 13
 _CAN_CRC15_POLY: Final = 0x4599
 _CAN_STUFF_RUN: Final = 5
-#: Bits on the wire per RS485 byte (8N1: start + 8 data + stop).
-RS485_BITS_PER_BYTE: Final = 10
 
 
 @dataclass(frozen=True, slots=True)
@@ -108,11 +106,6 @@ def can_frame_bits(arbitration_id: int, data: bytes) -> int:
 def can_frame_time_s(arbitration_id: int, data: bytes, bitrate: int) -> float:
     """Time a classic CAN frame occupies the bus at ``bitrate`` bit/s, s."""
     return can_frame_bits(arbitration_id, data) / bitrate
-
-
-def rs485_frame_time_s(n_bytes: int, baud: int) -> float:
-    """Time ``n_bytes`` take on an RS485 line at ``baud`` bit/s (8N1), s."""
-    return n_bytes * RS485_BITS_PER_BYTE / baud
 
 
 class BusClock:

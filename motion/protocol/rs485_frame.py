@@ -33,6 +33,13 @@ from motion.protocol.table import (
 HEAD: Final = 0x3E
 #: Bytes of the header: head, command, id, data length, header checksum.
 HEADER_BYTES: Final = 5
+#: Bits on the wire per RS485 byte (8N1: start + 8 data + stop).
+RS485_BITS_PER_BYTE: Final = 10
+
+
+def rs485_frame_time_s(n_bytes: int, baud: int) -> float:
+    """Time ``n_bytes`` take on an RS485 line at ``baud`` bit/s (8N1), s."""
+    return n_bytes * RS485_BITS_PER_BYTE / baud
 
 
 def checksum(data: bytes | bytearray | memoryview) -> int:

@@ -42,8 +42,6 @@ from motion.transport.base import Request, Transport, probe_in_turn
 
 #: Baud rates RMD RS485 drives of the older generation support (v1.62: 115200 is the factory default).
 BAUDRATES: Final = RS485_BAUDRATES[ProtocolFamily.V2]
-#: Bits a byte takes on the line (8N1: start, 8 data, stop).
-BITS_PER_BYTE: Final = 10
 #: Bytes asked of the port per read; larger than any frame (65 bytes) so one read usually takes a whole reply.
 READ_CHUNK_BYTES: Final = 256
 
@@ -134,8 +132,9 @@ class Rs485Transport(Transport):
         return self._sibling(family, takes_port=True)
 
     def request_wire_s(self, requests: Sequence[Request]) -> float | None:
-        """See :meth:`Transport.request_wire_s`: 10 bits per byte (8N1) at :attr:`baudrate`."""
-        return sum(len(self._encode(r.message, r.motor_id)) for r in requests) * BITS_PER_BYTE / self.baudrate
+        """See :meth:`Transport.request_wire_s`: the frames' bytes at :attr:`baudrate` (8N1)."""
+        size = sum(len(self._encode(r.message, r.motor_id)) for r in requests)
+        return rs485_frame.rs485_frame_time_s(size, self.baudrate)
 
     def describe(self) -> str:
         """``"rs485 PORT"``."""
