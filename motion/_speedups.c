@@ -244,11 +244,16 @@ take_array(const char *function, PyObject *obj, Py_buffer *view, int writable, c
     return 0;
 }
 
-/* Two or more float64 arrays of one length (see take_array), released by release_arrays; -1 with the error set. */
+/* The ``count`` float64 arrays of one length first among a call's ``nargs`` arguments (``expected`` of them; see
+   take_array), the first ``writable_count`` writable; released by release_arrays. -1 with the error set. */
 static int
-take_arrays(const char *function, PyObject *const *objects, const char *const *names, int writable_count, int count,
-            Py_buffer *views, Py_ssize_t *n)
+take_arrays(const char *function, PyObject *const *objects, Py_ssize_t nargs, Py_ssize_t expected,
+            const char *const *names, int writable_count, int count, Py_buffer *views, Py_ssize_t *n)
 {
+    if (nargs != expected) {
+        PyErr_Format(PyExc_TypeError, "%s takes %zd positional arguments, got %zd", function, expected, nargs);
+        return -1;
+    }
     *n = -1;
     for (int taken = 0; taken < count; taken++) {
         if (take_array(function, objects[taken], &views[taken], taken < writable_count, names[taken], n) < 0) {
@@ -297,7 +302,7 @@ chase(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
     PyObject *objects[CHASE_ARRAYS] = {args[0], args[1], args[3], args[4], args[5], args[6]};
     Py_buffer views[CHASE_ARRAYS];
     Py_ssize_t n;
-    if (take_arrays("chase", objects, names, 2, CHASE_ARRAYS, views, &n) < 0) {
+    if (take_arrays("chase", objects, CHASE_ARRAYS, CHASE_ARRAYS, names, 2, CHASE_ARRAYS, views, &n) < 0) {
         return NULL;
     }
     {
@@ -1078,13 +1083,9 @@ torque_pd(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)module;
     static const char *names[] = {"tau", "kp", "target", "x", "kd", "ref_v", "v"};
-    if (nargs != 7) {
-        PyErr_Format(PyExc_TypeError, "torque_pd takes 7 positional arguments, got %zd", nargs);
-        return NULL;
-    }
     Py_buffer views[7];
     Py_ssize_t n;
-    if (take_arrays("torque_pd", args, names, 1, 7, views, &n) < 0) {
+    if (take_arrays("torque_pd", args, nargs, 7, names, 1, 7, views, &n) < 0) {
         return NULL;
     }
     double *tau = views[0].buf;
@@ -1105,13 +1106,9 @@ clip(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)module;
     static const char *names[] = {"values", "lo", "hi"};
-    if (nargs != 3) {
-        PyErr_Format(PyExc_TypeError, "clip takes 3 positional arguments, got %zd", nargs);
-        return NULL;
-    }
     Py_buffer views[3];
     Py_ssize_t n;
-    if (take_arrays("clip", args, names, 1, 3, views, &n) < 0) {
+    if (take_arrays("clip", args, nargs, 3, names, 1, 3, views, &n) < 0) {
         return NULL;
     }
     double *values = views[0].buf;
@@ -1129,17 +1126,14 @@ torque_step(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)module;
     static const char *names[] = {"x", "v", "a"};
-    if (nargs != 4) {
-        PyErr_Format(PyExc_TypeError, "torque_step takes 4 positional arguments (x, v, a, dt), got %zd", nargs);
+    Py_buffer views[3];
+    Py_ssize_t n;
+    if (take_arrays("torque_step", args, nargs, 4, names, 2, 3, views, &n) < 0) {
         return NULL;
     }
     double dt = PyFloat_AsDouble(args[3]);
     if (dt == -1.0 && PyErr_Occurred()) {
-        return NULL;
-    }
-    Py_buffer views[3];
-    Py_ssize_t n;
-    if (take_arrays("torque_step", args, names, 2, 3, views, &n) < 0) {
+        release_arrays(views, 3);
         return NULL;
     }
     double *x = views[0].buf, *v = views[1].buf;
@@ -1160,17 +1154,14 @@ moved_beyond(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
 {
     (void)module;
     static const char *names[] = {"a", "b"};
-    if (nargs != 3) {
-        PyErr_Format(PyExc_TypeError, "moved_beyond takes 3 positional arguments (a, b, limit), got %zd", nargs);
+    Py_buffer views[2];
+    Py_ssize_t n;
+    if (take_arrays("moved_beyond", args, nargs, 3, names, 0, 2, views, &n) < 0) {
         return NULL;
     }
     double limit = PyFloat_AsDouble(args[2]);
     if (limit == -1.0 && PyErr_Occurred()) {
-        return NULL;
-    }
-    Py_buffer views[2];
-    Py_ssize_t n;
-    if (take_arrays("moved_beyond", args, names, 0, 2, views, &n) < 0) {
+        release_arrays(views, 2);
         return NULL;
     }
     const double *a = views[0].buf, *b = views[1].buf;

@@ -301,6 +301,29 @@ def test_chase_in_c_refuses_what_it_cannot_take_and_changes_nothing_then() -> No
     assert (x == 7.0).all() and (v == 3.0).all()
 
 
+def test_the_torque_model_steps_in_c_refuse_a_wrong_call_and_change_nothing_then() -> None:
+    from motion import _speedups
+
+    c: Any = _speedups
+    three = np.full(3, 2.0)
+    x = np.full(3, 7.0)
+    for call, arguments, expected in (
+        (c.torque_pd, (x, three, three, three, three, three), 7),
+        (c.clip, (x, three), 3),
+        (c.torque_step, (x, three, three), 4),
+        (c.moved_beyond, (x, three), 3),
+    ):
+        with pytest.raises(TypeError, match=rf"takes {expected} positional arguments, got {expected - 1}"):
+            call(*arguments)
+    with pytest.raises(TypeError, match=r"must be real number"):
+        c.torque_step(x, three.copy(), three, "0.001")  # refused after the arrays were taken (and released)
+    with pytest.raises(TypeError, match=r"clip: hi must be a one-dimensional float64 array"):
+        c.clip(x, three, np.ones(3, dtype=np.int64))
+    assert (x == 7.0).all()
+    assert c.moved_beyond(np.array([0.0, 6.0]), np.zeros(2), 5.0) is True
+    assert c.moved_beyond(np.array([np.nan, 6.0]), np.zeros(2), 5.0) is False  # as numpy's max: NaN > 5 is False
+
+
 def test_chase_takes_what_the_c_one_refuses_through_numpy() -> None:
     x, v = np.zeros(3), np.zeros(3)
     cap: Any = np.inf  # a scalar, broadcast by numpy
@@ -341,6 +364,36 @@ def test_the_c_codec_takes_every_can_layout_of_the_hot_path() -> None:
     assert type(can_frame.encode_request).__name__ == "CanRequestEncoder"
     assert type(can_frame.decode_reply).__name__ == "CanReplyDecoder"
     assert can_frame.encode_request.fallback is can_frame._encode_request  # type: ignore[attr-defined]
+
+
+def test_the_c_calls_take_the_control_cycles_frames_themselves() -> None:
+    # With fallbacks that fail, the cycle's requests and replies still go through: the C objects do not defer them.
+    def no_python(*args: Any, **kwargs: Any) -> Any:
+        raise AssertionError(f"deferred to Python: {args}")
+
+    codecs = can_frame._native_codecs(no_python, no_python)
+    assert codecs is not None
+    encode, decode = codecs
+    requests = [
+        MultiTurnPositionSpeed(123.45, 270.0),
+        TorqueControl(-1.25),
+        MultiMotorTorque(1.0, -2.0, 0.5, 0.0),
+        Bare(Command.READ_STATUS_1),
+        Bare(Command.READ_STATUS_2),
+        Bare(Command.READ_MULTI_TURN_ANGLE),
+    ]
+    for message in requests:
+        assert encode(message, 3) == can_frame._encode_request(message, 3)
+    replies = [
+        MotorState(Command.MULTI_TURN_POSITION_SPEED, 31, 0.416, -12, 1234),
+        MotorState(Command.TORQUE, -5, -2.496, 300, 16383),  # (a current the 1/62.5 A steps carry)
+        Status1(Command.READ_STATUS_1, 35, 24.1, ErrorFlags.NONE),
+    ]
+    for message in replies:
+        frame = can_frame.encode_reply(message, 7)
+        assert decode(frame.arbitration_id, frame.data) == (7, message)
+    with pytest.raises(AssertionError, match="deferred to Python"):
+        decode(0x280, bytes(8))  # the odd ones still go there
 
 
 def _python_fast_encode(compiled: CompiledLayout, message: Any) -> bytes | None:

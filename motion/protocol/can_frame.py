@@ -194,9 +194,11 @@ class ReplyDecoder(Protocol):
     def __call__(self, arbitration_id: int, data: bytes) -> tuple[int, Message]: ...
 
 
-def _native_codecs() -> tuple[Any, Any] | None:
-    """The C extension's twins of the two hot calls, each deferring to its Python path for anything unusual (see
-    ``motion/_speedups.c``), or None where the extension is not used."""
+def _native_codecs(
+    encode_fallback: Callable[..., CanFrame] | None = None, decode_fallback: Callable[..., object] | None = None
+) -> tuple[Any, Any] | None:
+    """The C extension's twins of the two hot calls, each deferring to its Python path (or the fallback given: tests)
+    for anything unusual (see ``motion/_speedups.c``), or None where the extension is not used."""
     if SPEEDUPS is None:
         return None
     encoder = SPEEDUPS.CanRequestEncoder(
@@ -208,10 +210,12 @@ def _native_codecs() -> tuple[Any, Any] | None:
         CAN_ID_BASE,
         MOTOR_ID_MIN,
         MOTOR_ID_MAX,
-        _encode_request,
+        encode_fallback or _encode_request,
     )
     replies = tuple(c.native if c is not None and c.native is not None else None for c in _REPLY_CODEC.layouts)
-    decoder = SPEEDUPS.CanReplyDecoder(replies, CAN_ID_BASE, MOTOR_ID_MIN, MOTOR_ID_MAX, _decode_reply)
+    decoder = SPEEDUPS.CanReplyDecoder(
+        replies, CAN_ID_BASE, MOTOR_ID_MIN, MOTOR_ID_MAX, decode_fallback or _decode_reply
+    )
     return encoder, decoder
 
 
