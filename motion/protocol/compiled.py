@@ -31,7 +31,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import struct
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
 from enum import IntEnum
 from typing import Any, Final, TypeVar
@@ -220,18 +220,30 @@ def _encoder(
     return encoder
 
 
+def _uncarried_defaults(cls: type[Message], carried: Collection[str]) -> dict[str, Any] | None:
+    """The defaults of ``cls``'s fields a layout does not carry (``carried``: the names it gives values), or None
+    where such a field has no default (then a decoder cannot build the message by itself)."""
+    defaults: dict[str, Any] = {}
+    for fld in dataclasses.fields(cls):
+        if fld.name in carried:
+            continue
+        if fld.default is dataclasses.MISSING:
+            return None
+        defaults[fld.name] = fld.default
+    return defaults
+
+
 def _constructor(cls: type[Message], names: list[str], env: dict[str, Any]) -> Callable[[list[str]], str] | None:
     """How the decoder builds ``cls`` from source expressions in the order of ``names`` (see the module docstring)."""
     if hasattr(cls, "__post_init__") or not hasattr(cls, "__slots__"):
         return None
+    values = _uncarried_defaults(cls, names)
+    if values is None:
+        return None
     defaults: dict[str, str] = {}
-    for i, fld in enumerate(dataclasses.fields(cls)):
-        if fld.name in names:
-            continue
-        if fld.default is dataclasses.MISSING:
-            return None
-        env[f"D{i}"] = fld.default
-        defaults[fld.name] = f"D{i}"
+    for i, (name, value) in enumerate(values.items()):
+        env[f"D{i}"] = value
+        defaults[name] = f"D{i}"
     fields = [fld.name for fld in dataclasses.fields(cls)]
     if ACCELERATED:
         env["B"] = frozen_builder(cls)
@@ -343,21 +355,14 @@ def native_layout(layout: Layout, command: IntEnum | None, size: int, *, lead: b
         for f in ordered
     )
     index = {f.name: i for i, f in enumerate(ordered)}
-    sources: list[int] = []
-    constants: list[Any] = []
-    builder: Any = frozen_builder(layout.cls) if decodes else None
-    for fld in dataclasses.fields(layout.cls):
-        if fld.name in index:
-            sources.append(index[fld.name])
-            constants.append(None)
-        elif fld.name == "command" and layout.has_command_field:
-            sources.append(-1)
-            constants.append(command)
-        elif fld.default is not dataclasses.MISSING:
-            sources.append(-1)
-            constants.append(fld.default)
-        else:
-            builder = None  # a field neither carried nor defaulted: the Python path decides
+    # what the Python decoder builds the message from: the carried fields, the command, the others' defaults
+    given = {"command": command} if layout.has_command_field else {}
+    defaults = _uncarried_defaults(layout.cls, set(index) | set(given))
+    builder: Any = frozen_builder(layout.cls) if decodes and defaults is not None else None
+    constants_of = given | (defaults or {})
+    names = [fld.name for fld in dataclasses.fields(layout.cls)]
+    sources = [index.get(name, -1) for name in names]
+    constants = [None if name in index else constants_of.get(name) for name in names]
     code = int(command) if lead and command is not None else -1
     return SPEEDUPS.CLayout(code, size, specs, layout.uncarried, builder, tuple(sources), tuple(constants))
 
