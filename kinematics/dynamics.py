@@ -17,10 +17,15 @@ from numpy.typing import ArrayLike, NDArray
 
 from kinematics.model import ArmModel
 from motion.errors import ConfigError
+from motion.protocol.compiled import SPEEDUPS
 
 FloatArray = NDArray[np.float64]
 #: Joint torques in N·m from joint angles (deg), speeds (deg/s) and accelerations (deg/s²).
 FeedForward = Callable[[FloatArray, FloatArray, FloatArray], FloatArray]
+
+#: The C extension where it is used (``motion/_speedups.c``: its ``gather_scaled``), else None.
+_C = SPEEDUPS
+_RAD_PER_DEG = math.pi / 180.0  # (numpy's deg2rad multiplies by this same float)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -121,6 +126,43 @@ def frame_pose(arm: ArmModel, frame: str, q_deg: ArrayLike) -> FramePose:
     return FramePose(position_m=placement.translation.copy(), rotation=placement.rotation.copy())
 
 
+def _model_radians(arm: ArmModel, values: ArrayLike, name: str, buffer: FloatArray) -> FloatArray:
+    """:func:`_model_order` in radians, into ``buffer`` (one C call where the extension is built: its
+    ``gather_scaled``, the same float64s); a new array otherwise, or for values it does not take."""
+    if _C is not None:
+        try:  # (a try costs nothing in a control cycle)
+            _C.gather_scaled(buffer, values, arm.to_model, _RAD_PER_DEG)
+            return buffer
+        except (TypeError, ValueError):  # (not one float64 per joint: _model_order converts or says what is wrong)
+            pass
+    return _model_order(arm, values, name)
+
+
+class _ArmFeedForward:
+    """The callable :func:`feedforward` returns for gravity and / or inertia: the arguments in model order and
+    radians go into arrays of its own (the cycle allocates only the result)."""
+
+    __slots__ = ("_a", "_arm", "_gravity", "_inertia", "_q", "_v")
+
+    def __init__(self, arm: ArmModel, *, gravity: bool, inertia: bool) -> None:
+        self._arm, self._gravity, self._inertia = arm, gravity, inertia
+        n = len(arm.to_model)
+        self._q, self._v, self._a = np.zeros(n), np.zeros(n), np.zeros(n)
+
+    def __call__(self, q_deg: FloatArray, qd_dps: FloatArray, qdd_dps2: FloatArray) -> FloatArray:
+        arm = self._arm
+        q = _model_radians(arm, q_deg, "q_deg", self._q)
+        if not self._inertia:
+            gravity: FloatArray = pin.computeGeneralizedGravity(arm.model, arm.data, q)[arm.to_config]
+            return gravity
+        v = _model_radians(arm, qd_dps, "qd_dps", self._v)
+        a = _model_radians(arm, qdd_dps2, "qdd_dps2", self._a)
+        tau: FloatArray = pin.rnea(arm.model, arm.data, q, v, a)[arm.to_config]
+        if not self._gravity:
+            tau -= pin.computeGeneralizedGravity(arm.model, arm.data, q)[arm.to_config]
+        return tau
+
+
 def feedforward(arm: ArmModel, *, gravity: bool = True, inertia: bool = False) -> FeedForward:
     """A feed-forward callable ``(q_deg, qd_dps, qdd_dps2) -> tau_nm`` for the controller.
 
@@ -131,10 +173,6 @@ def feedforward(arm: ArmModel, *, gravity: bool = True, inertia: bool = False) -
 
     With neither, the callable returns zeros; speeds and accelerations are ignored unless ``inertia``.
     """
-    if inertia and gravity:
-        return lambda q, qd, qdd: rnea(arm, q, qd, qdd)
-    if inertia:
-        return lambda q, qd, qdd: rnea(arm, q, qd, qdd) - gravity_torque(arm, q)
-    if gravity:
-        return lambda q, qd, qdd: gravity_torque(arm, q)
+    if inertia or gravity:
+        return _ArmFeedForward(arm, gravity=gravity, inertia=inertia)
     return lambda q, qd, qdd: np.zeros(len(arm.joint_names))

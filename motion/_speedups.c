@@ -17,10 +17,13 @@
  * (handed over by motion.protocol.compiled.native_layout), and can_frame.encode_request / decode_reply on top of them;
  * anything unusual goes to the Python function they were given (see the codec section below).
  *
- * chase, torque_pd, clip, torque_step and moved_beyond, the C twins of the tracking model's numpy steps
- * (motion.control.tracking: the drives' position-loop model and the torque-mode PD model, stepped every cycle): the
- * same floating-point operations in the same order per joint, so the results are the numpy version's to the bit (NaN
- * propagation of numpy's minimum / maximum included; built without contraction of a * b + c, see pyproject.toml).
+ * chase, moved_beyond, torque_advance and torque_law, the C twins of the tracking model's numpy steps
+ * (motion.control.tracking: the drives' position-loop model and the torque-mode PD model, stepped every cycle), and
+ * torque_pd and torque_currents, the torque-mode set-points (motion.control.controller: the PD, and the current limit
+ * of motion.transmission): the same floating-point operations in the same order per joint, so the results are the
+ * Python version's to the bit (NaN propagation of numpy's minimum / maximum included; built without contraction of
+ * a * b + c, see pyproject.toml). The one exception: torque_law's two matrix-vector products sum in index order,
+ * where numpy's np.dot sums as its BLAS does (their last bits may differ, as they do between BLAS builds).
  *
  * Exit plan: none upstream; this is our own code, optional by design.
  */
@@ -29,6 +32,7 @@
 #include <structmember.h>
 #include <math.h>
 #include <stddef.h>
+#include <stdint.h>
 #include <string.h>
 
 #ifndef Py_T_OBJECT_EX
@@ -1100,54 +1104,6 @@ torque_pd(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
     Py_RETURN_NONE;
 }
 
-/* clip(values, lo, hi): numpy's maximum(minimum(values, hi), lo), in place */
-static PyObject *
-clip(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
-{
-    (void)module;
-    static const char *names[] = {"values", "lo", "hi"};
-    Py_buffer views[3];
-    Py_ssize_t n;
-    if (take_arrays("clip", args, nargs, 3, names, 1, 3, views, &n) < 0) {
-        return NULL;
-    }
-    double *values = views[0].buf;
-    const double *lo = views[1].buf, *hi = views[2].buf;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        values[i] = np_maximum(np_minimum(values[i], hi[i]), lo[i]);
-    }
-    release_arrays(views, 3);
-    Py_RETURN_NONE;
-}
-
-/* torque_step(x, v, a, dt): x += v * dt; x += a * (0.5 * dt * dt); v += a * dt, in place */
-static PyObject *
-torque_step(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
-{
-    (void)module;
-    static const char *names[] = {"x", "v", "a"};
-    Py_buffer views[3];
-    Py_ssize_t n;
-    if (take_arrays("torque_step", args, nargs, 4, names, 2, 3, views, &n) < 0) {
-        return NULL;
-    }
-    double dt = PyFloat_AsDouble(args[3]);
-    if (dt == -1.0 && PyErr_Occurred()) {
-        release_arrays(views, 3);
-        return NULL;
-    }
-    double *x = views[0].buf, *v = views[1].buf;
-    const double *a = views[2].buf;
-    double half_dt2 = 0.5 * dt * dt;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        double xi = x[i] + v[i] * dt;
-        x[i] = xi + a[i] * half_dt2;
-        v[i] = v[i] + a[i] * dt;
-    }
-    release_arrays(views, 3);
-    Py_RETURN_NONE;
-}
-
 /* moved_beyond(a, b, limit): numpy's abs(a - b).max() > limit (a NaN anywhere: False, as NaN > limit is) */
 static PyObject *
 moved_beyond(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
@@ -1179,17 +1135,321 @@ moved_beyond(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
     return PyBool_FromLong(beyond && !nan);
 }
 
+/* A C-contiguous float64 n x n matrix, or -1 with the error set. */
+static int
+take_matrix(const char *function, PyObject *obj, Py_buffer *view, const char *name, Py_ssize_t n)
+{
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a C-contiguous float64 matrix", function, name);
+        return -1;
+    }
+    if (view->itemsize != sizeof(double) || view->format == NULL || strcmp(view->format, "d") != 0 || view->ndim != 2
+        || view->shape[0] != n || view->shape[1] != n) {
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a %zd x %zd float64 matrix", function, name, n, n);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    return 0;
+}
+
+/* torque_advance(x, v, x_law, v_law, expected_deg, expected_dps, lag, a, target, dt): ExpectedTracking.advance of
+   the torque model with an inertia known: the law's state is the model's before the step (x_law = x, v_law = v);
+   torque_step's step when dt > 0; the expectation is the state (expected_deg = x, expected_dps = v); lag = target - x.
+   In place. */
+static PyObject *
+torque_advance(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    static const char *names[] = {"x", "v", "x_law", "v_law", "expected_deg", "expected_dps", "lag", "a", "target"};
+    Py_buffer views[9];
+    Py_ssize_t n;
+    if (take_arrays("torque_advance", args, nargs, 10, names, 7, 9, views, &n) < 0) {
+        return NULL;
+    }
+    double dt = PyFloat_AsDouble(args[9]);
+    if (dt == -1.0 && PyErr_Occurred()) {
+        release_arrays(views, 9);
+        return NULL;
+    }
+    double *x = views[0].buf, *v = views[1].buf, *x_law = views[2].buf, *v_law = views[3].buf;
+    double *expected_deg = views[4].buf, *expected_dps = views[5].buf, *lag = views[6].buf;
+    const double *a = views[7].buf, *target = views[8].buf;
+    double half_dt2 = 0.5 * dt * dt;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        x_law[i] = x[i];
+        v_law[i] = v[i];
+        if (dt > 0.0) {
+            double xi = x[i] + v[i] * dt;
+            x[i] = xi + a[i] * half_dt2;
+            v[i] = v[i] + a[i] * dt;
+        }
+        expected_deg[i] = x[i];
+        expected_dps[i] = v[i];
+        lag[i] = target[i] - x[i];
+    }
+    release_arrays(views, 9);
+    Py_RETURN_NONE;
+}
+
+#define LAW_ARRAYS 14
+
+/* torque_law(accel, tau, target, ref_v, ref_a, reference_deg, reference_dps, reference_dps2, kp, x_law, kd, v_law, lo,
+   hi, mass_inv, mass, rad_per_deg, deg_per_rad): ExpectedTracking.command's torque-mode part, in place. The reference
+   is taken (target, ref_v, ref_a = reference_*); tau = kp (target - x_law) + (ref_v - v_law) kd, plus mass . (ref_a
+   rad_per_deg) where mass is not None (the feed-forward covers the inertia), clipped to [lo, hi]; accel = (mass_inv .
+   tau) deg_per_rad. The matrix products sum in index order, a BLAS in its own: their last bits may differ from numpy's
+   np.dot (as they do between BLAS builds). */
+static PyObject *
+torque_law(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    static const char *names[LAW_ARRAYS] = {"accel", "tau", "target", "ref_v", "ref_a", "reference_deg",
+                                            "reference_dps", "reference_dps2", "kp", "x_law", "kd", "v_law", "lo",
+                                            "hi"};
+    Py_buffer views[LAW_ARRAYS + 2];
+    Py_ssize_t n;
+    if (take_arrays("torque_law", args, nargs, LAW_ARRAYS + 4, names, 5, LAW_ARRAYS, views, &n) < 0) {
+        return NULL;
+    }
+    int taken = LAW_ARRAYS;
+    PyObject *result = NULL;
+    if (take_matrix("torque_law", args[LAW_ARRAYS], &views[taken], "mass_inv", n) < 0) {
+        goto done;
+    }
+    taken++;
+    const double *mass = NULL;
+    if (args[LAW_ARRAYS + 1] != Py_None) {
+        if (take_matrix("torque_law", args[LAW_ARRAYS + 1], &views[taken], "mass", n) < 0) {
+            goto done;
+        }
+        mass = views[taken].buf;
+        taken++;
+    }
+    double rad_per_deg = PyFloat_AsDouble(args[LAW_ARRAYS + 2]);
+    if (rad_per_deg == -1.0 && PyErr_Occurred()) {
+        goto done;
+    }
+    double deg_per_rad = PyFloat_AsDouble(args[LAW_ARRAYS + 3]);
+    if (deg_per_rad == -1.0 && PyErr_Occurred()) {
+        goto done;
+    }
+    double *accel = views[0].buf, *tau = views[1].buf, *target = views[2].buf, *ref_v = views[3].buf;
+    double *ref_a = views[4].buf;
+    const double *reference_deg = views[5].buf, *reference_dps = views[6].buf, *reference_dps2 = views[7].buf;
+    const double *kp = views[8].buf, *x_law = views[9].buf, *kd = views[10].buf, *v_law = views[11].buf;
+    const double *lo = views[12].buf, *hi = views[13].buf;
+    const double *mass_inv = views[LAW_ARRAYS].buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        target[i] = reference_deg[i];
+        ref_v[i] = reference_dps[i];
+        ref_a[i] = reference_dps2[i];
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double p = kp[i] * (target[i] - x_law[i]);
+        double d = (ref_v[i] - v_law[i]) * kd[i];
+        double t = p + d;
+        if (mass != NULL) {
+            const double *row = mass + i * n;
+            double w = row[0] * (ref_a[0] * rad_per_deg);
+            for (Py_ssize_t j = 1; j < n; j++) {
+                w += row[j] * (ref_a[j] * rad_per_deg);
+            }
+            t += w;
+        }
+        tau[i] = np_maximum(np_minimum(t, hi[i]), lo[i]);
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const double *row = mass_inv + i * n;
+        double s = row[0] * tau[0];
+        for (Py_ssize_t j = 1; j < n; j++) {
+            s += row[j] * tau[j];
+        }
+        accel[i] = s * deg_per_rad;
+    }
+    result = Py_NewRef(Py_None);
+done:
+    release_arrays(views, taken);
+    return result;
+}
+
+/* A bool (numpy "?") buffer of n entries, writable, or -1 with the error set. */
+static int
+take_flags(const char *function, PyObject *obj, Py_buffer *view, const char *name, Py_ssize_t n)
+{
+    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0) {
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a C-contiguous, writable bool array", function, name);
+        return -1;
+    }
+    if (view->itemsize != 1 || view->format == NULL || strcmp(view->format, "?") != 0 || view->ndim != 1
+        || view->len != n) {
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a one-dimensional bool array of %zd entries", function, name, n);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    return 0;
+}
+
+/* Python's round() of a float (half to even) as a float: CPython's own steps, whatever the rounding mode, and a
+   zero without a sign (round() gives the int 0; C's round(-0.3) gives -0.0, which + 0.0 makes 0.0). */
+static inline double
+round_half_even(double x)
+{
+    double rounded = round(x);
+    if (fabs(x - rounded) == 0.5) {
+        rounded = 2.0 * round(x / 2.0);
+    }
+    return rounded + 0.0;
+}
+
+#define CURRENT_ARRAYS 4
+
+/* torque_currents(amps, torque, nm_per_a, raw_limit, limited, addend, raw_per_a, amps_num, amps_den): the
+   torque-current set-points of joint torques, in place: torque += addend where addend is not None (the feed-forward);
+   raw = round(torque / nm_per_a * raw_per_a) (half to even), limited to +-raw_limit (limited marks where); amps = raw *
+   amps_num / amps_den (exact integers in doubles: Python's int arithmetic and true division give the same float).
+   ArmTransmission.iq_raw_limited_list and iq_amps in one. Returns None, or the index of the first joint
+   whose current is not a finite number (then nothing but the torque has changed: the caller raises). */
+static PyObject *
+torque_currents(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    static const char *names[CURRENT_ARRAYS] = {"amps", "torque", "nm_per_a", "raw_limit"};
+    Py_buffer views[CURRENT_ARRAYS + 2];
+    Py_ssize_t n;
+    if (take_arrays("torque_currents", args, nargs, CURRENT_ARRAYS + 5, names, 2, CURRENT_ARRAYS, views, &n) < 0) {
+        return NULL;
+    }
+    int taken = CURRENT_ARRAYS;
+    PyObject *result = NULL;
+    if (take_flags("torque_currents", args[CURRENT_ARRAYS], &views[taken], "limited", n) < 0) {
+        goto done;
+    }
+    taken++;
+    const double *addend = NULL;
+    if (args[CURRENT_ARRAYS + 1] != Py_None) {
+        Py_ssize_t m = n;
+        if (take_array("torque_currents", args[CURRENT_ARRAYS + 1], &views[taken], 0, "addend", &m) < 0) {
+            goto done;
+        }
+        addend = views[taken].buf;
+        taken++;
+    }
+    double raw_per_a = PyFloat_AsDouble(args[CURRENT_ARRAYS + 2]);
+    if (raw_per_a == -1.0 && PyErr_Occurred()) {
+        goto done;
+    }
+    double amps_num = PyFloat_AsDouble(args[CURRENT_ARRAYS + 3]);
+    if (amps_num == -1.0 && PyErr_Occurred()) {
+        goto done;
+    }
+    double amps_den = PyFloat_AsDouble(args[CURRENT_ARRAYS + 4]);
+    if (amps_den == -1.0 && PyErr_Occurred()) {
+        goto done;
+    }
+    double *amps = views[0].buf, *torque = views[1].buf;
+    const double *nm_per_a = views[2].buf, *raw_limit = views[3].buf;
+    unsigned char *limited = views[CURRENT_ARRAYS].buf;
+    if (addend != NULL) {
+        for (Py_ssize_t i = 0; i < n; i++) {
+            torque[i] = torque[i] + addend[i];
+        }
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (!isfinite(torque[i] / nm_per_a[i] * raw_per_a)) {
+            result = PyLong_FromSsize_t(i);
+            goto done;
+        }
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double raw = round_half_even(torque[i] / nm_per_a[i] * raw_per_a);
+        unsigned char over = 1;
+        if (raw > raw_limit[i]) {
+            raw = raw_limit[i];
+        }
+        else if (raw < -raw_limit[i]) {
+            raw = -raw_limit[i];
+        }
+        else {
+            over = 0;
+        }
+        limited[i] = over;
+        amps[i] = raw * amps_num / amps_den;
+    }
+    result = Py_NewRef(Py_None);
+done:
+    release_arrays(views, taken);
+    return result;
+}
+
+/* gather_scaled(out, src, order, factor): out[i] = src[order[i]] * factor, order an int64 array of indices of src
+   (numpy's src[order] then deg2rad for factor pi / 180: the same float64s). */
+static PyObject *
+gather_scaled(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    static const char *names[] = {"out", "src"};
+    Py_buffer views[3];
+    Py_ssize_t n;
+    if (take_arrays("gather_scaled", args, nargs, 4, names, 1, 2, views, &n) < 0) {
+        return NULL;
+    }
+    PyObject *result = NULL;
+    if (PyObject_GetBuffer(args[2], &views[2], PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
+        PyErr_SetString(PyExc_TypeError, "gather_scaled: order must be a C-contiguous int64 array");
+        release_arrays(views, 2);
+        return NULL;
+    }
+    const char *format = views[2].format;
+    if (views[2].itemsize != 8 || views[2].ndim != 1 || format == NULL
+        || (strcmp(format, "l") != 0 && strcmp(format, "q") != 0) || views[2].len != n * 8) {
+        PyErr_Format(PyExc_TypeError, "gather_scaled: order must be a one-dimensional int64 array of %zd entries", n);
+        goto done;
+    }
+    double factor = PyFloat_AsDouble(args[3]);
+    if (factor == -1.0 && PyErr_Occurred()) {
+        goto done;
+    }
+    const int64_t *order = views[2].buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        if (order[i] < 0 || order[i] >= n) {
+            PyErr_Format(PyExc_ValueError, "gather_scaled: order[%zd] = %lld is not an index of src", i,
+                         (long long)order[i]);
+            goto done;
+        }
+    }
+    double *out = views[0].buf;
+    const double *src = views[1].buf;
+    if (out == src) {
+        PyErr_SetString(PyExc_ValueError, "gather_scaled: out must not be src");
+        goto done;
+    }
+    for (Py_ssize_t i = 0; i < n; i++) {
+        out[i] = src[order[i]] * factor;
+    }
+    result = Py_NewRef(Py_None);
+done:
+    release_arrays(views, 3);
+    return result;
+}
+
 static PyMethodDef speedups_methods[] = {
     {"chase", (PyCFunction)(void (*)(void))chase, METH_FASTCALL,
      PyDoc_STR("chase(x, v, dt, target, cap, gain, accel, max_step): motion.control.tracking.chase in C, in place.")},
     {"torque_pd", (PyCFunction)(void (*)(void))torque_pd, METH_FASTCALL,
      PyDoc_STR("torque_pd(tau, kp, target, x, kd, ref_v, v): tau = kp (target - x) + (ref_v - v) kd, in place.")},
-    {"clip", (PyCFunction)(void (*)(void))clip, METH_FASTCALL,
-     PyDoc_STR("clip(values, lo, hi): numpy's maximum(minimum(values, hi), lo), in place.")},
-    {"torque_step", (PyCFunction)(void (*)(void))torque_step, METH_FASTCALL,
-     PyDoc_STR("torque_step(x, v, a, dt): x += v dt; x += a dt^2 / 2; v += a dt, in place.")},
     {"moved_beyond", (PyCFunction)(void (*)(void))moved_beyond, METH_FASTCALL,
      PyDoc_STR("moved_beyond(a, b, limit): abs(a - b).max() > limit, as numpy gives it.")},
+    {"torque_advance", (PyCFunction)(void (*)(void))torque_advance, METH_FASTCALL,
+     PyDoc_STR("torque_advance(x, v, x_law, v_law, expected_deg, expected_dps, lag, a, target, dt): the torque "
+               "model's advance, in place.")},
+    {"torque_law", (PyCFunction)(void (*)(void))torque_law, METH_FASTCALL,
+     PyDoc_STR("torque_law(accel, tau, target, ref_v, ref_a, reference_deg, reference_dps, reference_dps2, kp, x_law, "
+               "kd, v_law, lo, hi, mass_inv, mass, rad_per_deg, deg_per_rad): the torque model's command, in place.")},
+    {"gather_scaled", (PyCFunction)(void (*)(void))gather_scaled, METH_FASTCALL,
+     PyDoc_STR("gather_scaled(out, src, order, factor): out[i] = src[order[i]] * factor.")},
+    {"torque_currents", (PyCFunction)(void (*)(void))torque_currents, METH_FASTCALL,
+     PyDoc_STR("torque_currents(amps, torque, nm_per_a, raw_limit, limited, addend, raw_per_a, amps_num, amps_den): the "
+               "limited torque currents, in place; None or the first joint whose current is not finite.")},
     {NULL, NULL, 0, NULL},
 };
 
@@ -1211,7 +1471,7 @@ PyInit__speedups(void)
     /* What the Python side expects (motion.protocol.compiled.SPEEDUPS_ABI): a module built from an older source
        (an editable install not reinstalled) is then not used, rather than half used. Raise it with any change of what
        the module offers. */
-    if (PyModule_AddIntConstant(module, "ABI", 1) < 0) {
+    if (PyModule_AddIntConstant(module, "ABI", 2) < 0) {
         Py_DECREF(module);
         return NULL;
     }

@@ -23,6 +23,58 @@ def chase(
     /,
 ) -> None: ...
 
+_F64 = NDArray[np.float64]
+
+def torque_pd(tau: _F64, kp: _F64, target: _F64, x: _F64, kd: _F64, ref_v: _F64, v: _F64, /) -> None: ...
+def moved_beyond(a: _F64, b: _F64, limit: float, /) -> bool: ...
+def torque_advance(
+    x: _F64,
+    v: _F64,
+    x_law: _F64,
+    v_law: _F64,
+    expected_deg: _F64,
+    expected_dps: _F64,
+    lag: _F64,
+    a: _F64,
+    target: _F64,
+    dt: float,
+    /,
+) -> None: ...
+def torque_law(
+    accel: _F64,
+    tau: _F64,
+    target: _F64,
+    ref_v: _F64,
+    ref_a: _F64,
+    reference_deg: _F64,
+    reference_dps: _F64,
+    reference_dps2: _F64,
+    kp: _F64,
+    x_law: _F64,
+    kd: _F64,
+    v_law: _F64,
+    lo: _F64,
+    hi: _F64,
+    mass_inv: _F64,
+    mass: _F64 | None,
+    rad_per_deg: float,
+    deg_per_rad: float,
+    /,
+) -> None: ...
+def torque_currents(
+    amps: _F64,
+    torque: _F64,
+    nm_per_a: _F64,
+    raw_limit: _F64,
+    limited: NDArray[np.bool_],
+    addend: _F64 | None,
+    raw_per_a: float,
+    amps_num: float,
+    amps_den: float,
+    /,
+) -> int | None: ...
+def gather_scaled(out: _F64, src: Any, order: NDArray[np.intp], factor: float, /) -> None: ...
+
 class CLayout:
     def __init__(
         self,

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 import kinematics as kin
+from kinematics import dynamics
 from motion.config import ArmConfig, load_config, parse_config
 from motion.errors import ConfigError
 
@@ -248,6 +249,29 @@ def test_feedforward_variants() -> None:
     np.testing.assert_allclose(kin.feedforward(ARM2, inertia=True)(Q, QD, QDD), full)
     np.testing.assert_allclose(kin.feedforward(ARM2, gravity=False, inertia=True)(Q, QD, QDD), full - gravity)
     np.testing.assert_array_equal(kin.feedforward(ARM2, gravity=False)(Q, QD, QDD), [0.0, 0.0])
+
+
+@pytest.mark.parametrize("accelerated", [True, False])
+def test_the_feedforward_callables_give_the_functions_results_to_the_bit(
+    accelerated: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The callables take their arguments into arrays of their own (in C where the extension is built): the results
+    # are the public functions' to the bit, independent of each other, for arrays and lists alike.
+    if not accelerated:
+        monkeypatch.setattr(dynamics, "_C", None)
+    gravity, full = kin.gravity_torque(ARM2, Q), kin.rnea(ARM2, Q, QD, QDD)
+    for args in ((Q, QD, QDD), (Q.tolist(), QD.tolist(), QDD.tolist()), (Q[::-1][::-1], QD, QDD.astype(np.float32))):
+        first = kin.feedforward(ARM2, inertia=True)
+        result = first(*args)
+        expected = kin.rnea(ARM2, *[np.asarray(a, dtype=np.float64) for a in args])
+        assert result.tobytes() == expected.tobytes()
+        again = first(Q + 10.0, QD, QDD)
+        assert result.tobytes() == expected.tobytes() and not np.array_equal(again, result)  # not a shared buffer
+    assert kin.feedforward(ARM2)(Q, QD, QDD).tobytes() == gravity.tobytes()
+    only_inertia = kin.feedforward(ARM2, gravity=False, inertia=True)(Q, QD, QDD)
+    assert only_inertia.tobytes() == (full - gravity).tobytes()
+    with pytest.raises(ValueError, match=r"qd_dps: expected shape \(2,\) \(one value per joint\), got \(3,\)"):
+        kin.feedforward(ARM2, inertia=True)(Q, np.zeros(3), QDD)
 
 
 def test_results_are_not_views_of_pinocchio_data() -> None:

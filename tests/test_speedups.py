@@ -23,9 +23,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from kinematics import dynamics as dynamics_module
+from motion import transmission as transmission_module
 from motion.config.schema import ControlMode
+from motion.control import controller as controller_module
 from motion.control import tracking
 from motion.control.tracking import chase, chase_work
+from motion.errors import EncodeError
 from motion.protocol import (
     Bare,
     CanFrame,
@@ -45,6 +49,7 @@ from motion.protocol.compiled import FALLBACK_ERRORS, PURE_PYTHON_ENV, CompiledL
 from motion.protocol.messages import Message
 from motion.protocol.v3 import messages as v3_messages  # noqa: F401  (the V3 family's message classes)
 from motion.trajectory.planner import State
+from motion.transmission import ArmTransmission, Transmission
 from motion.transport.base import Request
 from tests.motion_rig import arm_config, emulated_arm
 from tests.test_codec_fastpath import CASES, ODD_VALUES, draw_message
@@ -301,7 +306,7 @@ def test_chase_in_c_refuses_what_it_cannot_take_and_changes_nothing_then() -> No
     assert (x == 7.0).all() and (v == 3.0).all()
 
 
-def test_the_torque_model_steps_in_c_refuse_a_wrong_call_and_change_nothing_then() -> None:
+def test_the_torque_mode_steps_in_c_refuse_a_wrong_call_and_change_nothing_then() -> None:
     from motion import _speedups
 
     c: Any = _speedups
@@ -309,19 +314,198 @@ def test_the_torque_model_steps_in_c_refuse_a_wrong_call_and_change_nothing_then
     x = np.full(3, 7.0)
     for call, arguments, expected in (
         (c.torque_pd, (x, three, three, three, three, three), 7),
-        (c.clip, (x, three), 3),
-        (c.torque_step, (x, three, three), 4),
         (c.moved_beyond, (x, three), 3),
+        (c.torque_advance, (x, *[three.copy() for _ in range(7)], 0.001), 10),
+        (c.torque_law, (x, *[three.copy() for _ in range(13)], np.eye(3), None, 1.0), 18),
+        (c.torque_currents, (x, three.copy(), three, three, np.zeros(3, bool), None, 1.0, 1.0), 9),
+        (c.gather_scaled, (x, three, np.arange(3)), 4),
     ):
         with pytest.raises(TypeError, match=rf"takes {expected} positional arguments, got {expected - 1}"):
             call(*arguments)
     with pytest.raises(TypeError, match=r"must be real number"):
-        c.torque_step(x, three.copy(), three, "0.001")  # refused after the arrays were taken (and released)
-    with pytest.raises(TypeError, match=r"clip: hi must be a one-dimensional float64 array"):
-        c.clip(x, three, np.ones(3, dtype=np.int64))
+        c.torque_advance(x, *[three.copy() for _ in range(8)], "0.001")  # after the arrays were taken (and released)
+    with pytest.raises(TypeError, match=r"torque_law: mass_inv must be a 3 x 3 float64 matrix"):
+        c.torque_law(x, *[three.copy() for _ in range(13)], np.eye(2), None, 1.0, 1.0)
+    with pytest.raises(TypeError, match=r"torque_law: mass must be a C-contiguous float64 matrix"):
+        c.torque_law(x, *[three.copy() for _ in range(13)], np.eye(3), "M", 1.0, 1.0)
+    with pytest.raises(TypeError, match=r"torque_law: kd must be a one-dimensional float64 array"):
+        c.torque_law(
+            x, *[three.copy() for _ in range(9)], np.ones(3, np.int64), three, three, three, np.eye(3), None, 1, 1
+        )
+    with pytest.raises(TypeError, match=r"torque_currents: limited must be a one-dimensional bool array of 3 entries"):
+        c.torque_currents(x, three.copy(), three, three, np.zeros(2, bool), None, 1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match=r"torque_currents: addend has 2 entries, the first array 3"):
+        c.torque_currents(x, three.copy(), three, three, np.zeros(3, bool), np.ones(2), 1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match=r"gather_scaled: order\[1\] = 3 is not an index of src"):
+        c.gather_scaled(x, three, np.array([0, 3, 1]), 1.0)
+    with pytest.raises(TypeError, match=r"gather_scaled: order must be a one-dimensional int64 array of 3 entries"):
+        c.gather_scaled(x, three, np.array([0, 1, 2], dtype=np.int32), 1.0)
+    with pytest.raises(ValueError, match=r"gather_scaled: out must not be src"):
+        c.gather_scaled(x, x, np.arange(3), 1.0)
     assert (x == 7.0).all()
     assert c.moved_beyond(np.array([0.0, 6.0]), np.zeros(2), 5.0) is True
     assert c.moved_beyond(np.array([np.nan, 6.0]), np.zeros(2), 5.0) is False  # as numpy's max: NaN > 5 is False
+
+
+def _joint(**fields: Any) -> Transmission:
+    values: dict[str, Any] = {
+        "gear_ratio": 6.0,
+        "direction": 1,
+        "zero_offset_deg": 0.0,
+        "torque_constant_nm_per_a": 0.1,
+    }
+    return Transmission(**(values | fields))
+
+
+def _torque_model(rng: np.random.Generator, n: int, fed_forward: bool) -> tracking.ExpectedTracking:
+    """A torque-mode tracking model of ``n`` joints with a random symmetric positive mass matrix, commanded once."""
+    transmission = ArmTransmission([_joint(gear_ratio=float(rng.uniform(1, 50))) for _ in range(n)])
+    kp, kd = np.abs(rng.normal(0, 2, n)), np.abs(rng.normal(0, 0.05, n))
+    model = tracking.ExpectedTracking(
+        ControlMode.TORQUE, transmission, kp, kd, list(range(1, n + 1)), read_drives=False
+    )
+    root = rng.normal(0, 0.3, (n, n))
+    model.set_inertia(root @ root.T + np.eye(n) * 0.05, fed_forward=fed_forward)
+    model.reset(rng.normal(0, 30, n), rng.normal(0, 50, n))
+    return model
+
+
+def _model_state(model: tracking.ExpectedTracking) -> list[bytes]:
+    names = ("_x", "_v", "_x_law", "_v_law", "expected_deg", "expected_dps", "lag_deg", "_target", "_ref_v", "_ref_a")
+    return [getattr(model, name).tobytes() for name in (*names, "_tau", "_accel_dps2")]
+
+
+def _sequential_dot(matrix: np.ndarray, vector: np.ndarray) -> np.ndarray:
+    """Matrix . vector with each row summed in index order (Python floats, no fused multiply-add)."""
+    rows = []
+    for row in matrix.tolist():
+        total = row[0] * vector[0]
+        for m, x in zip(row[1:], vector.tolist()[1:], strict=True):
+            total += m * x
+        rows.append(total)
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_torque_model_in_c_steps_as_numpy_does(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    # advance and command, in C and in numpy, from the same state: every array alike to the bit but for the two
+    # matrix products (C sums in index order, np.dot as its BLAS does): those are checked against a sequential sum to
+    # the bit, and against numpy's within rounding.
+    rng = np.random.default_rng(seed)
+    for trial in range(150):
+        n = int(rng.integers(1, 13))
+        fed_forward = trial % 2 == 0
+        models = [_torque_model(np.random.default_rng([seed, trial]), n, fed_forward) for _ in range(2)]
+        reference = [rng.normal(0, 40, n), rng.normal(0, 80, n), rng.normal(0, 500, n)]
+        if trial % 9 == 0:
+            reference[0][rng.integers(0, n)] = np.nan
+        t_s = 0.0
+        for step in range(3):
+            dt = float(rng.choice([0.0, 0.001, 0.002, 0.0123]))
+            measured = (rng.normal(0, 30, n), rng.normal(0, 50, n))
+            for accelerated, model in zip((True, False), models, strict=True):
+                if not accelerated:
+                    monkeypatch.setattr(tracking, "_C", None)
+                model.advance(t_s + dt, *measured)
+                model.command(t_s + dt, reference[0], reference[1], reference[2], None)
+                monkeypatch.undo()
+            t_s += dt
+            c_state, numpy_state = _model_state(models[0]), _model_state(models[1])
+            assert c_state[:10] == numpy_state[:10], (seed, trial, step)
+            c_model = models[0]
+            mass = c_model.inertia_kgm2
+            assert mass is not None
+            tau = c_model._tau
+            expected_tau = (
+                c_model.kp * (c_model._target - c_model._x_law) + (c_model._ref_v - c_model._v_law) * c_model.kd
+            )
+            if fed_forward:
+                expected_tau = expected_tau + _sequential_dot(mass, c_model._ref_a * (math.pi / 180.0))
+            expected_tau = np.maximum(np.minimum(expected_tau, c_model.torque_limit_nm), -c_model.torque_limit_nm)
+            assert _same_bits(tau, expected_tau), (seed, trial, step)
+            accel = _sequential_dot(c_model._mass_inv, tau) * (180.0 / math.pi)
+            assert _same_bits(c_model._accel_dps2, accel), (seed, trial, step)
+            np.testing.assert_allclose(tau, models[1]._tau, rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(c_model._accel_dps2, models[1]._accel_dps2, rtol=1e-9, atol=1e-9)
+            models[1].__dict__  # noqa: B018 - (a slotless object: the model's arrays are copied below)
+            for name in ("_tau", "_accel_dps2"):  # the next step starts both from the same state
+                np.copyto(getattr(models[1], name), getattr(c_model, name))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_the_torque_currents_in_c_are_the_python_ones_to_the_bit(seed: int) -> None:
+    from motion import _speedups
+
+    rng = np.random.default_rng(seed)
+    seen_limited = seen_ties = 0
+    for trial in range(300):
+        n = int(rng.integers(1, 13))
+        arm = ArmTransmission(
+            [
+                _joint(
+                    gear_ratio=float(rng.choice([1.0, 6.0, 9.0, 36.0])),
+                    direction=int(rng.choice([1, -1])),
+                    torque_constant_nm_per_a=float(rng.uniform(0.05, 2.0)),
+                    current_limit_a=float(rng.uniform(0.5, 32.0)),
+                )
+                for _ in range(n)
+            ]
+        )
+        torque = rng.normal(0, 40, n)
+        if trial % 3 == 0:  # exactly half-way between two raw values: rounded half to even, as Python's round()
+            half = (np.floor(rng.normal(0, 200, n)) + 0.5) / 62.5
+            torque = half * np.array([t.nm_per_a for t in arm.transmissions])
+        addend = rng.normal(0, 5, n) if trial % 2 else None
+        expected_torque = torque + addend if addend is not None else torque.copy()
+        raw, limited = arm.iq_raw_limited_list(expected_torque.tolist())
+        amps, flags, c_torque = np.full(n, np.nan), np.zeros(n, bool), torque.copy()
+        assert (
+            _speedups.torque_currents(amps, c_torque, arm._nm_per_a, arm._raw_limit, flags, addend, 62.5, 32, 2000)
+            is None
+        )
+        assert _same_bits(c_torque, expected_torque)
+        assert _same_bits(amps, np.array([raw_value * 32 / 2000 for raw_value in raw]))
+        assert flags.tolist() == limited
+        seen_limited += int(flags.any())
+        seen_ties += sum(
+            abs(t / k * 62.5 % 1.0 - 0.5) < 1e-9 for t, k in zip(expected_torque, arm._nm_per_a, strict=True)
+        )
+    assert seen_limited > 20 and seen_ties > 20  # the limits and the half-way rounding were exercised
+    arm = ArmTransmission([_joint(), _joint()])
+    amps, flags = np.full(2, 5.0), np.zeros(2, bool)
+    assert (
+        _speedups.torque_currents(
+            amps, np.array([1.0, np.inf]), arm._nm_per_a, arm._raw_limit, flags, None, 62.5, 32, 2000
+        )
+        == 1
+    )
+    assert (amps == 5.0).all() and not flags.any()  # nothing written: the caller raises
+
+
+def test_the_cycles_current_limit_raises_for_a_torque_not_finite_with_c_and_without(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    arm = ArmTransmission([_joint(), _joint()], names=("shoulder", "elbow"))
+    for accelerated in (True, False):
+        if not accelerated:
+            monkeypatch.setattr(transmission_module, "_C", None)
+        amps, flags = np.zeros(2), np.zeros(2, bool)
+        with pytest.raises(EncodeError, match=r"elbow") as raised:
+            arm.iq_amps_limited_into(np.array([1.0, 0.0]), amps, flags, np.array([0.0, np.nan]))
+        assert (amps == 0.0).all()
+        assert "finite" in str(raised.value) or "nan" in str(raised.value).lower()
+
+
+def test_gather_scaled_is_numpys_index_and_deg2rad_to_the_bit() -> None:
+    from motion import _speedups
+
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        n = int(rng.integers(1, 13))
+        src, order = rng.normal(0, 400, n), rng.permutation(n)
+        out = np.zeros(n)
+        _speedups.gather_scaled(out, src, order, math.pi / 180.0)
+        assert _same_bits(out, np.deg2rad(src[order]))
 
 
 def test_chase_takes_what_the_c_one_refuses_through_numpy() -> None:
@@ -536,28 +720,47 @@ def test_the_c_codec_refuses_tables_it_cannot_take() -> None:
         _speedups.CanRequestEncoder(not_layouts, {}, CanFrame, MultiMotorTorque, 0x280, 0x140, 1, 32, print)
 
 
+def _without_c(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every hot-path module on its Python path (as without the extension)."""
+    for module in (tracking, controller_module, transmission_module, dynamics_module):
+        assert module._C is compiled_module.SPEEDUPS is not None
+        monkeypatch.setattr(module, "_C", None)
+    monkeypatch.setattr(tracking, "_C_CHASE", None)
+
+
 @pytest.mark.parametrize("mode", [ControlMode.POSITION, ControlMode.TORQUE])
-def test_an_emulated_move_expects_the_same_angles_to_the_bit_with_the_c_model_and_without(
+def test_an_emulated_move_is_the_same_with_the_c_steps_and_without(
     mode: ControlMode, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # The tracking model's C twins (chase; torque_pd, clip, torque_step, moved_beyond) against its numpy steps, on a
-    # whole arm6 move in simulated time: every cycle's expected angles and speeds, and so everything else, alike.
-    assert tracking._C is not None and tracking._C_CHASE is not None
-    runs: list[list[tuple[float, bytes, bytes, bytes]]] = []
+    # The C twins of the cycle's steps (the set-points: torque_pd, torque_currents, gather_scaled in the feed-forward;
+    # the tracking model: chase, moved_beyond, torque_advance, torque_law) against the Python ones, on a whole arm6
+    # move in simulated time: every request sent and every measurement alike to the bit, and the model's expected
+    # angles, speeds and lags too, but in torque mode, where its two matrix products sum in another order than
+    # numpy's BLAS: there within 1e-9.
+    runs: list[list[tuple[Any, ...]]] = []
     for accelerated in (True, False):
         if not accelerated:
-            monkeypatch.setattr(tracking, "_C", None)
-            monkeypatch.setattr(tracking, "_C_CHASE", None)
-        cycles: list[tuple[float, bytes, bytes, bytes]] = []
+            _without_c(monkeypatch)
+        cycles: list[tuple[Any, ...]] = []
         with emulated_arm(arm_config("arm6.yaml", mode=mode), "sim", tmp_path, supervised=True) as rig:
 
-            def record(controller: Any, start_s: float, _replies: Any, cycles: list[Any] = cycles) -> None:
-                model = controller.tracking
+            def record(controller: Any, start_s: float, replies: Any, cycles: list[Any] = cycles) -> None:
+                model, sent = controller.tracking, controller.setpoints
                 cycles.append(
-                    (start_s, model.expected_deg.tobytes(), model.expected_dps.tobytes(), model.lag_deg.tobytes())
+                    (
+                        start_s,
+                        tuple(repr(reply.request) for reply in replies),
+                        controller.axes.q_deg.tobytes(),
+                        sent.torque_nm.tobytes(),
+                        sent.limited.tobytes(),
+                        sent.motor_angle_deg.tobytes(),
+                        np.stack([model.expected_deg, model.expected_dps, model.lag_deg]),
+                    )
                 )
 
             rig.controller.cycle_hooks.append(record)
+            if mode is ControlMode.TORQUE:
+                assert rig.controller.feedforward is not None and rig.controller.tracking.inertia_kgm2 is not None
             supervisor = rig.supervisor
             assert supervisor is not None
             for target in ([40.0, -30.0, 45.0, 20.0, -25.0, 30.0], [0.0] * 6):
@@ -565,4 +768,10 @@ def test_an_emulated_move_expects_the_same_angles_to_the_bit_with_the_c_model_an
                 assert supervisor.wait(30.0)
         runs.append(cycles)
     assert len(runs[0]) > 300
-    assert runs[0] == runs[1]
+    assert [cycle[:-1] for cycle in runs[0]] == [cycle[:-1] for cycle in runs[1]]
+    with_c, without = np.array([cycle[-1] for cycle in runs[0]]), np.array([cycle[-1] for cycle in runs[1]])
+    if mode is ControlMode.POSITION:
+        assert with_c.tobytes() == without.tobytes()
+    else:
+        np.testing.assert_allclose(with_c, without, rtol=0.0, atol=1e-9)
+        assert np.abs(with_c[:, 2]).max() > 0.01  # (the model expects a lag: it is not the reference itself)

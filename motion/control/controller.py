@@ -42,8 +42,7 @@ from motion.protocol import (
     TorqueControl,
     WireProtocol,
 )
-from motion.protocol.compiled import frozen_builder
-from motion.protocol.scales import iq_amps
+from motion.protocol.compiled import SPEEDUPS, frozen_builder
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS
 from motion.trajectory import Follower, JointLimits, Path, Planner, State
 from motion.transmission import ArmTransmission, FloatArray
@@ -125,6 +124,8 @@ _SnapshotFields: TypeAlias = tuple[
 ]
 _new_snapshot: Final[Callable[[_SnapshotFields], CycleSnapshot]] = functools.partial(tuple.__new__, CycleSnapshot)
 _NEW_MULTI_TORQUE: Final = frozen_builder(MultiMotorTorque)
+#: The C extension where it is used (``motion/_speedups.c``: its ``torque_pd``), else None.
+_C: Final = SPEEDUPS
 
 
 @dataclass(slots=True)
@@ -247,7 +248,9 @@ class Controller:
             else []
         )
         self._single = [i for i in range(len(self.specs)) if i not in self._multi]
-        self._multi_slot = {i: MULTI_TORQUE_MOTOR_IDS.index(self.ids[i]) for i in self._multi}
+        # the joints of the 0x280 frame's four currents, in the frame's order (motors 1..4)
+        self._multi_joints = sorted(self._multi, key=lambda i: MULTI_TORQUE_MOTOR_IDS.index(self.ids[i]))
+        self._amps = np.zeros(n)  # torque mode: the cycle's currents, A (work array)
         # Constant per cycle, looked up once: the 0xA4 speed cap's terms, per joint (motor id, motor deg per joint
         # deg, zero offset, floor), and the builder of the mode's batch.
         velocity_limit = np.abs(transmission.motor_rate(np.array(limits.velocity_dps)))
@@ -493,41 +496,51 @@ class Controller:
         return requests
 
     def _torque_requests(self, ref: State) -> list[Request]:
-        # Python floats per joint, as for the set-points of position mode: the same operations in the same order as
-        # the arrays would do them (PD, plus the feed-forward), so the torques are the same float64s.
-        axes = self.axes
-        torques = [
-            kp * (q_ref - q) + kd * (qd_ref - qd)
-            for kp, kd, q_ref, q, qd_ref, qd in zip(
-                self.kp.tolist(),
-                self.kd.tolist(),
-                ref.position.tolist(),
-                axes.q_deg.tolist(),
-                ref.velocity.tolist(),
-                axes.qd_dps.tolist(),
-                strict=True,
-            )
-        ]
+        # PD plus the feed-forward, per joint: the same operations in the same order whichever way (one C call where
+        # the extension is built; Python floats otherwise: for a few joints a numpy call costs more than the
+        # arithmetic), so the torques are the same float64s.
+        axes, torque = self.axes, self.setpoints.torque_nm
+        in_c = False
+        if _C is not None:
+            try:  # (a try costs nothing in the cycle; contextlib.suppress's object would)
+                _C.torque_pd(torque, self.kp, ref.position, axes.q_deg, self.kd, ref.velocity, axes.qd_dps)
+                in_c = True
+            except (TypeError, ValueError):  # (a reference not of float64 arrays: Python floats)
+                pass
+        if not in_c:
+            torque[:] = [
+                kp * (q_ref - q) + kd * (qd_ref - qd)
+                for kp, kd, q_ref, q, qd_ref, qd in zip(
+                    self.kp.tolist(),
+                    self.kd.tolist(),
+                    ref.position.tolist(),
+                    axes.q_deg.tolist(),
+                    ref.velocity.tolist(),
+                    axes.qd_dps.tolist(),
+                    strict=True,
+                )
+            ]
+        feedforward = None
         if self.feedforward is not None:
-            feedforward = self.feedforward(axes.q_deg, ref.velocity, ref.acceleration).tolist()
-            torques = [tau + ff for tau, ff in zip(torques, feedforward, strict=True)]
-        return self.torque_frames(torques)
+            feedforward = np.asarray(self.feedforward(axes.q_deg, ref.velocity, ref.acceleration), dtype=np.float64)
+        return self._torque_frames(feedforward)
 
     def torque_frames(self, torques: Sequence[float]) -> list[Request]:
         """The torque-current requests (0xA1, and 0x280 where it applies) for joint torques (N·m, joint order),
         limited per joint; records the torque and the limiting."""
-        record = self.setpoints
-        record.torque_nm[:] = torques
-        raw, limited = self.transmission.iq_raw_limited_list(torques)
-        record.limited[:] = limited
-        amps = [iq_amps(r) for r in raw]
+        self.setpoints.torque_nm[:] = torques
+        return self._torque_frames(None)
+
+    def _torque_frames(self, addend: FloatArray | None) -> list[Request]:
+        """:meth:`torque_frames` of the recorded torque (plus ``addend``, recorded too)."""
+        record, amps = self.setpoints, self._amps
+        self.transmission.iq_amps_limited_into(record.torque_nm, amps, record.limited, addend)
+        currents, ids = amps.tolist(), self.ids
         new_request, new_torque = _NEW_REQUEST, _NEW_TORQUE
-        requests = [new_request(self.ids[i], new_torque(amps[i])) for i in self._single]
+        requests = [new_request(ids[i], new_torque(currents[i])) for i in self._single]
         if self._multi:
-            currents = [0.0, 0.0, 0.0, 0.0]
-            for i, slot in self._multi_slot.items():
-                currents[slot] = amps[i]
-            requests.append(new_request(MULTI_TORQUE_MOTOR_IDS[0], _NEW_MULTI_TORQUE(*currents)))
+            frame = _NEW_MULTI_TORQUE(*[currents[i] for i in self._multi_joints])
+            requests.append(new_request(MULTI_TORQUE_MOTOR_IDS[0], frame))
         return requests
 
     def absorb(self, replies: Sequence[Reply]) -> None:

@@ -25,7 +25,6 @@ arrays are preallocated: a cycle allocates nothing.
 
 from __future__ import annotations
 
-import contextlib
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -305,6 +304,22 @@ class ExpectedTracking:
         elif not self.enabled:
             np.copyto(self._x, self._target)  # the reference itself: no lag expected
             np.copyto(self._v, self._ref_v)
+        elif self.mode is ControlMode.TORQUE and self.inertia_kgm2 is not None and _C is not None:
+            # the branch below, then the expectation and the lag, in one C call (motion/_speedups.c)
+            _C.torque_advance(
+                self._x,
+                self._v,
+                self._x_law,
+                self._v_law,
+                self.expected_deg,
+                self.expected_dps,
+                self.lag_deg,
+                self._accel_dps2,
+                self._target,
+                t_s - self._t_s,
+            )
+            self._t_s = t_s
+            return
         else:
             dt = t_s - self._t_s
             if self.mode is ControlMode.TORQUE:
@@ -331,27 +346,29 @@ class ExpectedTracking:
     ) -> None:
         """The set-points this cycle sent (at ``t_s``, after :meth:`advance`): the reference for the next instant
         and, in position mode, the 0xA4 speed caps (motor side)."""
-        np.copyto(self._target, reference_deg)
-        np.copyto(self._ref_v, reference_dps)
-        if max_speed_motor_dps is not None:
-            np.divide(max_speed_motor_dps, self.gear_ratio, out=self._cap)
         if self.mode is ControlMode.TORQUE and self.inertia_kgm2 is not None:
-            np.copyto(self._ref_a, reference_dps2)
             # The mass matrix changes slowly with the pose: evaluated again once a joint moved by INERTIA_STEP_DEG
             # (the arm model's work is most of this method's cost).
             if self._inertia_of is not None and self._moved_beyond(reference_deg):
                 self._set_mass(self._inertia_of(reference_deg))
                 np.copyto(self._inertia_at, reference_deg)
-            self._torque_law()
+            self._torque_law(reference_deg, reference_dps, reference_dps2)
+        else:
+            np.copyto(self._target, reference_deg)
+            np.copyto(self._ref_v, reference_dps)
+            if max_speed_motor_dps is not None:
+                np.divide(max_speed_motor_dps, self.gear_ratio, out=self._cap)
         self._commanded = True
         self._t_s = t_s
 
     def _moved_beyond(self, reference_deg: FloatArray) -> bool:
         """Whether a joint of ``reference_deg`` is more than INERTIA_STEP_DEG from where the mass was evaluated."""
         if _C is not None:
-            with contextlib.suppress(TypeError, ValueError):  # (a reference not a float64 array: numpy takes it)
+            try:  # (a try costs nothing in the cycle; contextlib.suppress's object would)
                 moved: bool = _C.moved_beyond(reference_deg, self._inertia_at, INERTIA_STEP_DEG)
                 return moved
+            except (TypeError, ValueError):  # (a reference not a float64 array: numpy takes it)
+                pass
         distance = self._e
         np.subtract(reference_deg, self._inertia_at, out=distance)
         np.abs(distance, out=distance)
@@ -378,30 +395,52 @@ class ExpectedTracking:
             work=self._work,
         )
 
-    def _torque_law(self) -> None:
-        """The controller's torque on the model arm (PD, plus M·qdd_ref where the feed-forward covers the inertia;
-        gravity is cancelled by the feed-forward), limited, and the acceleration it gives, held until the next cycle
-        (as the drives hold the torque)."""
+    def _torque_law(self, reference_deg: FloatArray, reference_dps: FloatArray, reference_dps2: FloatArray) -> None:
+        """Take the reference, then the controller's torque on the model arm (PD, plus M·qdd_ref where the
+        feed-forward covers the inertia; gravity is cancelled by the feed-forward), limited, and the acceleration it
+        gives, held until the next cycle (as the drives hold the torque)."""
         mass = self.inertia_kgm2
         assert mass is not None
-        tau, e = self._tau, self._e
         if _C is not None:  # the same operations per joint in the same order (motion/_speedups.c)
-            _C.torque_pd(tau, self.kp, self._target, self._x_law, self.kd, self._ref_v, self._v_law)
-        else:
-            np.subtract(self._target, self._x_law, out=e)
-            np.multiply(self.kp, e, out=tau)
-            np.subtract(self._ref_v, self._v_law, out=e)
-            e *= self.kd
-            tau += e
+            try:  # (see _moved_beyond)
+                _C.torque_law(
+                    self._accel_dps2,
+                    self._tau,
+                    self._target,
+                    self._ref_v,
+                    self._ref_a,
+                    reference_deg,
+                    reference_dps,
+                    reference_dps2,
+                    self.kp,
+                    self._x_law,
+                    self.kd,
+                    self._v_law,
+                    self._negative_limit_nm,
+                    self.torque_limit_nm,
+                    self._mass_inv,
+                    mass if self.inertia_feedforward else None,
+                    _RAD_PER_DEG,
+                    _DEG_PER_RAD,
+                )
+                return
+            except (TypeError, ValueError):  # (a reference not a float64 array: numpy takes it)
+                pass
+        np.copyto(self._target, reference_deg)
+        np.copyto(self._ref_v, reference_dps)
+        np.copyto(self._ref_a, reference_dps2)
+        tau, e = self._tau, self._e
+        np.subtract(self._target, self._x_law, out=e)
+        np.multiply(self.kp, e, out=tau)
+        np.subtract(self._ref_v, self._v_law, out=e)
+        e *= self.kd
+        tau += e
         if self.inertia_feedforward:
             np.multiply(self._ref_a, _RAD_PER_DEG, out=e)
             np.dot(mass, e, out=self._w)
             tau += self._w
-        if _C is not None:
-            _C.clip(tau, self._negative_limit_nm, self.torque_limit_nm)
-        else:
-            np.minimum(tau, self.torque_limit_nm, out=tau)
-            np.maximum(tau, self._negative_limit_nm, out=tau)
+        np.minimum(tau, self.torque_limit_nm, out=tau)
+        np.maximum(tau, self._negative_limit_nm, out=tau)
         np.dot(self._mass_inv, tau, out=self._accel_dps2)
         self._accel_dps2 *= _DEG_PER_RAD
 
@@ -412,9 +451,6 @@ class ExpectedTracking:
             np.copyto(v, self._ref_v)
             return
         a, step = self._accel_dps2, self._e
-        if _C is not None:
-            _C.torque_step(x, v, a, dt)
-            return
         np.multiply(v, dt, out=step)
         x += step
         np.multiply(a, 0.5 * dt * dt, out=step)
@@ -432,9 +468,10 @@ def chase_work(shape: int) -> ChaseWork:
     return (np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape))
 
 
-#: The C extension where it is used (``motion/_speedups.c``: its ``chase``, ``torque_pd``, ``clip``, ``torque_step`` and
-#: ``moved_beyond`` do the numpy steps' operations per entry in the same order, so the results are the same to the
-#: bit), else None.
+#: The C extension where it is used, else None (``motion/_speedups.c``: its ``chase``, ``moved_beyond``,
+#: ``torque_advance`` and ``torque_law`` do the numpy steps' operations per entry in the same order, so the results are
+#: the same to the bit, but for ``torque_law``'s matrix products, which sum in index order where ``np.dot`` sums as its
+#: BLAS does).
 _C: Final = SPEEDUPS
 #: ``chase`` of the C extension, None where the extension is not used.
 _C_CHASE: Final = None if SPEEDUPS is None else SPEEDUPS.chase
