@@ -17,6 +17,8 @@
  * (handed over by motion.protocol.compiled.native_layout), and can_frame.encode_request / decode_reply on top of them;
  * anything unusual goes to the Python function they were given (see the codec section below).
  *
+ * StateAbsorber, the loop of motion.control.axes.AxisStates.absorb (a cycle's replies into the axes' arrays).
+ *
  * chase, moved_beyond, torque_advance and torque_law, the C twins of the tracking model's numpy steps
  * (motion.control.tracking: the drives' position-loop model and the torque-mode PD model, stepped every cycle), and
  * torque_pd and torque_currents, the torque-mode set-points (motion.control.controller: the PD, and the current limit
@@ -1432,6 +1434,324 @@ done:
     return result;
 }
 
+/* ------------------------------------------------------------------------------------------- the axes' replies */
+
+/* StateAbsorber(index, state_type, encoder, motor_deg, speed_dps, iq_a, temperature_c, last_reply_s, q_deg, qd_dps,
+   fresh, counts, direction, gear, offset): the C twin of AxisStates.absorb's loop (motion.control.axes), for drives
+   whose motion replies carry the encoder. It holds the axes' arrays (changed in place only, never replaced: their
+   buffers are held for its life) and their per-axis terms: counts per revolution and the transmission's direction,
+   gear ratio and zero offset. A call absorber(replies, start, keep_fresh) takes replies[start:] (a list or tuple of
+   Reply tuples: motor id, request, message, time) as the Python loop does, with the same operations in the same order
+   (Python's int and float arithmetic in int64 and double: the same values), and returns -1, or the position of the
+   first reply it leaves to the Python loop (one not a 4-tuple, or a motion reply whose fields are not plain ints and
+   floats): the caller takes that one and calls again from the next. Unless keep_fresh, fresh is cleared first. */
+
+#define ABSORB_WRITABLE 9
+#define ABSORB_ARRAYS 13
+#define ENCODER_MAX (1LL << 52)
+
+typedef struct {
+    PyObject_HEAD
+    PyObject *index;
+    PyObject *state_type;
+    PyObject *arrays[ABSORB_ARRAYS];
+    Py_buffer views[ABSORB_ARRAYS];
+    int held;
+    Py_ssize_t n;
+    vectorcallfunc vectorcall;
+} StateAbsorber;
+
+static PyObject *absorb_names[4];  /* encoder, speed_dps, iq_a, temperature_c (interned at import) */
+
+static void
+absorber_release(StateAbsorber *a)
+{
+    for (int i = 0; i < a->held; i++) {
+        PyBuffer_Release(&a->views[i]);
+    }
+    a->held = 0;
+}
+
+static int
+absorber_traverse(PyObject *self, visitproc visit, void *arg)
+{
+    StateAbsorber *a = (StateAbsorber *)self;
+    Py_VISIT(a->index);
+    Py_VISIT(a->state_type);
+    for (int i = 0; i < ABSORB_ARRAYS; i++) {
+        Py_VISIT(a->arrays[i]);
+    }
+    return 0;
+}
+
+static int
+absorber_clear(PyObject *self)
+{
+    StateAbsorber *a = (StateAbsorber *)self;
+    absorber_release(a);
+    Py_CLEAR(a->index);
+    Py_CLEAR(a->state_type);
+    for (int i = 0; i < ABSORB_ARRAYS; i++) {
+        Py_CLEAR(a->arrays[i]);
+    }
+    return 0;
+}
+
+static void
+absorber_dealloc(PyObject *self)
+{
+    PyObject_GC_UnTrack(self);
+    absorber_clear(self);
+    Py_TYPE(self)->tp_free(self);
+}
+
+/* A plain int or float as a double (1), anything else 0 (the Python loop takes it); -1 with an error set. */
+static int
+plain_number(PyObject *value, double *out)
+{
+    if (PyFloat_CheckExact(value)) {
+        *out = PyFloat_AS_DOUBLE(value);
+        return 1;
+    }
+    if (PyLong_CheckExact(value)) {
+        *out = PyLong_AsDouble(value);
+        if (*out == -1.0 && PyErr_Occurred()) {
+            if (!PyErr_ExceptionMatches(PyExc_OverflowError)) {
+                return -1;
+            }
+            PyErr_Clear();
+            return 0;
+        }
+        return 1;
+    }
+    return 0;
+}
+
+/* One motion reply of axis i: 1 taken, 0 left to the Python loop (nothing written), -1 error. */
+static int
+absorb_state(StateAbsorber *a, Py_ssize_t i, PyObject *state, PyObject *received)
+{
+    if (!PyFloat_CheckExact(received)) {
+        return 0;
+    }
+    PyObject *values[4] = {NULL, NULL, NULL, NULL};
+    int result = -1;
+    for (int k = 0; k < 4; k++) {
+        values[k] = PyObject_GetAttr(state, absorb_names[k]);
+        if (values[k] == NULL) {
+            goto done;
+        }
+    }
+    /* The encoder, a plain int of at most 52 bits (the difference is exact as a double), and the other fields'
+       numbers. */
+    result = 0;
+    if (!PyLong_CheckExact(values[0])) {
+        goto done;
+    }
+    int overflow = 0;
+    long long encoder = PyLong_AsLongLongAndOverflow(values[0], &overflow);
+    if (encoder == -1 && PyErr_Occurred()) {
+        result = -1;
+        goto done;
+    }
+    if (overflow || encoder > ENCODER_MAX || encoder < -ENCODER_MAX) {
+        goto done;
+    }
+    double speed, iq, temperature;
+    int ok;
+    if ((ok = plain_number(values[1], &speed)) != 1 || (ok = plain_number(values[2], &iq)) != 1
+        || (ok = plain_number(values[3], &temperature)) != 1) {
+        result = ok;
+        goto done;
+    }
+    int64_t *encoders = a->views[0].buf;
+    double *motor_degs = a->views[1].buf, *speeds = a->views[2].buf, *iqs = a->views[3].buf;
+    double *temperatures = a->views[4].buf, *last_reply_s = a->views[5].buf, *q_deg = a->views[6].buf;
+    double *qd_dps = a->views[7].buf;
+    unsigned char *fresh = a->views[8].buf;
+    const double counts = ((const double *)a->views[9].buf)[i], direction = ((const double *)a->views[10].buf)[i];
+    const double gear = ((const double *)a->views[11].buf)[i], offset = ((const double *)a->views[12].buf)[i];
+    long long previous = encoders[i];
+    if (previous > ENCODER_MAX || previous < -ENCODER_MAX) {
+        goto done;
+    }
+    long long delta = encoder - previous;
+    if ((double)delta > counts / 2) {
+        delta -= (long long)counts;
+    }
+    else if ((double)delta < -counts / 2) {
+        delta += (long long)counts;
+    }
+    encoders[i] = encoder;
+    double motor_deg = motor_degs[i] + (double)delta * 360.0 / counts;
+    motor_degs[i] = motor_deg;
+    speeds[i] = speed;
+    iqs[i] = iq;
+    temperatures[i] = temperature;
+    last_reply_s[i] = PyFloat_AS_DOUBLE(received);
+    fresh[i] = 1;
+    q_deg[i] = direction * motor_deg / gear + offset;
+    qd_dps[i] = direction * speed / gear;
+    result = 1;
+done:
+    for (int k = 0; k < 4; k++) {
+        Py_XDECREF(values[k]);
+    }
+    return result;
+}
+
+static PyObject *
+absorber_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
+{
+    StateAbsorber *a = (StateAbsorber *)self;
+    Py_ssize_t nargs = PyVectorcall_NARGS(nargsf);
+    if (kwnames != NULL || nargs != 3) {
+        PyErr_SetString(PyExc_TypeError, "StateAbsorber takes 3 positional arguments (replies, start, keep_fresh)");
+        return NULL;
+    }
+    if (a->held != ABSORB_ARRAYS) {
+        PyErr_SetString(PyExc_ValueError, "StateAbsorber: cleared");
+        return NULL;
+    }
+    PyObject *replies = args[0];
+    if (!PyList_Check(replies) && !PyTuple_Check(replies)) {
+        PyErr_SetString(PyExc_TypeError, "StateAbsorber: replies must be a list or a tuple");
+        return NULL;
+    }
+    Py_ssize_t start = PyLong_AsSsize_t(args[1]);
+    if (start == -1 && PyErr_Occurred()) {
+        return NULL;
+    }
+    int keep_fresh = PyObject_IsTrue(args[2]);
+    if (keep_fresh < 0) {
+        return NULL;
+    }
+    if (!keep_fresh) {
+        memset(a->views[8].buf, 0, (size_t)a->n);
+    }
+    for (Py_ssize_t k = start < 0 ? 0 : start; k < PySequence_Fast_GET_SIZE(replies); k++) {
+        PyObject *reply = PySequence_Fast_GET_ITEM(replies, k);
+        if (!PyTuple_Check(reply) || PyTuple_GET_SIZE(reply) != 4) {
+            return PyLong_FromSsize_t(k);
+        }
+        PyObject *state = PyTuple_GET_ITEM(reply, 2), *received = PyTuple_GET_ITEM(reply, 3);
+        if (received == Py_None) {
+            continue;
+        }
+        PyObject *axis = PyDict_GetItemWithError(a->index, PyTuple_GET_ITEM(reply, 0));
+        if (axis == NULL) {
+            if (PyErr_Occurred()) {
+                return NULL;
+            }
+            continue;
+        }
+        int is_state = PyObject_IsInstance(state, a->state_type);
+        if (is_state < 0) {
+            return NULL;
+        }
+        if (!is_state) {
+            continue;
+        }
+        Py_ssize_t i = PyLong_AsSsize_t(axis);
+        if (i == -1 && PyErr_Occurred()) {
+            return NULL;
+        }
+        if (i < 0 || i >= a->n) {
+            PyErr_Format(PyExc_ValueError, "StateAbsorber: axis index %zd out of range", i);
+            return NULL;
+        }
+        int taken = absorb_state(a, i, state, received);
+        if (taken < 0) {
+            return NULL;
+        }
+        if (taken == 0) {
+            return PyLong_FromSsize_t(k);
+        }
+    }
+    return PyLong_FromLong(-1);
+}
+
+static PyObject *
+absorber_new(PyTypeObject *type, PyObject *args, PyObject *kwargs)
+{
+    if (kwargs != NULL && PyDict_GET_SIZE(kwargs) != 0) {
+        PyErr_SetString(PyExc_TypeError, "StateAbsorber takes positional arguments only");
+        return NULL;
+    }
+    if (!PyTuple_Check(args) || PyTuple_GET_SIZE(args) != 2 + ABSORB_ARRAYS) {
+        PyErr_Format(PyExc_TypeError, "StateAbsorber takes %d arguments (index, state_type, and %d arrays)",
+                     2 + ABSORB_ARRAYS, ABSORB_ARRAYS);
+        return NULL;
+    }
+    PyObject *index = PyTuple_GET_ITEM(args, 0), *state_type = PyTuple_GET_ITEM(args, 1);
+    if (!PyDict_Check(index) || !PyType_Check(state_type)) {
+        PyErr_SetString(PyExc_TypeError, "StateAbsorber: index must be a dict and state_type a class");
+        return NULL;
+    }
+    StateAbsorber *a = (StateAbsorber *)type->tp_alloc(type, 0);
+    if (a == NULL) {
+        return NULL;
+    }
+    a->vectorcall = absorber_call;
+    a->index = Py_NewRef(index);
+    a->state_type = Py_NewRef(state_type);
+    static const char *names[ABSORB_ARRAYS] = {"encoder", "motor_deg", "speed_dps", "iq_a", "temperature_c",
+                                               "last_reply_s", "q_deg", "qd_dps", "fresh", "counts", "direction",
+                                               "gear", "offset"};
+    Py_ssize_t n = -1;
+    for (int k = 0; k < ABSORB_ARRAYS; k++) {
+        PyObject *array = PyTuple_GET_ITEM(args, 2 + k);
+        a->arrays[k] = Py_NewRef(array);
+        Py_buffer *view = &a->views[k];
+        if (k == 0 || k == 8) {  /* the int64 encoders, the bool fresh marks */
+            int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE;
+            if (PyObject_GetBuffer(array, view, flags) < 0) {
+                PyErr_Clear();
+                PyErr_Format(PyExc_TypeError, "StateAbsorber: %s must be a C-contiguous, writable array", names[k]);
+                goto fail;
+            }
+            a->held++;
+            const char *format = view->format;
+            int fits = view->ndim == 1 && format != NULL
+                       && (k == 0 ? view->itemsize == 8 && (strcmp(format, "l") == 0 || strcmp(format, "q") == 0)
+                                  : view->itemsize == 1 && strcmp(format, "?") == 0);
+            if (!fits || (n >= 0 && view->len / view->itemsize != n)) {
+                PyErr_Format(PyExc_TypeError, "StateAbsorber: %s must be a one-dimensional %s array of the axes",
+                             names[k], k == 0 ? "int64" : "bool");
+                goto fail;
+            }
+            n = view->len / view->itemsize;
+        }
+        else {
+            if (take_array("StateAbsorber", array, view, k < ABSORB_WRITABLE, names[k], &n) < 0) {
+                goto fail;
+            }
+            a->held++;
+        }
+    }
+    a->n = n;
+    return (PyObject *)a;
+fail:
+    Py_DECREF(a);
+    return NULL;
+}
+
+static PyTypeObject StateAbsorberType = {
+    PyVarObject_HEAD_INIT(NULL, 0)
+    .tp_name = "motion._speedups.StateAbsorber",
+    .tp_doc = PyDoc_STR("StateAbsorber(index, state_type, encoder, motor_deg, speed_dps, iq_a, temperature_c, "
+                        "last_reply_s, q_deg, qd_dps, fresh, counts, direction, gear, offset): AxisStates.absorb's "
+                        "loop in C; call (replies, start, keep_fresh) -> -1 or the reply left to Python"),
+    .tp_basicsize = sizeof(StateAbsorber),
+    .tp_flags = Py_TPFLAGS_DEFAULT | Py_TPFLAGS_HAVE_GC | Py_TPFLAGS_HAVE_VECTORCALL,
+    .tp_new = absorber_new,
+    .tp_dealloc = absorber_dealloc,
+    .tp_traverse = absorber_traverse,
+    .tp_clear = absorber_clear,
+    .tp_call = PyVectorcall_Call,
+    .tp_vectorcall_offset = offsetof(StateAbsorber, vectorcall),
+};
+
 static PyMethodDef speedups_methods[] = {
     {"chase", (PyCFunction)(void (*)(void))chase, METH_FASTCALL,
      PyDoc_STR("chase(x, v, dt, target, cap, gain, accel, max_step): motion.control.tracking.chase in C, in place.")},
@@ -1471,12 +1791,21 @@ PyInit__speedups(void)
     /* What the Python side expects (motion.protocol.compiled.SPEEDUPS_ABI): a module built from an older source
        (an editable install not reinstalled) is then not used, rather than half used. Raise it with any change of what
        the module offers. */
-    if (PyModule_AddIntConstant(module, "ABI", 2) < 0) {
+    if (PyModule_AddIntConstant(module, "ABI", 3) < 0) {
         Py_DECREF(module);
         return NULL;
     }
-    PyTypeObject *types[] = {&SlotBuilderType, &CLayoutType, &CanRequestEncoderType, &CanReplyDecoderType};
-    const char *names[] = {"SlotBuilder", "CLayout", "CanRequestEncoder", "CanReplyDecoder"};
+    const char *fields[] = {"encoder", "speed_dps", "iq_a", "temperature_c"};
+    for (int k = 0; k < 4; k++) {
+        absorb_names[k] = PyUnicode_InternFromString(fields[k]);
+        if (absorb_names[k] == NULL) {
+            Py_DECREF(module);
+            return NULL;
+        }
+    }
+    PyTypeObject *types[] = {&SlotBuilderType, &CLayoutType, &CanRequestEncoderType, &CanReplyDecoderType,
+                             &StateAbsorberType};
+    const char *names[] = {"SlotBuilder", "CLayout", "CanRequestEncoder", "CanReplyDecoder", "StateAbsorber"};
     for (size_t i = 0; i < sizeof(types) / sizeof(types[0]); i++) {
         if (PyType_Ready(types[i]) < 0 || PyModule_AddObjectRef(module, names[i], (PyObject *)types[i]) < 0) {
             Py_DECREF(module);

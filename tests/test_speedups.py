@@ -15,8 +15,9 @@ import math
 import os
 import subprocess
 import sys
+import weakref
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pytest
@@ -26,8 +27,11 @@ from hypothesis import strategies as st
 from kinematics import dynamics as dynamics_module
 from motion import transmission as transmission_module
 from motion.config.schema import ControlMode
+from motion.control import axes as axes_module
 from motion.control import controller as controller_module
 from motion.control import tracking
+from motion.control.axes import AxisSpec, AxisStates
+from motion.control.family import FAMILIES
 from motion.control.tracking import chase, chase_work
 from motion.errors import EncodeError
 from motion.protocol import (
@@ -47,10 +51,11 @@ from motion.protocol import (
 from motion.protocol import compiled as compiled_module
 from motion.protocol.compiled import FALLBACK_ERRORS, PURE_PYTHON_ENV, CompiledLayout, compile_layout, frozen_builder
 from motion.protocol.messages import Message
+from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3 import messages as v3_messages  # noqa: F401  (the V3 family's message classes)
 from motion.trajectory.planner import State
 from motion.transmission import ArmTransmission, Transmission
-from motion.transport.base import Request
+from motion.transport.base import Reply, Request
 from tests.motion_rig import arm_config, emulated_arm
 from tests.test_codec_fastpath import CASES, ODD_VALUES, draw_message
 
@@ -720,9 +725,138 @@ def test_the_c_codec_refuses_tables_it_cannot_take() -> None:
         _speedups.CanRequestEncoder(not_layouts, {}, CanFrame, MultiMotorTorque, 0x280, 0x140, 1, 32, print)
 
 
+def _axes_pair(rng: np.random.Generator, n: int) -> tuple[AxisStates, AxisStates]:
+    """Two alike axis sets of ``n`` joints (random encoders, gears, directions, offsets): with the C loop, without."""
+    specs = [AxisSpec(f"j{i}", i + 1, encoder_bits=int(rng.choice([12, 14, 16, 18]))) for i in range(n)]
+    joints = [
+        _joint(
+            gear_ratio=float(rng.choice([1.0, 6.0, 9.0, 36.0, 101.0])),
+            direction=int(rng.choice([1, -1])),
+            zero_offset_deg=float(rng.normal(0, 50)),
+        )
+        for _ in range(n)
+    ]
+    pair = AxisStates(specs, ArmTransmission(joints)), AxisStates(specs, ArmTransmission(joints))
+    pair[1]._absorb_c = None
+    assert pair[0]._absorb_c is not None
+    start = rng.normal(0, 1000, n)
+    for axes in pair:
+        for i in range(n):
+            axes.initialise(i, float(start[i]), int(rng.integers(0, 65536)) if axes is pair[0] else 0)
+    for i in range(n):  # the same encoders in both
+        pair[1].initialise(i, float(start[i]), int(pair[0].encoder[i]))
+    return pair
+
+
+def _axes_arrays(axes: AxisStates) -> list[bytes]:
+    names = ("encoder", "motor_deg", "motor_speed_dps", "iq_a", "temperature_c", "last_reply_s", "q_deg", "qd_dps")
+    return [getattr(axes, name).tobytes() for name in (*names, "fresh")]
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_absorb_in_c_gives_the_python_loops_arrays_to_the_bit(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    other = Status1(Command.READ_STATUS_1, 30, 24.0, ErrorFlags.NONE)
+    for trial in range(120):
+        n = int(rng.integers(1, 13))
+        pair = _axes_pair(rng, n)
+        for _cycle in range(6):
+            replies: list[Reply] = []
+            for _ in range(int(rng.integers(0, 2 * n + 3))):
+                motor_id = int(rng.integers(1, n + 3))  # some of no axis
+                state = MotorState(
+                    Command.TORQUE,
+                    int(rng.integers(-20, 120)),
+                    float(rng.normal(0, 10)),
+                    int(rng.integers(-30000, 30000)),
+                    int(rng.integers(0, 65536)),  # any jump: wraps both ways
+                )
+                message = other if rng.random() < 0.1 else state
+                received = None if rng.random() < 0.1 else float(rng.uniform(0, 100))
+                replies.append(Reply(motor_id, state, message, received))
+            keep_fresh = bool(rng.random() < 0.3)
+            for axes in pair:
+                axes.absorb(replies, keep_fresh=keep_fresh)
+            assert _axes_arrays(pair[0]) == _axes_arrays(pair[1]), (seed, trial)
+
+
+def test_absorb_in_c_leaves_what_it_cannot_take_to_the_python_loop() -> None:
+    # Replies of odd types go to the Python loop, one by one, in their place among the others: the arrays end alike,
+    # and what the Python loop refuses (memoryview: an encoder not an int64) it refuses with C too, having taken the
+    # replies before it alike.
+    rng = np.random.default_rng(9)
+    axes, python = _axes_pair(rng, 3)
+    plain = MotorState(Command.TORQUE, 30, 1.5, 100, 123)
+    odd: Any = (31.5, 101.0)  # float temperature and speed, and an int current
+    numbers = MotorState(Command.TORQUE, odd[0], 2, odd[1], 200)
+    flag = MotorState(Command.TORQUE, True, 1.0, 10, 400)  # a bool: the Python loop's
+    replies = [Reply(1, plain, plain, 1.0), Reply(2, numbers, numbers, 2), Reply(3, numbers, numbers, 3.0)]
+    replies += [Reply(1, flag, flag, 5.0), Reply(3, plain, plain, 6.0)]
+    for states in (axes, python):
+        states.absorb(tuple(replies))
+        states.absorb(iter(replies[::-1]))
+    assert _axes_arrays(axes) == _axes_arrays(python)
+    float_encoder = MotorState(Command.TORQUE, 32, 1.0, 10, cast(Any, 300.0))
+    huge_encoder = MotorState(Command.TORQUE, 33, 1.0, 10, 2**70)
+    for refused, error in (
+        ([Reply(2, plain, plain, 7.0), Reply(1, float_encoder, float_encoder, 8.0)], TypeError),
+        ([Reply(3, plain, plain, 9.0), Reply(1, huge_encoder, huge_encoder, 10.0)], ValueError),
+        ([Reply(1, plain, plain, 11.0), (1, plain, 12.0)], ValueError),  # not a 4-tuple
+    ):
+        for states in (axes, python):
+            with pytest.raises(error):
+                states.absorb(refused)  # type: ignore[arg-type]
+        assert _axes_arrays(axes) == _axes_arrays(python)
+
+
+def test_the_c_absorber_is_used_only_for_what_it_doubles() -> None:
+    class Geared(Transmission):  # its own conversions: the Python loop calls them
+        pass
+
+    specs = [AxisSpec("a", 1)]
+    assert AxisStates(specs, ArmTransmission([_joint()]))._absorb_c is not None
+    assert AxisStates(specs, ArmTransmission([Geared(6.0, 1, 0.0, 0.1)]))._absorb_c is None
+    v3 = FAMILIES[ProtocolFamily.V3]
+    assert AxisStates(specs, ArmTransmission([_joint()]), v3)._absorb_c is None
+
+
+def test_the_c_absorber_refuses_arrays_it_cannot_hold_and_is_collected() -> None:
+    from motion import _speedups
+
+    n = 3
+    floats = [np.zeros(n) for _ in range(7)]
+    good = [np.zeros(n, np.int64), *floats, np.zeros(n, bool), *[np.ones(n) for _ in range(4)]]
+    _speedups.StateAbsorber({1: 0}, MotorState, *good)
+    for k, bad, message in (
+        (0, np.zeros(n), r"encoder must be a one-dimensional int64 array"),
+        (8, np.zeros(n), r"fresh must be a one-dimensional bool array"),
+        (3, np.zeros(n + 1), r"iq_a has 4 entries, the first array 3"),
+        (6, np.zeros(n)[::-1], r"q_deg must be a C-contiguous, writable float64 array"),
+        (12, np.zeros(n, np.int64), r"offset must be a one-dimensional float64 array"),
+    ):
+        arrays = list(good)
+        arrays[k] = bad
+        with pytest.raises((TypeError, ValueError), match=message):
+            _speedups.StateAbsorber({1: 0}, MotorState, *arrays)
+    with pytest.raises(TypeError, match=r"takes 15 arguments"):
+        _speedups.StateAbsorber({1: 0}, MotorState, *good[:-1])
+    absorber = _speedups.StateAbsorber({1: 7}, MotorState, *good)
+    state = MotorState(Command.TORQUE, 30, 1.5, 100, 123)
+    with pytest.raises(ValueError, match=r"axis index 7 out of range"):
+        absorber([Reply(1, state, state, 1.0)], 0, False)
+    with pytest.raises(TypeError, match=r"replies must be a list or a tuple"):
+        absorber(cast(Any, iter([])), 0, False)
+    # The arrays are held for the absorber's life: an axis set and its absorber are collected together.
+    axes = AxisStates([AxisSpec("a", 1)], ArmTransmission([_joint()]))
+    watched = weakref.ref(axes.q_deg)
+    del axes
+    gc.collect()
+    assert watched() is None
+
+
 def _without_c(monkeypatch: pytest.MonkeyPatch) -> None:
     """Every hot-path module on its Python path (as without the extension)."""
-    for module in (tracking, controller_module, transmission_module, dynamics_module):
+    for module in (tracking, controller_module, transmission_module, dynamics_module, axes_module):
         assert module._C is compiled_module.SPEEDUPS is not None
         monkeypatch.setattr(module, "_C", None)
     monkeypatch.setattr(tracking, "_C_CHASE", None)
