@@ -17,7 +17,8 @@
  * (handed over by motion.protocol.compiled.native_layout), and can_frame.encode_request / decode_reply on top of them;
  * anything unusual goes to the Python function they were given (see the codec section below).
  *
- * StateAbsorber, the loop of motion.control.axes.AxisStates.absorb (a cycle's replies into the axes' arrays).
+ * StateAbsorber, the loop of motion.control.axes.AxisStates.absorb (a cycle's replies into the axes' arrays), and
+ * stack_rows, the copy of a published snapshot's rows (motion.control.snapshot.frozen).
  *
  * chase, moved_beyond, torque_advance and torque_law, the C twins of the tracking model's numpy steps
  * (motion.control.tracking: the drives' position-loop model and the torque-mode PD model, stepped every cycle), and
@@ -1434,6 +1435,65 @@ done:
     return result;
 }
 
+/* stack_rows(out, rows): out[r, :] = rows[r] for a (k, n) float64 matrix and k one-dimensional arrays of n float64 or
+   bool (as 0.0 / 1.0): numpy's array(rows, dtype=float64) into out. */
+static PyObject *
+stack_rows(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
+{
+    (void)module;
+    if (nargs != 2) {
+        PyErr_Format(PyExc_TypeError, "stack_rows takes 2 positional arguments, got %zd", nargs);
+        return NULL;
+    }
+    Py_buffer out;
+    if (PyObject_GetBuffer(args[0], &out, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0) {
+        PyErr_SetString(PyExc_TypeError, "stack_rows: out must be a C-contiguous, writable float64 matrix");
+        return NULL;
+    }
+    PyObject *rows = args[1];
+    PyObject *result = NULL;
+    if (out.itemsize != sizeof(double) || out.format == NULL || strcmp(out.format, "d") != 0 || out.ndim != 2) {
+        PyErr_SetString(PyExc_TypeError, "stack_rows: out must be a two-dimensional float64 matrix");
+        goto done;
+    }
+    Py_ssize_t k = out.shape[0], n = out.shape[1];
+    if (!PyTuple_Check(rows) || PyTuple_GET_SIZE(rows) != k) {
+        PyErr_Format(PyExc_TypeError, "stack_rows: rows must be a tuple of %zd arrays", k);
+        goto done;
+    }
+    double *target = out.buf;
+    for (Py_ssize_t r = 0; r < k; r++) {
+        Py_buffer row;
+        if (PyObject_GetBuffer(PyTuple_GET_ITEM(rows, r), &row, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
+            PyErr_Format(PyExc_TypeError, "stack_rows: row %zd must be a C-contiguous array", r);
+            goto done;
+        }
+        int is_double = row.itemsize == sizeof(double) && row.format != NULL && strcmp(row.format, "d") == 0;
+        int is_bool = row.itemsize == 1 && row.format != NULL && strcmp(row.format, "?") == 0;
+        if ((!is_double && !is_bool) || row.ndim != 1 || row.len / row.itemsize != n) {
+            PyErr_Format(PyExc_TypeError, "stack_rows: row %zd must be a one-dimensional float64 or bool array of %zd "
+                         "entries", r, n);
+            PyBuffer_Release(&row);
+            goto done;
+        }
+        double *line = target + r * n;
+        if (is_double) {
+            memcpy(line, row.buf, (size_t)n * sizeof(double));
+        }
+        else {
+            const unsigned char *flags = row.buf;
+            for (Py_ssize_t i = 0; i < n; i++) {
+                line[i] = flags[i] ? 1.0 : 0.0;
+            }
+        }
+        PyBuffer_Release(&row);
+    }
+    result = Py_NewRef(Py_None);
+done:
+    PyBuffer_Release(&out);
+    return result;
+}
+
 /* ------------------------------------------------------------------------------------------- the axes' replies */
 
 /* StateAbsorber(index, state_type, encoder, motor_deg, speed_dps, iq_a, temperature_c, last_reply_s, q_deg, qd_dps,
@@ -1767,6 +1827,8 @@ static PyMethodDef speedups_methods[] = {
                "kd, v_law, lo, hi, mass_inv, mass, rad_per_deg, deg_per_rad): the torque model's command, in place.")},
     {"gather_scaled", (PyCFunction)(void (*)(void))gather_scaled, METH_FASTCALL,
      PyDoc_STR("gather_scaled(out, src, order, factor): out[i] = src[order[i]] * factor.")},
+    {"stack_rows", (PyCFunction)(void (*)(void))stack_rows, METH_FASTCALL,
+     PyDoc_STR("stack_rows(out, rows): out[r, :] = rows[r] (float64 or bool rows), numpy's array(rows) into out.")},
     {"torque_currents", (PyCFunction)(void (*)(void))torque_currents, METH_FASTCALL,
      PyDoc_STR("torque_currents(amps, torque, nm_per_a, raw_limit, limited, addend, raw_per_a, amps_num, amps_den): the "
                "limited torque currents, in place; None or the first joint whose current is not finite.")},
@@ -1791,7 +1853,7 @@ PyInit__speedups(void)
     /* What the Python side expects (motion.protocol.compiled.SPEEDUPS_ABI): a module built from an older source
        (an editable install not reinstalled) is then not used, rather than half used. Raise it with any change of what
        the module offers. */
-    if (PyModule_AddIntConstant(module, "ABI", 3) < 0) {
+    if (PyModule_AddIntConstant(module, "ABI", 4) < 0) {
         Py_DECREF(module);
         return NULL;
     }

@@ -29,6 +29,7 @@ from motion import transmission as transmission_module
 from motion.config.schema import ControlMode
 from motion.control import axes as axes_module
 from motion.control import controller as controller_module
+from motion.control import snapshot as snapshot_module
 from motion.control import tracking
 from motion.control.axes import AxisSpec, AxisStates
 from motion.control.family import FAMILIES
@@ -854,9 +855,33 @@ def test_the_c_absorber_refuses_arrays_it_cannot_hold_and_is_collected() -> None
     assert watched() is None
 
 
+def test_a_snapshots_rows_are_stacked_in_c_as_numpy_stacks_them(monkeypatch: pytest.MonkeyPatch) -> None:
+    from motion import _speedups
+
+    rng = np.random.default_rng(3)
+    rows = (rng.normal(0, 1, 5), np.array([True, False, True, True, False]), np.full(5, np.nan), -np.zeros(5))
+    for given_rows in (rows, list(rows), (*rows[:3], np.arange(5)), (np.zeros(0),) * 2):
+        stacked = snapshot_module.frozen(given_rows)
+        monkeypatch.setattr(snapshot_module, "_C", None)
+        expected = snapshot_module.frozen(given_rows)
+        monkeypatch.undo()
+        assert stacked.tobytes() == expected.tobytes() and stacked.shape == expected.shape
+        assert stacked.dtype == np.float64 and not stacked.flags.writeable
+    out = np.zeros((2, 3))
+    with pytest.raises(TypeError, match=r"row 1 must be a one-dimensional float64 or bool array of 3 entries"):
+        _speedups.stack_rows(out, (np.ones(3), np.ones(3, np.int64)))
+    with pytest.raises(TypeError, match=r"rows must be a tuple of 2 arrays"):
+        _speedups.stack_rows(out, (np.ones(3),))
+    with pytest.raises(TypeError, match=r"out must be a C-contiguous, writable float64 matrix"):
+        _speedups.stack_rows(np.zeros((3, 2)).T, (np.ones(3), np.ones(3)))
+    assert out.tolist() == [[1.0] * 3, [0.0] * 3]  # the copy stopped at the refused row (frozen then asks numpy)
+    with pytest.raises(ValueError, match=r"inhomogeneous"):
+        snapshot_module.frozen((np.ones(3), np.ones(2)))  # numpy's own refusal, as without the extension
+
+
 def _without_c(monkeypatch: pytest.MonkeyPatch) -> None:
     """Every hot-path module on its Python path (as without the extension)."""
-    for module in (tracking, controller_module, transmission_module, dynamics_module, axes_module):
+    for module in (tracking, controller_module, transmission_module, dynamics_module, axes_module, snapshot_module):
         assert module._C is compiled_module.SPEEDUPS is not None
         monkeypatch.setattr(module, "_C", None)
     monkeypatch.setattr(tracking, "_C_CHASE", None)

@@ -58,7 +58,7 @@ Decoder = Callable[[bytes], Message | None]
 T = TypeVar("T")
 
 #: The C extension's interface version this source expects (``ABI`` in ``motion/_speedups.c``).
-SPEEDUPS_ABI: Final = 3
+SPEEDUPS_ABI: Final = 4
 try:
     from motion import _speedups
 except ImportError:  # built without a C compiler (the extension is optional): the Python twins run
