@@ -1155,6 +1155,19 @@ take_matrix(const char *function, PyObject *obj, Py_buffer *view, const char *na
     return 0;
 }
 
+/* The ``count`` numbers args[0 .. count - 1] as doubles into out, or -1 with the error set. */
+static int
+take_doubles(PyObject *const *args, int count, double *out)
+{
+    for (int k = 0; k < count; k++) {
+        out[k] = PyFloat_AsDouble(args[k]);
+        if (out[k] == -1.0 && PyErr_Occurred()) {
+            return -1;
+        }
+    }
+    return 0;
+}
+
 /* torque_advance(x, v, x_law, v_law, expected_deg, expected_dps, lag, a, target, dt): ExpectedTracking.advance of
    the torque model with an inertia known: the law's state is the model's before the step (x_law = x, v_law = v);
    torque_step's step when dt > 0; the expectation is the state (expected_deg = x, expected_dps = v); lag = target - x.
@@ -1228,14 +1241,11 @@ torque_law(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
         mass = views[taken].buf;
         taken++;
     }
-    double rad_per_deg = PyFloat_AsDouble(args[LAW_ARRAYS + 2]);
-    if (rad_per_deg == -1.0 && PyErr_Occurred()) {
+    double factors[2];  /* rad_per_deg, deg_per_rad */
+    if (take_doubles(args + LAW_ARRAYS + 2, 2, factors) < 0) {
         goto done;
     }
-    double deg_per_rad = PyFloat_AsDouble(args[LAW_ARRAYS + 3]);
-    if (deg_per_rad == -1.0 && PyErr_Occurred()) {
-        goto done;
-    }
+    const double rad_per_deg = factors[0], deg_per_rad = factors[1];
     double *accel = views[0].buf, *tau = views[1].buf, *target = views[2].buf, *ref_v = views[3].buf;
     double *ref_a = views[4].buf;
     const double *reference_deg = views[5].buf, *reference_dps = views[6].buf, *reference_dps2 = views[7].buf;
@@ -1337,18 +1347,11 @@ torque_currents(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
         addend = views[taken].buf;
         taken++;
     }
-    double raw_per_a = PyFloat_AsDouble(args[CURRENT_ARRAYS + 2]);
-    if (raw_per_a == -1.0 && PyErr_Occurred()) {
+    double scales[3];  /* raw_per_a, amps_num, amps_den */
+    if (take_doubles(args + CURRENT_ARRAYS + 2, 3, scales) < 0) {
         goto done;
     }
-    double amps_num = PyFloat_AsDouble(args[CURRENT_ARRAYS + 3]);
-    if (amps_num == -1.0 && PyErr_Occurred()) {
-        goto done;
-    }
-    double amps_den = PyFloat_AsDouble(args[CURRENT_ARRAYS + 4]);
-    if (amps_den == -1.0 && PyErr_Occurred()) {
-        goto done;
-    }
+    const double raw_per_a = scales[0], amps_num = scales[1], amps_den = scales[2];
     double *amps = views[0].buf, *torque = views[1].buf;
     const double *nm_per_a = views[2].buf, *raw_limit = views[3].buf;
     unsigned char *limited = views[CURRENT_ARRAYS].buf;

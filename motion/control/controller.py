@@ -43,6 +43,7 @@ from motion.protocol import (
     WireProtocol,
 )
 from motion.protocol.compiled import SPEEDUPS, frozen_builder
+from motion.protocol.scales import iq_amps
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS
 from motion.trajectory import Follower, JointLimits, Path, Planner, State
 from motion.transmission import ArmTransmission, FloatArray
@@ -496,47 +497,62 @@ class Controller:
         return requests
 
     def _torque_requests(self, ref: State) -> list[Request]:
-        # PD plus the feed-forward, per joint: the same operations in the same order whichever way (one C call where
-        # the extension is built; Python floats otherwise: for a few joints a numpy call costs more than the
-        # arithmetic), so the torques are the same float64s.
-        axes, torque = self.axes, self.setpoints.torque_nm
-        in_c = False
+        # PD plus the feed-forward, per joint: the same operations in the same order whichever way (C calls on the
+        # arrays where the extension is built; Python floats otherwise: for a few joints a numpy call costs more than
+        # the arithmetic), so the torques are the same float64s.
+        axes = self.axes
         if _C is not None:
+            torque = self.setpoints.torque_nm
             try:  # (a try costs nothing in the cycle; contextlib.suppress's object would)
                 _C.torque_pd(torque, self.kp, ref.position, axes.q_deg, self.kd, ref.velocity, axes.qd_dps)
-                in_c = True
             except (TypeError, ValueError):  # (a reference not of float64 arrays: Python floats)
-                pass
-        if not in_c:
-            torque[:] = [
-                kp * (q_ref - q) + kd * (qd_ref - qd)
-                for kp, kd, q_ref, q, qd_ref, qd in zip(
-                    self.kp.tolist(),
-                    self.kd.tolist(),
-                    ref.position.tolist(),
-                    axes.q_deg.tolist(),
-                    ref.velocity.tolist(),
-                    axes.qd_dps.tolist(),
-                    strict=True,
-                )
-            ]
-        feedforward = None
+                torque[:] = self._pd_torques(ref)
+            feedforward = None
+            if self.feedforward is not None:
+                feedforward = self.feedforward(axes.q_deg, ref.velocity, ref.acceleration)
+                feedforward = np.asarray(feedforward, dtype=np.float64)
+            return self._torque_frames(feedforward)
+        torques = self._pd_torques(ref)
         if self.feedforward is not None:
-            feedforward = np.asarray(self.feedforward(axes.q_deg, ref.velocity, ref.acceleration), dtype=np.float64)
-        return self._torque_frames(feedforward)
+            feedforward_list = self.feedforward(axes.q_deg, ref.velocity, ref.acceleration).tolist()
+            torques = [tau + ff for tau, ff in zip(torques, feedforward_list, strict=True)]
+        return self.torque_frames(torques)
+
+    def _pd_torques(self, ref: State) -> list[float]:
+        axes = self.axes
+        return [
+            kp * (q_ref - q) + kd * (qd_ref - qd)
+            for kp, kd, q_ref, q, qd_ref, qd in zip(
+                self.kp.tolist(),
+                self.kd.tolist(),
+                ref.position.tolist(),
+                axes.q_deg.tolist(),
+                ref.velocity.tolist(),
+                axes.qd_dps.tolist(),
+                strict=True,
+            )
+        ]
 
     def torque_frames(self, torques: Sequence[float]) -> list[Request]:
         """The torque-current requests (0xA1, and 0x280 where it applies) for joint torques (N·m, joint order),
         limited per joint; records the torque and the limiting."""
-        self.setpoints.torque_nm[:] = torques
-        return self._torque_frames(None)
+        record = self.setpoints
+        record.torque_nm[:] = torques
+        if _C is not None:
+            return self._torque_frames(None)
+        raw, limited = self.transmission.iq_raw_limited_list(torques)
+        record.limited[:] = limited
+        return self._current_requests([iq_amps(r) for r in raw])
 
     def _torque_frames(self, addend: FloatArray | None) -> list[Request]:
-        """:meth:`torque_frames` of the recorded torque (plus ``addend``, recorded too)."""
+        """:meth:`torque_frames` of the recorded torque plus ``addend`` (recorded too), on the arrays."""
         record, amps = self.setpoints, self._amps
         self.transmission.iq_amps_limited_into(record.torque_nm, amps, record.limited, addend)
-        currents, ids = amps.tolist(), self.ids
-        new_request, new_torque = _NEW_REQUEST, _NEW_TORQUE
+        return self._current_requests(amps.tolist())
+
+    def _current_requests(self, currents: list[float]) -> list[Request]:
+        """0xA1 requests of the joints on their own, and the 0x280 frame of motors 1..4 where it applies."""
+        ids, new_request, new_torque = self.ids, _NEW_REQUEST, _NEW_TORQUE
         requests = [new_request(ids[i], new_torque(currents[i])) for i in self._single]
         if self._multi:
             frame = _NEW_MULTI_TORQUE(*[currents[i] for i in self._multi_joints])
