@@ -1663,6 +1663,34 @@ done:
     return result;
 }
 
+/* One Reply tuple, in the Python loop's order of checks: its motor's axis (none: skipped), a time (None: skipped), a
+   motion reply (anything else: skipped), then absorb_state. 1 taken or skipped, 0 left to the Python loop, -1 error. */
+static int
+absorb_reply(StateAbsorber *a, PyObject *reply)
+{
+    PyObject *axis = PyDict_GetItemWithError(a->index, PyTuple_GET_ITEM(reply, 0));
+    if (axis == NULL) {
+        return PyErr_Occurred() ? -1 : 1;
+    }
+    Py_ssize_t i = PyLong_AsSsize_t(axis);
+    if (i == -1 && PyErr_Occurred()) {
+        return -1;
+    }
+    if (i < 0 || i >= a->n) {
+        PyErr_Format(PyExc_ValueError, "StateAbsorber: axis index %zd out of range", i);
+        return -1;
+    }
+    PyObject *state = PyTuple_GET_ITEM(reply, 2), *received = PyTuple_GET_ITEM(reply, 3);
+    if (received == Py_None) {
+        return 1;
+    }
+    int is_state = PyObject_IsInstance(state, a->state_type);
+    if (is_state <= 0) {
+        return is_state < 0 ? -1 : 1;
+    }
+    return absorb_state(a, i, state, received);
+}
+
 static PyObject *
 absorber_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwnames)
 {
@@ -1697,33 +1725,9 @@ absorber_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kw
         if (!PyTuple_Check(reply) || PyTuple_GET_SIZE(reply) != 4) {
             return PyLong_FromSsize_t(k);
         }
-        PyObject *state = PyTuple_GET_ITEM(reply, 2), *received = PyTuple_GET_ITEM(reply, 3);
-        if (received == Py_None) {
-            continue;
-        }
-        PyObject *axis = PyDict_GetItemWithError(a->index, PyTuple_GET_ITEM(reply, 0));
-        if (axis == NULL) {
-            if (PyErr_Occurred()) {
-                return NULL;
-            }
-            continue;
-        }
-        int is_state = PyObject_IsInstance(state, a->state_type);
-        if (is_state < 0) {
-            return NULL;
-        }
-        if (!is_state) {
-            continue;
-        }
-        Py_ssize_t i = PyLong_AsSsize_t(axis);
-        if (i == -1 && PyErr_Occurred()) {
-            return NULL;
-        }
-        if (i < 0 || i >= a->n) {
-            PyErr_Format(PyExc_ValueError, "StateAbsorber: axis index %zd out of range", i);
-            return NULL;
-        }
-        int taken = absorb_state(a, i, state, received);
+        Py_INCREF(reply);  /* (held while Python code may run: a property, an __instancecheck__) */
+        int taken = absorb_reply(a, reply);
+        Py_DECREF(reply);
         if (taken < 0) {
             return NULL;
         }
