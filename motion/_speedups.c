@@ -1373,7 +1373,7 @@ torque_currents(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
             raw = raw_limit[i];
         }
         else if (raw < -raw_limit[i]) {
-            raw = -raw_limit[i];
+            raw = 0.0 - raw_limit[i];  /* (not -raw_limit: a limit of 0 would give -0.0, Python's int -0 is 0) */
         }
         else {
             over = 0;

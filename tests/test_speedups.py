@@ -477,6 +477,11 @@ def test_the_torque_currents_in_c_are_the_python_ones_to_the_bit(seed: int) -> N
             abs(t / k * 62.5 % 1.0 - 0.5) < 1e-9 for t, k in zip(expected_torque, arm._nm_per_a, strict=True)
         )
     assert seen_limited > 20 and seen_ties > 20  # the limits and the half-way rounding were exercised
+    tiny = ArmTransmission([_joint(current_limit_a=0.01)] * 2)  # a raw limit of 0: the limited current is 0.0, not -0.0
+    amps, flags = np.full(2, 5.0), np.zeros(2, bool)
+    terms = (tiny._nm_per_a, tiny._raw_limit)
+    assert _speedups.torque_currents(amps, np.array([-1.0, 1.0]), *terms, flags, None, 62.5, 32, 2000) is None
+    assert amps.tobytes() == np.zeros(2).tobytes() and flags.all()
     arm = ArmTransmission([_joint(), _joint()])
     amps, flags = np.full(2, 5.0), np.zeros(2, bool)
     assert (
