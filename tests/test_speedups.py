@@ -433,7 +433,6 @@ def test_the_torque_model_in_c_steps_as_numpy_does(seed: int, monkeypatch: pytes
             assert _same_bits(c_model._accel_dps2, accel), (seed, trial, step)
             np.testing.assert_allclose(tau, models[1]._tau, rtol=1e-12, atol=1e-12)
             np.testing.assert_allclose(c_model._accel_dps2, models[1]._accel_dps2, rtol=1e-9, atol=1e-9)
-            models[1].__dict__  # noqa: B018 - (a slotless object: the model's arrays are copied below)
             for name in ("_tau", "_accel_dps2"):  # the next step starts both from the same state
                 np.copyto(getattr(models[1], name), getattr(c_model, name))
 
