@@ -81,21 +81,22 @@ builder_call(PyObject *self, PyObject *const *args, size_t nargsf, PyObject *kwn
     return instance;
 }
 
+/* The object references each type holds, listed once for its traverse and its clear (APPLY: Py_VISIT or Py_CLEAR). */
+#define BUILDER_REFERENCES(APPLY, b) \
+    APPLY((b)->cls);                 \
+    APPLY((b)->names);
+
 static int
 builder_traverse(PyObject *self, visitproc visit, void *arg)
 {
-    SlotBuilder *b = (SlotBuilder *)self;
-    Py_VISIT(b->cls);
-    Py_VISIT(b->names);
+    BUILDER_REFERENCES(Py_VISIT, (SlotBuilder *)self)
     return 0;
 }
 
 static int
 builder_clear(PyObject *self)
 {
-    SlotBuilder *b = (SlotBuilder *)self;
-    Py_CLEAR(b->cls);
-    Py_CLEAR(b->names);
+    BUILDER_REFERENCES(Py_CLEAR, (SlotBuilder *)self)
     return 0;
 }
 
@@ -226,22 +227,46 @@ np_maximum(double a, double b)
     return (a >= b || isnan(a)) ? a : b;
 }
 
-/* A C-contiguous float64 buffer of n entries (n < 0: take its length), or -1 with the error set. */
+/* What a one-dimensional buffer holds, by its struct format: float64, int64 (numpy's intp on LP64 and LLP64
+   platforms) or bool. */
+typedef enum { KIND_FLOAT64, KIND_INT64, KIND_BOOL } BufferKind;
+
+static const char *const kind_names[] = {"float64", "int64", "bool"};
+
 static int
-take_array(const char *function, PyObject *obj, Py_buffer *view, int writable, const char *name, Py_ssize_t *n)
+holds(const Py_buffer *view, BufferKind kind)
+{
+    const char *format = view->format;
+    if (format == NULL || view->ndim != 1) {
+        return 0;
+    }
+    switch (kind) {
+    case KIND_FLOAT64:
+        return view->itemsize == 8 && strcmp(format, "d") == 0;
+    case KIND_INT64:
+        return view->itemsize == 8 && (strcmp(format, "l") == 0 || strcmp(format, "q") == 0);
+    default:
+        return view->itemsize == 1 && strcmp(format, "?") == 0;
+    }
+}
+
+/* A C-contiguous one-dimensional buffer of ``kind`` and n entries (n < 0: take its length), or -1 with the error set. */
+static int
+take_buffer(const char *function, PyObject *obj, Py_buffer *view, int writable, BufferKind kind, const char *name,
+            Py_ssize_t *n)
 {
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
     if (PyObject_GetBuffer(obj, view, flags) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: %s must be a C-contiguous%s float64 array", function, name,
-                     writable ? ", writable" : "");
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a C-contiguous%s %s array", function, name,
+                     writable ? ", writable" : "", kind_names[kind]);
         return -1;
     }
-    if (view->itemsize != sizeof(double) || view->format == NULL || strcmp(view->format, "d") != 0 || view->ndim != 1) {
-        PyErr_Format(PyExc_TypeError, "%s: %s must be a one-dimensional float64 array", function, name);
+    if (!holds(view, kind)) {
+        PyErr_Format(PyExc_TypeError, "%s: %s must be a one-dimensional %s array", function, name, kind_names[kind]);
         PyBuffer_Release(view);
         return -1;
     }
-    Py_ssize_t length = view->len / (Py_ssize_t)sizeof(double);
+    Py_ssize_t length = view->len / view->itemsize;
     if (*n >= 0 && length != *n) {
         PyErr_Format(PyExc_ValueError, "%s: %s has %zd entries, the first array %zd", function, name, length, *n);
         PyBuffer_Release(view);
@@ -249,6 +274,13 @@ take_array(const char *function, PyObject *obj, Py_buffer *view, int writable, c
     }
     *n = length;
     return 0;
+}
+
+/* take_buffer of a float64 array. */
+static int
+take_array(const char *function, PyObject *obj, Py_buffer *view, int writable, const char *name, Py_ssize_t *n)
+{
+    return take_buffer(function, obj, view, writable, KIND_FLOAT64, name, n);
 }
 
 /* The ``count`` float64 arrays of one length first among a call's ``nargs`` arguments (``expected`` of them; see
@@ -388,35 +420,28 @@ typedef struct {
 
 static PyTypeObject CLayoutType;
 
+#define CLAYOUT_REFERENCES(APPLY, L)                   \
+    for (Py_ssize_t i = 0; i < (L)->nfields; i++) {    \
+        APPLY((L)->fields[i].name);                    \
+        APPLY((L)->fields[i].enum_cls);                \
+        APPLY((L)->fields[i].members);                 \
+    }                                                  \
+    APPLY((L)->uncarried);                             \
+    APPLY((L)->builder);                               \
+    APPLY((L)->constants);                             \
+    APPLY((L)->value_key);
+
 static int
 clayout_traverse(PyObject *self, visitproc visit, void *arg)
 {
-    CLayout *L = (CLayout *)self;
-    for (Py_ssize_t i = 0; i < L->nfields; i++) {
-        Py_VISIT(L->fields[i].name);
-        Py_VISIT(L->fields[i].enum_cls);
-        Py_VISIT(L->fields[i].members);
-    }
-    Py_VISIT(L->uncarried);
-    Py_VISIT(L->builder);
-    Py_VISIT(L->constants);
-    Py_VISIT(L->value_key);
+    CLAYOUT_REFERENCES(Py_VISIT, (CLayout *)self)
     return 0;
 }
 
 static int
 clayout_clear(PyObject *self)
 {
-    CLayout *L = (CLayout *)self;
-    for (Py_ssize_t i = 0; i < L->nfields; i++) {
-        Py_CLEAR(L->fields[i].name);
-        Py_CLEAR(L->fields[i].enum_cls);
-        Py_CLEAR(L->fields[i].members);
-    }
-    Py_CLEAR(L->uncarried);
-    Py_CLEAR(L->builder);
-    Py_CLEAR(L->constants);
-    Py_CLEAR(L->value_key);
+    CLAYOUT_REFERENCES(Py_CLEAR, (CLayout *)self)
     return 0;
 }
 
@@ -786,31 +811,26 @@ typedef struct {
     long id_base, id_min, id_max, special_id;
 } CanCodec;
 
+#define CANCODEC_REFERENCES(APPLY, c) \
+    APPLY((c)->layouts);              \
+    APPLY((c)->shared);               \
+    APPLY((c)->builder);              \
+    APPLY((c)->special);              \
+    APPLY((c)->fallback);             \
+    APPLY((c)->command_key);          \
+    APPLY((c)->value_key);
+
 static int
 cancodec_traverse(PyObject *self, visitproc visit, void *arg)
 {
-    CanCodec *c = (CanCodec *)self;
-    Py_VISIT(c->layouts);
-    Py_VISIT(c->shared);
-    Py_VISIT(c->builder);
-    Py_VISIT(c->special);
-    Py_VISIT(c->fallback);
-    Py_VISIT(c->command_key);
-    Py_VISIT(c->value_key);
+    CANCODEC_REFERENCES(Py_VISIT, (CanCodec *)self)
     return 0;
 }
 
 static int
 cancodec_clear(PyObject *self)
 {
-    CanCodec *c = (CanCodec *)self;
-    Py_CLEAR(c->layouts);
-    Py_CLEAR(c->shared);
-    Py_CLEAR(c->builder);
-    Py_CLEAR(c->special);
-    Py_CLEAR(c->fallback);
-    Py_CLEAR(c->command_key);
-    Py_CLEAR(c->value_key);
+    CANCODEC_REFERENCES(Py_CLEAR, (CanCodec *)self)
     return 0;
 }
 
@@ -1285,23 +1305,6 @@ done:
     return result;
 }
 
-/* A bool (numpy "?") buffer of n entries, writable, or -1 with the error set. */
-static int
-take_flags(const char *function, PyObject *obj, Py_buffer *view, const char *name, Py_ssize_t n)
-{
-    if (PyObject_GetBuffer(obj, view, PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE) < 0) {
-        PyErr_Format(PyExc_TypeError, "%s: %s must be a C-contiguous, writable bool array", function, name);
-        return -1;
-    }
-    if (view->itemsize != 1 || view->format == NULL || strcmp(view->format, "?") != 0 || view->ndim != 1
-        || view->len != n) {
-        PyErr_Format(PyExc_TypeError, "%s: %s must be a one-dimensional bool array of %zd entries", function, name, n);
-        PyBuffer_Release(view);
-        return -1;
-    }
-    return 0;
-}
-
 /* Python's round() of a float (half to even) as a float: CPython's own steps, whatever the rounding mode, and a
    zero without a sign (round() gives the int 0; C's round(-0.3) gives -0.0, which + 0.0 makes 0.0). */
 static inline double
@@ -1334,13 +1337,13 @@ torque_currents(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
     }
     int taken = CURRENT_ARRAYS;
     PyObject *result = NULL;
-    if (take_flags("torque_currents", args[CURRENT_ARRAYS], &views[taken], "limited", n) < 0) {
+    Py_ssize_t m = n;
+    if (take_buffer("torque_currents", args[CURRENT_ARRAYS], &views[taken], 1, KIND_BOOL, "limited", &m) < 0) {
         goto done;
     }
     taken++;
     const double *addend = NULL;
     if (args[CURRENT_ARRAYS + 1] != Py_None) {
-        Py_ssize_t m = n;
         if (take_array("torque_currents", args[CURRENT_ARRAYS + 1], &views[taken], 0, "addend", &m) < 0) {
             goto done;
         }
@@ -1400,16 +1403,10 @@ gather_scaled(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
         return NULL;
     }
     PyObject *result = NULL;
-    if (PyObject_GetBuffer(args[2], &views[2], PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) < 0) {
-        PyErr_SetString(PyExc_TypeError, "gather_scaled: order must be a C-contiguous int64 array");
+    Py_ssize_t m = n;
+    if (take_buffer("gather_scaled", args[2], &views[2], 0, KIND_INT64, "order", &m) < 0) {
         release_arrays(views, 2);
         return NULL;
-    }
-    const char *format = views[2].format;
-    if (views[2].itemsize != 8 || views[2].ndim != 1 || format == NULL
-        || (strcmp(format, "l") != 0 && strcmp(format, "q") != 0) || views[2].len != n * 8) {
-        PyErr_Format(PyExc_TypeError, "gather_scaled: order must be a one-dimensional int64 array of %zd entries", n);
-        goto done;
     }
     double factor = PyFloat_AsDouble(args[3]);
     if (factor == -1.0 && PyErr_Occurred()) {
@@ -1471,9 +1468,8 @@ stack_rows(PyObject *module, PyObject *const *args, Py_ssize_t nargs)
             PyErr_Format(PyExc_TypeError, "stack_rows: row %zd must be a C-contiguous array", r);
             goto done;
         }
-        int is_double = row.itemsize == sizeof(double) && row.format != NULL && strcmp(row.format, "d") == 0;
-        int is_bool = row.itemsize == 1 && row.format != NULL && strcmp(row.format, "?") == 0;
-        if ((!is_double && !is_bool) || row.ndim != 1 || row.len / row.itemsize != n) {
+        int is_double = holds(&row, KIND_FLOAT64);
+        if ((!is_double && !holds(&row, KIND_BOOL)) || row.len / row.itemsize != n) {
             PyErr_Format(PyExc_TypeError, "stack_rows: row %zd must be a one-dimensional float64 or bool array of %zd "
                          "entries", r, n);
             PyBuffer_Release(&row);
@@ -1535,28 +1531,25 @@ absorber_release(StateAbsorber *a)
     a->held = 0;
 }
 
+#define ABSORBER_REFERENCES(APPLY, a)           \
+    APPLY((a)->index);                          \
+    APPLY((a)->state_type);                     \
+    for (int k = 0; k < ABSORB_ARRAYS; k++) {   \
+        APPLY((a)->arrays[k]);                  \
+    }
+
 static int
 absorber_traverse(PyObject *self, visitproc visit, void *arg)
 {
-    StateAbsorber *a = (StateAbsorber *)self;
-    Py_VISIT(a->index);
-    Py_VISIT(a->state_type);
-    for (int i = 0; i < ABSORB_ARRAYS; i++) {
-        Py_VISIT(a->arrays[i]);
-    }
+    ABSORBER_REFERENCES(Py_VISIT, (StateAbsorber *)self)
     return 0;
 }
 
 static int
 absorber_clear(PyObject *self)
 {
-    StateAbsorber *a = (StateAbsorber *)self;
-    absorber_release(a);
-    Py_CLEAR(a->index);
-    Py_CLEAR(a->state_type);
-    for (int i = 0; i < ABSORB_ARRAYS; i++) {
-        Py_CLEAR(a->arrays[i]);
-    }
+    absorber_release((StateAbsorber *)self);  /* (the buffers before the arrays they belong to) */
+    ABSORBER_REFERENCES(Py_CLEAR, (StateAbsorber *)self)
     return 0;
 }
 
@@ -1770,31 +1763,11 @@ absorber_new(PyTypeObject *type, PyObject *args, PyObject *kwargs)
         PyObject *array = PyTuple_GET_ITEM(args, 2 + k);
         a->arrays[k] = Py_NewRef(array);
         Py_buffer *view = &a->views[k];
-        if (k == 0 || k == 8) {  /* the int64 encoders, the bool fresh marks */
-            int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | PyBUF_WRITABLE;
-            if (PyObject_GetBuffer(array, view, flags) < 0) {
-                PyErr_Clear();
-                PyErr_Format(PyExc_TypeError, "StateAbsorber: %s must be a C-contiguous, writable array", names[k]);
-                goto fail;
-            }
-            a->held++;
-            const char *format = view->format;
-            int fits = view->ndim == 1 && format != NULL
-                       && (k == 0 ? view->itemsize == 8 && (strcmp(format, "l") == 0 || strcmp(format, "q") == 0)
-                                  : view->itemsize == 1 && strcmp(format, "?") == 0);
-            if (!fits || (n >= 0 && view->len / view->itemsize != n)) {
-                PyErr_Format(PyExc_TypeError, "StateAbsorber: %s must be a one-dimensional %s array of the axes",
-                             names[k], k == 0 ? "int64" : "bool");
-                goto fail;
-            }
-            n = view->len / view->itemsize;
+        BufferKind kind = k == 0 ? KIND_INT64 : k == 8 ? KIND_BOOL : KIND_FLOAT64;  /* encoders, fresh marks */
+        if (take_buffer("StateAbsorber", array, view, k < ABSORB_WRITABLE, kind, names[k], &n) < 0) {
+            goto fail;
         }
-        else {
-            if (take_array("StateAbsorber", array, view, k < ABSORB_WRITABLE, names[k], &n) < 0) {
-                goto fail;
-            }
-            a->held++;
-        }
+        a->held++;
     }
     a->n = n;
     return (PyObject *)a;

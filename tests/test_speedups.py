@@ -338,13 +338,17 @@ def test_the_torque_mode_steps_in_c_refuse_a_wrong_call_and_change_nothing_then(
         c.torque_law(
             x, *[three.copy() for _ in range(9)], np.ones(3, np.int64), three, three, three, np.eye(3), None, 1, 1
         )
-    with pytest.raises(TypeError, match=r"torque_currents: limited must be a one-dimensional bool array of 3 entries"):
+    with pytest.raises(ValueError, match=r"torque_currents: limited has 2 entries, the first array 3"):
         c.torque_currents(x, three.copy(), three, three, np.zeros(2, bool), None, 1.0, 1.0, 1.0)
     with pytest.raises(ValueError, match=r"torque_currents: addend has 2 entries, the first array 3"):
         c.torque_currents(x, three.copy(), three, three, np.zeros(3, bool), np.ones(2), 1.0, 1.0, 1.0)
     with pytest.raises(ValueError, match=r"gather_scaled: order\[1\] = 3 is not an index of src"):
         c.gather_scaled(x, three, np.array([0, 3, 1]), 1.0)
-    with pytest.raises(TypeError, match=r"gather_scaled: order must be a one-dimensional int64 array of 3 entries"):
+    with pytest.raises(TypeError, match=r"torque_currents: limited must be a one-dimensional bool array"):
+        c.torque_currents(x, three.copy(), three, three, np.zeros(3), None, 1.0, 1.0, 1.0)
+    with pytest.raises(ValueError, match=r"gather_scaled: order has 2 entries, the first array 3"):
+        c.gather_scaled(x, three, np.arange(2), 1.0)
+    with pytest.raises(TypeError, match=r"gather_scaled: order must be a one-dimensional int64 array"):
         c.gather_scaled(x, three, np.array([0, 1, 2], dtype=np.int32), 1.0)
     with pytest.raises(ValueError, match=r"gather_scaled: out must not be src"):
         c.gather_scaled(x, x, np.arange(3), 1.0)

@@ -96,15 +96,13 @@ def frozen_builder(cls: type[T], *, accelerated: bool = ACCELERATED) -> Callable
     """
     if hasattr(cls, "__post_init__") or not hasattr(cls, "__slots__") or not dataclasses.is_dataclass(cls):
         return cls
-    fields = dataclasses.fields(cls)
+    fields = [f.name for f in dataclasses.fields(cls)]
     if accelerated and SlotBuilder is not None:
-        return SlotBuilder(cls, tuple(f.name for f in fields))
-    env: dict[str, Any] = {"new": object.__new__, "C": cls}
+        return SlotBuilder(cls, tuple(fields))
+    env: dict[str, Any] = {}
     names = [f"a{i}" for i in range(len(fields))]
-    for i, fld in enumerate(fields):
-        env[f"S{i}"] = cls.__dict__[fld.name].__set__
-    sets = "; ".join(f"S{i}(o, {name})" for i, name in enumerate(names))
-    source = f"def build({', '.join(names)}):\n    o = new(C); {sets}; return o"
+    body = _slot_sets(cls, env)(dict(zip(fields, names, strict=True)))
+    source = f"def build({', '.join(names)}):\n    {body}"
     namespace: dict[str, Any] = {}
     exec(compile(source, f"<build {cls.__name__}>", "exec"), env, namespace)
     builder: Callable[..., T] = namespace["build"]
@@ -253,18 +251,28 @@ def _constructor(cls: type[Message], names: list[str], env: dict[str, Any]) -> C
             return f"return B({', '.join(given[n] for n in fields)})"
 
         return build_accelerated
-    env["new"] = object.__new__
-    env["C"] = cls
-    setters = {name: f"S{i}" for i, name in enumerate(fields)}
-    for name in fields:
-        env[setters[name]] = cls.__dict__[name].__set__
+    sets = _slot_sets(cls, env)
 
     def build(values: list[str]) -> str:
-        given = dict(zip(names, values, strict=True)) | defaults
-        sets = "; ".join(f"{setters[n]}(o, {given[n]})" for n in given)
-        return f"o = new(C); {sets}; return o"
+        return sets(dict(zip(names, values, strict=True)) | defaults)
 
     return build
+
+
+def _slot_sets(cls: type, env: dict[str, Any]) -> Callable[[Mapping[str, str]], str]:
+    """The pure-Python way to build ``cls`` without ``__init__``: ``object.__new__`` and one slot descriptor set per
+    field (put into ``env``), as source text from an expression per field name."""
+    env["new"] = object.__new__
+    env["C"] = cls
+    setters = {fld.name: f"S{i}" for i, fld in enumerate(dataclasses.fields(cls))}
+    for name, setter in setters.items():
+        env[setter] = cls.__dict__[name].__set__
+
+    def source(given: Mapping[str, str]) -> str:
+        sets = "; ".join(f"{setters[name]}(o, {expression})" for name, expression in given.items())
+        return f"o = new(C); {sets}; return o"
+
+    return source
 
 
 def _decoder(
