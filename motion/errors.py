@@ -97,6 +97,9 @@ class FaultKind(StrEnum):
     NO_REPLY = "no_reply"  #: too many consecutive missing replies, or too long without a good one
     CORRUPT_FRAMES = "corrupt_frames"  #: too many corrupt frames from a drive within a second
     OVERRUN = "overrun"  #: too many control cycles in a row over their period
+    #: a fault the hold is for persisted through the hold (a blocked joint's following error, a current held at its
+    #: limit): the drives' own halt instead
+    HOLD_FAILED = "hold_failed"
     # failures of the host side
     TRANSPORT = "transport"  #: the bus or port failed
     EXCEPTION = "exception"  #: an exception in the control cycle (a bug: the arm halts rather than go on)
@@ -137,6 +140,7 @@ class MotionFault(MotionError):
         time_s: controller time of the detection, in seconds.
         joints: every joint the fault concerns (a collision may be isolated to more than one); ``(joint,)`` by
             default.
+        detail: what was seen, in words.
     """
 
     def __init__(
@@ -156,6 +160,7 @@ class MotionFault(MotionError):
         self.value = value
         self.threshold = threshold
         self.time_s = time_s
+        self.detail = detail
         parts: Sequence[str] = [
             str(self.kind),
             f"joint={joint}" if joint is not None else "",

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 
 from motion.control.family import DriveFamily
 from motion.errors import ConfigError, TransportError
@@ -114,13 +114,18 @@ class DriveSetup:
             self._ask(self.brake_requests(CommandV3.RELEASE_BRAKE), deadline_s, "brake release (0x77)")
             self.brakes_locked = False
 
-    def restore(self, deadline_s: float) -> None:
+    def restore(self, deadline_s: float, *, lock: Collection[int] | None = None) -> None:
         """Lock the brakes, write back the planning accelerations, turn the protection off; best effort (a drive
         that does not answer is logged: the bus is closing). Once: a second call (the supervisor's close, then the
-        bus's) sends nothing, and a later :meth:`apply` reads what this one wrote back."""
+        bus's) sends nothing, and a later :meth:`apply` reads what this one wrote back.
+
+        Args:
+            deadline_s: when the drives' answers are due.
+            lock: the braked joints whose brakes lock (those seen at rest after the halt); None: every one.
+        """
         if not self.applied and self.brakes_locked:
             return
-        requests = self.brake_requests(CommandV3.LOCK_BRAKE) if self.braked_ids else []
+        requests = [r for r in self.brake_requests(CommandV3.LOCK_BRAKE) if lock is None or r.motor_id in lock]
         requests += [
             Request(motor_id, PlanningAcceleration(CommandV3.WRITE_ACCELERATION, AccelerationIndex(index), value))
             for (motor_id, index), value in self.saved_accelerations.items()

@@ -23,7 +23,9 @@ process exit send 0x81 to every axis before the bus is released.
 from __future__ import annotations
 
 import atexit
+import collections
 import logging
+import math
 import threading
 import weakref
 from collections.abc import Callable, Sequence
@@ -31,13 +33,15 @@ from dataclasses import dataclass
 from enum import StrEnum
 from typing import Final
 
-from motion.config.schema import HaltPolicy
+import numpy as np
+
+from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller, Feedforward
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
-from motion.control.family import BARE_TYPES, STATE_TYPES, STATUS_TYPES
+from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command, Message
-from motion.protocol.v3.messages import CommandV3
+from motion.safety.halted import BRAKE_REST_DPS, REST_READINGS, HaltGuard
 from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
 from motion.trajectory import State
@@ -52,8 +56,17 @@ _HALT_WINDOW_S = 0.002
 _ARMING_SLACK_S = 0.25
 # How long the drives' settings at start and end may take (a few exchanges), s.
 _SETUP_WINDOW_S = 0.2
-#: A braked joint at rest after a halt (its brake then locks), joint deg/s.
-BRAKE_REST_DPS = 1.0
+#: How long a close waits for the braked joints to come to rest before it locks their brakes, s.
+_BRAKE_SETTLE_S = 1.0
+#: A following error seen in this many consecutive cycles of a hold (whose ramp starts from the measured state, so
+#: that a joint that follows has none) escalates to the drives' own halt: a blocked joint is never pushed for ever.
+HOLD_ESCALATION_CYCLES = 3
+#: ... and so does a torque current at its limit for this long, s: a drive's loop saturated by the jump of its
+#: set-point to where the joint stands unwinds within a few of its time constants (tens of ms; 20 ms seen on the
+#: emulator at 200 Hz), a drive pushing against an obstacle does not.
+HOLD_AT_LIMIT_S = 0.1
+#: The most fault and halt records kept (a cause that repeats is recorded once; this bounds what a long session keeps).
+RECORDS_KEPT = 1000
 
 
 class Reaction(StrEnum):
@@ -120,11 +133,18 @@ class Supervisor:
         self._fault: MotionFault | None = None
         self.machine = StateMachine(ArmState.READY, on_change=self._publish_condition)
         self.ids = tuple(s.motor_id for s in controller.specs)
-        self.faults: list[MotionFault] = []
-        self.halts: list[HaltRecord] = []
-        #: Drives that have not acknowledged the halt yet (in HALTING).
-        self.unacknowledged: set[int] = set()
-        self._halt_code = Command.MOTOR_STOP
+        self.faults: collections.deque[MotionFault] = collections.deque(maxlen=RECORDS_KEPT)
+        self.halts: collections.deque[HaltRecord] = collections.deque(maxlen=RECORDS_KEPT)
+        #: The halted state's bookkeeping (:mod:`motion.safety.halted`).
+        self.guard = HaltGuard(self.ids, self.drives.braked_ids, family.bare)
+        #: Joints whose drive restarted in this session: their turn count is lost, clear() refuses until a new
+        #: session resolves it.
+        self.lost_frames: set[str] = set()
+        self._hold_strikes = 0
+        self._at_limit_since = math.nan
+        #: Each joint's current limit, A: a hold that keeps a drive at it pushes against something.
+        self._current_limit_a = np.array([t.current_limit_a for t in controller.transmission.transmissions])
+        self._send_failing = False
         self._halt_until_s: float | None = None  # until when the halt is re-sent; None: no halt went out yet
         # Requests from other threads, taken by the next cycle:
         self._estop_request: FaultKind | None = None
@@ -143,8 +163,6 @@ class Supervisor:
         # themselves, and the status is read.
         clear = Command.CLEAR_ERRORS if family.clears_errors else Command.READ_STATUS_1
         self._clear_requests = [Request(i, bare(clear)) for i in self.ids]
-        # The braked joints locked since the halt (their brakes are released again by a clear).
-        self._locked: set[int] = set()
         self._finalizer = weakref.finalize(self, _emergency_stop, controller, self.ids, self._bare)
         atexit.register(self._finalizer)
 
@@ -154,6 +172,15 @@ class Supervisor:
     def state(self) -> ArmState:
         """The arm's state."""
         return self.machine.state
+
+    @property
+    def unacknowledged(self) -> set[int]:
+        """Drives not known to be halted (their halt goes out every cycle while the arm is halting or halted)."""
+        return self.guard.unacknowledged
+
+    @property
+    def _halt_code(self) -> Command:
+        return self.guard.code
 
     @property
     def fault(self) -> MotionFault | None:
@@ -199,16 +226,59 @@ class Supervisor:
             if not self.machine.state.faulted:
                 self.estop(FaultKind.BUS_CLOSING)
             self.controller.shutdown()
-        if self.machine.state in (ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALTING):
-            # the loop streamed a ramp or gravity compensation, or was still re-sending the halt: the drives' own
-            # stop to every axis now, before the port goes (the loop has ended, nothing else will send it)
+        self._end_session()
+
+    def _end_session(self) -> None:
+        """Once the loop has ended: the halt to every axis in one batch (the drives not known to be halted last, so
+        that a silent one's timeouts delay nobody's halt), the brakes of the joints found at rest locked, and only
+        then the drives' settings restored."""
+        controller, guard = self.controller, self.guard
+        bus, clock = controller.bus, controller.clock
+        state = self.machine.state
+        if bus.closed or state in (ArmState.BUS_LOST, ArmState.CLOSED):
+            return
+        code = self._halt_code if state in (ArmState.HALTING, ArmState.HALTED) else Command.MOTOR_STOP
+        owed = guard.unacknowledged
+        halt = self._bare(code)
+        try:
+            bus.transact([Request(i, halt) for i in sorted(self.ids, key=lambda i: (i in owed, i))], clock.now() + 0.02)
+        except Exception as exc:  # the session ends anyway: leave a trace
+            logger.error("the halt at the end of the session failed: %s: %s", type(exc).__name__, exc)
+        lock = None
+        if self.drives.braked_ids and not self.drives.brakes_locked:
+            lock = self._brakes_at_rest(clock.now() + _BRAKE_SETTLE_S)
+        self.drives.restore(clock.now() + _SETUP_WINDOW_S, lock=lock)
+        self._finalizer.detach()  # the halt went out: nothing is left for process exit to do
+
+    def _brakes_at_rest(self, deadline_s: float) -> list[int]:
+        """After the final halt: read the braked joints until each has been at rest in :data:`REST_READINGS`
+        consecutive readings (or ``deadline_s``); returns the ids whose brake may lock (a brake is no stopping
+        device: one still moving is left to its drive's hold, and logged)."""
+        controller = self.controller
+        index, speeds = self.watchdog.index, controller.axes.qd_dps
+        read = self._bare(Command.READ_STATUS_2)
+        rest = dict.fromkeys(self.drives.braked_ids, 0)
+        for motor_id in self.guard.locked:
+            rest[motor_id] = REST_READINGS
+        pending = [i for i, n in rest.items() if n < REST_READINGS]
+        while pending and controller.clock.now() < deadline_s:
             try:
-                self.controller.bus.transact(
-                    [Request(i, self._bare(Command.MOTOR_STOP)) for i in self.ids], self.controller.clock.now() + 0.02
+                replies = controller.bus.transact(
+                    [Request(i, read) for i in pending], min(deadline_s, controller.clock.now() + 0.02)
                 )
-            except Exception as exc:  # the port is going anyway: leave a trace
-                logger.error("halt before the bus closed failed: %s: %s", type(exc).__name__, exc)
-        self.drives.restore(self.controller.clock.now() + _SETUP_WINDOW_S)
+            except Exception as exc:
+                logger.error("the braked joints could not be read at the end: %s: %s", type(exc).__name__, exc)
+                break
+            controller.absorb(replies)
+            for reply in replies:
+                if isinstance(reply.message, STATE_TYPES) and reply.motor_id in rest:
+                    still = abs(speeds[index[reply.motor_id]]) <= BRAKE_REST_DPS
+                    rest[reply.motor_id] = rest[reply.motor_id] + 1 if still else 0
+            pending = [i for i, n in rest.items() if n < REST_READINGS]
+        if pending:
+            names = ", ".join(self.watchdog.names[index[i]] for i in pending)
+            logger.error("brakes not locked (%s): not seen at rest after the halt; their drives hold them", names)
+        return [i for i, n in rest.items() if n >= REST_READINGS]
 
     def _refuse_if_faulted(self) -> None:
         if self.machine.state.faulted:
@@ -320,8 +390,7 @@ class Supervisor:
         if self.controller.loop.running and not self.machine.state.faulted:
             self.estop(FaultKind.CLOSE, timeout_s)
         self.controller.shutdown(timeout_s)
-        if not self.controller.bus.closed:  # (else its close hook has restored them)
-            self.drives.restore(self.controller.clock.now() + _SETUP_WINDOW_S)
+        self._end_session()  # (if the bus has closed, its close hook did it)
         self._finalizer()
         self.machine.fire(ArmEvent.CLOSE)
 
@@ -369,10 +438,24 @@ class Supervisor:
         controller = self.controller
         detected = controller.clock.now()
         controller.discard_pending()  # a move queued during this cycle must not replace the halt
+        state = self.machine.state
+        repeated = state.faulted and self._fault is not None and _same_cause(fault, self._fault)
+        if repeated and state in (ArmState.HALTING, ArmState.HALTED):
+            # the same cause again in every cycle (a hook, a tap, a port that keeps failing): the halt is sent again,
+            # quietly, and recorded once
+            try:
+                self._start_halt(detected, deadline_s, self._halt_code)
+            except TransportError as exc:
+                self._send_failed(exc, detected, deadline_s, self._halt_code)
+            except Exception as exc:
+                logger.debug("halt could not be sent: %s: %s", type(exc).__name__, exc)
+            return
         self.fault = fault
         self.faults.append(fault)
+        if fault.kind is FaultKind.DRIVE_RESTARTED and fault.joint is not None:
+            self.lost_frames.add(fault.joint)
         policy = self._policy(fault)
-        state = self.machine.state
+        code = Command.MOTOR_OFF if policy is HaltPolicy.OFF else Command.MOTOR_STOP
         running = state in (ArmState.READY, ArmState.MOVING)
         holdable = running and policy is HaltPolicy.HOLD and fault.kind.holdable
         comply = (
@@ -404,10 +487,9 @@ class Supervisor:
                         exc,
                     )
                     comply = False
-                    policy = HaltPolicy.STOP
             if holdable:
                 try:
-                    sent = self._start_hold(start_s, deadline_s)
+                    sent = self._start_hold(fault, start_s, deadline_s)
                 except TransportError:
                     raise
                 except Exception as exc:  # a hold that cannot start must not leave the last command in force
@@ -418,9 +500,9 @@ class Supervisor:
                     )
                     holdable = False
             if not holdable and not comply:
-                sent = self._start_halt(detected, deadline_s, policy)
+                sent = self._start_halt(detected, deadline_s, code)
         except TransportError as exc:
-            self._send_failed(exc, detected, deadline_s, policy)
+            self._send_failed(exc, detected, deadline_s, code)
         except Exception as exc:  # the state is HALTING: the next cycle sends the halt again
             logger.error("halt could not be sent: %s: %s", type(exc).__name__, exc)
         reaction = _REACTIONS.get(self.machine.state) or Reaction(self._halt_code.name)
@@ -450,30 +532,39 @@ class Supervisor:
         controller.comply_step(sent, max(deadline_s, sent + _HALT_WINDOW_S), gravity)
         return sent
 
-    def _start_hold(self, start_s: float, deadline_s: float) -> float:
+    def _start_hold(self, fault: MotionFault, start_s: float, deadline_s: float) -> float:
         """Enter HOLDING: replace the reference with a jerk-limited stop and send its first set-point; returns when it
-        was sent.
+        was sent. After a following error the stop ramp starts from where the joints are, as they move (a ramp from
+        the reference would carry a blocked joint's set-point on past what blocks it).
 
         Raises:
             Exception: whatever kept the hold from starting (the caller falls back to the drives' own halt).
         """
         controller = self.controller
         self.machine.fire(ArmEvent.HOLD)
+        self._hold_strikes, self._at_limit_since = 0, math.nan
         follower = controller.follower
         if follower is None:
             raise MotionError("no trajectory follower to plan the stop ramp")
-        follower.stop(start_s)
+        if fault.kind is FaultKind.FOLLOWING_ERROR:
+            axes = controller.axes
+            measured = State(axes.positions(), axes.qd_dps.copy(), np.zeros(len(self.ids)))
+            follower.stop_from(start_s, measured)
+            controller.reference = measured
+            self.watchdog.restart_following()  # the expectation starts again from there too
+        else:
+            follower.stop(start_s)
         sent = controller.clock.now()
         controller.step(sent, max(deadline_s, sent + _HALT_WINDOW_S), apply_pending=False)
         return sent
 
-    def _start_halt(self, detected_s: float, deadline_s: float, policy: HaltPolicy | None = None) -> float:
-        """Enter HALTING: 0x81 (0x80 with policy ``off``) to every axis now; returns when it was sent."""
-        policy = self.settings.halt_policy if policy is None else policy
-        self._halt_code = Command.MOTOR_OFF if policy is HaltPolicy.OFF else Command.MOTOR_STOP
-        self.unacknowledged = set(self.ids)
+    def _start_halt(self, detected_s: float, deadline_s: float, code: Command) -> float:
+        """Enter HALTING: 0x81 (0x80 under ``halt_policy: off``) to every axis now, in one batch; returns when it was
+        sent."""
+        self.guard.begin(code)
         self._halt_until_s = detected_s + self.settings.halt_retry_s
-        self.machine.fire(ArmEvent.HALT)
+        if self.machine.state is not ArmState.HALTING:
+            self.machine.fire(ArmEvent.HALT)
         sent = self.controller.clock.now()
         try:
             self._send_halt(max(deadline_s, sent + _HALT_WINDOW_S))
@@ -490,19 +581,18 @@ class Supervisor:
             controller.follower.hold_at(q)
             controller.reference = State.at_rest(q)
 
-    def _send_failed(
-        self, exc: TransportError, detected_s: float, deadline_s: float, policy: HaltPolicy | None = None
-    ) -> None:
+    def _send_failed(self, exc: TransportError, detected_s: float, deadline_s: float, code: Command) -> None:
         """A send failed while reacting to a fault. A closed bus is lost (nothing more can be sent); an open one (a
         full transmit queue, a write refused once) stays HALTING, and every cycle sends the halt again."""
         if self.controller.bus.closed:
             self._lose_bus(exc)
             return
-        logger.error("the halt could not be sent (%s): sent again next cycle", exc)
+        if not self._send_failing:  # once per run of failures, not every cycle
+            logger.error("the halt could not be sent (%s): sent again every cycle", exc)
+        self._send_failing = True
         if self.machine.state is not ArmState.HALTING:  # a hold or compliance whose first step failed
-            self._halt_code = Command.MOTOR_OFF if policy is HaltPolicy.OFF else Command.MOTOR_STOP
             self.machine.fire(ArmEvent.HALT)
-        self.unacknowledged = set(self.ids)
+        self.guard.begin(code)
         self._halt_until_s = detected_s + self.settings.halt_retry_s
 
     def _lose_bus(self, exc: BaseException) -> None:
@@ -511,14 +601,18 @@ class Supervisor:
             logger.critical("the bus is gone (%s): the halt could not be sent; the control loop ends", exc)
 
     def _send_halt(self, deadline_s: float) -> None:
-        """The halt to the drives that have not acknowledged it; HALTED once none is left."""
-        requests = [Request(i, self._bare(self._halt_code)) for i in sorted(self.unacknowledged)]
-        replies = self.controller.bus.transact(requests, deadline_s)
-        for reply in replies:
-            if isinstance(reply.message, BARE_TYPES) and reply.message.command == self._halt_code:
-                self.unacknowledged.discard(reply.motor_id)
-        if not self.unacknowledged:
+        """The halt to the drives not known to be halted (in the detection cycle: every drive, one batch)."""
+        replies = self.controller.bus.transact(self.guard.halt_requests(), deadline_s)
+        self._send_failing = False
+        axes = self.controller.axes
+        self.guard.take(replies, axes.q_deg, axes.qd_dps, axes.iq_a, self._within)
+        if not self.guard.unacknowledged and self.machine.state is ArmState.HALTING:
             self.machine.fire(ArmEvent.ACKNOWLEDGED)
+
+    def _within(self, i: int, q_deg: float) -> bool:
+        """Joint ``i`` at ``q_deg`` is inside its limits (with the measurement's tolerance)."""
+        watchdog = self.watchdog
+        return bool(watchdog.lower[i] <= q_deg <= watchdog.upper[i])
 
     def _faulted_cycle(self, state: ArmState, start_s: float, deadline_s: float) -> None:
         controller = self.controller
@@ -548,56 +642,113 @@ class Supervisor:
                 self._halt(fault, -1, start_s, deadline_s)
             return
         if state is ArmState.HOLDING:
-            extra = (self._next_status_read(),)
-            check = self.watchdog.check_setpoint  # the stop ramp must not pass a limit either
-            try:
-                replies = controller.step(start_s, deadline_s, extra=extra, check=check, apply_pending=False)
-                self.watchdog.evaluate(replies, controller.clock.now())
-            except MotionFault as fault:
-                if not fault.kind.holdable:  # communication, a drive, a limit: the drives' own halt
-                    self._halt(fault, -1, start_s, deadline_s)
-                # else the kind of fault the hold is for (e.g. the following error it started with)
+            self._holding_cycle(start_s, deadline_s)
             return
-        if state is ArmState.HALTING:
-            if self._halt_until_s is None:  # reached through the safe state of the table: no halt went out yet
-                unsent = MotionFault(FaultKind.STATE, time_s=now, detail="halting without a halt sent")
-                self.fault = unsent
-                self.faults.append(unsent)
-                logger.error("halting every axis: %s", unsent)
-                sent = self._start_halt(now, deadline_s)
-                self.halts.append(HaltRecord(unsent, -1, now, sent, Reaction(self._halt_code.name)))
-                return
-            if now < self._halt_until_s:
-                try:
-                    self._send_halt(start_s + controller.options.reply_budget * (deadline_s - start_s))
-                except TransportError as exc:
-                    if controller.bus.closed:
-                        self._lose_bus(exc)
-                    else:  # keep trying while the bus is open, past the retry bound: the drives must get it
-                        logger.error("the halt could not be sent (%s): sent again next cycle", exc)
-                        self._halt_until_s = max(self._halt_until_s, now + controller.period_s)
-                return
-            logger.error("drives %s did not acknowledge the halt", sorted(self.unacknowledged))
-            self.unacknowledged.clear()
-            self.machine.fire(ArmEvent.ACKNOWLEDGED)
-        # HALTED: keep reading the drives (reads do not move them) so that positions and flags stay current; lock
-        # the brakes of the joints that have come to rest.
-        reads = self._state_reads + self._brakes_to_lock() if self.drives.braked_ids else self._state_reads
-        replies = controller.step(start_s, deadline_s, extra=reads, command=False, apply_pending=False)
-        for reply in replies:
-            message = reply.message
-            if isinstance(message, BARE_TYPES) and message.command == CommandV3.LOCK_BRAKE:
-                self._locked.add(reply.motor_id)
+        if state is ArmState.HALTING and self._halt_until_s is None:
+            # reached through the safe state of the table: no halt went out yet
+            unsent = MotionFault(FaultKind.STATE, time_s=now, detail="halting without a halt sent")
+            self.fault = unsent
+            self.faults.append(unsent)
+            logger.error("halting every axis: %s", unsent)
+            sent = self._start_halt(now, deadline_s, self._halt_code)
+            self.halts.append(HaltRecord(unsent, -1, now, sent, Reaction(self._halt_code.name)))
+            return
+        self._halted_cycle(state, start_s, deadline_s)
 
-    def _brakes_to_lock(self) -> list[Request]:
-        """0x78 to the braked joints that are at rest and not locked yet (a brake is not a stopping device)."""
-        speeds = self.controller.axes.qd_dps
-        index = self.watchdog.index
-        return [
-            Request(i, self._bare(CommandV3.LOCK_BRAKE))
-            for i in self.drives.braked_ids
-            if i not in self._locked and abs(speeds[index[i]]) <= BRAKE_REST_DPS
-        ]
+    def _holding_cycle(self, start_s: float, deadline_s: float) -> None:
+        """The stop ramp, then the hold, streamed; a fault the hold is not for halts, and so does one it is for that
+        persists (:data:`HOLD_ESCALATION_CYCLES`: a blocked joint's following error, a current held at its limit)."""
+        controller = self.controller
+        extra = (self._next_status_read(),)
+        check = self.watchdog.check_setpoint  # the stop ramp must not pass a limit either
+        try:
+            replies = controller.step(start_s, deadline_s, extra=extra, check=check, apply_pending=False)
+            self.watchdog.evaluate(replies, controller.clock.now())
+            at_limit = np.abs(controller.axes.iq_a) >= self._current_limit_a
+            if controller.options.mode is ControlMode.TORQUE:
+                at_limit |= controller.limited
+            self._hold_strikes = 0
+            now = controller.clock.now()
+            if not at_limit.any():
+                self._at_limit_since = math.nan
+            elif math.isnan(self._at_limit_since):
+                self._at_limit_since = now
+            elif now - self._at_limit_since >= HOLD_AT_LIMIT_S:
+                i = int(np.argmax(at_limit))
+                raise MotionFault(
+                    FaultKind.HOLD_FAILED,
+                    joint=self.watchdog.names[i],
+                    value=float(controller.axes.iq_a[i]),
+                    threshold=float(self._current_limit_a[i]),
+                    time_s=now,
+                    detail=f"torque current at its limit for {now - self._at_limit_since:.3f} s of the hold (blocked?)",
+                )
+        except MotionFault as fault:
+            if fault.kind.holdable:  # the kind of fault the hold is for (a motor that stays hot while it cools)
+                if fault.kind is not FaultKind.FOLLOWING_ERROR:
+                    return
+                # ... but a joint that does not follow even the hold is blocked, or pushed
+                self._hold_strikes += 1
+                if self._hold_strikes < HOLD_ESCALATION_CYCLES:
+                    return
+                fault = MotionFault(
+                    FaultKind.HOLD_FAILED,
+                    joint=fault.joint,
+                    value=fault.value,
+                    threshold=fault.threshold,
+                    time_s=fault.time_s,
+                    detail=f"{fault.kind.value} persisted for {self._hold_strikes} cycles of the hold",
+                )
+            self._halt(fault, -1, start_s, deadline_s)  # the drives' own halt
+
+    def _halted_cycle(self, state: ArmState, start_s: float, deadline_s: float) -> None:
+        """HALTING and HALTED: every drive gets a frame (its halt while it is not known to be halted, else a state
+        read; see :mod:`motion.safety.halted`), joints that leave their limits and drives that restarted are faults
+        of their own, and braked joints lock once at rest."""
+        controller, guard = self.controller, self.guard
+        requests = guard.requests()
+        requests.append(self._next_status_read())
+        replies = controller.step(start_s, deadline_s, extra=requests, command=False, apply_pending=False)
+        self._send_failing = False
+        now = controller.clock.now()
+        axes = controller.axes
+        driving, outside = guard.take(replies, axes.q_deg, axes.qd_dps, axes.iq_a, self._within)
+        names = self.watchdog.names
+        for i in driving:
+            logger.warning("%s reads as driving while halted: its halt is sent again", names[i])
+        for i in outside:
+            self._record(
+                MotionFault(
+                    FaultKind.POSITION_LIMIT,
+                    joint=names[i],
+                    value=float(axes.q_deg[i]),
+                    time_s=now,
+                    detail="beyond its limits while halted (its halt is sent again)",
+                )
+            )
+        for fault in self.watchdog.restarts(replies, now):
+            if fault.joint not in self.lost_frames:
+                self.lost_frames.add(str(fault.joint))
+                self._record(fault)
+        if state is ArmState.HALTING and self._halt_until_s is not None:
+            if guard.unacknowledged and now < self._halt_until_s:
+                return
+            if guard.unacknowledged:
+                logger.error(
+                    "drives %s did not acknowledge the halt within %g s: it is sent to them every cycle while the "
+                    "session is open",
+                    sorted(guard.unacknowledged),
+                    self.settings.halt_retry_s,
+                )
+            self.machine.fire(ArmEvent.ACKNOWLEDGED)
+
+    def _record(self, fault: MotionFault) -> None:
+        """A fault seen while halted: recorded and logged; the halt in force stays (the drive concerned gets it
+        again)."""
+        logger.error("while %s: %s", self.machine.state.value, fault)
+        self.faults.append(fault)
+        now = self.controller.clock.now()
+        self.halts.append(HaltRecord(fault, -1, now, now, Reaction(self._halt_code.name)))
 
     def _do_clear(self, start_s: float, deadline_s: float) -> None:
         controller = self.controller
@@ -616,15 +767,14 @@ class Supervisor:
                 FaultKind.CLEAR_FAILED, time_s=controller.clock.now(), detail="no follower"
             )
             return
-        if self._locked:
+        if self.guard.locked:
             self.drives.release_brakes(max(deadline_s, controller.clock.now() + 0.005))
-            self._locked.clear()
         controller.discard_pending()  # nothing queued while faulted may start after the clear
         controller.follower.hold_at(q)
         controller.reference = State.at_rest(q)
         self.fault = None
         self._halt_until_s = None
-        self.unacknowledged.clear()
+        self.guard.reset()
         self._clear_result = None
         self.watchdog.start(controller.clock.now())
         self.machine.fire(ArmEvent.CLEARED)
@@ -657,6 +807,11 @@ class Supervisor:
                     "(move it back by hand with the drives off: rmd-motion off)"
                 )
         return problems
+
+
+def _same_cause(a: MotionFault, b: MotionFault) -> bool:
+    """Whether two faults report the same cause (kind, joint and detail; values and times aside)."""
+    return a.kind is b.kind and a.joint == b.joint and a.detail == b.detail
 
 
 def _emergency_stop(controller: Controller, ids: tuple[int, ...], bare: Callable[[int], Message]) -> None:

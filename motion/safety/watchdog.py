@@ -189,7 +189,7 @@ class Watchdog:
         self._overruns_seen = self.controller.loop.overruns
         self._overrun_streak = 0
         self._observed_s = math.nan
-        self._restart_following()
+        self.restart_following()
 
     def rehearse(self, replies: list[Reply], now_s: float) -> None:
         """A guarded cycle's host work at rest on a measuring exchange's ``replies``, nothing sent (the rate check
@@ -270,13 +270,8 @@ class Watchdog:
                     if not fault.kind.holdable:
                         raise
                     held = held or fault
-            elif isinstance(message, MultiTurnAngle):
-                if self._angle_shows_restart:
-                    self._check_frame(i, message)
-                else:
-                    self._check_angle_jump(i, message, now_s)
-            elif isinstance(message, Runtime):
-                self._check_runtime(i, message, now_s)
+            elif isinstance(message, (MultiTurnAngle, Runtime)):
+                self._check_restart(i, message, now_s)
             elif isinstance(message, STATE_TYPES) and message.temperature_c >= self.temperature_limit[i]:
                 held = held or self._fault(
                     FaultKind.TEMPERATURE,
@@ -291,7 +286,7 @@ class Watchdog:
         if self.observer is not None and self._observe(now_s) and not complying and self.collision_armed:
             self._check_collision()
         if complying:  # no reference to follow, so no expectation either until the arm follows one again
-            self._restart_following()
+            self.restart_following()
         else:
             if self._following:
                 held = held or self._following_fault(q)
@@ -369,7 +364,7 @@ class Watchdog:
         fault.joints = tuple(hit)
         raise fault
 
-    def _restart_following(self) -> None:
+    def restart_following(self) -> None:
         """No following-error check in the next cycle; the expectation starts again from the measured state."""
         self._following = False
         controller = self.controller
@@ -401,6 +396,34 @@ class Watchdog:
         return self._fault(
             FaultKind.FOLLOWING_ERROR, worst, float(error[worst]), limit, "|expected - q| (+ lag lost by slipping)"
         )
+
+    def _check_restart(self, i: int, message: MultiTurnAngle | Runtime, now_s: float) -> None:
+        """The family's restart sign in a 0x92 or 0xB1 reply of joint ``i``.
+
+        Raises:
+            MotionFault: kind ``drive_restarted``.
+        """
+        if isinstance(message, Runtime):
+            self._check_runtime(i, message, now_s)
+        elif self._angle_shows_restart:
+            self._check_frame(i, message)
+        else:
+            self._check_angle_jump(i, message, now_s)
+
+    def restarts(self, replies: list[Reply], now_s: float) -> list[MotionFault]:
+        """The drives that a cycle's replies show restarted, one ``drive_restarted`` fault each (while the arm is
+        halted, when nothing else is evaluated: a drive that restarts then has lost its turn count all the same)."""
+        found = []
+        index = self.index
+        for reply in replies:
+            i = index.get(reply.motor_id)
+            message = reply.message
+            if i is not None and isinstance(message, (MultiTurnAngle, Runtime)):
+                try:
+                    self._check_restart(i, message, now_s)
+                except MotionFault as fault:
+                    found.append(fault)
+        return found
 
     def _check_frame(self, i: int, reading: MultiTurnAngle) -> None:
         """A drive's multi-turn angle against the one the controller tracks from its encoder: a drive that restarted

@@ -84,6 +84,15 @@ class Follower:
         self.play(path, t_s)
         return path
 
+    def stop_from(self, t_s: float, state: State) -> Path:
+        """Ramp from ``state`` (e.g. the measured one) at ``t_s`` to zero velocity (jerk-limited) and hold where it
+        ends: the reference jumps to ``state`` first."""
+        self._path = None
+        self._hold = State.at_rest(state.position)
+        path = Path([self.planner.stop(state)])
+        self.play(path, t_s)
+        return path
+
     def hold_at(self, position_deg: Sequence[float] | FloatArray) -> None:
         """Drop any path and hold ``position_deg`` (e.g. after a halt, at the measured position)."""
         self._path = None
