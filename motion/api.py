@@ -583,8 +583,7 @@ class Arm:
     def _remember_turns(self) -> None:
         """At close: keep the turn offsets for the next session (where the drives ended), unless a drive restarted:
         then its frame is unknown and the next session resolves every joint afresh."""
-        fault = self.supervisor.fault if self.supervisor is not None else None
-        if self._remembers and fault is not None and fault.kind is FaultKind.DRIVE_RESTARTED:
+        if self._remembers and self.supervisor is not None and self.supervisor.lost_frames:
             turns_store(self.config).unlink(missing_ok=True)
             return
         self._keep_turns()

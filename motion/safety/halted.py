@@ -10,8 +10,8 @@ Once a halt went out, every cycle until ``clear()`` or close:
   driving (:meth:`HaltGuard.take`), and, in turn, one drive per cycle whatever it shows (a halt re-asserted costs a
   frame the read would have cost);
 * **a joint beyond its limits** while halted is a fault of its own (recorded once per excursion), its halt re-sent;
-* **a brake locks only on a joint at rest**: after its drive acknowledged the halt, on :data:`REST_READINGS`
-  consecutive readings taken since, each at most :data:`BRAKE_REST_DPS`.
+* **a brake locks only on a joint at rest**: after its drive acknowledged the halt, once every reading taken since
+  for :data:`BRAKE_REST_S` showed at most :data:`BRAKE_REST_DPS`.
 
 "Driving", from a state reply of a drive that acknowledged its halt: under 0x81 (the drive brakes to a standstill and
 holds), its speed rising :data:`SPEED_UP_DPS` above the slowest it read since the acknowledgement, or, once it came to
@@ -25,18 +25,19 @@ import math
 from collections.abc import Callable, Iterable, Sequence
 from typing import Final
 
+from motion.control.axes import AxisStates
 from motion.control.family import BARE_TYPES, STATE_TYPES
 from motion.protocol import Command, Message
 from motion.protocol.v3.messages import CommandV3
-from motion.transmission import FloatArray
 from motion.transport import Reply, Request
 
 #: A braked joint at rest after a halt (its brake then locks), joint deg/s: the speed fields' step is 1 deg/s of
 #: the motor (older drives) or of the output shaft (V3), so one step of the output's reading.
 BRAKE_REST_DPS: Final = 1.0
-#: Consecutive readings at rest, taken after the halt was acknowledged, before a brake locks (one reading can catch a
-#: joint that swings through zero speed).
-REST_READINGS: Final = 2
+#: How long a joint reads at rest, in every reading taken since its drive acknowledged the halt, before its brake
+#: locks, s: a reading or two can catch a joint that swings through zero speed as its drive's hold settles (seen at
+#: 8 deg/s a few ms after two readings at rest); several periods of the swing of a holding loop.
+BRAKE_REST_S: Final = 0.05
 #: A joint halted with 0x81 that came to rest and then moves this far is driven again, joint deg. Far above what a
 #: drive's holding loop lets a loaded joint sag and what the angle fields resolve (0.01 deg of the motor or output).
 STILL_BAND_DEG: Final = 2.0
@@ -72,9 +73,10 @@ class HaltGuard:
         self._acknowledged = [False] * n
         self._slowest_dps = [math.inf] * n
         self._rest_deg = [math.nan] * n
-        self._rest_readings = [0] * n
+        self._rest_since = [math.nan] * n
         self._outside = [False] * n
         self._turn = 0
+        self._now = math.nan
         self._reads = {motor_id: Request(motor_id, bare(Command.READ_STATUS_2)) for motor_id in self.ids}
 
     def begin(self, code: Command) -> None:
@@ -122,29 +124,31 @@ class HaltGuard:
             for motor_id in self.braked_ids
             if motor_id not in self.locked
             and motor_id not in self.unacknowledged
-            and self._rest_readings[index[motor_id]] >= REST_READINGS
+            and self._now - self._rest_since[index[motor_id]] >= BRAKE_REST_S
         ]
 
     def take(
         self,
         replies: Iterable[Reply],
-        q_deg: FloatArray,
-        qd_dps: FloatArray,
-        iq_a: FloatArray,
+        axes: AxisStates,
         within: Callable[[int, float], bool],
+        now_s: float,
     ) -> tuple[list[int], list[int]]:
         """Take in a halted cycle's replies (the axes already absorbed them).
 
         Args:
             replies: the cycle's replies.
-            q_deg, qd_dps, iq_a: the measured joint angles, speeds and torque currents, in joint order.
+            axes: the measured joint states (angles, speeds, torque currents).
             within: ``(i, q_deg) -> bool``: joint ``i`` is inside its limits at ``q_deg``.
+            now_s: when the replies were taken in.
 
         Returns:
             The joints (indexes) found driving, whose halt goes out again next cycle; the joints that have just left
             their limits.
         """
         index, code = self.index, self.code
+        q_deg, qd_dps, iq_a = axes.q_deg, axes.qd_dps, axes.iq_a
+        self._now = now_s
         driving: list[int] = []
         outside: list[int] = []
         for reply in replies:
@@ -179,11 +183,12 @@ class HaltGuard:
         rest bookkeeping."""
         speed = abs(qd)
         if speed <= BRAKE_REST_DPS:
-            self._rest_readings[i] += 1
+            if math.isnan(self._rest_since[i]):
+                self._rest_since[i] = self._now
             if math.isnan(self._rest_deg[i]):
                 self._rest_deg[i] = q
         else:
-            self._rest_readings[i] = 0
+            self._rest_since[i] = math.nan
         if self.code == Command.MOTOR_OFF:
             return abs(iq) > OFF_CURRENT_A
         if speed > self._slowest_dps[i] + SPEED_UP_DPS:
@@ -201,4 +206,4 @@ class HaltGuard:
         self._acknowledged[i] = False
         self._slowest_dps[i] = math.inf
         self._rest_deg[i] = math.nan
-        self._rest_readings[i] = 0
+        self._rest_since[i] = math.nan

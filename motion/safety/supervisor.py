@@ -41,7 +41,7 @@ from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command, Message
-from motion.safety.halted import BRAKE_REST_DPS, REST_READINGS, HaltGuard
+from motion.safety.halted import BRAKE_REST_DPS, BRAKE_REST_S, HaltGuard
 from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
 from motion.trajectory import State
@@ -251,17 +251,17 @@ class Supervisor:
         self._finalizer.detach()  # the halt went out: nothing is left for process exit to do
 
     def _brakes_at_rest(self, deadline_s: float) -> list[int]:
-        """After the final halt: read the braked joints until each has been at rest in :data:`REST_READINGS`
-        consecutive readings (or ``deadline_s``); returns the ids whose brake may lock (a brake is no stopping
-        device: one still moving is left to its drive's hold, and logged)."""
+        """After the final halt: read the braked joints until each has read at rest for :data:`BRAKE_REST_S` (or
+        ``deadline_s``); returns the ids whose brake may lock (a brake is no stopping device: one still moving is left
+        to its drive's hold, and logged)."""
         controller = self.controller
-        index, speeds = self.watchdog.index, controller.axes.qd_dps
+        clock, index, speeds = controller.clock, self.watchdog.index, controller.axes.qd_dps
         read = self._bare(Command.READ_STATUS_2)
-        rest = dict.fromkeys(self.drives.braked_ids, 0)
+        since = dict.fromkeys(self.drives.braked_ids, math.nan)  # at rest in every reading since
         for motor_id in self.guard.locked:
-            rest[motor_id] = REST_READINGS
-        pending = [i for i, n in rest.items() if n < REST_READINGS]
-        while pending and controller.clock.now() < deadline_s:
+            since[motor_id] = -math.inf
+        pending = list(since)
+        while pending and clock.now() < deadline_s:
             try:
                 replies = controller.bus.transact(
                     [Request(i, read) for i in pending], min(deadline_s, controller.clock.now() + 0.02)
@@ -270,15 +270,19 @@ class Supervisor:
                 logger.error("the braked joints could not be read at the end: %s: %s", type(exc).__name__, exc)
                 break
             controller.absorb(replies)
+            now = clock.now()
             for reply in replies:
-                if isinstance(reply.message, STATE_TYPES) and reply.motor_id in rest:
+                if isinstance(reply.message, STATE_TYPES) and reply.motor_id in pending:
                     still = abs(speeds[index[reply.motor_id]]) <= BRAKE_REST_DPS
-                    rest[reply.motor_id] = rest[reply.motor_id] + 1 if still else 0
-            pending = [i for i, n in rest.items() if n < REST_READINGS]
+                    if not still:
+                        since[reply.motor_id] = math.nan
+                    elif math.isnan(since[reply.motor_id]):
+                        since[reply.motor_id] = now
+            pending = [i for i, t in since.items() if not now - t >= BRAKE_REST_S]
         if pending:
             names = ", ".join(self.watchdog.names[index[i]] for i in pending)
             logger.error("brakes not locked (%s): not seen at rest after the halt; their drives hold them", names)
-        return [i for i, n in rest.items() if n >= REST_READINGS]
+        return [i for i in since if i not in pending]
 
     def _refuse_if_faulted(self) -> None:
         if self.machine.state.faulted:
@@ -604,8 +608,7 @@ class Supervisor:
         """The halt to the drives not known to be halted (in the detection cycle: every drive, one batch)."""
         replies = self.controller.bus.transact(self.guard.halt_requests(), deadline_s)
         self._send_failing = False
-        axes = self.controller.axes
-        self.guard.take(replies, axes.q_deg, axes.qd_dps, axes.iq_a, self._within)
+        self.guard.take(replies, self.controller.axes, self._within, self.controller.clock.now())
         if not self.guard.unacknowledged and self.machine.state is ArmState.HALTING:
             self.machine.fire(ArmEvent.ACKNOWLEDGED)
 
@@ -712,7 +715,7 @@ class Supervisor:
         self._send_failing = False
         now = controller.clock.now()
         axes = controller.axes
-        driving, outside = guard.take(replies, axes.q_deg, axes.qd_dps, axes.iq_a, self._within)
+        driving, outside = guard.take(replies, axes, self._within, now)
         names = self.watchdog.names
         for i in driving:
             logger.warning("%s reads as driving while halted: its halt is sent again", names[i])
@@ -798,6 +801,12 @@ class Supervisor:
                 problems.append(f"{name}: supply {s.voltage_v:.1f} V below {settings.min_voltage_v:g} V")
             if max(s.temperature_c, m.temperature_c) >= limits[motor_id]:
                 problems.append(f"{name}: temperature {s.temperature_c} °C at or above {limits[motor_id]:g} °C")
+        for name in sorted(self.lost_frames):
+            problems.append(
+                f"{name}: its drive restarted (power) and the joint's position is no longer known (its turn count is "
+                "lost): close the arm and connect again, where its power-on window or homing (Arm(..., home=[...]), "
+                "rmd-motion home) establishes it"
+            )
         q = self.controller.axes.q_deg
         lower, upper = self.watchdog.lower, self.watchdog.upper
         for i, spec in enumerate(self.controller.specs):
