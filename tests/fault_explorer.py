@@ -213,8 +213,9 @@ class _Checker:
         except Exception:  # a bug of the checker must not become a fault of the arm
             self.outcome.violations.append("checker: " + traceback.format_exc(limit=3))
 
-    def _check(self, t: float, replies: list[Any]) -> None:
+    def _check(self, start_s: float, replies: list[Any]) -> None:
         self.outcome.cycles += 1
+        t = self.arm.controller.clock.now()  # type: ignore[union-attr]  # the cycle's end: what happened in it is seen
         supervisor = self.arm.supervisor
         plant = self.arm.plant
         if supervisor is None or plant is None:
@@ -225,10 +226,11 @@ class _Checker:
         halted = state in (ArmState.HALTING, ArmState.HALTED)
         still_states = halted or state is ArmState.HOLDING
         answered = {r.motor_id for r in replies if r.message is not None}
-        off = supervisor._halt_code.name == "MOTOR_OFF" and halted
+        codes = supervisor.guard.codes
         for i, motor_id in enumerate(self.ids):
             name = self.names[i]
             out_of_reach = self._since(motor_id, _OUT_OF_REACH, t)
+            off = halted and codes[motor_id].name == "MOTOR_OFF"  # the policy's, or a hold that oscillated
             exempt = out_of_reach or self._pushed(motor_id, t) or (off and not self.braked[i])
             # link: a V3 drive without a link fault never trips its communication-loss protection
             losses = self._losses(motor_id)

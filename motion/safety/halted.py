@@ -10,6 +10,8 @@ Once a halt went out, every cycle until ``clear()`` or close:
   driving (:meth:`HaltGuard.take`), and, in turn, one drive per cycle whatever it shows (a halt re-asserted costs a
   frame the read would have cost);
 * **a joint beyond its limits** while halted is a fault of its own (recorded once per excursion), its halt re-sent;
+* **a braked joint is stopped, not released**: under 0x80 it gets 0x81 until its brake locks (which turns its output
+  off), so that it does not fall meanwhile;
 * **a brake locks only on a joint at rest**: after its drive acknowledged the halt, once every reading taken since
   for :data:`BRAKE_REST_S` showed at most :data:`BRAKE_REST_DPS`.
 
@@ -44,6 +46,11 @@ STILL_BAND_DEG: Final = 2.0
 #: A joint halted with 0x81 whose speed rises this far above the slowest it read since the acknowledgement is driven
 #: again, joint deg/s: ten steps of the coarsest speed field (V3: whole deg/s of the output).
 SPEED_UP_DPS: Final = 10.0
+#: A joint halted with 0x81 found driving this many times in a row, each time the other way (its drive's own hold
+#: oscillates: a position loop tuned for another load), is released with 0x80 instead: re-sending 0x81 to a stopped
+#: drive changes nothing, and an oscillation at the current limit only grows. One way each time is a push (a person,
+#: an obstacle): the drive's hold is what resists it, and it keeps 0x81.
+SWINGS_TO_RELEASE: Final = 3
 #: A drive turned off with 0x80 that reads more torque current than this is driving again, A: some twenty steps of
 #: the coarsest current field (0.01 A V3, 33/2048 A older drives); an off drive reads its noise, a few steps.
 OFF_CURRENT_A: Final = 0.3
@@ -66,6 +73,9 @@ class HaltGuard:
         n = len(self.ids)
         #: The halt command in force (0x81, or 0x80 under ``halt_policy: off``).
         self.code = Command.MOTOR_STOP
+        #: The halt each drive gets, by motor id: :attr:`code`, but 0x81 for a braked joint under 0x80 (its output
+        #: goes off when its brake locks, at rest: a joint must not fall until then).
+        self.codes = dict.fromkeys(self.ids, Command.MOTOR_STOP)
         #: Drives not known to be halted: their halt goes out every cycle until they acknowledge it.
         self.unacknowledged: set[int] = set()
         #: Braked joints whose brake this session locked since the halt (released again by a clear).
@@ -75,6 +85,8 @@ class HaltGuard:
         self._rest_deg = [math.nan] * n
         self._rest_since = [math.nan] * n
         self._outside = [False] * n
+        self._swings = [0] * n
+        self._swing_sign = [0.0] * n
         self._turn = 0
         self._now = math.nan
         self._reads = {motor_id: Request(motor_id, bare(Command.READ_STATUS_2)) for motor_id in self.ids}
@@ -82,9 +94,12 @@ class HaltGuard:
     def begin(self, code: Command) -> None:
         """A halt with ``code`` goes out to every drive now: none is known to be halted."""
         self.code = code
+        braked = self.braked_ids
+        self.codes = {i: Command.MOTOR_STOP if i in braked else code for i in self.ids}
         self.unacknowledged = set(self.ids)
         for i in range(len(self.ids)):
             self._forget(i)
+            self._swings[i], self._swing_sign[i] = 0, 0.0
 
     def reset(self) -> None:
         """The arm was cleared: nothing is halted, nothing is owed."""
@@ -93,11 +108,12 @@ class HaltGuard:
         for i in range(len(self.ids)):
             self._forget(i)
             self._outside[i] = False
+            self._swings[i], self._swing_sign[i] = 0, 0.0
 
     def halt_requests(self) -> list[Request]:
         """The halt to every drive not known to be halted, in id order."""
-        bare = self._bare(self.code)
-        return [Request(motor_id, bare) for motor_id in sorted(self.unacknowledged)]
+        bare, codes = self._bare, self.codes
+        return [Request(motor_id, bare(codes[motor_id])) for motor_id in sorted(self.unacknowledged)]
 
     def requests(self) -> list[Request]:
         """The halted cycle's batch: one frame per drive (its halt, or a state read; the halt re-asserted to one drive
@@ -105,9 +121,9 @@ class HaltGuard:
         ids = self.ids
         self._turn = (self._turn + 1) % len(ids)
         reassert = ids[self._turn]
-        halt = self._bare(self.code)
+        bare, codes = self._bare, self.codes
         batch = [
-            Request(motor_id, halt)
+            Request(motor_id, bare(codes[motor_id]))
             if motor_id in self.unacknowledged or motor_id == reassert
             else self._reads[motor_id]
             for motor_id in ids
@@ -133,7 +149,7 @@ class HaltGuard:
         axes: AxisStates,
         within: Callable[[int, float], bool],
         now_s: float,
-    ) -> tuple[list[int], list[int]]:
+    ) -> tuple[list[int], list[int], list[int]]:
         """Take in a halted cycle's replies (the axes already absorbed them).
 
         Args:
@@ -144,13 +160,15 @@ class HaltGuard:
 
         Returns:
             The joints (indexes) found driving, whose halt goes out again next cycle; the joints that have just left
-            their limits.
+            their limits; the joints whose hold oscillates, released with 0x80 from now on
+            (:data:`SWINGS_TO_RELEASE`).
         """
-        index, code = self.index, self.code
+        index, codes = self.index, self.codes
         q_deg, qd_dps, iq_a = axes.q_deg, axes.qd_dps, axes.iq_a
         self._now = now_s
         driving: list[int] = []
         outside: list[int] = []
+        released: list[int] = []
         for reply in replies:
             i = index.get(reply.motor_id)
             if i is None:
@@ -160,7 +178,7 @@ class HaltGuard:
             if message is None:  # silent, dropped or corrupt: whatever it did meanwhile, halt it again
                 self._owe(i)
             elif isinstance(message, BARE_TYPES):
-                if message.command == code:
+                if message.command == codes[motor_id]:
                     if not self._acknowledged[i]:
                         self._acknowledged[i] = True
                     self.unacknowledged.discard(motor_id)
@@ -176,7 +194,19 @@ class HaltGuard:
                 if self._acknowledged[i] and self._driving(i, q, qd, float(iq_a[i])):
                     driving.append(i)
                     self._owe(i)
-        return driving, outside
+                    if self._swung(i, qd) and codes[motor_id] == Command.MOTOR_STOP:
+                        codes[motor_id] = Command.MOTOR_OFF
+                        released.append(i)
+        return driving, outside, released
+
+    def _swung(self, i: int, qd: float) -> bool:
+        """Count a driving reading of joint ``i`` moving at ``qd``: True once it has been found driving one way, then
+        the other, :data:`SWINGS_TO_RELEASE` times without coming to rest in between."""
+        sign = math.copysign(1.0, qd)
+        if sign != self._swing_sign[i]:
+            self._swings[i] += 1
+            self._swing_sign[i] = sign
+        return self._swings[i] >= SWINGS_TO_RELEASE
 
     def _driving(self, i: int, q: float, qd: float, iq: float) -> bool:
         """Whether a drive that acknowledged its halt reads as driving again (see the module docstring); keeps the
@@ -185,11 +215,13 @@ class HaltGuard:
         if speed <= BRAKE_REST_DPS:
             if math.isnan(self._rest_since[i]):
                 self._rest_since[i] = self._now
+            elif self._now - self._rest_since[i] >= BRAKE_REST_S:
+                self._swings[i], self._swing_sign[i] = 0, 0.0  # at rest a while: no oscillation
             if math.isnan(self._rest_deg[i]):
                 self._rest_deg[i] = q
         else:
             self._rest_since[i] = math.nan
-        if self.code == Command.MOTOR_OFF:
+        if self.codes[self.ids[i]] == Command.MOTOR_OFF:
             return abs(iq) > OFF_CURRENT_A
         if speed > self._slowest_dps[i] + SPEED_UP_DPS:
             return True

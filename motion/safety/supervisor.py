@@ -237,11 +237,12 @@ class Supervisor:
         state = self.machine.state
         if bus.closed or state in (ArmState.BUS_LOST, ArmState.CLOSED):
             return
-        code = self._halt_code if state in (ArmState.HALTING, ArmState.HALTED) else Command.MOTOR_STOP
+        halted = state in (ArmState.HALTING, ArmState.HALTED)
+        codes = guard.codes if halted else dict.fromkeys(self.ids, Command.MOTOR_STOP)
         owed = guard.unacknowledged
-        halt = self._bare(code)
+        order = sorted(self.ids, key=lambda i: (i in owed, i))
         try:
-            bus.transact([Request(i, halt) for i in sorted(self.ids, key=lambda i: (i in owed, i))], clock.now() + 0.02)
+            bus.transact([Request(i, self._bare(codes[i])) for i in order], clock.now() + 0.02)
         except Exception as exc:  # the session ends anyway: leave a trace
             logger.error("the halt at the end of the session failed: %s: %s", type(exc).__name__, exc)
         lock = None
@@ -715,10 +716,21 @@ class Supervisor:
         self._send_failing = False
         now = controller.clock.now()
         axes = controller.axes
-        driving, outside = guard.take(replies, axes, self._within, now)
+        driving, outside, released = guard.take(replies, axes, self._within, now)
         names = self.watchdog.names
         for i in driving:
             logger.warning("%s reads as driving while halted: its halt is sent again", names[i])
+        for i in released:
+            self._record(
+                MotionFault(
+                    FaultKind.HOLD_FAILED,
+                    joint=names[i],
+                    value=float(axes.q_deg[i]),
+                    time_s=now,
+                    detail="its drive's own hold (0x81) oscillates (a position loop tuned for another load): released "
+                    "with 0x80",
+                )
+            )
         for i in outside:
             self._record(
                 MotionFault(
