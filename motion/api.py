@@ -64,7 +64,7 @@ from motion.control.turns import JointTurns, Source
 from motion.emulator import Fault, FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
-from motion.homing import HomingResult, corrected_turns, homed_joints, homing_variant, seek_stop
+from motion.homing import HomingResult, corrected_turns, finish_halt, homed_joints, homing_variant, seek_stop
 from motion.protocol import WireProtocol
 from motion.protocol.table import ProtocolFamily
 from motion.safety import ArmState, Supervisor
@@ -83,6 +83,8 @@ _EMULATE_CHOICES: dict[bool | str, str | None] = {
 }
 #: How long the emulator process gets to end after SIGTERM, s.
 _EMULATOR_EXIT_S = 5.0
+#: The fault's detail of :meth:`Arm.stop`.
+_STOP_DETAIL = "E-stop requested"
 
 
 def _end_process(process: subprocess.Popen[str]) -> None:
@@ -381,6 +383,14 @@ class Arm:
         self.simulation: Simulation | None = None
         self.names = config.joint_names
         self._index = {name: i for i, name in enumerate(self.names)}
+        # While connect() or home() runs, a stop (stop(), request_stop(): any thread, a signal handler) is latched
+        # here (its detail) until the next connect() or home(), and sent on to the loop running then (homing's or the
+        # arm's, once started). No lock: a signal handler must never wait on one. A request writes the latch, then
+        # reads the loop; a loop is registered, then reads the latch: in every interleaving one of them sees the
+        # other, so no loop that starts during connect() or home() misses a stop.
+        self._connecting = False
+        self._stop_latch: str | None = None
+        self._running: Supervisor | None = None
 
     @staticmethod
     def _check_start_pose(
@@ -424,10 +434,17 @@ class Arm:
     def connect(self) -> Arm:
         """Open the bus (and the emulator), read every joint's position, start the guarded loop holding it.
 
+        A :meth:`stop` (or :meth:`request_stop`) meanwhile, from another thread or a signal handler, interrupts homing
+        within one control cycle (every axis halted; a MotionFault of kind ``stop`` is raised), and an arm that has
+        not started its loop yet starts it halted (FAULTED, kind ``stop``: :meth:`clear` before moving).
+
         Raises:
             TransportError: the bus cannot be opened or a drive does not answer.
             RateError: the configured rate cannot be held on this host and bus (a ConfigError; nothing moved).
+            HomingError: a joint of ``home`` could not be homed (every axis halted).
+            MotionFault: a fault or a stop halted every axis during homing.
         """
+        self._begin_connecting()
         try:
             if self._telemetry_options is not None:
                 # Entered first, so closed last: the files are written once the loop and the bus have ended.
@@ -463,7 +480,22 @@ class Arm:
         except BaseException:
             self._stack.close()
             raise
+        finally:
+            self._connecting = False
         return self
+
+    def _begin_connecting(self) -> None:
+        """From here until :meth:`connect` or :meth:`home` returns, a stop is latched for the loops it starts."""
+        self._stop_latch = None
+        self._connecting = True
+
+    def _register_loop(self, supervisor: Supervisor) -> None:
+        """``supervisor`` (its loop not started yet) is where a stop goes from now on; a stop latched while connecting
+        halts it in its first cycle."""
+        self._running = supervisor
+        latched = self._stop_latch
+        if latched is not None:
+            supervisor.request_estop(FaultKind.STOP, self._stop_detail(supervisor, latched))
 
     def _negotiate(self, bus: Transport) -> Transport:
         """The bus in the drives' protocol generation (:func:`motion.compose.negotiate_family`)."""
@@ -497,20 +529,24 @@ class Arm:
 
     def _start_supervisor(self) -> None:
         assert self.controller is not None
-        self.supervisor = build_supervisor(self.config, self.controller, observe=self._observe)
+        self.supervisor = supervisor = build_supervisor(self.config, self.controller, observe=self._observe)
         if self.telemetry is not None:
-            self.telemetry.attach(self.controller, self.supervisor)
-        self.supervisor.start()
+            self.telemetry.attach(self.controller, supervisor)
+        self._register_loop(supervisor)
+        supervisor.start()
 
     def home(self, joints: Sequence[str]) -> list[HomingResult]:
         """Home ``joints`` against their hard stops (see :mod:`motion.homing`): the guarded loop ends (every axis
         halted with 0x81: the drives hold), the joints seek their stops one at a time under a homing loop of their
         own, and the arm's loop starts again in the corrected frame, holding where homing left it.
 
+        A :meth:`stop` (or :meth:`request_stop`) meanwhile interrupts homing within one control cycle, as at
+        :meth:`connect`.
+
         Raises:
             HomingError: a joint cannot be homed, or no stop was found (the arm is left halted and closed to motion
                 until connected again).
-            MotionFault: a fault halted the arm during homing.
+            MotionFault: a fault or a stop halted the arm during homing (closed to motion as above).
             MotionError: the arm is not connected, not READY, or recording telemetry (home at connect instead:
                 ``Arm(..., home=[...])``).
         """
@@ -520,17 +556,21 @@ class Arm:
             raise MotionError(f"homing needs the arm READY; it is {supervisor.state.value}")
         if self.telemetry is not None:
             raise MotionError("homing a recording arm: home at connect instead (Arm(..., home=[...]))")
-        supervisor.close()
-        self.supervisor = None
-        self.controller = self._new_controller()
-        self.controller.set_turns([j.turns for j in self.turns])
-        self.controller.read_positions()
-        self.homing = self._home_joints(joints)
-        if self._remembers:
-            save_turn_records(
-                self.config, self.controller.bus.describe(), self.controller, (j.source for j in self.turns)
-            )
-        self._start_supervisor()
+        self._begin_connecting()
+        try:
+            supervisor.close()
+            self.supervisor = None
+            self.controller = self._new_controller()
+            self.controller.set_turns([j.turns for j in self.turns])
+            self.controller.read_positions()
+            self.homing = self._home_joints(joints)
+            if self._remembers:
+                save_turn_records(
+                    self.config, self.controller.bus.describe(), self.controller, (j.source for j in self.turns)
+                )
+            self._start_supervisor()
+        finally:
+            self._connecting = False
         return self.homing
 
     def _home_joints(self, names: Sequence[str]) -> list[HomingResult]:
@@ -544,10 +584,13 @@ class Arm:
         seeker.set_turns(controller.turns)
         seeker.read_positions()
         supervisor = build_supervisor(variant, seeker)
-        supervisor.start()
+        self._register_loop(supervisor)
         try:
+            supervisor.start()
             results = [seek_stop(supervisor, self._index[j.name], j, seeker.pause) for j in joints]
         finally:
+            self._running = None  # a stop from now on is latched for the arm's loop
+            finish_halt(supervisor)
             supervisor.close()
         controller.set_turns(corrected_turns(controller.turns, self._index.__getitem__, results))
         q = controller.read_positions()
@@ -726,12 +769,47 @@ class Arm:
         """Jerk-limited stop of the current motion; the arm holds where it ends (not a fault)."""
         self._guard().stop_motion()
 
-    def stop(self) -> None:
+    def stop(self, timeout_s: float = 1.0) -> None:
         """E-stop: halt every axis now with 0x81 (0x80 under ``halt_policy: off``); clear() before moving again.
 
         Unlike a fault under ``halt_policy: hold``, an explicit stop never streams a ramp: the drives stop themselves.
+        Any thread may call it, also while :meth:`connect` or :meth:`home` runs (see there: homing is interrupted);
+        it returns once the halt went out (at most ``timeout_s``), or at once when no loop runs yet (the first cycle
+        of the next one halts).
+
+        Raises:
+            MotionError: the arm is neither connected nor connecting.
         """
-        self._guard().estop(FaultKind.STOP)
+        loop = self._request_stop(_STOP_DETAIL)
+        if loop is not None:
+            loop.controller.wait_for(lambda: loop.state.faulted, timeout_s)
+
+    def request_stop(self, detail: str = _STOP_DETAIL) -> None:
+        """Ask for the E-stop of :meth:`stop` and return at once: the running loop halts every axis in its next cycle.
+
+        It never waits for the loop, runs a simulated one or takes a lock: safe from any thread and from a signal
+        handler (``rmd-motion``'s Ctrl-C). ``detail`` goes into the fault (``"SIGINT"``).
+
+        Raises:
+            MotionError: the arm is neither connected nor connecting.
+        """
+        self._request_stop(detail)
+
+    def _request_stop(self, detail: str) -> Supervisor | None:
+        """The stop to the loop running now (see ``_stop_latch`` in ``__init__``); returns that loop, if any."""
+        if self._connecting:
+            self._stop_latch = detail
+        loop = self._running
+        if loop is None:
+            if self._connecting:
+                return None  # the next loop halts in its first cycle
+            loop = self._guard()  # connected: the arm's loop (raises when never connected)
+        loop.request_estop(FaultKind.STOP, self._stop_detail(loop, detail))
+        return loop
+
+    def _stop_detail(self, loop: Supervisor, detail: str) -> str:
+        """The fault's detail of a stop: ``detail``, and what it interrupted."""
+        return detail if loop is self.supervisor else f"{detail} during homing: homing interrupted"
 
     def clear(self) -> None:
         """Clear a fault (0x9B); raises MotionFault ``clear_failed`` while a cause persists."""

@@ -18,6 +18,10 @@ The drive's single-turn encoder is absolute within a motor turn; what a power-up
    frame, differs from ``stop_deg`` by whole motor turns plus what the stop yields: the nearest whole number of turns
    is the correction, and a remainder of more than a quarter of a turn is refused (the configured ``stop_deg`` or
    ``zero_offset_deg`` is wrong, or something else stopped the joint).
+
+Homing can be interrupted in every step: a stop (``Arm.stop()`` from another thread, Ctrl-C or SIGTERM in
+``rmd-motion``) is an E-stop request to the homing loop, which halts every axis (0x81) in its next cycle; the homing
+steps look for faults every control period and raise it (a MotionFault of kind ``stop``).
 """
 
 from __future__ import annotations
@@ -172,7 +176,8 @@ def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Cal
 
     Raises:
         HomingError: no stop within the travel or the time, or a remainder no whole turn count explains.
-        MotionFault: a fault halted the arm.
+        MotionFault: a fault halted the arm, or a stop (``Arm.stop()``, Ctrl-C: ``request_estop`` of ``supervisor``,
+            taken in the loop's next cycle); raised within a control period of the halt.
     """
     homing = joint.homing
     if homing is None:  # homed_joints() refuses these
@@ -184,8 +189,8 @@ def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Cal
     travel = homing.max_travel_deg if homing.max_travel_deg is not None else TURN_DEG
     target = start.copy()
     target[index] += toward * travel
-    pause(SETTLE_S)
-    _raise_if_faulted(supervisor)
+    settled = clock.now() + SETTLE_S
+    _run_until(supervisor, pause, lambda: clock.now() >= settled)
     watch = _StopWatch(index, homing.current_limit_a, period)
     controller.cycle_hooks.append(watch)
     began = clock.now()
@@ -221,9 +226,16 @@ def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Cal
 def _wait_idle(supervisor: Supervisor, pause: Callable[[float], None]) -> None:
     """Let the loop run until the motion has ended; a fault on the way is raised."""
     controller = supervisor.controller
-    while not controller.idle:
+    _run_until(supervisor, pause, lambda: controller.idle)
+
+
+def _run_until(supervisor: Supervisor, pause: Callable[[float], None], done: Callable[[], bool]) -> None:
+    """Let the loop run, a control period at a time, until ``done()``; a fault (or a stop) on the way is raised
+    within a period."""
+    period = supervisor.controller.period_s
+    while not done():
         _raise_if_faulted(supervisor)
-        pause(controller.period_s)
+        pause(period)
     _raise_if_faulted(supervisor)
 
 
@@ -231,6 +243,14 @@ def _raise_if_faulted(supervisor: Supervisor) -> None:
     fault = supervisor.fault
     if fault is not None and supervisor.state is not ArmState.READY:
         raise fault
+
+
+def finish_halt(supervisor: Supervisor) -> None:
+    """Before a halted homing loop is closed: let it re-send the halt to the drives that have not acknowledged it yet
+    (until they do, or ``safety.halt_retry_s`` passes), as the arm's loop would."""
+    controller = supervisor.controller
+    if supervisor.state is ArmState.HALTING and controller.loop.running:
+        controller.wait_for(lambda: supervisor.state is not ArmState.HALTING, supervisor.settings.halt_retry_s)
 
 
 def corrected_turns(turns: Sequence[int], index_of: Callable[[str], int], results: Sequence[HomingResult]) -> list[int]:
@@ -247,6 +267,7 @@ __all__ = [
     "HomingError",
     "HomingResult",
     "corrected_turns",
+    "finish_halt",
     "homed_joints",
     "homing_variant",
     "seek_stop",

@@ -159,21 +159,30 @@ def emulated_arm(
 
 def logged_requests(rig: Rig) -> Iterator[tuple[float, int | None, Message]]:
     """Every request the emulated drives received: (time of the rig's clock, motor id or None for 0x280, message)."""
-    v3 = rig.family is ProtocolFamily.V3
+    for t, motor_id, message in requests_in_log(rig.frame_log.read_text(), rig.family):
+        yield rig.log_start_s + t, motor_id, message
+
+
+def requests_in_log(
+    text: str, family: ProtocolFamily = ProtocolFamily.V2
+) -> Iterator[tuple[float, int | None, Message]]:
+    """Every request in a frame log's ``text`` (:mod:`motion.emulator.framelog`): (seconds since the log opened,
+    motor id or None for 0x280, message). A last line not written out yet (a log being written) is left out."""
+    v3 = family is ProtocolFamily.V3
     decode_can = frames_v3.decode_can_request if v3 else can_frame.decode_request
     decode_rs485 = frames_v3.decode_rs485_request if v3 else rs485_frame.decode_request
-    for line in rig.frame_log.read_text().splitlines():
+    for line in text.splitlines(keepends=True):
         fields = line.split(maxsplit=3)
-        if len(fields) < 4 or fields[1] != "IN":
+        if len(fields) < 4 or fields[1] != "IN" or not line.endswith("\n"):
             continue
         wire = fields[3].split(" | ")[0]
         if ":" in wire:
             ident, data = wire.split(":")
             request = decode_can(int(ident, 16), bytes.fromhex(data))
-            yield rig.log_start_s + float(fields[0]), request.motor_id, request.message
+            yield float(fields[0]), request.motor_id, request.message
         else:
             motor_id, message = decode_rs485(bytes.fromhex(wire))
-            yield rig.log_start_s + float(fields[0]), motor_id, message
+            yield float(fields[0]), motor_id, message
 
 
 def received(rig: Rig, command: int) -> dict[int, list[float]]:

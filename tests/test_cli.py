@@ -37,9 +37,10 @@ import pytest
 from motion.cli.common import Interrupts
 from motion.cli.moves import Progress
 from motion.cli.program import MoveStep, PathStep, WaitStep, parse_program
-from motion.config import load_config
-from motion.errors import ConfigError
-from tests.motion_rig import skip_if_rate_refused
+from motion.config import JointConfig, load_config
+from motion.errors import ConfigError, FaultKind, MotionError, MotionFault
+from motion.protocol import Bare, Command, MultiTurnPositionSpeed
+from tests.motion_rig import requests_in_log, skip_if_rate_refused
 
 ROOT = Path(__file__).resolve().parent.parent
 ARM2 = ROOT / "configs" / "arm2.yaml"
@@ -77,6 +78,12 @@ class Emulated:
 
     def log_size(self) -> int:
         return self.log.stat().st_size
+
+    def log_since(self, offset: int) -> str:
+        """The frame log from byte ``offset`` on."""
+        with self.log.open("rb") as log:
+            log.seek(offset)
+            return log.read().decode()
 
 
 def cli(*args: str | Path, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
@@ -212,6 +219,78 @@ def status_json(config: Path, emulated: Emulated) -> dict[str, dict[str, Any]]:
 
 def positions(config: Path, emulated: Emulated) -> dict[str, float]:
     return {name: float(joint["position_deg"]) for name, joint in status_json(config, emulated).items()}
+
+
+# ---------------------------------------------------------------------------------------------- interrupts (issue 29)
+
+
+def first_halts(text: str) -> dict[int, float]:
+    """When each motor first received the motor stop (0x81) in a frame log's ``text``, s of the log."""
+    first: dict[int, float] = {}
+    for t, motor_id, message in requests_in_log(text):
+        if motor_id is not None and isinstance(message, Bare) and message.command is Command.MOTOR_STOP:
+            first.setdefault(motor_id, t)
+    return first
+
+
+def setpoints_after(text: str, t_s: float) -> list[int | None]:
+    """The motors that received a position set-point (0xA4) after ``t_s`` in a frame log's ``text``, once each."""
+    return [m for t, m, message in requests_in_log(text) if t > t_s and isinstance(message, MultiTurnPositionSpeed)]
+
+
+def setpoints_deg(text: str, joint: JointConfig) -> list[float]:
+    """The position set-points (0xA4) ``joint``'s drive received in a frame log's ``text``, joint degrees."""
+    transmission = joint.transmission()
+    return [
+        transmission.joint_deg(message.angle_deg)
+        for _, motor_id, message in requests_in_log(text)
+        if motor_id == joint.motor_id and isinstance(message, MultiTurnPositionSpeed)
+    ]
+
+
+@dataclass
+class Interrupted:
+    """A command interrupted once a joint was moving (:func:`interrupt_when_moving`)."""
+
+    returncode: int
+    stderr: str
+    took_s: float  #: from the signal to the exit
+    after: str  #: the frame log from the signal on
+    moved: str  #: the frame log from the command's start on
+
+
+def interrupt_when_moving(
+    emulated: Emulated, args: list[str], joint: JointConfig, signum: signal.Signals, *, moved_deg: float = 2.0
+) -> Interrupted:
+    """Run ``rmd-motion ARGS``, and send it ``signum`` once ``joint``'s position set-point is ``moved_deg`` from the
+    first one the command sent (a motion under way, as the drives see it)."""
+    offset = emulated.log_size()
+    process = subprocess.Popen(
+        [sys.executable, "-m", "motion.cli", *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT
+    )
+    try:
+        deadline = time.monotonic() + RUN_TIMEOUT_S
+        while True:
+            if process.poll() is not None:  # ended before anything moved
+                stdout, stderr = process.communicate()
+                skip_if_rate_refused(subprocess.CompletedProcess(process.args, process.returncode, stdout, stderr))
+                pytest.fail(f"exit {process.returncode} before {joint.name} moved: {stderr}")
+            assert time.monotonic() < deadline, f"{joint.name} did not move within {RUN_TIMEOUT_S:g} s"
+            sent = setpoints_deg(emulated.log_since(offset), joint)
+            if sent and abs(sent[-1] - sent[0]) >= moved_deg:
+                break
+            time.sleep(0.05)
+        marked = emulated.log_size()
+        process.send_signal(signum)
+        signalled = time.monotonic()
+        _, stderr = process.communicate(timeout=RUN_TIMEOUT_S)
+        took_s = time.monotonic() - signalled
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.communicate()
+    time.sleep(0.1)  # the emulator's last lines
+    return Interrupted(process.returncode, stderr, took_s, emulated.log_since(marked), emulated.log_since(offset))
 
 
 # ---------------------------------------------------------------------------------------------------- CAN
@@ -419,6 +498,36 @@ def test_interrupts_are_deferred_through_critical_sections() -> None:
         interrupts.restore()
 
 
+def test_a_halting_section_asks_for_the_halt_at_once_even_while_deferred() -> None:
+    interrupts = Interrupts()
+    interrupts.install()
+    asked: list[str] = []
+
+    def not_connected(_name: str) -> None:
+        raise MotionError("the arm is not connected")
+
+    try:
+        with (
+            pytest.raises(KeyboardInterrupt) as caught,
+            interrupts.halting(asked.append),
+            interrupts.deferred(),
+            interrupts.deferred(),
+        ):
+            signal.raise_signal(signal.SIGTERM)
+            assert asked == ["SIGTERM"]  # at once (a homing loop halts in its next cycle), the interrupt deferred
+            signal.raise_signal(signal.SIGINT)
+            assert asked == ["SIGTERM"]  # asked once: the loop has the request
+            raise MotionFault(FaultKind.STOP, detail="SIGTERM during homing: homing interrupted")
+        assert isinstance(caught.value.__cause__, MotionFault)  # the fault that ended the section: the cause
+        with pytest.raises(KeyboardInterrupt):
+            signal.raise_signal(signal.SIGINT)  # outside the section: raised at once, no halt asked for
+        assert asked == ["SIGTERM"]
+        with pytest.raises(KeyboardInterrupt), interrupts.halting(not_connected):
+            signal.raise_signal(signal.SIGINT)  # nothing to halt yet: raised as usual
+    finally:
+        interrupts.restore()
+
+
 def test_program_forms_and_scales() -> None:
     config = load_config(ARM2)
     steps = [{"move": {"shoulder": 10}}, {"wait": 1}, {"path": [{"elbow": 5}, {"shoulder": -5, "elbow": 0}]}]
@@ -435,6 +544,28 @@ def test_program_forms_and_scales() -> None:
     ]:
         with pytest.raises(ConfigError, match=re.escape(message)):
             parse_program(data, "p.yaml", config)
+
+
+@pytest.mark.parametrize("command", ["check --identify", "collision-calibrate"])
+def test_moving_commands_interrupted_halt_every_axis_and_exit_130(
+    can_arm: Emulated, tmp_path: Path, command: str
+) -> None:
+    config = rate_that_holds(ARM2, can_arm, tmp_path, 200.0)
+    config.write_text(config.read_text().replace("mode: torque", "mode: position"))  # identification's mode
+    shoulder = load_config(config).joints[0]
+    if command == "collision-calibrate":
+        program = tmp_path / "program.yaml"
+        program.write_text(f"steps:\n  - move: {{shoulder: 60, elbow: -90}}\n    speed_scale: {SLOW_MOVE[-1]}\n")
+        args = [command, "--config", str(config), *can_arm.bus_args, str(program)]
+    else:
+        args = [*command.split(), "--config", str(config), *can_arm.bus_args]
+    run = interrupt_when_moving(can_arm, args, shoulder, signal.SIGINT)  # its first move under way
+    assert run.returncode == 130, run.stderr
+    assert "interrupted: E-stop sent to every axis" in run.stderr
+    halts = first_halts(run.after)
+    assert set(halts) == {1, 2}, run.after[-2000:]
+    assert len(setpoints_after(run.after, -1.0)) <= 2 * len(halts), run.after[-2000:]  # within one control cycle
+    assert setpoints_after(run.after, min(halts.values())) == []
 
 
 # ---------------------------------------------------------------------------------------------- power-up (issue 16)

@@ -1,11 +1,17 @@
-"""Homing against a hard stop (issue 16), on emulated drives in simulated time."""
+"""Homing against a hard stop (issue 16), on emulated drives in simulated time; interrupting it (issue 29), also
+with ``rmd-motion home`` against drives emulated in real time in a process of their own."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import os
+import signal
 import subprocess
 import sys
+import threading
+import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -15,9 +21,20 @@ import yaml
 from motion.api import Arm
 from motion.config import ArmConfig, load_config
 from motion.control.turns import TurnError
+from motion.errors import FaultKind, MotionError, MotionFault
 from motion.homing import HomingError, homed_joints, homing_variant, turns_to_stop
 from motion.transmission import Transmission
 from tests.motion_rig import CONFIGS
+from tests.test_cli import (
+    HOST_STALL_MS,
+    MIN_RATE_HZ,
+    Emulated,
+    first_halts,
+    interrupt_when_moving,
+    running_emulator,
+    setpoints_after,
+    setpoints_deg,
+)
 
 ARM6 = CONFIGS / "arm6.yaml"
 SHOULDER = 1  # arm6's shoulder_pitch, 1:36: one motor turn is 10 deg of the joint
@@ -114,3 +131,108 @@ def test_cli_home_prints_the_correction_and_lands_inside_the_limits(tmp_path: Pa
     refused = subprocess.run([*command[:-2], "elbow_pitch"], capture_output=True, text=True, check=False)
     assert refused.returncode == 2 and "no hard stop configured" in refused.stderr
     np.testing.assert_equal(refused.stdout, "")
+
+
+# ---------------------------------------------------------------------------------------------- interrupted (issue 29)
+
+ARM6_IDS = {1, 2, 3, 4, 5, 6}
+
+
+def test_a_stop_from_another_thread_interrupts_homing_at_connect_within_a_cycle(tmp_path: Path) -> None:
+    # Arm.stop() while Arm(..., home=[...]) connected raised "not connected", and the shoulder drove on into its stop.
+    # Simulated time runs in connect(): the other thread watches the plant, and asks once the seek is under way.
+    log = tmp_path / "frames.log"
+    arm = Arm(load_config(ARM6), emulate=True, home=["shoulder_pitch"], emulator_log=log)
+    asked: list[float] = []
+
+    def stop_while_seeking() -> None:
+        while arm.plant is None or arm.plant.joint_positions_deg()[SHOULDER] > -2.0:
+            time.sleep(0.001)
+        assert arm.simulation is not None
+        asked.append(arm.simulation.now())
+        arm.request_stop("test")  # returns at once: the time it was asked lies between these two readings
+        asked.append(arm.simulation.now())
+
+    stopper = threading.Thread(target=stop_while_seeking, daemon=True)
+    stopper.start()
+    with pytest.raises(MotionFault, match="test during homing: homing interrupted") as caught:
+        arm.connect()
+    stopper.join(10.0)
+    fault, (before, after) = caught.value, asked
+    assert fault.kind is FaultKind.STOP
+    period = arm.config.control.period_s
+    assert before <= fault.time_s <= after + period  # the next cycle took it
+    assert arm.frame_log is not None
+    text, start = log.read_text(), arm.frame_log.start_s
+    halts = first_halts(text)
+    assert set(halts) == ARM6_IDS  # every drive's own stop, in that cycle
+    assert all(fault.time_s <= start + t <= fault.time_s + period for t in halts.values()), halts
+    assert setpoints_after(text, min(halts.values())) == []  # nothing streamed after the halt
+    assert arm.plant is not None
+    assert arm.plant.joint_positions_deg()[SHOULDER] > -10.0  # the stop is at -125 deg
+    assert arm.supervisor is None
+    with pytest.raises(MotionError, match="not connected"):  # connect failed: closed (every loop ended with 0x81)
+        arm.stop()
+
+
+def test_arm_stop_while_connecting_halts_homing_in_its_first_cycles(tmp_path: Path) -> None:
+    # asked while connect still reads, or as the homing loop starts: that loop halts in its first cycle
+    log = tmp_path / "frames.log"
+    arm = Arm(load_config(ARM6), emulate=True, home=["shoulder_pitch"], emulator_log=log)
+
+    def stop_while_connecting() -> None:
+        while arm.simulation is None:
+            time.sleep(0.0005)
+        arm.stop()
+
+    stopper = threading.Thread(target=stop_while_connecting, daemon=True)
+    stopper.start()
+    with pytest.raises(MotionFault, match="E-stop requested during homing: homing interrupted"):
+        arm.connect()
+    stopper.join(10.0)
+    assert set(first_halts(log.read_text())) == ARM6_IDS
+    assert arm.plant is not None
+    assert abs(arm.plant.joint_positions_deg()[SHOULDER]) < 0.5  # the seek never began
+    with pytest.raises(MotionError, match="not connected"):
+        Arm(load_config(ARM6), emulate=True).request_stop()  # nothing to stop: said so
+
+
+@pytest.fixture(scope="module")
+def arm6_emulated(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Emulated]]:
+    """arm6 at the lowest rate a configuration allows (its six drives over a slcan pty to another Python process hold
+    little more here), a quarter of a second without a reply allowed, in time and in missed cycles (a shared CPU
+    stalls processes: homing runs before the rate check), its drives emulated in real time in a process of their
+    own."""
+    tmp = tmp_path_factory.mktemp("arm6")
+    data = yaml.safe_load(ARM6.read_text())
+    data["model"]["urdf"] = str(CONFIGS / data["model"]["urdf"])
+    data["control"]["rate_hz"] = MIN_RATE_HZ
+    data["safety"]["reply_timeout_ms"] = HOST_STALL_MS
+    data["safety"]["max_missed_replies"] = round(HOST_STALL_MS * 1e-3 * MIN_RATE_HZ)
+    config = tmp / "arm6.yaml"
+    config.write_text(yaml.safe_dump(data))
+    with running_emulator(tmp, config, "--slcan-link") as emulated:
+        yield config, emulated
+
+
+@pytest.mark.realtime
+@pytest.mark.skipif(os.name != "posix", reason="the emulator's links are pseudo-terminals")
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_cli_home_interrupted_halts_every_axis_and_exits_130(
+    arm6_emulated: tuple[Path, Emulated], signum: signal.Signals
+) -> None:
+    # rmd-motion home deferred the signal through connect: it exited 20-26 s later, the joint in its hard stop
+    config, emulated = arm6_emulated
+    shoulder = load_config(config).joints[SHOULDER]
+    args = ["home", "--config", str(config), *emulated.bus_args, "shoulder_pitch"]
+    run = interrupt_when_moving(emulated, args, shoulder, signum)  # the seek under way
+    assert run.returncode == 130, run.stderr
+    assert run.took_s < 5.0, run.stderr
+    assert "interrupted: every axis halted" in run.stderr, run.stderr
+    assert f"{signum.name} during homing: homing interrupted" in run.stderr, run.stderr
+    halts = first_halts(run.after)
+    assert set(halts) == ARM6_IDS, run.after[-2000:]
+    # the set-points of the cycle in flight when the signal came at most, then the halt: within one control cycle
+    assert len(setpoints_after(run.after, -1.0)) <= 2 * len(ARM6_IDS), run.after[-2000:]
+    assert setpoints_after(run.after, min(halts.values())) == []
+    assert setpoints_deg(run.moved, shoulder)[-1] > -30.0  # nowhere near the stop at -125 deg

@@ -18,7 +18,7 @@ from typing import Any, Final
 
 from motion.compose import negotiate_family, open_bus
 from motion.config import ArmConfig, CanBusConfig, JointConfig, load_config_or_example
-from motion.errors import TransportError
+from motion.errors import MotionError, TransportError
 from motion.protocol import Message
 from motion.protocol.table import ProtocolFamily
 from motion.transport import Request, Transport
@@ -48,13 +48,15 @@ class UsageError(Exception):
 
 class Interrupts:
     """SIGINT and SIGTERM raise KeyboardInterrupt in the main thread, except inside :meth:`deferred` sections
-    (a signal there is raised when the outermost section ends) or after :meth:`ignore`."""
+    (a signal there is raised when the outermost section ends) or after :meth:`ignore`. Inside a :meth:`halting`
+    section a signal first asks the control loop to halt every axis, at once, deferred or not."""
 
     def __init__(self) -> None:
         self._depth = 0
         self._pending = False
         self._ignored = False
         self._previous: dict[int, Any] = {}
+        self._halt: Callable[[str], None] | None = None
 
     def install(self) -> None:
         """Take over SIGINT and SIGTERM (:meth:`restore` gives them back)."""
@@ -70,6 +72,10 @@ class Interrupts:
     def _handle(self, signum: int, frame: types.FrameType | None) -> None:
         if self._ignored:
             return
+        if self._halt is not None and not self._pending:  # (a second Ctrl-C: the loop has the first request)
+            # nothing to halt (not connected yet): the signal goes on as any other
+            with contextlib.suppress(MotionError):
+                self._halt(signal.Signals(signum).name)
         if self._depth:
             self._pending = True
             return
@@ -77,15 +83,40 @@ class Interrupts:
 
     @contextlib.contextmanager
     def deferred(self) -> Iterator[None]:
-        """A section that a signal must not cut short (connecting, halting, releasing the bus)."""
+        """A section that a signal must not cut short (connecting, halting, releasing the bus). A signal there is
+        raised when the outermost section ends, also in place of an exception that ends it (the halt a
+        :meth:`halting` section asked for ends a homing in connect with its fault: the KeyboardInterrupt's cause)."""
         self._depth += 1
         try:
             yield
+        except Exception as exc:
+            if self._depth == 1 and self._take_pending():
+                raise KeyboardInterrupt from exc
+            raise
         finally:
             self._depth -= 1
-        if self._pending and not self._depth and not self._ignored:
-            self._pending = False
+        if not self._depth and self._take_pending():
             raise KeyboardInterrupt
+
+    def _take_pending(self) -> bool:
+        """Whether a deferred signal is to be raised now (once)."""
+        if self._pending and not self._ignored:
+            self._pending = False
+            return True
+        return False
+
+    @contextlib.contextmanager
+    def halting(self, halt: Callable[[str], None]) -> Iterator[None]:
+        """A section in which the motors may move under a control loop (connecting with homing, a command's
+        motion): a signal first calls ``halt`` with its name (``"SIGINT"``), deferred or not. It runs in the signal
+        handler, between two bytecodes of the main thread (which may be in a control cycle itself, in simulated
+        time): it must only ask the loop to halt every axis in its next cycle and return
+        (:meth:`motion.api.Arm.request_stop`); a MotionError from it (nothing to halt yet) is ignored."""
+        previous, self._halt = self._halt, halt
+        try:
+            yield
+        finally:
+            self._halt = previous
 
     def ignore(self) -> None:
         """Ignore further signals (the halt after the first one must run to its end)."""

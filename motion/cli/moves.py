@@ -1,8 +1,9 @@
 """Commands that run the guarded control loop: ``move`` and ``run``.
 
-The arm connects (reads every joint, starts the loop holding where it is), moves, and closes: closing halts every
-axis with 0x81 and releases the bus. Ctrl-C or SIGTERM during any of it is an E-stop: every axis is halted in the
-next cycle, the bus is released, and the command exits with 130.
+The arm connects (reads every joint, homes the joints asked for, starts the loop holding where it is), moves, and
+closes: closing halts every axis with 0x81 and releases the bus. Ctrl-C or SIGTERM during any of it is an E-stop:
+the loop running then (homing's while connecting) halts every axis in its next cycle, the bus is released, and the
+command exits with 130.
 """
 
 from __future__ import annotations
@@ -158,24 +159,43 @@ def with_arm(
         options["start_pose"] = parse_pose(config or session.config, args.start_pose)
     arm = Arm(config or session.config, bus_overrides=overrides, telemetry=telemetry, **options)
     try:
-        with interrupts.deferred():  # a signal while connecting is raised once the loop runs (or connect failed)
-            arm.connect()
-        if arm.view is not None:
-            print(f"view: {arm.view.url}", file=sys.stderr, flush=True)
-        code = body(arm)
+        # a signal asks the running loop for the E-stop at once (also homing's, while connecting): every axis halted
+        # in its next cycle, whatever the main thread is doing
+        with interrupts.halting(arm.request_stop):
+            # a signal while connecting is raised once the loop runs, or once connect ended (a homing it halted)
+            with interrupts.deferred():
+                arm.connect()
+            if arm.view is not None:
+                print(f"view: {arm.view.url}", file=sys.stderr, flush=True)
+            code = body(arm)
         return keep_view_open(arm) if arm.view is not None and code == EXIT_OK else code
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as interrupt:
         interrupts.ignore()
-        if arm.supervisor is not None:
-            try:
-                arm.stop()  # E-stop: every axis halted in the next cycle
-            except MotionError as exc:  # already closed: closing halted the axes
-                warn(f"E-stop: {exc}")
-            warn("interrupted: E-stop sent to every axis")
+        warn(_halt_after_interrupt(arm, interrupt.__cause__))
         raise
     finally:
         with interrupts.deferred():
             arm.close()  # halts every axis (0x81) unless halted already, releases the bus
+
+
+def _halt_after_interrupt(arm: Arm, cause: BaseException | None) -> str:
+    """After Ctrl-C or SIGTERM: the E-stop of the arm's loop, if it runs (the signal asked for it already: this waits
+    for it to go out); returns what was halted, for stderr.
+
+    Args:
+        cause: what ended a connect that the signal interrupted (the fault of a homing it halted), if anything.
+    """
+    if arm.supervisor is not None:
+        try:
+            arm.stop()  # E-stop: every axis halted in the next cycle
+        except MotionError as exc:  # already closed: closing halted the axes
+            warn(f"E-stop: {exc}")
+        return "interrupted: E-stop sent to every axis"
+    if isinstance(cause, MotionFault):
+        return f"interrupted: every axis halted ({cause})"
+    if cause is not None:
+        return f"interrupted while connecting, which ended with {type(cause).__name__}: {cause}"
+    return "interrupted before the arm connected: nothing moved"
 
 
 def keep_view_open(arm: Arm) -> int:
