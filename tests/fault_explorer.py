@@ -378,7 +378,7 @@ def shrink(schedule: Schedule, fails: Callable[[Schedule], bool]) -> Schedule:
     return current
 
 
-def _fails_like(kinds: set[str]) -> Callable[[Schedule], bool]:
+def fails_like(kinds: set[str]) -> Callable[[Schedule], bool]:
     """Whether a schedule still violates one of ``kinds``."""
     return lambda schedule: bool(run(schedule).kinds & kinds)
 
@@ -392,6 +392,6 @@ def explore(seed: int, count: int, progress: Callable[[Outcome], None] | None = 
         if progress is not None:
             progress(outcome)
         if outcome.violations:
-            smallest = shrink(outcome.schedule, _fails_like(outcome.kinds))
+            smallest = shrink(outcome.schedule, fails_like(outcome.kinds))
             failed.append(run(smallest) if smallest != outcome.schedule else outcome)
     return failed
