@@ -102,12 +102,15 @@ def port_gone(exc: BaseException, fd: int | None = None) -> bool:
         return True
 
 
+def port_lost(text: str) -> PortLost:
+    """The :class:`PortLost` of a failure that ``text`` describes."""
+    return PortLost(f"{text} (the port is gone: adapter unplugged or dead?)")
+
+
 def port_failure(text: str, exc: BaseException, fd: int | None = None) -> TransportError:
     """The error to raise for ``exc``, a failed read or write on a port that ``text`` describes: :class:`PortLost`
     when the port is gone (:func:`port_gone`), else a :class:`TransportError`."""
-    if port_gone(exc, fd):
-        return PortLost(f"{text} (the port is gone: adapter unplugged or dead?)")
-    return TransportError(text)
+    return port_lost(text) if port_gone(exc, fd) else TransportError(text)
 
 
 #: Slot states.

@@ -38,12 +38,12 @@ from typing import Final
 
 import serial
 
-from motion.errors import DecodeError, EncodeError, PortLost, TransportError
+from motion.errors import DecodeError, EncodeError, TransportError
 from motion.protocol import MultiMotorTorque, Rs485Parser, rs485_frame
 from motion.protocol.table import RS485_BAUDRATES, Direction, ProtocolFamily
 from motion.protocol.v3 import frames as frames_v3
 from motion.protocol.v3.frames import Rs485ParserV3
-from motion.transport.base import Request, Transport, port_failure, probe_in_turn
+from motion.transport.base import Request, Transport, port_failure, port_lost, probe_in_turn
 
 #: Baud rates RMD RS485 drives of the older generation support (v1.62: 115200 is the factory default).
 BAUDRATES: Final = RS485_BAUDRATES[ProtocolFamily.V2]
@@ -251,7 +251,7 @@ class Rs485Transport(Transport):
             raise self._failure("read from", exc) from exc
         if not chunk:
             if ready:  # the end of the port's input: it hung up
-                raise PortLost(f"read from {self.describe()} failed: the port reports input but returned none (gone)")
+                raise port_lost(f"read from {self.describe()} failed: the port reports input but returned none")
             return chunk
         if self.frame_tap is not None:
             self.frame_tap(self.clock(), True, None, chunk)
