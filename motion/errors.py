@@ -62,6 +62,11 @@ class TransportTimeout(TransportError, TimeoutError):
     """A transport operation did not complete before its deadline."""
 
 
+class PortLost(TransportError):
+    """The bus or port is gone for good (a device unplugged, a dead adapter, the far end of a pseudo-terminal closed):
+    nothing more can be sent on it, and the transport that saw it counts as closed."""
+
+
 class ConfigError(MotionError, ValueError):
     """A configuration file is invalid.
 

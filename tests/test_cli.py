@@ -22,24 +22,30 @@ import contextlib
 import io
 import json
 import os
+import queue
 import re
 import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import pytest
 
+from motion import Arm, FaultKind, MotionFault
 from motion.cli.common import Interrupts
 from motion.cli.moves import Progress
 from motion.cli.program import MoveStep, PathStep, WaitStep, parse_program
 from motion.config import JointConfig, load_config
-from motion.errors import ConfigError, FaultKind, MotionError, MotionFault
+from motion.control.ratecheck import RateError
+from motion.errors import ConfigError, MotionError
 from motion.protocol import Bare, Command, MultiTurnPositionSpeed
+from motion.safety import ArmState
+from tests.junk_flood import JunkFlood
 from tests.motion_rig import requests_in_log, skip_if_rate_refused
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -182,12 +188,17 @@ def rate_that_holds(config: Path, emulated: Emulated, tmp: Path, ceiling_hz: flo
     text = config.read_text()
     if highest < MIN_RATE_HZ:
         pytest.skip(f"this host holds no control rate {config.name} allows (rate check: {highest:g} Hz)")
-    configured = f"rate_hz: {data['rate_hz']:g}"
-    assert configured in text
-    path = tmp / config.name
-    rate = min(round(highest), ceiling_hz)
-    text = text.replace(configured, f"rate_hz: {rate:g}")
-    if rate < TORQUE_MIN_RATE_HZ:  # these tests are about the command line: there the drives close the loop
+    assert f"rate_hz: {data['rate_hz']:g}" in text
+    return config_at(config, tmp, min(round(highest), ceiling_hz))
+
+
+def config_at(config: Path, tmp: Path, rate_hz: float) -> Path:
+    """A copy of ``config`` in ``tmp`` at ``rate_hz`` (see :func:`rate_that_holds` for its other settings)."""
+    text = config.read_text()
+    configured = re.search(r"rate_hz: \S+", text)
+    assert configured is not None, config
+    text = text.replace(configured.group(0), f"rate_hz: {rate_hz:g}")
+    if rate_hz < TORQUE_MIN_RATE_HZ:  # these tests are about the command line: there the drives close the loop
         text = text.replace("mode: torque", "mode: position")
     # A CPU shared with busy loops can keep a process waiting a tenth of a second (105 ms without a reply once, at
     # 50 Hz, under slow-host with three hogs): the copies allow a quarter of a second. The silent-drive detection
@@ -195,6 +206,7 @@ def rate_that_holds(config: Path, emulated: Emulated, tmp: Path, ceiling_hz: flo
     timeout = re.search(r"reply_timeout_ms: \S+", text)
     assert timeout is not None, config
     text = text.replace(timeout.group(0), f"reply_timeout_ms: {HOST_STALL_MS}")
+    path = tmp / config.name
     path.write_text(text)
     return path
 
@@ -628,3 +640,119 @@ def test_arm2_powered_up_outside_its_window_is_refused_before_any_command(tmp_pa
             assert "joint elbow" in result.stderr and "[-25, -15]" in result.stderr, result.stderr
             assert "joint shoulder" not in result.stderr
     assert _motion_commands(emulated.log) == []
+
+
+# -------------------------------------------------------------------------------- dead and flooding adapters (issue 29)
+
+#: Each link's example configuration and the emulator's option for it.
+LINKS = {"slcan": (ARM2, "--slcan-link"), "rs485": (ARM2_RS485, "--rs485-link")}
+#: Generous bound of the wait for a state the loop reaches within a few cycles, s.
+SETTLE_S = 10.0
+
+
+def _lines(stream: IO[str]) -> queue.Queue[str | None]:
+    """The lines of ``stream`` as a thread reads them (None at its end), so that a wait for one can time out."""
+    lines: queue.Queue[str | None] = queue.Queue()
+
+    def read() -> None:
+        for line in stream:
+            lines.put(line)
+        lines.put(None)
+
+    threading.Thread(target=read, daemon=True).start()
+    return lines
+
+
+def _await_line(lines: queue.Queue[str | None], needle: str, seen: list[str]) -> bool:
+    """Wait for a line holding ``needle`` (collecting every line in ``seen``); False at the stream's end."""
+    end = time.monotonic() + RUN_TIMEOUT_S
+    while (remaining := end - time.monotonic()) > 0:
+        line = lines.get(timeout=remaining)
+        if line is None:
+            return False
+        seen.append(line)
+        if needle in line:
+            return True
+    pytest.fail(f"no line with {needle!r} within {RUN_TIMEOUT_S:g} s: {seen}")
+
+
+def _kill_emulator(emulated: Emulated) -> None:
+    """SIGKILL: the emulator's end of the link dies as a crashed adapter's does, with nothing said."""
+    emulated.process.kill()
+    emulated.process.communicate(timeout=10)
+
+
+@pytest.mark.parametrize("link", LINKS)
+def test_an_adapter_that_dies_mid_move_is_bus_lost_and_the_arm_closes_clean(link: str, tmp_path: Path) -> None:
+    config_path, link_option = LINKS[link]
+    emulated = start_emulator(tmp_path, config_path, link_option)
+    path = emulated.bus_args[-1]
+    overrides: dict[str, object] = (
+        {"interface": "slcan", "channel": path, "sleep_after_open": 0} if link == "slcan" else {"port": path}
+    )
+    reached: list[tuple[ArmState, bool]] = []  # the state after the fault, and whether the loop still ran
+    try:
+        arm = Arm(load_config(config_at(config_path, tmp_path, MIN_RATE_HZ)), bus_overrides=overrides)
+        with pytest.raises(MotionFault) as raised, arm:  # the fault leaves the block, not an error of the close
+            handle = arm.move_to({"shoulder": 60.0, "elbow": -90.0}, speed_scale=0.1, wait=False)
+            end = time.monotonic() + SETTLE_S
+            while handle.progress().elapsed_s < 0.2 and time.monotonic() < end:
+                time.sleep(0.02)
+            _kill_emulator(emulated)
+            supervisor = arm.supervisor
+            assert supervisor is not None
+            loop = supervisor.controller.loop
+            try:
+                handle.wait(SETTLE_S)
+            finally:
+                end = time.monotonic() + SETTLE_S
+                while (supervisor.state is not ArmState.BUS_LOST or loop.running) and time.monotonic() < end:
+                    time.sleep(0.02)
+                reached.append((supervisor.state, loop.running))
+    except RateError as exc:
+        pytest.skip(f"the rate check refused {MIN_RATE_HZ:g} Hz on this host just now: {exc}")
+    finally:
+        stop_emulator(emulated.process)
+    assert raised.value.kind is FaultKind.TRANSPORT, raised.value
+    assert reached == [(ArmState.BUS_LOST, False)]  # lost, and the loop ended (no halt tried again for ever)
+    assert arm.bus is not None and arm.bus.lost is not None and "the port is gone" in str(arm.bus.lost)
+
+
+@pytest.mark.parametrize("link", LINKS)
+def test_move_on_an_adapter_that_dies_exits_3_saying_the_halt_was_not_delivered(link: str, tmp_path: Path) -> None:
+    config_path, link_option = LINKS[link]
+    emulated = start_emulator(tmp_path, config_path, link_option)
+    config = config_at(config_path, tmp_path, MIN_RATE_HZ)
+    command = [sys.executable, "-m", "motion.cli", "move", "--config", str(config), *emulated.bus_args]
+    move = subprocess.Popen([*command, *SLOW_MOVE], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert move.stderr is not None
+        seen: list[str] = []
+        lines = _lines(move.stderr)
+        moving = _await_line(lines, "s planned", seen)  # the move is under way
+        _kill_emulator(emulated)
+        move.wait(RUN_TIMEOUT_S)
+        _await_line(lines, "\0", seen)  # the rest, to the end
+    finally:
+        if move.poll() is None:
+            move.kill()
+            move.communicate()
+        stop_emulator(emulated.process)
+    err = "".join(seen)
+    if not moving:
+        skip_if_rate_refused(subprocess.CompletedProcess(command, move.returncode, "", err))
+        pytest.fail(f"the move did not start: {err}")
+    assert move.returncode == 3, err
+    assert "Traceback" not in err and "every axis halted" not in err, err
+    assert "the bus was lost" in err and "the halt could not be delivered" in err, err
+    assert "older generation keep executing their last command" in err and "hardware E-stop" in err, err
+
+
+def test_status_on_an_adapter_flooding_junk_exits_3_in_time_naming_the_junk() -> None:
+    with JunkFlood(RUN_TIMEOUT_S) as flood:
+        start = time.monotonic()
+        result = cli("status", "--config", ARM2, "--interface", "slcan", "--channel", flood.path)
+        elapsed = time.monotonic() - start
+    assert result.returncode == 3, result.stderr
+    assert "communication error" in result.stderr and "bytes of junk" in result.stderr, result.stderr
+    assert elapsed < RUN_TIMEOUT_S / 2  # a few reads' deadlines and the start of Python; before: for ever

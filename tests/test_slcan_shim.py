@@ -11,9 +11,13 @@ from collections.abc import Iterator
 import can
 import pytest
 
+from motion.errors import PortLost
 from motion.protocol import CanFrame
+from motion.transport import CanTransport
 from motion.transport.can_endpoint import CanEndpoint
-from motion.transport.slcan_shim import SlcanShimBus, needs_shim
+from motion.transport.slcan_shim import MAX_LINE_BYTES, SlcanShimBus, needs_shim
+from tests.junk_flood import JunkFlood
+from tests.test_transport_peers import status2
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="pseudo-terminals are POSIX")
 
@@ -167,6 +171,85 @@ def test_endpoint_uses_the_shim_while_python_can_lacks_the_fix() -> None:
             )
     finally:
         os.close(master)
+        os.close(slave)
+
+
+# ---------------------------------------------------------------------------------------------- issue 29
+
+
+def test_a_line_longer_than_any_slcan_line_is_junk_dropped_to_its_end(pty_bus: tuple[int, SlcanShimBus]) -> None:
+    master, bus = pty_bus
+    os.write(master, b"x" * 1000 + b"\r" + FRAME_A)  # a whole over-long line, then a frame
+    assert _frames(bus, 1) == [(0x141, bytes.fromhex("a4 00 68 01 28 23 00 00"))]
+    assert (bus.junk_bytes, bus.garbled_lines) == (1001, 1)
+    os.write(master, b"y" * 300)  # an over-long line still coming: dropped as it comes, the buffer stays empty
+    end = time.monotonic() + 2.0  # (a pty delivers a write in pieces on a busy host)
+    while bus.junk_bytes < 1301 and time.monotonic() < end:
+        assert bus.recv(0.05) is None
+    assert (bus.junk_bytes, bus.garbled_lines, len(bus._buffer)) == (1301, 2, 0)
+    os.write(master, b"y12\r" + FRAME_B)  # its end (short as it is, still junk), then a frame: in sync again
+    assert _frames(bus, 1) == [(0x142, b"\xa4" + bytes(7))]
+    assert (bus.junk_bytes, bus.garbled_lines) == (1305, 2)
+
+
+#: The flood goes on this long: a read that ignored its timeout would last as long.
+FLOOD_S = 6.0
+#: A generous bound of a call with a timeout of a fraction of a second, on a loaded host (far below FLOOD_S).
+SLACK_S = 2.0
+
+
+def test_an_adapter_flooding_junk_holds_the_timeout_with_a_bounded_buffer() -> None:
+    with JunkFlood(FLOOD_S) as flood:
+        bus = SlcanShimBus(flood.path, bitrate=1_000_000, sleep_after_open=0)
+        try:
+            start = time.monotonic()
+            assert bus.recv(0.2) is None
+            assert bus.recv_frame(0.2) is None
+            assert time.monotonic() - start < 0.4 + SLACK_S
+            assert len(bus._buffer) <= MAX_LINE_BYTES
+            assert bus.junk_bytes > MAX_LINE_BYTES and bus.garbled_lines >= 1
+        finally:
+            bus.shutdown()
+
+
+def test_a_transport_on_a_flooding_adapter_keeps_its_deadline_and_counts_the_junk() -> None:
+    with JunkFlood(FLOOD_S) as flood, CanTransport("slcan", flood.path, 1_000_000, sleep_after_open=0) as transport:
+        start = transport.clock()
+        replies = transport.transact([status2(1), status2(2)], start + 0.2)
+        assert transport.clock() - start < 0.2 + SLACK_S
+        assert [r.ok for r in replies] == [False, False]
+        assert transport.bus_counters.dropped_bytes > MAX_LINE_BYTES
+        assert "bytes of junk" in transport.junk_note()
+
+
+def test_an_adapter_that_dies_is_lost_and_its_transport_closes_clean() -> None:
+    import tty
+
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    try:
+        transport = CanTransport("slcan", os.ttyname(slave), 1_000_000, sleep_after_open=0)
+        assert transport.transact([status2(1)], transport.clock() + 0.02)[0].message is None  # nobody answers yet
+        assert (transport.lost, transport.closed) == (None, False)
+        os.close(master)  # the adapter's end dies: the port hangs up, a write fails with EIO
+        master = -1
+        with pytest.raises(PortLost, match="the port is gone"):
+            transport.transact([status2(1)], transport.clock() + 0.1)
+        assert transport.lost is not None and transport.closed  # nothing more can be sent: a loop on it ends
+        start = time.monotonic()
+        with pytest.raises(PortLost, match="the port is gone"):  # at once, without trying the port again
+            transport.transact([status2(1)], transport.clock() + 1.0)
+        assert time.monotonic() - start < 0.5
+        endpoint = transport.port
+        assert isinstance(endpoint, CanEndpoint)
+        bus = endpoint._bus
+        transport.close()  # python-can's close command cannot be written: logged, not raised
+        if isinstance(bus, SlcanShimBus):
+            assert not bus.serialPortOrig.is_open  # and the descriptor was released all the same
+        assert transport.lost is not None
+    finally:
+        if master >= 0:
+            os.close(master)
         os.close(slave)
 
 

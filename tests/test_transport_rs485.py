@@ -10,7 +10,7 @@ from typing import Any
 
 import pytest
 
-from motion.errors import EncodeError, TransportError
+from motion.errors import EncodeError, PortLost, TransportError
 from motion.protocol import (
     Bare,
     Command,
@@ -22,7 +22,9 @@ from motion.protocol import (
     Status1,
     rs485_frame,
 )
+from motion.protocol.table import RS485_MAX_DATA_BYTES
 from motion.transport import Request, Rs485Transport, open_transport
+from tests.junk_flood import JunkFlood
 from tests.test_transport_peers import MARGIN_S, Script, ScriptedDrives, assert_balanced, status2, tag_of
 
 
@@ -232,14 +234,30 @@ def test_close_releases_the_port_also_after_an_error(pty: Pty) -> None:
         assert again.transact([status2(1)], again.clock() + 0.5)[0].ok
 
 
-def test_port_gone_surfaces_as_transport_error(pty: Pty) -> None:
+def test_port_gone_is_lost_for_good_and_closes_clean(pty: Pty) -> None:
     with rig(pty) as (transport, drives):
         assert transport.transact([status2(1)], transport.clock() + 0.5)[0].ok
         drives.stop()
-        pty.close_master()  # the other end disappears (on Linux the slave then reads EIO)
-        with pytest.raises(TransportError, match="rs485"):
+        pty.close_master()  # the other end disappears (the slave hangs up: reads end, writes fail with EIO)
+        with pytest.raises(PortLost, match="rs485.*the port is gone"):
             transport.transact([status2(1)], transport.clock() + 0.1)
-    assert transport.closed
+        assert transport.lost is not None and transport.closed  # nothing more can be sent: a loop on it ends
+        with pytest.raises(PortLost, match="the port is gone"):  # again at once, without trying the port
+            transport.transact([status2(1)], transport.clock() + 0.1)
+        serial_port = transport._serial
+    assert transport.closed and not serial_port.is_open  # the exit closed it without raising
+    assert transport.lost is not None
+
+
+def test_a_line_flooded_with_junk_keeps_the_deadline_and_counts_the_junk() -> None:
+    with JunkFlood(6.0) as flood, Rs485Transport(flood.path) as transport:
+        start = transport.clock()
+        replies = transport.transact([status2(1), status2(2)], start + 0.2)
+        assert transport.clock() - start < 0.2 + 2.0  # the flood lasts 6 s: a drain that ignored the time would too
+        assert [r.ok for r in replies] == [False, False]
+        assert transport._parser.pending <= rs485_frame.frame_size(RS485_MAX_DATA_BYTES)  # junk is dropped as it comes
+        assert transport.bus_counters.dropped_bytes > 0
+        assert "bytes of junk" in transport.junk_note()
 
 
 def test_opening_a_missing_port_raises_transport_error(tmp_path: Any) -> None:

@@ -29,7 +29,7 @@ from motion.cli.common import (
 )
 from motion.cli.program import MoveStep, PathStep, Program, WaitStep, load_program
 from motion.config import ArmConfig
-from motion.errors import MotionError, MotionFault
+from motion.errors import MotionError, MotionFault, PortLost
 from motion.homing import homed_joints
 from motion.telemetry import TelemetryOptions
 
@@ -128,6 +128,32 @@ def hold_for(arm: Arm, seconds: float) -> None:
             raise fault
 
 
+def undelivered_halt(arm: Arm) -> PortLost | None:
+    """When the arm's bus was lost under its running loop (a dead adapter, an unplugged cable): the error that says
+    so, that the halt could not be delivered, and what stops the drives instead; else None."""
+    bus, supervisor = arm.bus, arm.supervisor
+    if bus is None or bus.lost is None or supervisor is None:
+        return None
+    drives = supervisor.drives
+    if drives.link_timeout_ms:
+        fallback = (
+            f"drives with driver V3 stop by themselves after safety.link_timeout_ms = {drives.link_timeout_ms} ms "
+            "without a frame (their link-loss protection); make sure they did, with the hardware E-stop (cut the "
+            "motor power) if not"
+        )
+    elif drives.family.link_protection:
+        fallback = (
+            "the drives' link-loss protection is off (safety.link_timeout_ms: 0): they keep their last command until "
+            "their power is cut: use the hardware E-stop now"
+        )
+    else:
+        fallback = (
+            "drives of the older generation keep executing their last command (a set-point is held, a torque or "
+            "speed is kept) until their power is cut: use the hardware E-stop now"
+        )
+    return PortLost(f"the bus was lost ({bus.lost}): the halt could not be delivered to the drives; {fallback}")
+
+
 def with_arm(
     args: argparse.Namespace,
     session: Session,
@@ -143,6 +169,8 @@ def with_arm(
     Raises:
         KeyboardInterrupt: after the E-stop and the close (the caller exits with 130).
         OSError: a telemetry file cannot be created (before anything moves) or written.
+        PortLost: the bus was lost under the running loop (in place of whatever else was raised): the halt could not
+            be delivered; its message says what stops the drives then.
     """
     telemetry = TelemetryOptions(args.log, args.trace) if args.log or args.trace else None
     overrides = session.overrides
@@ -176,6 +204,9 @@ def with_arm(
     finally:
         with interrupts.deferred():
             arm.close()  # halts every axis (0x81) unless halted already, releases the bus
+        lost = undelivered_halt(arm)
+        if lost is not None:
+            raise lost
 
 
 def _halt_after_interrupt(arm: Arm, cause: BaseException | None) -> str:

@@ -326,7 +326,9 @@ class Controller:
         }
         missing = [s.name for s in self.specs if s.motor_id not in angles]
         if missing:
-            raise TransportError(f"no reply to the multi-turn angle read (0x92) from joint(s) {', '.join(missing)}")
+            raise TransportError(
+                f"no reply to the multi-turn angle read (0x92) from joint(s) {', '.join(missing)}{self.bus.junk_note()}"
+            )
         return angles
 
     def read_positions(self, timeout_s: float = 0.2) -> FloatArray:
@@ -351,7 +353,9 @@ class Controller:
                 states[reply.motor_id] = reply.message
         missing = [s.name for s in self.specs if s.motor_id not in angles or s.motor_id not in states]
         if missing:
-            raise TransportError(f"no reply to the start-up reads from joint(s) {', '.join(missing)}")
+            raise TransportError(
+                f"no reply to the start-up reads from joint(s) {', '.join(missing)}{self.bus.junk_note()}"
+            )
         now = self.clock.now()
         for i, spec in enumerate(self.specs):
             state = states[spec.motor_id]

@@ -37,11 +37,22 @@ Counters
 :class:`BusCounters` per transport. After every cycle ``sent == replied + timeouts`` for each motor, except that
 a request the RS485 backend had no time left to send counts a timeout without a send (and one
 ``BusCounters.skipped_requests``).
+
+A port that is gone
+-------------------
+A backend whose port fails in a way that lasts (:func:`port_gone`: a device unplugged, a dead adapter, the far end of
+a pseudo-terminal closed) raises :class:`~motion.errors.PortLost`; from then on the transport is :attr:`~Transport.lost`
+and counts as :attr:`~Transport.closed` (nothing more can be sent: a control loop on it ends, BUS_LOST), and
+:meth:`~Transport.close` releases what is left without raising. Any other failure (a full transmit queue, a write that
+timed out) raises a plain :class:`~motion.errors.TransportError` and leaves the transport open for the next try.
 """
 
 from __future__ import annotations
 
+import errno
 import functools
+import logging
+import select
 import time
 import types
 from abc import ABC, abstractmethod
@@ -49,7 +60,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Final, NamedTuple, Self
 
-from motion.errors import TransportError
+from motion.errors import PortLost, TransportError
 from motion.protocol import Bare, Command, Message, MultiMotorTorque
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, ProtocolFamily
 from motion.protocol.v3.messages import BareV3, CommandV3
@@ -59,6 +70,48 @@ from motion.protocol.v3.messages import BareV3, CommandV3
 #: written to or read from the port (a read may hold part of a frame, or several). It runs on the control path: it
 #: must be quick and must not raise.
 FrameTap = Callable[[float, bool, int | None, bytes], None]
+
+logger = logging.getLogger("motion.transport")
+
+#: Error numbers of a device that is gone for good (EIO: a terminal hung up, the far end of a pseudo-terminal closed;
+#: ENXIO, ENODEV: a device unplugged; EBADF: its descriptor closed), as against a refusal that may pass (a full
+#: transmit queue, a write timeout).
+GONE_ERRNOS: Final = frozenset({errno.EIO, errno.ENXIO, errno.ENODEV, errno.EBADF})
+#: What ``poll`` reports on a descriptor whose device is gone: hung up, or no longer open.
+_GONE_EVENTS: Final = getattr(select, "POLLHUP", 0) | getattr(select, "POLLNVAL", 0)
+
+
+def port_gone(exc: BaseException, fd: int | None = None) -> bool:
+    """True when the failure ``exc`` of a read or write on a port says the port is gone for good: an OSError of
+    :data:`GONE_ERRNOS` anywhere in its chain (python-can and pyserial wrap the system's error in their own), or the
+    port's descriptor ``fd`` hung up."""
+    seen: set[int] = set()
+    cause: BaseException | None = exc
+    while cause is not None and id(cause) not in seen:
+        if isinstance(cause, OSError) and cause.errno in GONE_ERRNOS:
+            return True
+        seen.add(id(cause))
+        cause = cause.__cause__ or cause.__context__
+    if fd is None or not hasattr(select, "poll"):
+        return False
+    poller = select.poll()
+    poller.register(fd, select.POLLIN)
+    try:
+        return any(events & _GONE_EVENTS for _, events in poller.poll(0))
+    except OSError:
+        return True
+
+
+def port_lost(text: str) -> PortLost:
+    """The :class:`PortLost` of a failure that ``text`` describes."""
+    return PortLost(f"{text} (the port is gone: adapter unplugged or dead?)")
+
+
+def port_failure(text: str, exc: BaseException, fd: int | None = None) -> TransportError:
+    """The error to raise for ``exc``, a failed read or write on a port that ``text`` describes: :class:`PortLost`
+    when the port is gone (:func:`port_gone`), else a :class:`TransportError`."""
+    return port_lost(text) if port_gone(exc, fd) else TransportError(text)
+
 
 #: Slot states.
 _NOT_SENT: Final = 0
@@ -138,7 +191,9 @@ class BusCounters:
         cycles: calls of ``transact``.
         unknown_id_frames: CAN frames whose arbitration id is not a drive reply id (0x141..0x160).
         bad_frames: corrupt frames that cannot be attributed to a motor (RS485: seen before a request was sent).
-        dropped_bytes: RS485 bytes the stream parser discarded (garbage, corrupt and truncated frames).
+        dropped_bytes: bytes discarded as junk: on RS485 by the stream parser (garbage, corrupt and truncated
+            frames), on slcan by the shim (lines longer than any slcan line; updated after a cycle with a reply
+            missing).
         skipped_requests: RS485 requests not sent because the cycle's deadline had passed.
     """
 
@@ -205,6 +260,7 @@ class Transport(ABC):
         self._counters: dict[int, MotorCounters] = {}
         self._counters_view: Mapping[int, MotorCounters] = types.MappingProxyType(self._counters)
         self._closed = False
+        self._lost: PortLost | None = None
         # Outstanding marks survive between cycles. The slots' layout comes from a plan reused for every batch of the
         # same shape (see _plan); the rest is the cycle's own state.
         self._outstanding: set[int] = set()
@@ -226,8 +282,13 @@ class Transport(ABC):
 
     @property
     def closed(self) -> bool:
-        """True once :meth:`close` was called."""
-        return self._closed
+        """True once :meth:`close` was called, or once the port was :attr:`lost` (nothing can be sent any more)."""
+        return self._closed or self._lost is not None
+
+    @property
+    def lost(self) -> PortLost | None:
+        """The error that found the port gone for good (see the module docstring), or None; kept after :meth:`close`."""
+        return self._lost
 
     def transact(self, requests: Sequence[Request], deadline_s: float) -> list[Reply]:
         """Send one cycle's requests and collect their replies until ``deadline_s``.
@@ -242,15 +303,30 @@ class Transport(ABC):
 
         Raises:
             EncodeError: a request cannot be encoded on this transport (nothing was sent).
-            TransportError: the transport is closed, or the bus failed (bus off, port gone, write refused).
+            PortLost: the port is gone (now or before): the transport counts as closed from now on.
+            TransportError: the transport is closed, or the bus failed (bus off, write refused).
         """
+        if self._lost is not None:
+            raise PortLost(str(self._lost))
         if self._closed:
             raise TransportError(f"{self.describe()} is closed")
         self._prepare(requests)
         self._plan(requests)
         self.bus_counters.cycles += 1
-        self._exchange(deadline_s)
+        try:
+            self._exchange(deadline_s)
+        except PortLost as exc:
+            self._lost = exc
+            raise
         return self._finish()
+
+    def junk_note(self) -> str:
+        """For an error about missing replies: the junk the line carried (``BusCounters.dropped_bytes``), as a clause
+        to append (``"; rs485 /dev/ttyUSB0 dropped 4096 bytes of junk ..."``), or "" when none was dropped."""
+        dropped = self.bus_counters.dropped_bytes
+        if not dropped:
+            return ""
+        return f"; {self.describe()} dropped {dropped} bytes of junk (is the port's far end a drive bus adapter?)"
 
     def probe_families(self, ids: Sequence[int], window_s: float) -> dict[int, ProtocolFamily] | None:
         """Each of ``ids`` that answers a status read within ``window_s``, with the protocol generation its answer
@@ -282,14 +358,19 @@ class Transport(ABC):
         raise TransportError(f"{self.describe()} cannot switch to the {ProtocolFamily(family).value} protocol family")
 
     def close(self) -> None:
-        """Run the close hooks, then release the bus or port; safe to call more than once."""
+        """Run the close hooks, then release the bus or port; safe to call more than once. A port that cannot be
+        released cleanly (a dead adapter refuses its closing command) is logged, never raised: the error that ended
+        the session is the one to see."""
         if not self._closed:
             try:
                 for hook in list(self.close_hooks):
                     hook()
             finally:
                 self._closed = True
-                self._close()
+                try:
+                    self._close()
+                except TransportError as exc:  # expected of a port that is gone
+                    logger.log(logging.WARNING if self._lost is None else logging.DEBUG, "%s", exc)
 
     def __enter__(self) -> Self:
         return self
@@ -328,7 +409,11 @@ class Transport(ABC):
 
     @abstractmethod
     def _close(self) -> None:
-        """Release the bus or port (called once)."""
+        """Release the bus or port (called once).
+
+        Raises:
+            TransportError: it could not be released cleanly (logged by :meth:`close`).
+        """
 
     # --- helpers for the backends ---------------------------------------------------------------------------
 

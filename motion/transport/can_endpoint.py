@@ -18,6 +18,7 @@ import can
 from motion.errors import TransportError
 from motion.protocol import CanFrame
 from motion.protocol.compiled import frozen_builder
+from motion.transport.base import port_failure
 
 _new_frame = frozen_builder(CanFrame)
 
@@ -82,7 +83,8 @@ class CanEndpoint:
         """Send one frame.
 
         Raises:
-            TransportError: the interface refused the frame (bus off, buffer full, port gone).
+            PortLost: the port is gone (:func:`~motion.transport.base.port_gone`).
+            TransportError: the interface refused the frame (bus off, buffer full).
         """
         try:
             if self._send_frame is not None:
@@ -91,7 +93,7 @@ class CanEndpoint:
             message = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
             self._bus.send(message, timeout=timeout_s)
         except (can.CanError, OSError, ValueError) as exc:
-            raise TransportError(f"CAN send on {self.interface}:{self.channel} failed: {exc}") from exc
+            raise self._failure("send", exc) from exc
 
     def recv(self, timeout_s: float | None) -> tuple[CanFrame, float] | None:
         """Receive one data frame, or None when ``timeout_s`` passes first (None: wait for ever).
@@ -103,7 +105,8 @@ class CanEndpoint:
             ``(frame, timestamp_s)`` where the timestamp is the interface's receive time.
 
         Raises:
-            TransportError: the interface failed (bus off, port gone).
+            PortLost: the port is gone (:func:`~motion.transport.base.port_gone`).
+            TransportError: the interface failed (bus off).
         """
         end = None if timeout_s is None else time.monotonic() + timeout_s
         skipped = 0
@@ -117,7 +120,7 @@ class CanEndpoint:
                     remaining = 0.0
                 message = self._bus.recv(timeout=remaining) if self._recv_frame is None else self._recv_frame(remaining)
             except (can.CanError, OSError, ValueError) as exc:
-                raise TransportError(f"CAN receive on {self.interface}:{self.channel} failed: {exc}") from exc
+                raise self._failure("receive", exc) from exc
             if message.__class__ is tuple:
                 return _new_frame(*message), time.time()  # slcan's time stamp: the host's clock
             if message is None:
@@ -130,11 +133,28 @@ class CanEndpoint:
             if not (message.is_error_frame or message.is_remote_frame or message.is_extended_id):
                 return _new_frame(message.arbitration_id, bytes(message.data)), float(message.timestamp)
 
+    def _failure(self, what: str, exc: BaseException) -> TransportError:
+        """The error for a failed ``what`` (send, receive): :class:`PortLost` when the port is gone."""
+        return port_failure(f"CAN {what} on {self.interface}:{self.channel} failed: {exc}", exc, self._fd)
+
+    @property
+    def dropped_bytes(self) -> int:
+        """Bytes of junk the interface dropped (the slcan shim: lines longer than any slcan line), 0 where it does
+        not count them."""
+        return int(getattr(self._bus, "junk_bytes", 0))
+
     def close(self) -> None:
-        """Release the bus; safe to call more than once."""
+        """Release the bus; safe to call more than once.
+
+        Raises:
+            TransportError: the interface failed while closing (a dead slcan adapter refuses its close command).
+        """
         if not self._closed:
             self._closed = True
-            self._bus.shutdown()
+            try:
+                self._bus.shutdown()
+            except (can.CanError, OSError, ValueError) as exc:
+                raise TransportError(f"closing CAN interface {self.interface}:{self.channel} failed: {exc}") from exc
 
     def __enter__(self) -> CanEndpoint:
         return self

@@ -190,9 +190,12 @@ class CanTransport(Transport):
         endpoint, clock, take_in = self._endpoint, self.clock, take_in_can_frame
         recv = endpoint.recv
         # Anything already queued was sent before this cycle's requests: take it in as stale now, so that it
-        # cannot be matched to them.
+        # cannot be matched to them (until the deadline: a bus that babbles frames faster than they are taken in
+        # must not hold the cycle for ever).
         while (received := recv(0.0)) is not None:
             take_in(self, received[0])
+            if clock() >= deadline_s:
+                break
         # A send that cannot complete means a full transmit queue (bus off, no ACK): an error. It gets at least
         # SEND_TIMEOUT_MIN_S, not just what is left of the cycle: pyserial (slcan) raises a write timeout once the
         # timeout has passed even when every byte was written, which a descheduled thread hits on a loaded machine.
@@ -213,6 +216,8 @@ class CanTransport(Transport):
             received = recv(remaining_s)
             if received is not None:
                 take_in(self, received[0])
+        if self._open_slots:  # a reply is missing: junk on the line may be why (the slcan shim counts what it drops)
+            self.bus_counters.dropped_bytes = getattr(endpoint, "dropped_bytes", 0)
 
     def _close(self) -> None:
         if self._owns_port:

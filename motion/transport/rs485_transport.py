@@ -3,7 +3,9 @@
 RS485 is half duplex: one request, its reply, then the next request. For each request the transport
 
 1. drains the input: frames already received are stale (counted per motor), corrupt bytes count on the bus
-   (``BusCounters.bad_frames`` / ``dropped_bytes``), and the parser is emptied;
+   (``BusCounters.bad_frames`` / ``dropped_bytes``), and the parser is emptied (a line that keeps streaming is
+   drained until the request's window ends, never longer; the parser drops junk as it comes, so its buffer holds at
+   most one frame);
 2. writes the request;
 3. waits for the reply until the request's window ends, taking in every frame the parser finds (a frame from
    another motor or with another command is stale, never matched to this request); at the end of the window an
@@ -19,6 +21,9 @@ with the next request on the shared pair): it is reported as no reply and counte
 Corrupt bytes seen while waiting for motor *m* (bad checksums, bad lengths, truncated frames, line noise) count
 as ``bad_frames`` of *m*: on a half-duplex bus only the addressed drive may talk. Each corrupt frame candidate the
 parser rejects counts once; noise that never looked like a frame counts once per window.
+
+A port that is gone (the device unplugged, the far end of a pseudo-terminal closed: it hangs up, reads end, writes
+fail with EIO) raises :class:`~motion.errors.PortLost`: see :mod:`motion.transport.base`.
 
 Waiting uses ``select`` on the port's file descriptor, so this backend needs a POSIX system.
 """
@@ -38,7 +43,7 @@ from motion.protocol import MultiMotorTorque, Rs485Parser, rs485_frame
 from motion.protocol.table import RS485_BAUDRATES, Direction, ProtocolFamily
 from motion.protocol.v3 import frames as frames_v3
 from motion.protocol.v3.frames import Rs485ParserV3
-from motion.transport.base import Request, Transport, probe_in_turn
+from motion.transport.base import Request, Transport, port_failure, port_lost, probe_in_turn
 
 #: Baud rates RMD RS485 drives of the older generation support (v1.62: 115200 is the factory default).
 BAUDRATES: Final = RS485_BAUDRATES[ProtocolFamily.V2]
@@ -159,19 +164,21 @@ class Rs485Transport(Transport):
             if now >= deadline_s:
                 break
             window_end_s = now + (deadline_s - now) / (count - index)
-            self._drain()
+            self._drain(window_end_s)
             self._write(self._frames[index])
             self._sent(index)
             self._wait(index, window_end_s)
             self.motor_counters(self._motors[index]).bad_frames += self._corrupt_since_last_check()
 
-    def _drain(self) -> None:
-        """Take in everything received before the next request as stale, then empty the parser."""
+    def _drain(self, until_s: float) -> None:
+        """Take in everything received before the next request as stale (until ``until_s`` at the latest), then empty
+        the parser."""
         while True:
             chunk = self._read()
             self._parser.feed(chunk)
-            if len(chunk) < READ_CHUNK_BYTES:
+            if len(chunk) < READ_CHUNK_BYTES or self.clock() >= until_s:
                 break
+            self._take_frames(flush=False)  # the parser drops what cannot start a frame: its buffer stays small
         self._take_frames(flush=True)
         self._parser.discard()
         self.bus_counters.bad_frames += self._corrupt_since_last_check()
@@ -188,7 +195,7 @@ class Rs485Transport(Transport):
             try:
                 ready = select.select(self._fds, (), (), remaining_s)[0]
             except (OSError, ValueError) as exc:
-                raise TransportError(f"waiting on {self.describe()} failed: {exc}") from exc
+                raise self._failure("waiting on", exc) from exc
             if ready:
                 parser.feed(self._read(ready=True))
                 self._take_frames(flush=False)
@@ -241,12 +248,10 @@ class Rs485Transport(Transport):
         except BlockingIOError:
             chunk = b""
         except OSError as exc:
-            raise TransportError(f"read from {self.describe()} failed: {exc}") from exc
+            raise self._failure("read from", exc) from exc
         if not chunk:
-            if ready:
-                raise TransportError(
-                    f"read from {self.describe()} failed: the port reports input but returned none (disconnected?)"
-                )
+            if ready:  # the end of the port's input: it hung up
+                raise port_lost(f"read from {self.describe()} failed: the port reports input but returned none")
             return chunk
         if self.frame_tap is not None:
             self.frame_tap(self.clock(), True, None, chunk)
@@ -256,9 +261,13 @@ class Rs485Transport(Transport):
         try:
             self._serial.write(frame)
         except (serial.SerialException, OSError) as exc:
-            raise TransportError(f"write to {self.describe()} failed: {exc}") from exc
+            raise self._failure("write to", exc) from exc
         if self.frame_tap is not None:
             self.frame_tap(self.clock(), False, None, frame)
+
+    def _failure(self, what: str, exc: BaseException) -> TransportError:
+        """The error for a failed ``what`` (``read from``, ...): :class:`PortLost` when the port is gone."""
+        return port_failure(f"{what} {self.describe()} failed: {exc}", exc, self._fds[0])
 
     def _close(self) -> None:
         if not self._owns_port:

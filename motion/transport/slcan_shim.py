@@ -9,12 +9,17 @@ python-can's own ``slcanBus`` (our code, written for this project; only ``_read`
 - ``_read`` takes a complete line (``\\r`` or ``\\a`` ends it) from its buffer if there is one; otherwise it reads
   all bytes the port holds in one system call (``os.read`` on pyserial's non-blocking descriptor; ``in_waiting``
   and ``read`` where there is none), and when there are none it waits on the descriptor (or one ``read(1)``)
-  until the timeout. Partial lines stay buffered for the next call.
+  until the timeout. Partial lines stay buffered for the next call. The timeout holds also while bytes keep coming
+  (an adapter streaming junk), and the buffer is bounded: a line longer than any slcan line
+  (:data:`MAX_LINE_BYTES`) is junk, dropped up to its end and counted (:attr:`SlcanShimBus.junk_bytes`, and once in
+  :attr:`SlcanShimBus.garbled_lines`).
 - ``_recv_internal`` drops a garbled line (python-can's parser raises ValueError on one, which would end a control
   loop) and counts it in :attr:`SlcanShimBus.garbled_lines`: the transport then counts the missing reply as a
   timeout, as it would for a frame lost on the wire.
 - :meth:`SlcanShimBus.pending_input` says whether a complete line is buffered: a caller that waits on the port's
   descriptor with ``select`` must not wait while lines it has not taken are already in this buffer.
+- ``shutdown`` releases the port also when the adapter is dead (python-can's writes the close command first and,
+  when that fails, leaves the descriptor open).
 - :meth:`SlcanShimBus.recv_frame` and :meth:`SlcanShimBus.send_frame` carry a standard data frame as
   ``(arbitration id, data)`` without a ``can.Message`` on the way (python-can's ``BusABC.recv`` also formats a log
   call for every frame): the same line python-can writes, the same frame it parses; every other line goes through
@@ -45,6 +50,9 @@ from can.interfaces.slcan import slcanBus
 LAST_RELEASE_WITHOUT_FIX: Final = (4, 6, 1)
 
 _LINE_END: Final = re.compile(rb"[\r\a]")
+#: The longest line an slcan adapter sends, bytes: an extended CAN FD frame (``D`` or ``B``, 8 digits of id, the length
+#: code, 64 data bytes in 128 digits) with a 4-digit time stamp, and its ``\r``. Anything longer is junk.
+MAX_LINE_BYTES: Final = 1 + 8 + 1 + 2 * 64 + 4 + 1
 #: A standard (11-bit) data frame line: ``t``, three hex digits of id, the length 0..8, two hex digits per byte.
 _STANDARD_DATA: Final = re.compile(r"t([0-9A-Fa-f]{3})([0-8])((?:[0-9A-Fa-f]{2})*)\r")
 #: Bytes asked of the port per read (a pty or a USB adapter rarely holds more; the rest comes with the next read).
@@ -79,6 +87,9 @@ class SlcanShimBus(slcanBus):
     def __init__(self, channel: Any, **kwargs: Any) -> None:
         #: Lines that were neither a frame nor a reply python-can knows, dropped.
         self.garbled_lines = 0
+        #: Bytes of lines longer than :data:`MAX_LINE_BYTES`, dropped.
+        self.junk_bytes = 0
+        self._in_junk = False  # the bytes up to the next line end belong to a junk line
         self._fd: int | None = None
         super().__init__(channel, **kwargs)
         try:
@@ -91,13 +102,29 @@ class SlcanShimBus(slcanBus):
         return _LINE_END.search(self._buffer) is not None
 
     def _take_line(self) -> str | None:
-        found = _LINE_END.search(self._buffer)
-        if found is None:
-            return None
-        end = found.end()
-        line = self._buffer[:end].decode(errors="replace")
-        del self._buffer[:end]
-        return line
+        buffer = self._buffer
+        while True:
+            found = _LINE_END.search(buffer)
+            if found is None:
+                if self._in_junk or len(buffer) > MAX_LINE_BYTES:
+                    self._drop_junk(len(buffer), ended=False)
+                return None
+            end = found.end()
+            if end > MAX_LINE_BYTES or self._in_junk:
+                self._drop_junk(end, ended=True)
+                continue
+            line = buffer[:end].decode(errors="replace")
+            del buffer[:end]
+            return line
+
+    def _drop_junk(self, size: int, *, ended: bool) -> None:
+        """Drop the first ``size`` bytes of the buffer, part of a line too long to be slcan (``ended``: up to its end,
+        the next byte starts a line again)."""
+        if not self._in_junk:
+            self.garbled_lines += 1
+        self._in_junk = not ended
+        self.junk_bytes += size
+        del self._buffer[:size]
 
     def _read(self, timeout: float | None) -> str | None:
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -106,9 +133,12 @@ class SlcanShimBus(slcanBus):
                 line = self._take_line()
                 if line is not None:
                     return line
-                if self._take_waiting():
-                    continue
+                took = self._take_waiting()
                 remaining = None if deadline is None else deadline - time.monotonic()
+                if took:
+                    if remaining is None or remaining > 0.0:
+                        continue
+                    return self._take_line()  # the time is up, also while bytes keep coming (a flood of junk)
                 if remaining is not None and remaining <= 0.0:
                     return None
                 if self._fd is not None:
@@ -133,6 +163,18 @@ class SlcanShimBus(slcanBus):
             chunk = self.serialPortOrig.read(waiting) if waiting else b""
         self._buffer += chunk
         return bool(chunk)
+
+    def shutdown(self) -> None:
+        """python-can's shutdown (the adapter's close command, then the port), and the port released also when the
+        command could not be written.
+
+        Raises:
+            can.CanOperationError: the close command could not be written (the port is released all the same).
+        """
+        try:
+            super().shutdown()
+        finally:
+            self.serialPortOrig.close()
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
         try:
