@@ -48,7 +48,13 @@ from motion.safety import ArmState
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 #: The example arms explored, and the control rate of their position-mode runs (torque mode keeps the example's rate,
 #: to which its gains are tuned).
-ARMS: dict[str, float] = {"arm2.yaml": 100.0, "arm2_rs485.yaml": 50.0, "arm6.yaml": 100.0, "arm6_v3.yaml": 100.0}
+ARMS: dict[str, float] = {
+    "arm2.yaml": 100.0,
+    "arm2_rs485.yaml": 50.0,
+    "arm6.yaml": 100.0,
+    "arm6_v3.yaml": 100.0,
+    "bench1.yaml": 100.0,
+}
 POLICIES = (HaltPolicy.STOP, HaltPolicy.OFF, HaltPolicy.HOLD)
 #: How long the arm is faulted before its joints must stand still, s (the drives' own stop, a stop ramp).
 SETTLE_S = 1.0
@@ -121,7 +127,8 @@ def draw(rng: random.Random) -> Schedule:
     arm = rng.choice(sorted(ARMS))
     config = load_config(CONFIGS / arm)
     ids = [j.motor_id for j in config.joints]
-    mode = ControlMode.TORQUE if rng.random() < 0.25 else ControlMode.POSITION
+    tuned = all(j.kp_nm_per_deg > 0 for j in config.joints)  # torque mode needs the joints' gains
+    mode = ControlMode.TORQUE if tuned and rng.random() < 0.25 else ControlMode.POSITION
     faults = tuple(_draw_fault(rng, rng.choice(ids)) for _ in range(rng.choice((1, 1, 2, 2, 3))))
     actions: list[tuple[float, str, tuple[float, ...]]] = [(0.0, "move", _target(rng, config))]
     for _ in range(rng.randint(0, 4)):

@@ -720,27 +720,17 @@ class Supervisor:
         names = self.watchdog.names
         for i in driving:
             logger.warning("%s reads as driving while halted: its halt is sent again", names[i])
-        for i in released:
-            self._record(
-                MotionFault(
-                    FaultKind.HOLD_FAILED,
-                    joint=names[i],
-                    value=float(axes.q_deg[i]),
-                    time_s=now,
-                    detail="its drive's own hold (0x81) oscillates (a position loop tuned for another load): released "
-                    "with 0x80",
-                )
-            )
-        for i in outside:
-            self._record(
-                MotionFault(
-                    FaultKind.POSITION_LIMIT,
-                    joint=names[i],
-                    value=float(axes.q_deg[i]),
-                    time_s=now,
-                    detail="beyond its limits while halted (its halt is sent again)",
-                )
-            )
+        seen = (
+            (
+                released,
+                FaultKind.HOLD_FAILED,
+                "its drive's own hold (0x81) oscillates (a position loop tuned for another load): released with 0x80",
+            ),
+            (outside, FaultKind.POSITION_LIMIT, "beyond its limits while halted (its halt is sent again)"),
+        )
+        for joints, kind, detail in seen:
+            for i in joints:
+                self._record(MotionFault(kind, joint=names[i], value=float(axes.q_deg[i]), time_s=now, detail=detail))
         for fault in self.watchdog.restarts(replies, now):
             if fault.joint not in self.lost_frames:
                 self.lost_frames.add(str(fault.joint))
