@@ -559,6 +559,9 @@ class Arm:
         self._begin_connecting()
         try:
             supervisor.close()
+            fault = supervisor.fault
+            if fault is not None and fault.kind is not FaultKind.CLOSE:
+                raise fault  # a stop (or a fault) came before homing began: it does not begin
             self.supervisor = None
             self.controller = self._new_controller()
             self.controller.set_turns([j.turns for j in self.turns])

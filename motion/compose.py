@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, HaltPolicy, JointConfig, ProtocolSetting
+from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, JointConfig, ProtocolSetting
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
@@ -238,10 +238,9 @@ def arm_figure(config: ArmConfig) -> ArmFigure:
     return ArmFigure(config)
 
 
-def gravity_for(config: ArmConfig) -> Feedforward | None:
-    """Gravity compensation alone, g(q), for the ``comply`` reaction to a collision (torque mode); else None."""
-    if config.collision_reaction is not HaltPolicy.COMPLY:
-        return None
+def gravity_for(config: ArmConfig) -> Feedforward:
+    """Gravity alone, g(q): the ``comply`` reaction to a collision streams it (torque mode), and a halted joint whose
+    drive's hold swings it is released only where it cannot make the joint fall (:mod:`motion.safety.halted`)."""
     from kinematics import build_arm, feedforward  # noqa: PLC0415 - as above
 
     return feedforward(build_arm(config), gravity=True, inertia=False)
@@ -379,6 +378,7 @@ def safety_settings(config: ArmConfig) -> SafetySettings:
         ),
         collision_reaction=config.collision_reaction,
         collision_window_cycles=safety.collision_window_cycles,
+        coulomb_friction_nm=tuple(j.coulomb_friction_nm for j in config.joints),
     )
 
 
@@ -406,16 +406,20 @@ def build_supervisor(config: ArmConfig, controller: Controller, *, observe: bool
             f"{joint.name} has a brake, but the drives answer in the {controller.family.family.value} protocol, which "
             "has no brake commands (0x77 / 0x78 are the V3 driver's)",
         )
-    timeout_ms = link_timeout_ms(
-        config.control.period_s, None if config.safety.link_timeout_ms is None else config.safety.link_timeout_ms / 1e3
-    )
     return Supervisor(
         controller,
         safety_settings(config),
         observer=collision_observer_for(config, always=observe),
         gravity=gravity_for(config),
-        drives=DriveSetup(controller.bus, controller.family, ids, braked, timeout_ms),
+        drives=DriveSetup(controller.bus, controller.family, ids, braked, session_link_timeout_ms(config)),
     )
+
+
+def session_link_timeout_ms(config: ArmConfig) -> int:
+    """The communication-loss time a session sets on V3 drives (0xB3), ms: ``safety.link_timeout_ms``, else a few
+    control periods (:func:`motion.control.drivesetup.link_timeout_ms`)."""
+    configured_ms = config.safety.link_timeout_ms
+    return link_timeout_ms(config.control.period_s, None if configured_ms is None else configured_ms / 1e3)
 
 
 # ---------------------------------------------------------------------------------------------- position-loop identity

@@ -5,13 +5,15 @@ A :class:`Schedule` is a configuration, a halt policy and control mode, the emul
 instant: during connect, a move, a hold, a halt, a clear) and user actions (move, stop, hold, clear) at given times,
 and optionally a joint homed at connect. :func:`run` plays it and returns the violations of:
 
-- **still**: once the arm has been faulted (halting, halted or holding) for :data:`SETTLE_S`, no joint moves more
-  than :data:`BAND_DEG` from where it stood then, and no joint that was inside its limits when the fault came leaves
-  them by more than :data:`BAND_DEG` (not counted: a joint whose drive could not be reached or may have switched itself
-  off — silent, dropped, power-cycled, over-temperature, under-voltage — nor one pushed by an injected collision, nor
-  an unbraked joint under ``halt_policy: off``, which falls: all documented);
+- **still**: once the arm has been faulted (halting, halted or holding) for :data:`SETTLE_S`, every joint its halt
+  holds comes to rest (slower than :data:`ANCHOR_DPS` within :data:`RESTLESS_S`) and then moves no more than
+  :data:`BAND_DEG` from there, nor leaves its limits by more than that if it came to rest inside them. Not held: a
+  joint whose drive could not be reached, seen, or may have switched itself off (silent, dropped, corrupt,
+  power-cycled, over-temperature, under-voltage), an unbraked joint under 0x80 (it falls or coasts: documented), and
+  every joint while an injected collision pushes the arm or a released joint swings it (then for :data:`SETTLE_S`);
 - **halted**: while the arm is halting or halted, every drive that answered in two cycles in a row is halted (0x81 or
-  0x80 in force: the emulator's drive state) at the second;
+  0x80 in force: the emulator's drive state) at the second (not a drive that loses requests at random: its answer to
+  a read says nothing of the halt it lost, which goes out again every cycle until it is acknowledged);
 - **link**: no V3 drive without a link fault trips its communication-loss protection while the session is open;
 - **brake**: no brake locks (by the controller's 0x78) on a joint turning faster than :data:`BRAKE_MOVING_DPS`;
 - **escape**: nothing but a :class:`~motion.errors.MotionError` comes out of the API, the loop records no error of
@@ -41,8 +43,8 @@ from motion.config import ArmConfig, load_config
 from motion.config.schema import ControlMode, HaltPolicy
 from motion.emulator import Fault, InjectedFault, parse_fault
 from motion.emulator.drive import RunState
-from motion.errors import MotionError
-from motion.protocol.v3.messages import BrakeCommand
+from motion.errors import FaultKind, MotionError
+from motion.protocol.v3.messages import CommandV3
 from motion.safety import ArmState
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -56,24 +58,31 @@ ARMS: dict[str, float] = {
     "bench1.yaml": 100.0,
 }
 POLICIES = (HaltPolicy.STOP, HaltPolicy.OFF, HaltPolicy.HOLD)
-#: How long the arm is faulted before its joints must stand still, s (the drives' own stop, a stop ramp).
-SETTLE_S = 1.0
+#: How long the arm is faulted (or a joint undisturbed) before its joints are held to the invariants, s: the drives'
+#: own stop from full speed or a stop ramp takes a few tenths of a second.
+SETTLE_S = 0.6
 #: How far a joint may move once settled, or past a limit, deg.
 BAND_DEG = 2.0
 #: A joint turning faster than this when its brake locks fails the brake invariant, joint deg/s (the controller locks
 #: at 1 deg/s read; the plant's speed is sampled once per cycle).
 BRAKE_MOVING_DPS = 3.0
+#: A joint slower than this has come to rest where its halt left it (its anchor), deg/s.
+ANCHOR_DPS = 5.0
+#: A held joint that has not come to rest this long after it settled fails the still invariant, s.
+RESTLESS_S = 0.5
+#: A joint nothing holds (released under 0x80) swinging faster than this disturbs the others, deg/s.
+DISTURBING_DPS = 5.0
 #: A schedule's run ends within this much wall time, s.
 WALL_LIMIT_S = 120.0
-#: Kinds after which a drive may have been unreachable or off by its own doing (its joint is not held to the still
-#: and limit invariants from then on).
-_OUT_OF_REACH = (
-    InjectedFault.SILENT,
-    InjectedFault.DROP,
-    InjectedFault.POWER_CYCLE,
-    InjectedFault.OVER_TEMPERATURE,
-    InjectedFault.UNDER_VOLTAGE,
-)
+#: Kinds after which a drive may have switched itself off (its joint is not held to the still and limit invariants
+#: from then on: nothing but a clear, which these faults refuse, turns it on again).
+_SWITCHED_OFF = (InjectedFault.POWER_CYCLE, InjectedFault.OVER_TEMPERATURE, InjectedFault.UNDER_VOLTAGE)
+#: Kinds that keep the controller from reaching or seeing a drive (its joint is not held to the still and limit
+#: invariants while they act and for :data:`SETTLE_S` after).
+_UNREACHABLE = (InjectedFault.SILENT, InjectedFault.DROP, InjectedFault.CORRUPT)
+#: Swings (one way, then the other, faster than 10 deg/s) the plant shows of a joint the controller released with
+#: 0x80 because its drive's hold swung it: below this, the release is a violation.
+SWINGS_SEEN = 4
 _LINK = (InjectedFault.SILENT, InjectedFault.DROP)
 
 
@@ -87,7 +96,7 @@ class Schedule:
     faults: tuple[str, ...]  #: in the emulator's syntax (``KIND:MOTOR@START[-END][:PARAM]``)
     actions: tuple[tuple[float, str, tuple[float, ...]], ...]  #: (time, move|stop|hold|clear, move target)
     home: tuple[str, ...] = ()
-    end_s: float = 2.0
+    end_s: float = 2.2
 
     def describe(self) -> str:
         """The schedule as a Python literal (a regression test's data)."""
@@ -163,7 +172,9 @@ def _target(rng: random.Random, config: ArmConfig) -> tuple[float, ...]:
 
 
 class _Checker:
-    """The invariants, evaluated in a cycle hook of the arm's controller (never raises: violations are collected)."""
+    """The invariants, evaluated in a cycle hook of the arm's controller (never raises: violations are collected);
+    brake locks are seen by every drive's own command handling (in the loop and at close), link-loss trips once more
+    after the arm closed (connect, homing and close included)."""
 
     def __init__(self, arm: Arm, schedule: Schedule, faults: list[Fault], outcome: Outcome) -> None:
         self.arm = arm
@@ -175,25 +186,38 @@ class _Checker:
         self.upper = np.array([j.position_max_deg for j in config.joints])
         self.braked = [j.brake for j in config.joints]
         self.faults = faults
-        self.policy = schedule.policy
-        assert arm.simulation is not None
+        self.off_policy = schedule.policy is HaltPolicy.OFF
+        assert arm.simulation is not None and arm.plant is not None
         self.drives = arm.simulation.emulator.drives
-        self.v3 = hasattr(self.drives[self.ids[0]], "link_losses")
         n = len(self.ids)
         self.faulted_since = math.nan
-        self.anchor = np.full(n, np.nan)
-        self.inside_at_fault = np.ones(n, dtype=bool)
+        self.anchor = np.full(n, np.nan)  # where the halt left each joint (NaN: not yet at rest)
+        self.held_since = np.full(n, np.nan)  # since when each joint is held, undisturbed (NaN: exempt now)
+        self.inside = np.ones(n, dtype=bool)  # whether it was inside its limits once it settled
+        self.swings = [0] * n  # the plant's own count of each joint's swings since it last stood still
+        self.swing_sign = [0.0] * n
+        self.slow_since = [math.nan] * n
         self.previous_state: ArmState | None = None
         self.previous_answered: set[int] = set()
-        self.brakes = [self._brake(i) for i in self.ids]
-        self.losses = [self._losses(i) for i in self.ids]
         self.reported: set[str] = set()
+        for i, motor_id in enumerate(self.ids):
+            if self.braked[i]:
+                self._watch_brake(i, self.drives[motor_id])
 
-    def _brake(self, motor_id: int) -> Any:
-        return getattr(self.drives[motor_id], "brake", None)
+    def _watch_brake(self, i: int, drive: Any) -> None:
+        """Every 0x78 the drive executes, with its joint's speed then (the plant's)."""
+        execute = drive._execute_v3
+        plant = self.arm.plant
+        assert plant is not None
 
-    def _losses(self, motor_id: int) -> int:
-        return int(getattr(self.drives[motor_id], "link_losses", 0))
+        def observed(command: Any, message: Any, now_s: float) -> None:
+            if command is CommandV3.LOCK_BRAKE:
+                speed = float(np.degrees(plant.state()[1][i]))
+                if abs(speed) > BRAKE_MOVING_DPS:
+                    self._violate(f"brake{i}", f"brake: {self.names[i]}'s brake locked at {speed:.1f} deg/s")
+            execute(command, message, now_s)
+
+        drive._execute_v3 = observed
 
     def _violate(self, key: str, text: str) -> None:
         if key not in self.reported:  # one report per invariant and joint
@@ -204,11 +228,11 @@ class _Checker:
         """Whether a fault of ``kinds`` on the drive has begun by ``t``."""
         return any(f.motor_id == motor_id and f.kind in kinds and f.start_s <= t for f in self.faults)
 
-    def _pushed(self, motor_id: int, t: float) -> bool:
-        """An injected collision acts on the joint, or did within the settling time."""
+    def _acting(self, t: float, kinds: tuple[InjectedFault, ...], motor_id: int | None = None) -> bool:
+        """Whether a fault of ``kinds`` (on the drive, or on any) acts at ``t`` or did within :data:`SETTLE_S`."""
         return any(
-            f.motor_id == motor_id
-            and f.kind is InjectedFault.COLLISION
+            f.kind in kinds
+            and (motor_id is None or f.motor_id == motor_id)
             and f.start_s <= t
             and (f.end_s is None or t < f.end_s + SETTLE_S)
             for f in self.faults
@@ -216,80 +240,111 @@ class _Checker:
 
     def __call__(self, controller: Any, start_s: float, replies: list[Any]) -> None:
         try:
-            self._check(start_s, replies)
+            self._check(replies)
         except Exception:  # a bug of the checker must not become a fault of the arm
             self.outcome.violations.append("checker: " + traceback.format_exc(limit=3))
 
-    def _check(self, start_s: float, replies: list[Any]) -> None:
+    def _check(self, replies: list[Any]) -> None:
         self.outcome.cycles += 1
-        t = self.arm.controller.clock.now()  # type: ignore[union-attr]  # the cycle's end: what happened in it is seen
-        supervisor = self.arm.supervisor
-        plant = self.arm.plant
-        if supervisor is None or plant is None:
+        supervisor, plant, controller = self.arm.supervisor, self.arm.plant, self.arm.controller
+        if supervisor is None or plant is None or controller is None:
             return
+        t = controller.clock.now()  # the cycle's end: what happened in it is seen
         state = supervisor.state
         q_rad, qd_rad = plant.state()
         q, qd = np.degrees(q_rad), np.degrees(qd_rad)
         halted = state in (ArmState.HALTING, ArmState.HALTED)
         still_states = halted or state is ArmState.HOLDING
         answered = {r.motor_id for r in replies if r.message is not None}
-        codes = supervisor.guard.codes
+        free = [self._free(i, motor_id, halted, supervisor.guard.codes, t) for i, motor_id in enumerate(self.ids)]
+        # a push on one joint moves the whole arm (within the stiffness of the drives' holds), and so does a joint
+        # nothing holds that swings
+        disturbed = self._acting(t, (InjectedFault.COLLISION,)) or any(
+            f and abs(v) > DISTURBING_DPS for f, v in zip(free, qd, strict=True)
+        )
+        if not still_states:
+            self.faulted_since = math.nan
+        elif math.isnan(self.faulted_since):
+            self.faulted_since = t
         for i, motor_id in enumerate(self.ids):
+            self._count_swing(i, float(qd[i]), t)
             name = self.names[i]
-            out_of_reach = self._since(motor_id, _OUT_OF_REACH, t)
-            off = halted and codes[motor_id].name == "MOTOR_OFF"  # the policy's, or a hold that oscillated
-            exempt = out_of_reach or self._pushed(motor_id, t) or (off and not self.braked[i])
-            # link: a V3 drive without a link fault never trips its communication-loss protection
-            losses = self._losses(motor_id)
-            if self.v3 and losses > self.losses[i] and not self._since(motor_id, _LINK, t):
-                self._violate(f"link{motor_id}", f"link: {name}'s drive tripped its link-loss protection at {t:.3f} s")
-            # brake: locked by the controller only at rest
-            brake = self._brake(motor_id)
-            if (
-                brake is BrakeCommand.LOCK
-                and self.brakes[i] is BrakeCommand.RELEASE
-                and losses == self.losses[i]
-                and not self._since(motor_id, (InjectedFault.POWER_CYCLE,), t)
-                and abs(qd[i]) > BRAKE_MOVING_DPS
-            ):
-                self._violate(f"brake{motor_id}", f"brake: {name}'s brake locked at {qd[i]:.1f} deg/s at {t:.3f} s")
-            self.brakes[i], self.losses[i] = brake, losses
-            # halted: a drive that answers twice while the arm is halted is halted at the second
+            if getattr(self.drives[motor_id], "link_losses", 0) and not self._since(motor_id, _LINK, t):
+                self._violate(f"link{i}", f"link: {name}'s drive tripped its link-loss protection by {t:.3f} s")
             if (
                 halted
                 and self.previous_state in (ArmState.HALTING, ArmState.HALTED)
                 and motor_id in answered
                 and motor_id in self.previous_answered
                 and self.drives[motor_id].state is RunState.RUNNING
+                and not self._acting(t, (InjectedFault.DROP,), motor_id)  # (a dropped halt: sent again next cycle)
             ):
-                self._violate(f"halted{motor_id}", f"halted: {name}'s drive answers and still runs at {t:.3f} s")
-            # still and limits
-            if not still_states or exempt:
-                self.anchor[i] = np.nan
+                self._violate(f"halted{i}", f"halted: {name}'s drive answers and still runs at {t:.3f} s")
+            gone = self._since(motor_id, _SWITCHED_OFF, t) or self._acting(t, _UNREACHABLE, motor_id)
+            if disturbed or free[i] or gone:
+                self.anchor[i] = self.held_since[i] = np.nan
                 continue
-            if math.isnan(self.faulted_since) or t - self.faulted_since < SETTLE_S:
-                continue
-            if math.isnan(self.anchor[i]):
-                self.anchor[i] = q[i]
-            elif abs(q[i] - self.anchor[i]) > BAND_DEG:
-                self._violate(
-                    f"still{motor_id}",
-                    f"still: {name} moved {q[i] - self.anchor[i]:+.2f} deg while {state.value} at {t:.3f} s",
-                )
-            if self.inside_at_fault[i] and not self.lower[i] - BAND_DEG <= q[i] <= self.upper[i] + BAND_DEG:
-                self._violate(f"limit{motor_id}", f"limit: {name} at {q[i]:.2f} deg while {state.value} at {t:.3f} s")
-        if still_states:
-            if math.isnan(self.faulted_since):
-                self.faulted_since = t
-                self.inside_at_fault = (q >= self.lower) & (q <= self.upper)
-        else:
-            self.faulted_since = math.nan
-            self.anchor[:] = np.nan
+            self._check_held(i, t, float(q[i]), float(qd[i]), state, still_states)
         self.previous_state = state
         self.previous_answered = answered
 
+    def _free(self, i: int, motor_id: int, halted: bool, codes: Any, t: float) -> bool:
+        """Whether joint ``i`` is one its halt leaves free: an unbraked joint under ``halt_policy: off``, or one the
+        controller released with 0x80 because its drive's hold swung it (checked here: the plant saw it swing)."""
+        if not halted or codes[motor_id].name != "MOTOR_OFF" or self.braked[i]:
+            return False
+        if self.off_policy or self.swings[i] >= SWINGS_SEEN:
+            return True
+        self._violate(f"release{i}", f"release: {self.names[i]} released with 0x80 at {t:.3f} s without swinging")
+        return True
 
-class _WallTimeout(Exception):
+    def _count_swing(self, i: int, qd: float, t: float) -> None:
+        """The plant's count of joint ``i``'s swings since it last stood (slower than :data:`ANCHOR_DPS` for 50 ms)."""
+        if abs(qd) <= ANCHOR_DPS:
+            if math.isnan(self.slow_since[i]):
+                self.slow_since[i] = t
+            elif t - self.slow_since[i] >= 0.05:
+                self.swings[i], self.swing_sign[i] = 0, 0.0
+            return
+        self.slow_since[i] = math.nan
+        sign = math.copysign(1.0, qd)
+        if abs(qd) > 10.0 and sign != self.swing_sign[i]:
+            self.swings[i] += 1
+            self.swing_sign[i] = sign
+
+    def _check_held(self, i: int, t: float, q: float, qd: float, state: ArmState, still_states: bool) -> None:
+        """Joint ``i``, held and undisturbed: inside its limits (in every state) once settled if it was then; while the
+        arm is faulted, once settled, it comes to rest (its anchor) and stays there."""
+        name = self.names[i]
+        if math.isnan(self.held_since[i]):
+            self.held_since[i] = t
+            self.inside[i] = True
+        if t < self.held_since[i] + SETTLE_S:
+            self.inside[i] = self.inside[i] and bool(self.lower[i] <= q <= self.upper[i])
+            return
+        if self.inside[i] and not self.lower[i] - BAND_DEG <= q <= self.upper[i] + BAND_DEG:
+            self._violate(f"limit{i}", f"limit: {name} at {q:.2f} deg while {state.value} at {t:.3f} s")
+        if not still_states:
+            self.anchor[i] = np.nan
+            return
+        settled_s = max(self.faulted_since, self.held_since[i]) + SETTLE_S
+        if t < settled_s:
+            return
+        if math.isnan(self.anchor[i]):
+            if abs(qd) <= ANCHOR_DPS:  # where its halt left it
+                self.anchor[i] = q
+            elif t - settled_s > RESTLESS_S:
+                self._violate(
+                    f"still{i}", f"still: {name} still moves at {qd:+.1f} deg/s while {state.value} at {t:.3f} s"
+                )
+            return
+        if abs(q - self.anchor[i]) > BAND_DEG:
+            self._violate(
+                f"still{i}", f"still: {name} moved {q - self.anchor[i]:+.2f} deg while {state.value} at {t:.3f} s"
+            )
+
+
+class _WallTimeout(BaseException):
     """The run took longer than :data:`WALL_LIMIT_S` (a hang)."""
 
 
@@ -340,29 +395,47 @@ def _play(arm: Arm, schedule: Schedule, faults: list[Fault], outcome: Outcome) -
         connected = True
 
     guarded("connect", connect)
-    if not connected:
-        return
+    checker = None
     try:
-        assert arm.controller is not None
-        arm.controller.cycle_hooks.append(_Checker(arm, schedule, faults, outcome))
-        clock = arm.controller.clock
-
-        def until(t_s: float) -> Callable[[], None]:
-            return lambda: arm.sleep(max(0.0, t_s - clock.now()))
-
-        def move(target: tuple[float, ...]) -> Callable[[], object]:
-            return lambda: arm.move_to(dict(zip(arm.names, target, strict=True)), speed_scale=0.8, wait=False)
-
-        for at, what, target in schedule.actions:
-            guarded("sleep", until(at))
-            action = {"move": move(target), "stop": arm.stop, "hold": arm.hold}.get(what, arm.clear)
-            guarded(what, action)
-        guarded("sleep", until(schedule.end_s))
+        if connected:
+            assert arm.controller is not None
+            checker = _Checker(arm, schedule, faults, outcome)
+            arm.controller.cycle_hooks.append(checker)
+            _act(arm, schedule, guarded)
     finally:
         guarded("close", arm.close)
-    controller = arm.controller
+    controller, supervisor = arm.controller, arm.supervisor
     if controller is not None and controller.error is not None:
         outcome.violations.append(f"escape: the loop ended on {controller.error!r}")
+    if supervisor is not None:
+        errors = [f for f in supervisor.faults if f.kind is FaultKind.EXCEPTION]
+        if errors:  # an exception in the control cycle is a bug, halted or not
+            outcome.violations.append(f"escape: an exception in the loop: {errors[0]}")
+    if arm.simulation is not None:  # (also when connect failed: what it did to the drives)
+        drives = arm.simulation.emulator.drives
+        linked = {f.motor_id for f in faults if f.kind in _LINK}
+        for motor_id, drive in sorted(drives.items()):
+            if getattr(drive, "link_losses", 0) and motor_id not in linked:
+                outcome.violations.append(f"link: drive {motor_id} tripped its link-loss protection in the session")
+    del checker
+
+
+def _act(arm: Arm, schedule: Schedule, guarded: Callable[[str, Callable[[], object]], None]) -> None:
+    """The schedule's user actions at their times, then the wait to its end."""
+    assert arm.controller is not None
+    clock = arm.controller.clock
+
+    def until(t_s: float) -> Callable[[], None]:
+        return lambda: arm.sleep(max(0.0, t_s - clock.now()))
+
+    def move(target: tuple[float, ...]) -> Callable[[], object]:
+        return lambda: arm.move_to(dict(zip(arm.names, target, strict=True)), speed_scale=0.8, wait=False)
+
+    for at, what, target in schedule.actions:
+        guarded("sleep", until(at))
+        action = {"move": move(target), "stop": arm.stop, "hold": arm.hold}.get(what, arm.clear)
+        guarded(what, action)
+    guarded("sleep", until(schedule.end_s))
 
 
 def shrink(schedule: Schedule, fails: Callable[[Schedule], bool]) -> Schedule:

@@ -28,7 +28,9 @@ from motion.cli.common import (
     warn,
 )
 from motion.cli.program import MoveStep, PathStep, Program, WaitStep, load_program
+from motion.compose import session_link_timeout_ms
 from motion.config import ArmConfig
+from motion.control.family import FAMILIES
 from motion.errors import MotionError, MotionFault, PortLost
 from motion.homing import homed_joints
 from motion.telemetry import TelemetryOptions
@@ -131,17 +133,19 @@ def hold_for(arm: Arm, seconds: float) -> None:
 def undelivered_halt(arm: Arm) -> PortLost | None:
     """When the arm's bus was lost under its running loop (a dead adapter, an unplugged cable): the error that says
     so, that the halt could not be delivered, and what stops the drives instead; else None."""
-    bus, supervisor = arm.bus, arm.supervisor
-    if bus is None or bus.lost is None or supervisor is None:
+    bus = arm.bus
+    if bus is None or bus.lost is None:
         return None
-    drives = supervisor.drives
-    if drives.link_timeout_ms:
+    # (while homing or connecting there is no supervisor: the drives' settings are those a session sets)
+    family = FAMILIES[bus.family]
+    timeout_ms = session_link_timeout_ms(arm.config) if family.link_protection else 0
+    if timeout_ms:
         fallback = (
-            f"drives with driver V3 stop by themselves after safety.link_timeout_ms = {drives.link_timeout_ms} ms "
+            f"drives with driver V3 stop by themselves after safety.link_timeout_ms = {timeout_ms} ms "
             "without a frame (their link-loss protection); make sure they did, with the hardware E-stop (cut the "
             "motor power) if not"
         )
-    elif drives.family.link_protection:
+    elif family.link_protection:
         fallback = (
             "the drives' link-loss protection is off (safety.link_timeout_ms: 0): they keep their last command until "
             "their power is cut: use the hardware E-stop now"

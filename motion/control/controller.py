@@ -233,6 +233,8 @@ class Controller:
         self._condition: tuple[str, MotionFault | None] = ("ready", None)
         self._publish_lock = threading.Lock()
         self.cycle_hooks: list[Callable[[Controller, float, list[Reply]], None]] = []
+        #: The latest exchange's replies.
+        self.last_replies: list[Reply] = []
         #: A per-joint array the safety layer keeps up to date (its collision signal, N·m), published in every
         #: snapshot as it stands (NaN: none).
         self.published_signal: NDArray[np.float64] = np.full(n, np.nan)
@@ -616,6 +618,7 @@ class Controller:
         replies = self.bus.transact(requests, start_s + self._reply_budget * (deadline_s - start_s))
         if self.tracking.unread:
             replies = self.tracking.take_replies(replies)
+        self.last_replies = replies  # (for a caller whose cycle a hook below ends with an exception)
         self.absorb(replies)
         self._track(start_s, self.reference, commanded)
         self._publish(self.loop.cycles + 1, start_s, commanded)  # (the loop counts the cycle once it has ended)

@@ -2,13 +2,12 @@
 
 Once a halt went out, every cycle until ``clear()`` or close:
 
-* **every drive gets a frame** — its halt while it has not acknowledged it, else a state read (0x9C): the
+* **every drive gets a frame** — a state read (0x9C), after its halt while it is not known to be halted: the
   controller's own silence never trips a V3 drive's communication-loss protection (``safety.link_timeout_ms``);
 * **the halt is re-sent to any drive not known to be halted**: one that never acknowledged it (it is re-sent every
   cycle for as long as the session is open, not only for ``halt_retry_s``), one that missed a reply (silent, dropped,
   corrupt: whatever it did meanwhile, it may have come back under its last command), one whose reading shows it
-  driving (:meth:`HaltGuard.take`), and, in turn, one drive per cycle whatever it shows (a halt re-asserted costs a
-  frame the read would have cost);
+  driving (:meth:`HaltGuard.take`), and, in turn, one drive per cycle whatever it shows;
 * **a joint beyond its limits** while halted is a fault of its own (recorded once per excursion), its halt re-sent;
 * **a braked joint is stopped, not released**: under 0x80 it gets 0x81 until its brake locks (which turns its output
   off), so that it does not fall meanwhile;
@@ -16,9 +15,11 @@ Once a halt went out, every cycle until ``clear()`` or close:
   for :data:`BRAKE_REST_S` showed at most :data:`BRAKE_REST_DPS`.
 
 "Driving", from a state reply of a drive that acknowledged its halt: under 0x81 (the drive brakes to a standstill and
-holds), its speed rising :data:`SPEED_UP_DPS` above the slowest it read since the acknowledgement, or, once it came to
-rest, its angle leaving :data:`STILL_BAND_DEG` around where it did; under 0x80 (the drive's output is off), a torque
-current above :data:`OFF_CURRENT_A` (an unbraked joint under 0x80 may fall or coast: its motion is no sign).
+holds), once it has stood at rest for :data:`BRAKE_REST_S` (an overshoot of its own stop passes through zero speed:
+no anchor there), its angle leaving :data:`STILL_BAND_DEG` around where it did; under 0x80 (the drive's output is
+off), a torque current above :data:`OFF_CURRENT_A` (an unbraked joint under 0x80 may fall or coast: its motion is no
+sign). A drive that keeps moving without ever coming to rest is caught by the halt re-asserted in turn (a running
+drive stops) and, where it swings back and forth, by :data:`SWINGS_TO_RELEASE`.
 """
 
 from __future__ import annotations
@@ -43,14 +44,15 @@ BRAKE_REST_S: Final = 0.05
 #: A joint halted with 0x81 that came to rest and then moves this far is driven again, joint deg. Far above what a
 #: drive's holding loop lets a loaded joint sag and what the angle fields resolve (0.01 deg of the motor or output).
 STILL_BAND_DEG: Final = 2.0
-#: A joint halted with 0x81 whose speed rises this far above the slowest it read since the acknowledgement is driven
-#: again, joint deg/s: ten steps of the coarsest speed field (V3: whole deg/s of the output).
-SPEED_UP_DPS: Final = 10.0
-#: A joint halted with 0x81 found driving this many times in a row, each time the other way (its drive's own hold
-#: oscillates: a position loop tuned for another load), is released with 0x80 instead: re-sending 0x81 to a stopped
-#: drive changes nothing, and an oscillation at the current limit only grows. One way each time is a push (a person,
-#: an obstacle): the drive's hold is what resists it, and it keeps 0x81.
-SWINGS_TO_RELEASE: Final = 3
+#: A halted joint that swings this many times (faster than :data:`SWING_DPS`, each the other way than the one before)
+#: without standing at rest for :data:`BRAKE_REST_S` in between: its drive's own hold oscillates (a position loop
+#: tuned for another load, its speed uncapped), which 0x81 sent again does not change (:meth:`HaltGuard.take` reports
+#: it once; the supervisor releases it with 0x80 where gravity cannot move it). A drive's own stop overshoots and
+#: settles in a swing or two; three back-and-forth periods are no stop.
+SWINGS_TO_RELEASE: Final = 6
+#: A swing is counted beyond this speed, joint deg/s: ten steps of the coarsest speed field (V3: whole deg/s of the
+#: output).
+SWING_DPS: Final = 10.0
 #: A drive turned off with 0x80 that reads more torque current than this is driving again, A: some twenty steps of
 #: the coarsest current field (0.01 A V3, 33/2048 A older drives); an off drive reads its noise, a few steps.
 OFF_CURRENT_A: Final = 0.3
@@ -81,7 +83,6 @@ class HaltGuard:
         #: Braked joints whose brake this session locked since the halt (released again by a clear).
         self.locked: set[int] = set()
         self._acknowledged = [False] * n
-        self._slowest_dps = [math.inf] * n
         self._rest_deg = [math.nan] * n
         self._rest_since = [math.nan] * n
         self._outside = [False] * n
@@ -116,18 +117,15 @@ class HaltGuard:
         return [Request(motor_id, bare(codes[motor_id])) for motor_id in sorted(self.unacknowledged)]
 
     def requests(self) -> list[Request]:
-        """The halted cycle's batch: one frame per drive (its halt, or a state read; the halt re-asserted to one drive
-        in turn), then 0x78 to the braked joints found at rest."""
-        ids = self.ids
+        """The halted cycle's batch: the halt to every drive not known to be halted and, in turn, to one drive
+        whatever it shows; a state read to every drive (its readings never have gaps that its encoder's turns could
+        slip through while it moves); then 0x78 to the braked joints found at rest."""
+        ids, owed = self.ids, self.unacknowledged
         self._turn = (self._turn + 1) % len(ids)
         reassert = ids[self._turn]
-        bare, codes = self._bare, self.codes
-        batch = [
-            Request(motor_id, bare(codes[motor_id]))
-            if motor_id in self.unacknowledged or motor_id == reassert
-            else self._reads[motor_id]
-            for motor_id in ids
-        ]
+        bare, codes, reads = self._bare, self.codes, self._reads
+        batch = [Request(i, bare(codes[i])) for i in ids if i in owed or i == reassert]
+        batch += [reads[i] for i in ids]
         if self.braked_ids:
             lock = self._bare(CommandV3.LOCK_BRAKE)
             batch += [Request(motor_id, lock) for motor_id in self._brakes_due()]
@@ -160,15 +158,14 @@ class HaltGuard:
 
         Returns:
             The joints (indexes) found driving, whose halt goes out again next cycle; the joints that have just left
-            their limits; the joints whose hold oscillates, released with 0x80 from now on
-            (:data:`SWINGS_TO_RELEASE`).
+            their limits; the joints found swinging (:data:`SWINGS_TO_RELEASE`), each reported once per halt.
         """
         index, codes = self.index, self.codes
         q_deg, qd_dps, iq_a = axes.q_deg, axes.qd_dps, axes.iq_a
         self._now = now_s
         driving: list[int] = []
         outside: list[int] = []
-        released: list[int] = []
+        swinging: list[int] = []
         for reply in replies:
             i = index.get(reply.motor_id)
             if i is None:
@@ -191,41 +188,47 @@ class HaltGuard:
                     outside.append(i)
                     self._owe(i)
                 self._outside[i] = out
-                if self._acknowledged[i] and self._driving(i, q, qd, float(iq_a[i])):
+                if not self._acknowledged[i]:
+                    continue
+                if codes[motor_id] == Command.MOTOR_STOP and self._swung(i, qd):
+                    swinging.append(i)
+                if self._driving(i, q, qd, float(iq_a[i])):
                     driving.append(i)
                     self._owe(i)
-                    if self._swung(i, qd) and codes[motor_id] == Command.MOTOR_STOP:
-                        codes[motor_id] = Command.MOTOR_OFF
-                        released.append(i)
-        return driving, outside, released
+        return driving, outside, swinging
+
+    def release(self, i: int) -> None:
+        """Joint ``i``'s drive gets 0x80 from now on (until the next halt): its own hold does not hold it."""
+        self.codes[self.ids[i]] = Command.MOTOR_OFF
+        self._owe(i)
 
     def _swung(self, i: int, qd: float) -> bool:
-        """Count a driving reading of joint ``i`` moving at ``qd``: True once it has been found driving one way, then
-        the other, :data:`SWINGS_TO_RELEASE` times without coming to rest in between."""
+        """Count the swings of joint ``i`` (its speed beyond :data:`SWING_DPS`, the other way than the last one) since
+        it last stood at rest for :data:`BRAKE_REST_S`: True when they reach :data:`SWINGS_TO_RELEASE`."""
+        if abs(qd) <= SWING_DPS:
+            return False
         sign = math.copysign(1.0, qd)
-        if sign != self._swing_sign[i]:
-            self._swings[i] += 1
-            self._swing_sign[i] = sign
-        return self._swings[i] >= SWINGS_TO_RELEASE
+        if sign == self._swing_sign[i]:
+            return False
+        self._swings[i] += 1
+        self._swing_sign[i] = sign
+        return self._swings[i] == SWINGS_TO_RELEASE
 
     def _driving(self, i: int, q: float, qd: float, iq: float) -> bool:
         """Whether a drive that acknowledged its halt reads as driving again (see the module docstring); keeps the
         rest bookkeeping."""
-        speed = abs(qd)
-        if speed <= BRAKE_REST_DPS:
+        now = self._now
+        if abs(qd) <= BRAKE_REST_DPS:
             if math.isnan(self._rest_since[i]):
-                self._rest_since[i] = self._now
-            elif self._now - self._rest_since[i] >= BRAKE_REST_S:
+                self._rest_since[i] = now
+            elif now - self._rest_since[i] >= BRAKE_REST_S:
                 self._swings[i], self._swing_sign[i] = 0, 0.0  # at rest a while: no oscillation
-            if math.isnan(self._rest_deg[i]):
-                self._rest_deg[i] = q
+                if math.isnan(self._rest_deg[i]):
+                    self._rest_deg[i] = q  # where the halt left it
         else:
             self._rest_since[i] = math.nan
         if self.codes[self.ids[i]] == Command.MOTOR_OFF:
             return abs(iq) > OFF_CURRENT_A
-        if speed > self._slowest_dps[i] + SPEED_UP_DPS:
-            return True
-        self._slowest_dps[i] = min(self._slowest_dps[i], speed)
         rest = self._rest_deg[i]
         return not math.isnan(rest) and abs(q - rest) > STILL_BAND_DEG
 
@@ -236,6 +239,5 @@ class HaltGuard:
 
     def _forget(self, i: int) -> None:
         self._acknowledged[i] = False
-        self._slowest_dps[i] = math.inf
         self._rest_deg[i] = math.nan
         self._rest_since[i] = math.nan

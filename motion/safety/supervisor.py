@@ -11,8 +11,9 @@ E-stop) halts every axis with 0x81. Then the arm is FAULTED: motion commands rai
 :meth:`Supervisor.clear` (0x9B to every drive) finds every drive answering with clean flags and no cause left.
 
 The states (:class:`~motion.safety.states.ArmState`) are the whole story: READY and MOVING run the guarded cycle;
-HOLDING streams the stop ramp; COMPLYING streams gravity compensation; HALTING re-sends the halt to the drives that
-have not acknowledged it; HALTED only reads; BUS_LOST ends the loop. Every change of state goes through the
+HOLDING streams the stop ramp; COMPLYING streams gravity compensation; HALTING and HALTED keep the halted state every
+cycle (:mod:`motion.safety.halted`: the halt to every drive not known to be halted, a read to every drive; HALTING
+until every drive acknowledged or ``halt_retry_s`` passed); BUS_LOST ends the loop. Every change of state goes through the
 transition table, and a pair the table does not know leads to HALTING, whose cycle sends the halt if none went out.
 
 No path leaves a motor moving under our last command: exceptions in the cycle are faults; E-stop requests
@@ -61,9 +62,11 @@ _BRAKE_SETTLE_S = 1.0
 #: A following error seen in this many consecutive cycles of a hold (whose ramp starts from the measured state, so
 #: that a joint that follows has none) escalates to the drives' own halt: a blocked joint is never pushed for ever.
 HOLD_ESCALATION_CYCLES = 3
-#: ... and so does a torque current at its limit for this long, s: a drive's loop saturated by the jump of its
-#: set-point to where the joint stands unwinds within a few of its time constants (tens of ms; 20 ms seen on the
-#: emulator at 200 Hz), a drive pushing against an obstacle does not.
+#: ... and so does a torque current at the joint's ``current_limit_a`` for this long, s: a drive's loop saturated by
+#: the jump of its set-point to where the joint stands unwinds within a few of its time constants (tens of ms; 20 ms
+#: seen on the emulator at 200 Hz), a drive pushing against an obstacle does not. (In position mode the drive's own
+#: current limit may differ from the configured one: above it this never fires, and the persisting following error is
+#: left to escalate; below it, a hold that needs more current escalates to 0x81, the safe side.)
 HOLD_AT_LIMIT_S = 0.1
 #: The most fault and halt records kept (a cause that repeats is recorded once; this bounds what a long session keeps).
 RECORDS_KEPT = 1000
@@ -258,15 +261,14 @@ class Supervisor:
         controller = self.controller
         clock, index, speeds = controller.clock, self.watchdog.index, controller.axes.qd_dps
         read = self._bare(Command.READ_STATUS_2)
+        reads = [Request(i, read) for i in self.ids]  # every drive: none starves into its link-loss stop meanwhile
         since = dict.fromkeys(self.drives.braked_ids, math.nan)  # at rest in every reading since
         for motor_id in self.guard.locked:
             since[motor_id] = -math.inf
         pending = list(since)
         while pending and clock.now() < deadline_s:
             try:
-                replies = controller.bus.transact(
-                    [Request(i, read) for i in pending], min(deadline_s, controller.clock.now() + 0.02)
-                )
+                replies = controller.bus.transact(reads, min(deadline_s, controller.clock.now() + 0.02))
             except Exception as exc:
                 logger.error("the braked joints could not be read at the end: %s: %s", type(exc).__name__, exc)
                 break
@@ -446,14 +448,14 @@ class Supervisor:
         state = self.machine.state
         repeated = state.faulted and self._fault is not None and _same_cause(fault, self._fault)
         if repeated and state in (ArmState.HALTING, ArmState.HALTED):
-            # the same cause again in every cycle (a hook, a tap, a port that keeps failing): the halt is sent again,
-            # quietly, and recorded once
-            try:
-                self._start_halt(detected, deadline_s, self._halt_code)
-            except TransportError as exc:
-                self._send_failed(exc, detected, deadline_s, self._halt_code)
-            except Exception as exc:
-                logger.debug("halt could not be sent: %s: %s", type(exc).__name__, exc)
+            # the same cause again in every cycle (a hook, a tap, a port that keeps failing), recorded once: the
+            # halted cycle goes on sending the halt to every drive not known to be halted (its bookkeeping was done
+            # before the hooks ran); a send that failed leaves every drive owed its halt again
+            if fault.kind is FaultKind.TRANSPORT:
+                if controller.bus.closed:
+                    self._lose_bus(TransportError(fault.detail))
+                else:
+                    self.guard.begin(self._halt_code)
             return
         self.fault = fault
         self.faults.append(fault)
@@ -709,28 +711,38 @@ class Supervisor:
         """HALTING and HALTED: every drive gets a frame (its halt while it is not known to be halted, else a state
         read; see :mod:`motion.safety.halted`), joints that leave their limits and drives that restarted are faults
         of their own, and braked joints lock once at rest."""
-        controller, guard = self.controller, self.guard
-        requests = guard.requests()
+        controller = self.controller
+        requests = self.guard.requests()
         requests.append(self._next_status_read())
-        replies = controller.step(start_s, deadline_s, extra=requests, command=False, apply_pending=False)
+        try:
+            replies = controller.step(start_s, deadline_s, extra=requests, command=False, apply_pending=False)
+        except TransportError:
+            raise
+        except Exception:  # a cycle hook failed after the exchange: the replies are taken in all the same
+            self._take_halted(state, controller.last_replies)
+            raise
+        self._take_halted(state, replies)
+
+    def _take_halted(self, state: ArmState, replies: list[Reply]) -> None:
+        """The halted cycle's replies: acknowledgements, drives driving or swinging, limits, restarts, and the end of
+        HALTING."""
+        controller, guard = self.controller, self.guard
         self._send_failing = False
         now = controller.clock.now()
         axes = controller.axes
-        driving, outside, released = guard.take(replies, axes, self._within, now)
+        driving, outside, swinging = guard.take(replies, axes, self._within, now)
         names = self.watchdog.names
         for i in driving:
             logger.warning("%s reads as driving while halted: its halt is sent again", names[i])
-        seen = (
-            (
-                released,
-                FaultKind.HOLD_FAILED,
-                "its drive's own hold (0x81) oscillates (a position loop tuned for another load): released with 0x80",
-            ),
-            (outside, FaultKind.POSITION_LIMIT, "beyond its limits while halted (its halt is sent again)"),
-        )
-        for joints, kind, detail in seen:
-            for i in joints:
-                self._record(MotionFault(kind, joint=names[i], value=float(axes.q_deg[i]), time_s=now, detail=detail))
+        for i in outside:
+            detail = "beyond its limits while halted (its halt is sent again)"
+            self._record(
+                MotionFault(
+                    FaultKind.POSITION_LIMIT, joint=names[i], value=float(axes.q_deg[i]), time_s=now, detail=detail
+                )
+            )
+        for i in swinging:
+            self._record(self._swinging(i, now))
         for fault in self.watchdog.restarts(replies, now):
             if fault.joint not in self.lost_frames:
                 self.lost_frames.add(str(fault.joint))
@@ -746,6 +758,33 @@ class Supervisor:
                     self.settings.halt_retry_s,
                 )
             self.machine.fire(ArmEvent.ACKNOWLEDGED)
+
+    def _swinging(self, i: int, now_s: float) -> MotionFault:
+        """Joint ``i`` swings back and forth although halted (its drive's own 0x81 hold oscillates): released with 0x80
+        where gravity cannot move it (its gravity torque here within its Coulomb friction), else kept at 0x81."""
+        controller = self.controller
+        gravity = self.gravity
+        friction = self.settings.coulomb_friction_nm
+        load_nm = math.inf
+        if gravity is not None and friction:
+            zero = np.zeros(len(self.ids))
+            load_nm = abs(float(gravity(controller.axes.q_deg, zero, zero)[i]))
+        braked = self.ids[i] in self.drives.braked_ids  # its brake locks once at rest: never released
+        released = not braked and load_nm <= (friction[i] if friction else -math.inf)
+        if released:
+            self.guard.release(i)
+        what = (
+            f"released with 0x80 (gravity there {load_nm:.3f} N·m, within its friction)"
+            if released
+            else "kept at 0x81: gravity may load it beyond its friction; check the drive's position-loop tuning"
+        )
+        return MotionFault(
+            FaultKind.HOLD_FAILED,
+            joint=self.watchdog.names[i],
+            value=float(controller.axes.q_deg[i]),
+            time_s=now_s,
+            detail=f"its drive's own hold (0x81) swings it back and forth: {what}",
+        )
 
     def _record(self, fault: MotionFault) -> None:
         """A fault seen while halted: recorded and logged; the halt in force stays (the drive concerned gets it

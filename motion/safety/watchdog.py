@@ -90,13 +90,16 @@ class SafetySettings:
         max_missed_replies: consecutive cycles with a missing reply tolerated per drive.
         max_corrupt_frames: corrupt frames per drive tolerated within one second.
         max_overrun_streak: consecutive overrunning cycles tolerated.
-        halt_retry_s: how long unacknowledged halt frames are re-sent, s.
+        halt_retry_s: how long the arm stays HALTING for drives that have not acknowledged the halt, s (their halt
+            is re-sent after that too, while the session is open).
         collision_threshold_nm: per joint, the observer residual that faults the arm (``collision``), N·m; inf for
             a joint that is not watched; empty: no joint is.
         collision_reaction: the reaction to a collision (None: ``halt_policy``; ``hold`` reacts with 0x81, a
             collision is not holdable; ``comply``: gravity compensation, torque mode).
         collision_window_cycles: the collision signal is the residual's change over this many observer steps (0:
             the residual itself).
+        coulomb_friction_nm: per joint, its Coulomb friction, N·m: a halted joint whose drive's hold swings it is
+            released (0x80) only where gravity loads it less (empty: never released).
     """
 
     halt_policy: HaltPolicy
@@ -111,6 +114,7 @@ class SafetySettings:
     collision_threshold_nm: tuple[float, ...] = ()
     collision_reaction: HaltPolicy | None = None
     collision_window_cycles: int = 0
+    coulomb_friction_nm: tuple[float, ...] = ()
 
 
 class Watchdog:
