@@ -13,8 +13,8 @@ E-stop) halts every axis with 0x81. Then the arm is FAULTED: motion commands rai
 The states (:class:`~motion.safety.states.ArmState`) are the whole story: READY and MOVING run the guarded cycle;
 HOLDING streams the stop ramp; COMPLYING streams gravity compensation; HALTING and HALTED keep the halted state every
 cycle (:mod:`motion.safety.halted`: the halt to every drive not known to be halted, a read to every drive; HALTING
-until every drive acknowledged or ``halt_retry_s`` passed); BUS_LOST ends the loop. Every change of state goes through the
-transition table, and a pair the table does not know leads to HALTING, whose cycle sends the halt if none went out.
+until every drive acknowledged or ``halt_retry_s`` passed); BUS_LOST ends the loop. Every change of state goes through
+the transition table, and a pair the table does not know leads to HALTING, whose cycle sends the halt if none went out.
 
 No path leaves a motor moving under our last command: exceptions in the cycle are faults; E-stop requests
 (:meth:`Supervisor.estop`, the CLI's Ctrl-C / SIGTERM) are faults; :meth:`Supervisor.close`, garbage collection and
