@@ -197,6 +197,7 @@ class _Checker:
         self.swings = [0] * n  # the plant's own count of each joint's swings since it last stood still
         self.swing_sign = [0.0] * n
         self.slow_since = [math.nan] * n
+        self.released = [False] * n  # released with 0x80, and seen swinging then
         self.previous_state: ArmState | None = None
         self.previous_answered: set[int] = set()
         self.reported: set[str] = set()
@@ -292,8 +293,10 @@ class _Checker:
         """Whether joint ``i`` is one its halt leaves free: an unbraked joint under ``halt_policy: off``, or one the
         controller released with 0x80 because its drive's hold swung it (checked here: the plant saw it swing)."""
         if not halted or codes[motor_id].name != "MOTOR_OFF" or self.braked[i]:
+            self.released[i] = False
             return False
-        if self.off_policy or self.swings[i] >= SWINGS_SEEN:
+        if self.off_policy or self.released[i] or self.swings[i] >= SWINGS_SEEN:
+            self.released[i] = True  # (the swings it was released for were seen; it coasts to rest since)
             return True
         self._violate(f"release{i}", f"release: {self.names[i]} released with 0x80 at {t:.3f} s without swinging")
         return True

@@ -211,6 +211,12 @@ def with_arm(
         lost = undelivered_halt(arm)
         if lost is not None:
             raise lost
+        silent = sorted(arm.supervisor.unacknowledged) if arm.supervisor is not None else []
+        if silent:  # "every axis halted" does not hold for these
+            warn(
+                f"motor(s) {', '.join(map(str, silent))} never acknowledged the halt (sent to them every cycle until "
+                "the arm closed): they may still run their last command; use the hardware E-stop"
+            )
 
 
 def _halt_after_interrupt(arm: Arm, cause: BaseException | None) -> str:

@@ -245,7 +245,8 @@ class Supervisor:
         owed = guard.unacknowledged
         order = sorted(self.ids, key=lambda i: (i in owed, i))
         try:
-            bus.transact([Request(i, self._bare(codes[i])) for i in order], clock.now() + 0.02)
+            replies = bus.transact([Request(i, self._bare(codes[i])) for i in order], clock.now() + 0.02)
+            owed.difference_update(r.motor_id for r in replies if r.message is not None)
         except Exception as exc:  # the session ends anyway: leave a trace
             logger.error("the halt at the end of the session failed: %s: %s", type(exc).__name__, exc)
         lock = None
