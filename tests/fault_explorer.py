@@ -10,7 +10,9 @@ and optionally a joint homed at connect. :func:`run` plays it and returns the vi
   :data:`BAND_DEG` from there, nor leaves its limits by more than that if it came to rest inside them. Not held: a
   joint whose drive could not be reached, seen, or may have switched itself off (silent, dropped, corrupt,
   power-cycled, over-temperature, under-voltage), an unbraked joint under 0x80 (it falls or coasts: documented), and
-  every joint while an injected collision pushes the arm or a released joint swings it (then for :data:`SETTLE_S`);
+  every joint while an injected collision pushes the arm or a joint nothing holds swings it (then for
+  :data:`SETTLE_S`), and for :data:`UNHELD_GRACE_S` a joint its drive's own hold swings (released with 0x80 by then
+  where gravity allows; a release the plant did not show the need for is a violation);
 - **halted**: while the arm is halting or halted, every drive that answered in two cycles in a row is halted (0x81 or
   0x80 in force: the emulator's drive state) at the second (not a drive that loses requests at random: its answer to
   a read says nothing of the halt it lost, which goes out again every cycle until it is acknowledged);
@@ -46,6 +48,7 @@ from motion.emulator.drive import RunState
 from motion.errors import FaultKind, MotionError
 from motion.protocol.v3.messages import CommandV3
 from motion.safety import ArmState
+from motion.safety.halted import RESTLESS_S as RESTLESS_RELEASE_S
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 #: The example arms explored, and the control rate of their position-mode runs (torque mode keeps the example's rate,
@@ -72,6 +75,10 @@ ANCHOR_DPS = 5.0
 RESTLESS_S = 0.5
 #: A joint nothing holds (released under 0x80) swinging faster than this disturbs the others, deg/s.
 DISTURBING_DPS = 5.0
+#: A joint its drive's own hold swings (the plant shows two swings since it last stood) is not held to the still band
+#: for this long, s: the controller sees six swings or a second of running on and releases it where gravity allows
+#: (:mod:`motion.safety.halted`); after that, it is held to the band again.
+UNHELD_GRACE_S = 2.0
 #: A schedule's run ends within this much wall time, s.
 WALL_LIMIT_S = 120.0
 #: Kinds after which a drive may have switched itself off (its joint is not held to the still and limit invariants
@@ -197,7 +204,10 @@ class _Checker:
         self.swings = [0] * n  # the plant's own count of each joint's swings since it last stood still
         self.swing_sign = [0.0] * n
         self.slow_since = [math.nan] * n
-        self.released = [False] * n  # released with 0x80, and seen swinging then
+        self.swing_start = [math.nan] * n  # when each joint's swings since it last stood began
+        self.released = [False] * n  # released with 0x80, and seen swinging or running on then
+        self.fast_since = [math.inf] * n  # since when each joint moves faster than 10 deg/s, without a pause
+        self.ran = [False] * n  # whether its drive has run (been turned on) since connect
         self.previous_state: ArmState | None = None
         self.previous_answered: set[int] = set()
         self.reported: set[str] = set()
@@ -257,11 +267,16 @@ class _Checker:
         halted = state in (ArmState.HALTING, ArmState.HALTED)
         still_states = halted or state is ArmState.HOLDING
         answered = {r.motor_id for r in replies if r.message is not None}
+        for i, motor_id in enumerate(self.ids):
+            self.ran[i] = self.ran[i] or self.drives[motor_id].state is not RunState.OFF
         free = [self._free(i, motor_id, halted, supervisor.guard.codes, t) for i, motor_id in enumerate(self.ids)]
+        gone = [
+            self._since(motor_id, _SWITCHED_OFF, t) or self._acting(t, _UNREACHABLE, motor_id) for motor_id in self.ids
+        ]
         # a push on one joint moves the whole arm (within the stiffness of the drives' holds), and so does a joint
-        # nothing holds that swings
+        # nothing holds (released, switched off, or out of reach) that swings
         disturbed = self._acting(t, (InjectedFault.COLLISION,)) or any(
-            f and abs(v) > DISTURBING_DPS for f, v in zip(free, qd, strict=True)
+            (f or g) and abs(v) > DISTURBING_DPS for f, g, v in zip(free, gone, qd, strict=True)
         )
         if not still_states:
             self.faulted_since = math.nan
@@ -281,8 +296,7 @@ class _Checker:
                 and not self._acting(t, (InjectedFault.DROP,), motor_id)  # (a dropped halt: sent again next cycle)
             ):
                 self._violate(f"halted{i}", f"halted: {name}'s drive answers and still runs at {t:.3f} s")
-            gone = self._since(motor_id, _SWITCHED_OFF, t) or self._acting(t, _UNREACHABLE, motor_id)
-            if disturbed or free[i] or gone:
+            if disturbed or free[i] or gone[i]:
                 self.anchor[i] = self.held_since[i] = np.nan
                 continue
             self._check_held(i, t, float(q[i]), float(qd[i]), state, still_states)
@@ -290,19 +304,27 @@ class _Checker:
         self.previous_answered = answered
 
     def _free(self, i: int, motor_id: int, halted: bool, codes: Any, t: float) -> bool:
-        """Whether joint ``i`` is one its halt leaves free: an unbraked joint under ``halt_policy: off``, or one the
-        controller released with 0x80 because its drive's hold swung it (checked here: the plant saw it swing)."""
+        """Whether joint ``i`` is one its halt leaves free: an unbraked joint under ``halt_policy: off``, one whose
+        drive was never turned on (it powers up off: a halt leaves it off), or one the controller released with 0x80
+        because its drive's hold did not hold it (checked here: the plant saw it swing or run on)."""
+        if halted and not self.ran[i] and not self.braked[i]:
+            return True
         if not halted or codes[motor_id].name != "MOTOR_OFF" or self.braked[i]:
             self.released[i] = False
             return False
-        if self.off_policy or self.released[i] or self.swings[i] >= SWINGS_SEEN:
-            self.released[i] = True  # (the swings it was released for were seen; it coasts to rest since)
+        restless = t - self.fast_since[i] >= 0.8 * RESTLESS_RELEASE_S
+        if self.off_policy or self.released[i] or self.swings[i] >= SWINGS_SEEN or restless:
+            self.released[i] = True  # (what it was released for was seen; it coasts to rest since)
             return True
         self._violate(f"release{i}", f"release: {self.names[i]} released with 0x80 at {t:.3f} s without swinging")
         return True
 
     def _count_swing(self, i: int, qd: float, t: float) -> None:
         """The plant's count of joint ``i``'s swings since it last stood (slower than :data:`ANCHOR_DPS` for 50 ms)."""
+        if abs(qd) <= 10.0:
+            self.fast_since[i] = math.inf
+        elif math.isinf(self.fast_since[i]):
+            self.fast_since[i] = t
         if abs(qd) <= ANCHOR_DPS:
             if math.isnan(self.slow_since[i]):
                 self.slow_since[i] = t
@@ -312,6 +334,8 @@ class _Checker:
         self.slow_since[i] = math.nan
         sign = math.copysign(1.0, qd)
         if abs(qd) > 10.0 and sign != self.swing_sign[i]:
+            if self.swings[i] == 0:
+                self.swing_start[i] = t
             self.swings[i] += 1
             self.swing_sign[i] = sign
 
@@ -327,7 +351,8 @@ class _Checker:
             return
         if self.inside[i] and not self.lower[i] - BAND_DEG <= q <= self.upper[i] + BAND_DEG:
             self._violate(f"limit{i}", f"limit: {name} at {q:.2f} deg while {state.value} at {t:.3f} s")
-        if not still_states:
+        if not still_states or (self.swings[i] >= 2 and t - self.swing_start[i] <= UNHELD_GRACE_S):
+            # (a joint its drive's own hold swings: the controller has UNHELD_GRACE_S to see it and release it)
             self.anchor[i] = np.nan
             return
         settled_s = max(self.faulted_since, self.held_since[i]) + SETTLE_S

@@ -12,7 +12,8 @@ Once a halt went out, every cycle until ``clear()`` or close:
 * **a braked joint is stopped, not released**: under 0x80 it gets 0x81 until its brake locks (which turns its output
   off), so that it does not fall meanwhile;
 * **a brake locks only on a joint at rest**: after its drive acknowledged the halt, once every reading taken since
-  for :data:`BRAKE_REST_S` showed at most :data:`BRAKE_REST_DPS`.
+  for :data:`BRAKE_REST_S` showed at most :data:`BRAKE_REST_DPS`, and while no joint of the arm reads faster than
+  :data:`SWING_DPS` (a joint swinging elsewhere jolts it through the arm).
 
 "Driving", from a state reply of a drive that acknowledged its halt: under 0x81 (the drive brakes to a standstill and
 holds), once it has stood at rest for :data:`BRAKE_REST_S` (an overshoot of its own stop passes through zero speed:
@@ -53,6 +54,10 @@ SWINGS_TO_RELEASE: Final = 6
 #: A swing is counted beyond this speed, joint deg/s: ten steps of the coarsest speed field (V3: whole deg/s of the
 #: output).
 SWING_DPS: Final = 10.0
+#: A halted joint that keeps moving faster than :data:`SWING_DPS` for this long without coming to rest is not held by
+#: its drive's hold either (its hold point is elsewhere: a joint pushed past what its drive resists runs back to it at
+#: the drive's top speed, turns away), s: a drive's own stop from full speed takes a few tenths of a second.
+RESTLESS_S: Final = 1.0
 #: A drive turned off with 0x80 that reads more torque current than this is driving again, A: some twenty steps of
 #: the coarsest current field (0.01 A V3, 33/2048 A older drives); an off drive reads its noise, a few steps.
 OFF_CURRENT_A: Final = 0.3
@@ -88,6 +93,8 @@ class HaltGuard:
         self._outside = [False] * n
         self._swings = [0] * n
         self._swing_sign = [0.0] * n
+        self._moving_since = [math.nan] * n
+        self._fast: set[int] = set()  # joints whose latest reading is faster than SWING_DPS
         self._turn = 0
         self._now = math.nan
         self._reads = {motor_id: Request(motor_id, bare(Command.READ_STATUS_2)) for motor_id in self.ids}
@@ -139,6 +146,7 @@ class HaltGuard:
             if motor_id not in self.locked
             and motor_id not in self.unacknowledged
             and self._now - self._rest_since[index[motor_id]] >= BRAKE_REST_S
+            and not self._fast  # the whole arm calm: a joint swinging elsewhere jolts this one through the arm
         ]
 
     def take(
@@ -158,7 +166,8 @@ class HaltGuard:
 
         Returns:
             The joints (indexes) found driving, whose halt goes out again next cycle; the joints that have just left
-            their limits; the joints found swinging (:data:`SWINGS_TO_RELEASE`), each reported once per halt.
+            their limits; the joints its drive's hold does not hold (swinging: :data:`SWINGS_TO_RELEASE`, or restless:
+            :data:`RESTLESS_S`), each reported once per halt.
         """
         index, codes = self.index, self.codes
         q_deg, qd_dps, iq_a = axes.q_deg, axes.qd_dps, axes.iq_a
@@ -183,6 +192,10 @@ class HaltGuard:
                     self.locked.add(motor_id)
             elif isinstance(message, STATE_TYPES):
                 q, qd = float(q_deg[i]), float(qd_dps[i])
+                if abs(qd) > SWING_DPS:
+                    self._fast.add(i)
+                else:
+                    self._fast.discard(i)
                 out = not within(i, q)
                 if out and not self._outside[i]:
                     outside.append(i)
@@ -190,7 +203,7 @@ class HaltGuard:
                 self._outside[i] = out
                 if not self._acknowledged[i]:
                     continue
-                if codes[motor_id] == Command.MOTOR_STOP and self._swung(i, qd):
+                if codes[motor_id] == Command.MOTOR_STOP and (self._swung(i, qd) or self._restless(i, qd)):
                     swinging.append(i)
                 if self._driving(i, q, qd, float(iq_a[i])):
                     driving.append(i)
@@ -201,6 +214,19 @@ class HaltGuard:
         """Joint ``i``'s drive gets 0x80 from now on (until the next halt): its own hold does not hold it."""
         self.codes[self.ids[i]] = Command.MOTOR_OFF
         self._owe(i)
+
+    def _restless(self, i: int, qd: float) -> bool:
+        """Whether joint ``i`` has just moved faster than :data:`SWING_DPS` for :data:`RESTLESS_S` (once a run)."""
+        if abs(qd) <= SWING_DPS:
+            self._moving_since[i] = math.nan
+            return False
+        if math.isnan(self._moving_since[i]):
+            self._moving_since[i] = self._now
+            return False
+        if self._now - self._moving_since[i] < RESTLESS_S:
+            return False
+        self._moving_since[i] = math.inf  # reported: not again until it slows down
+        return True
 
     def _swung(self, i: int, qd: float) -> bool:
         """Count the swings of joint ``i`` (its speed beyond :data:`SWING_DPS`, the other way than the last one) since
@@ -239,5 +265,6 @@ class HaltGuard:
 
     def _forget(self, i: int) -> None:
         self._acknowledged[i] = False
+        self._moving_since[i] = math.nan
         self._rest_deg[i] = math.nan
         self._rest_since[i] = math.nan

@@ -42,7 +42,7 @@ from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command, Message
-from motion.safety.halted import BRAKE_REST_DPS, BRAKE_REST_S, HaltGuard
+from motion.safety.halted import BRAKE_REST_DPS, BRAKE_REST_S, SWING_DPS, HaltGuard
 from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
 from motion.trajectory import State
@@ -275,9 +275,10 @@ class Supervisor:
                 break
             controller.absorb(replies)
             now = clock.now()
+            calm = all(abs(v) <= SWING_DPS for v in speeds)  # (a joint swinging elsewhere jolts the others)
             for reply in replies:
                 if isinstance(reply.message, STATE_TYPES) and reply.motor_id in pending:
-                    still = abs(speeds[index[reply.motor_id]]) <= BRAKE_REST_DPS
+                    still = calm and abs(speeds[index[reply.motor_id]]) <= BRAKE_REST_DPS
                     if not still:
                         since[reply.motor_id] = math.nan
                     elif math.isnan(since[reply.motor_id]):
@@ -761,8 +762,9 @@ class Supervisor:
             self.machine.fire(ArmEvent.ACKNOWLEDGED)
 
     def _swinging(self, i: int, now_s: float) -> MotionFault:
-        """Joint ``i`` swings back and forth although halted (its drive's own 0x81 hold oscillates): released with 0x80
-        where gravity cannot move it (its gravity torque here within its Coulomb friction), else kept at 0x81."""
+        """Joint ``i`` swings back and forth, or runs on, although halted (its drive's own 0x81 hold does not hold it):
+        released with 0x80 where gravity cannot move it (its gravity torque here within its Coulomb friction), else kept
+        at 0x81."""
         controller = self.controller
         gravity = self.gravity
         friction = self.settings.coulomb_friction_nm
@@ -784,7 +786,7 @@ class Supervisor:
             joint=self.watchdog.names[i],
             value=float(controller.axes.q_deg[i]),
             time_s=now_s,
-            detail=f"its drive's own hold (0x81) swings it back and forth: {what}",
+            detail=f"its drive's own hold (0x81) does not hold it (it swings, or runs on): {what}",
         )
 
     def _record(self, fault: MotionFault) -> None:
