@@ -3,18 +3,15 @@
     .venv/bin/python bench/fault_explorer.py --count 10000 --jobs 2
     .venv/bin/python bench/fault_explorer.py --count 200 --seed 7 --no-shrink
 
-Schedule ``k`` of a run is drawn from ``random.Random(seed * 1_000_003 + k)``: a schedule is reproduced alone with
-``--first k --count 1``, whatever ``--jobs``. Each violation is printed with its schedule, shrunk to its smallest
-failing form (unless ``--no-shrink``), as the literal to add to ``tests/test_halted.py``'s ``REGRESSIONS``.
+Schedule ``k`` of a run is drawn from its own generator (``tests.fault_explorer.drawn``): a schedule is reproduced
+alone with ``--first k --count 1``, whatever ``--jobs``. Each violation is printed with its schedule, shrunk to its
+smallest failing form (unless ``--no-shrink``), as the literal to add to ``tests/test_halted.py``'s ``REGRESSIONS``.
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
-import logging
-import multiprocessing
-import random
 import sys
 import time
 from pathlib import Path
@@ -23,18 +20,6 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from tests import fault_explorer  # noqa: E402 - after the path
-
-
-def _one(args: tuple[int, int, bool]) -> tuple[int, str, list[str], int, str]:
-    seed, k, do_shrink = args
-    logging.disable(logging.CRITICAL)
-    schedule = fault_explorer.draw(random.Random(seed * 1_000_003 + k))
-    outcome = fault_explorer.run(schedule)
-    if outcome.violations and do_shrink:
-        smallest = fault_explorer.shrink(schedule, fault_explorer.fails_like(outcome.kinds))
-        outcome = fault_explorer.run(smallest)
-    described = f"{schedule.arm} {schedule.policy.value} {schedule.mode.value}"
-    return k, outcome.schedule.describe(), outcome.violations, outcome.cycles, described
 
 
 def main() -> None:
@@ -47,23 +32,25 @@ def main() -> None:
     args = parser.parse_args()
     if args.count < 1 or args.jobs < 1 or args.first < 0:
         parser.error("--count and --jobs must be >= 1, --first >= 0")
-    work = [(args.seed, k, not args.no_shrink) for k in range(args.first, args.first + args.count)]
     began = time.perf_counter()
-    failed: list[tuple[int, str, list[str]]] = []
+    failed: list[fault_explorer.Outcome] = []
     cycles = 0
     kinds: collections.Counter[str] = collections.Counter()
-    with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
-        for done, (k, schedule, violations, n, described) in enumerate(pool.imap_unordered(_one, work), 1):
-            cycles += n
-            kinds[described] += 1
-            if violations:
-                failed.append((k, schedule, violations))
-                print(f"schedule {k}: {len(violations)} violation(s)\n  {schedule}", flush=True)
-                for violation in violations:
-                    print(f"    {violation}", flush=True)
-            if done % 100 == 0:
-                elapsed = time.perf_counter() - began
-                print(f"... {done}/{args.count} schedules, {len(failed)} failing, {elapsed:.0f} s", file=sys.stderr)
+    outcomes = fault_explorer.explore(
+        args.seed, args.count, first=args.first, jobs=args.jobs, shrinking=not args.no_shrink
+    )
+    for done, outcome in enumerate(outcomes, 1):
+        cycles += outcome.cycles
+        schedule = outcome.schedule
+        kinds[f"{schedule.arm} {schedule.policy.value} {schedule.mode.value}"] += 1
+        if outcome.violations:
+            failed.append(outcome)
+            print(f"{len(outcome.violations)} violation(s)\n  {schedule.describe()}", flush=True)
+            for violation in outcome.violations:
+                print(f"    {violation}", flush=True)
+        if done % 100 == 0:
+            elapsed = time.perf_counter() - began
+            print(f"... {done}/{args.count} schedules, {len(failed)} failing, {elapsed:.0f} s", file=sys.stderr)
     elapsed = time.perf_counter() - began
     print(
         f"\n{args.count} schedules (seed {args.seed}, first {args.first}), {cycles} control cycles checked, "

@@ -28,7 +28,9 @@ still fails the same way, and :meth:`Schedule.describe` prints it as the literal
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
+import multiprocessing
 import random
 import signal
 import traceback
@@ -491,15 +493,32 @@ def fails_like(kinds: set[str]) -> Callable[[Schedule], bool]:
     return lambda schedule: bool(run(schedule).kinds & kinds)
 
 
-def explore(seed: int, count: int, progress: Callable[[Outcome], None] | None = None) -> list[Outcome]:
-    """Run ``count`` schedules drawn from ``seed``; returns the outcomes with violations (each shrunk)."""
-    rng = random.Random(seed)
-    failed = []
-    for _ in range(count):
-        outcome = run(draw(rng))
-        if progress is not None:
-            progress(outcome)
-        if outcome.violations:
-            smallest = shrink(outcome.schedule, fails_like(outcome.kinds))
-            failed.append(run(smallest) if smallest != outcome.schedule else outcome)
-    return failed
+def drawn(seed: int, k: int) -> Schedule:
+    """Schedule ``k`` of the draw ``seed`` (each from its own generator: reproduced alone, in any order)."""
+    return draw(random.Random(seed * 1_000_003 + k))
+
+
+def explore_one(seed: int, k: int, shrinking: bool = True) -> Outcome:
+    """Run schedule ``k`` of the draw ``seed``; a failing one shrunk to its smallest form (``shrinking``)."""
+    logging.disable(logging.CRITICAL)  # (every injected fault is logged: in a worker, nobody reads it)
+    outcome = run(drawn(seed, k))
+    if outcome.violations and shrinking:
+        smallest = shrink(outcome.schedule, fails_like(outcome.kinds))
+        if smallest != outcome.schedule:
+            outcome = run(smallest)
+    return outcome
+
+
+def _explore_one(args: tuple[int, int, bool]) -> Outcome:
+    return explore_one(*args)
+
+
+def explore(seed: int, count: int, *, first: int = 0, jobs: int = 1, shrinking: bool = True) -> Iterator[Outcome]:
+    """Run schedules ``first .. first + count - 1`` of the draw ``seed`` in ``jobs`` worker processes (1: in this
+    one); yields every outcome as it comes."""
+    work = [(seed, k, shrinking) for k in range(first, first + count)]
+    if jobs == 1:
+        yield from map(_explore_one, work)
+        return
+    with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+        yield from pool.imap_unordered(_explore_one, work)
