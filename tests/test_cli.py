@@ -271,6 +271,10 @@ class Interrupted:
     moved: str  #: the frame log from the command's start on
 
 
+#: Faults of a host too busy for the loop's rate (the test's subject is not there: nothing moved).
+HOST_FAULTS = ("no_reply", "overrun")
+
+
 def interrupt_when_moving(
     emulated: Emulated, args: list[str], joint: JointConfig, signum: signal.Signals, *, moved_deg: float = 2.0
 ) -> Interrupted:
@@ -286,6 +290,10 @@ def interrupt_when_moving(
             if process.poll() is not None:  # ended before anything moved
                 stdout, stderr = process.communicate()
                 skip_if_rate_refused(subprocess.CompletedProcess(process.args, process.returncode, stdout, stderr))
+                if process.returncode == 1 and any(f"fault, every axis halted: {k}" in stderr for k in HOST_FAULTS):
+                    # a host busier now than the rate check saw (homing has no rate check of its own yet): the loop
+                    # missed its replies or its deadlines and halted before anything moved, the right answer there
+                    pytest.skip(f"the loop could not hold its rate on this host just now: {stderr.strip()}")
                 pytest.fail(f"exit {process.returncode} before {joint.name} moved: {stderr}")
             assert time.monotonic() < deadline, f"{joint.name} did not move within {RUN_TIMEOUT_S:g} s"
             sent = setpoints_deg(emulated.log_since(offset), joint)

@@ -139,8 +139,10 @@ class HaltGuard:
         return batch
 
     def _brakes_due(self) -> list[int]:
+        """The braked joint whose brake may lock now, if any: one per cycle (a brake that locks jolts the arm; the
+        next one waits for readings at rest after that)."""
         index = self.index
-        return [
+        due = [
             motor_id
             for motor_id in self.braked_ids
             if motor_id not in self.locked
@@ -148,6 +150,7 @@ class HaltGuard:
             and self._now - self._rest_since[index[motor_id]] >= BRAKE_REST_S
             and not self._fast  # the whole arm calm: a joint swinging elsewhere jolts this one through the arm
         ]
+        return due[:1]
 
     def take(
         self,
@@ -190,6 +193,7 @@ class HaltGuard:
                     self.unacknowledged.discard(motor_id)
                 elif message.command == CommandV3.LOCK_BRAKE:
                     self.locked.add(motor_id)
+                    self._rest_since = [math.nan] * len(self.ids)  # the lock jolted the arm: at rest again first
             elif isinstance(message, STATE_TYPES):
                 q, qd = float(q_deg[i]), float(qd_dps[i])
                 if abs(qd) > SWING_DPS:

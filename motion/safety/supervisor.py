@@ -42,6 +42,7 @@ from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command, Message
+from motion.protocol.v3.messages import CommandV3
 from motion.safety.halted import BRAKE_REST_DPS, BRAKE_REST_S, SWING_DPS, HaltGuard
 from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
@@ -249,45 +250,46 @@ class Supervisor:
             owed.difference_update(r.motor_id for r in replies if r.message is not None)
         except Exception as exc:  # the session ends anyway: leave a trace
             logger.error("the halt at the end of the session failed: %s: %s", type(exc).__name__, exc)
-        lock = None
         if self.drives.braked_ids and not self.drives.brakes_locked:
-            lock = self._brakes_at_rest(clock.now() + _BRAKE_SETTLE_S)
-        self.drives.restore(clock.now() + _SETUP_WINDOW_S, lock=lock)
+            self._lock_brakes_at_rest(clock.now() + _BRAKE_SETTLE_S)
+        self.drives.restore(clock.now() + _SETUP_WINDOW_S, lock=())  # (the brakes: above, only where at rest)
         self._finalizer.detach()  # the halt went out: nothing is left for process exit to do
 
-    def _brakes_at_rest(self, deadline_s: float) -> list[int]:
-        """After the final halt: read the braked joints until each has read at rest for :data:`BRAKE_REST_S` (or
-        ``deadline_s``); returns the ids whose brake may lock (a brake is no stopping device: one still moving is left
-        to its drive's hold, and logged)."""
+    def _lock_brakes_at_rest(self, deadline_s: float) -> None:
+        """After the final halt: read every drive until each braked joint has read at rest for :data:`BRAKE_REST_S`
+        with the whole arm calm, and lock its brake then, one at a time (a lock jolts the arm: the next waits for
+        rest again), until ``deadline_s`` (a brake is no stopping device: a joint still moving is left to its drive's
+        hold, and logged)."""
         controller = self.controller
         clock, index, speeds = controller.clock, self.watchdog.index, controller.axes.qd_dps
         read = self._bare(Command.READ_STATUS_2)
         reads = [Request(i, read) for i in self.ids]  # every drive: none starves into its link-loss stop meanwhile
-        since = dict.fromkeys(self.drives.braked_ids, math.nan)  # at rest in every reading since
-        for motor_id in self.guard.locked:
-            since[motor_id] = -math.inf
-        pending = list(since)
-        while pending and clock.now() < deadline_s:
-            try:
-                replies = controller.bus.transact(reads, min(deadline_s, controller.clock.now() + 0.02))
-            except Exception as exc:
-                logger.error("the braked joints could not be read at the end: %s: %s", type(exc).__name__, exc)
-                break
-            controller.absorb(replies)
-            now = clock.now()
-            calm = all(abs(v) <= SWING_DPS for v in speeds)  # (a joint swinging elsewhere jolts the others)
-            for reply in replies:
-                if isinstance(reply.message, STATE_TYPES) and reply.motor_id in pending:
-                    still = calm and abs(speeds[index[reply.motor_id]]) <= BRAKE_REST_DPS
-                    if not still:
-                        since[reply.motor_id] = math.nan
-                    elif math.isnan(since[reply.motor_id]):
-                        since[reply.motor_id] = now
-            pending = [i for i, t in since.items() if not now - t >= BRAKE_REST_S]
+        lock = self._bare(CommandV3.LOCK_BRAKE)
+        pending = [i for i in self.drives.braked_ids if i not in self.guard.locked]
+        since = dict.fromkeys(pending, math.nan)  # at rest in every reading since
+        try:
+            while pending and clock.now() < deadline_s:
+                due = [i for i in pending if clock.now() - since[i] >= BRAKE_REST_S][:1]
+                replies = controller.bus.transact(
+                    [Request(i, lock) for i in due] + reads, min(deadline_s, clock.now() + 0.02)
+                )
+                if due:
+                    pending.remove(due[0])
+                    since = dict.fromkeys(pending, math.nan)
+                controller.absorb(replies)
+                now = clock.now()
+                calm = all(abs(v) <= SWING_DPS for v in speeds)  # (a joint swinging elsewhere jolts the others)
+                for reply in replies:
+                    if isinstance(reply.message, STATE_TYPES) and reply.motor_id in since:
+                        if not (calm and abs(speeds[index[reply.motor_id]]) <= BRAKE_REST_DPS):
+                            since[reply.motor_id] = math.nan
+                        elif math.isnan(since[reply.motor_id]):
+                            since[reply.motor_id] = now
+        except Exception as exc:
+            logger.error("the braked joints could not be read at the end: %s: %s", type(exc).__name__, exc)
         if pending:
             names = ", ".join(self.watchdog.names[index[i]] for i in pending)
             logger.error("brakes not locked (%s): not seen at rest after the halt; their drives hold them", names)
-        return [i for i in since if i not in pending]
 
     def _refuse_if_faulted(self) -> None:
         if self.machine.state.faulted:
