@@ -329,6 +329,7 @@ def test_explorer_regressions(schedule: Schedule) -> None:
 EXPLORED = 150
 
 
+@pytest.mark.timeout(1800)  # (about 60 s here; a slow host — one CPU shared with three busy loops — takes 10 minutes)
 def test_random_fault_schedules_keep_every_invariant() -> None:
     outcomes = list(fault_explorer.explore(seed=29, count=EXPLORED, jobs=2))
     assert len(outcomes) == EXPLORED and sum(o.cycles for o in outcomes) > 100 * EXPLORED  # every run was checked
