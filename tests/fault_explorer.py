@@ -1,9 +1,12 @@
 """The fault-schedule explorer (issue 29): random fault schedules and user actions on the example arms, in simulated
 time, with the safety invariants checked in every control cycle.
 
-A :class:`Schedule` is a configuration, a halt policy and control mode, the emulator's faults (any kind, at any
-instant: during connect, a move, a hold, a halt, a clear) and user actions (move, stop, hold, clear) at given times,
-and optionally a joint homed at connect. :func:`run` plays it and returns the violations of:
+A :class:`Schedule` is a configuration, a halt policy and control mode, the emulated drives (most often drawn by
+:mod:`tests.drive_models`: loop tuning, torque constant, inertia, friction and reply latency that differ from the
+configured model, so that the halted state's constants are tested on drives we did not tune for), the emulator's
+faults (any kind, at any instant: during connect, a move, a hold, a halt, a clear) and user actions (move, stop,
+hold, clear) at given times, and optionally a joint homed at connect. :func:`run` plays it and returns the
+violations of:
 
 - **still**: once the arm has been faulted (halting, halted or holding) for :data:`SETTLE_S`, every joint its halt
   holds comes to rest (slower than :data:`ANCHOR_DPS` within :data:`RESTLESS_S`) and then moves no more than
@@ -47,10 +50,12 @@ from motion.config import ArmConfig, load_config
 from motion.config.schema import ControlMode, HaltPolicy
 from motion.emulator import Fault, InjectedFault, parse_fault
 from motion.emulator.drive import RunState
+from motion.emulator.timing import TimingModel
 from motion.errors import FaultKind, MotionError
 from motion.protocol.v3.messages import CommandV3
 from motion.safety import ArmState
 from motion.safety.halted import RESTLESS_S as RESTLESS_RELEASE_S
+from tests.drive_models import DriveDraw, draw_drives, with_drives
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 #: The example arms explored, and the control rate of their position-mode runs (torque mode keeps the example's rate,
@@ -94,6 +99,8 @@ _UNREACHABLE = (InjectedFault.SILENT, InjectedFault.DROP, InjectedFault.CORRUPT)
 #: 0x80 because its drive's hold swung it: below this, the release is a violation.
 SWINGS_SEEN = 4
 _LINK = (InjectedFault.SILENT, InjectedFault.DROP)
+#: The share of schedules whose drives are drawn (:mod:`tests.drive_models`) rather than as configured.
+DRAWN_DRIVES = 0.75
 
 
 @dataclass(frozen=True)
@@ -107,12 +114,16 @@ class Schedule:
     actions: tuple[tuple[float, str, tuple[float, ...]], ...]  #: (time, move|stop|hold|clear, move target)
     home: tuple[str, ...] = ()
     end_s: float = 2.2
+    #: The emulated drives (:mod:`tests.drive_models`); None: as the example configures them.
+    drives: DriveDraw | None = None
 
     def describe(self) -> str:
         """The schedule as a Python literal (a regression test's data)."""
+        drives = "None" if self.drives is None else self.drives.describe()
         return (
             f"Schedule({self.arm!r}, HaltPolicy.{self.policy.name}, ControlMode.{self.mode.name}, "
-            f"faults={self.faults!r}, actions={self.actions!r}, home={self.home!r}, end_s={self.end_s!r})"
+            f"faults={self.faults!r}, actions={self.actions!r}, home={self.home!r}, end_s={self.end_s!r}, "
+            f"drives={drives})"
         )
 
 
@@ -131,8 +142,10 @@ class Outcome:
 
 
 def config_of(schedule: Schedule) -> ArmConfig:
-    """The schedule's arm configuration: the example with its policy, mode and rate."""
+    """The schedule's arm configuration: the example with its policy, mode, rate and emulated drives."""
     config = load_config(CONFIGS / schedule.arm)
+    if schedule.drives is not None:
+        config = with_drives(config, schedule.drives)
     rate = ARMS[schedule.arm] if schedule.mode is ControlMode.POSITION else config.control.rate_hz
     control = dataclasses.replace(config.control, halt_policy=schedule.policy, mode=schedule.mode, rate_hz=rate)
     if schedule.arm == "arm6_v3.yaml" and config.safety.link_timeout_ms is not None:
@@ -156,7 +169,8 @@ def draw(rng: random.Random) -> Schedule:
         actions.append((t, what, _target(rng, config) if what == "move" else ()))
     homeable = [j.name for j in config.joints if j.homing is not None]
     home = (rng.choice(homeable),) if homeable and rng.random() < 0.05 else ()
-    return Schedule(arm, rng.choice(POLICIES), mode, faults, tuple(sorted(actions)), home)
+    drives = draw_drives(rng, len(ids)) if rng.random() < DRAWN_DRIVES else None
+    return Schedule(arm, rng.choice(POLICIES), mode, faults, tuple(sorted(actions)), home, drives=drives)
 
 
 def _draw_fault(rng: random.Random, motor_id: int) -> str:
@@ -399,12 +413,27 @@ def run(schedule: Schedule) -> Outcome:
     faults = [parse_fault(spec) for spec in schedule.faults]
     config = config_of(schedule)
     arm = Arm(config, emulate=True, faults=faults, home=schedule.home)
+    if schedule.drives is not None:  # the drives' reply latency, in the simulation connect builds
+        _with_latency(arm, schedule.drives.latency_s)
     with _wall_limit(WALL_LIMIT_S):
         try:
             _play(arm, schedule, faults, outcome)
         except _WallTimeout as exc:
             outcome.violations.append(f"escape: {exc}")
     return outcome
+
+
+def _with_latency(arm: Arm, latency_s: float) -> None:
+    """Have the simulation ``arm.connect`` builds answer with ``latency_s`` (before its first exchange)."""
+    start = arm._start_simulation
+
+    def started() -> Any:
+        transport, clock = start()
+        assert arm.simulation is not None
+        arm.simulation.timing = TimingModel(latency_s)
+        return transport, clock
+
+    arm._start_simulation = started  # type: ignore[method-assign]
 
 
 def _play(arm: Arm, schedule: Schedule, faults: list[Fault], outcome: Outcome) -> None:

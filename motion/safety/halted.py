@@ -118,6 +118,10 @@ class HaltGuard:
             self._outside[i] = False
             self._swings[i], self._swing_sign[i] = 0, 0.0
 
+    def all_locked(self) -> bool:
+        """Whether every braked joint's brake has locked since the halt."""
+        return len(self.locked) == len(self.braked_ids)
+
     def halt_requests(self) -> list[Request]:
         """The halt to every drive not known to be halted, in id order."""
         bare, codes = self._bare, self.codes

@@ -42,8 +42,7 @@ from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command, Message
-from motion.protocol.v3.messages import CommandV3
-from motion.safety.halted import BRAKE_REST_DPS, BRAKE_REST_S, SWING_DPS, HaltGuard
+from motion.safety.halted import HaltGuard
 from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
 from motion.trajectory import State
@@ -148,6 +147,9 @@ class Supervisor:
         self._at_limit_since = math.nan
         #: Each joint's current limit, A: a hold that keeps a drive at it pushes against something.
         self._current_limit_a = np.array([t.current_limit_a for t in controller.transmission.transmissions])
+        self._iq_magnitude = np.zeros_like(self._current_limit_a)
+        self._at_limit = np.zeros(len(self._current_limit_a), dtype=bool)
+        self._torque_mode = controller.options.mode is ControlMode.TORQUE
         self._send_failing = False
         self._halt_until_s: float | None = None  # until when the halt is re-sent; None: no halt went out yet
         # Requests from other threads, taken by the next cycle:
@@ -241,13 +243,14 @@ class Supervisor:
         state = self.machine.state
         if bus.closed or state in (ArmState.BUS_LOST, ArmState.CLOSED):
             return
-        halted = state in (ArmState.HALTING, ArmState.HALTED)
-        codes = guard.codes if halted else dict.fromkeys(self.ids, Command.MOTOR_STOP)
+        if state not in (ArmState.HALTING, ArmState.HALTED):
+            guard.begin(Command.MOTOR_STOP)  # the drives' own stop now, kept as in a halted cycle (brakes included)
         owed = guard.unacknowledged
         order = sorted(self.ids, key=lambda i: (i in owed, i))
         try:
-            replies = bus.transact([Request(i, self._bare(codes[i])) for i in order], clock.now() + 0.02)
-            owed.difference_update(r.motor_id for r in replies if r.message is not None)
+            replies = bus.transact([Request(i, self._bare(guard.codes[i])) for i in order], clock.now() + 0.02)
+            controller.absorb(replies)
+            guard.take(replies, controller.axes, self._within, clock.now())
         except Exception as exc:  # the session ends anyway: leave a trace
             logger.error("the halt at the end of the session failed: %s: %s", type(exc).__name__, exc)
         if self.drives.braked_ids and not self.drives.brakes_locked:
@@ -256,39 +259,22 @@ class Supervisor:
         self._finalizer.detach()  # the halt went out: nothing is left for process exit to do
 
     def _lock_brakes_at_rest(self, deadline_s: float) -> None:
-        """After the final halt: read every drive until each braked joint has read at rest for :data:`BRAKE_REST_S`
-        with the whole arm calm, and lock its brake then, one at a time (a lock jolts the arm: the next waits for
-        rest again), until ``deadline_s`` (a brake is no stopping device: a joint still moving is left to its drive's
-        hold, and logged)."""
-        controller = self.controller
-        clock, index, speeds = controller.clock, self.watchdog.index, controller.axes.qd_dps
-        read = self._bare(Command.READ_STATUS_2)
-        reads = [Request(i, read) for i in self.ids]  # every drive: none starves into its link-loss stop meanwhile
-        lock = self._bare(CommandV3.LOCK_BRAKE)
-        pending = [i for i in self.drives.braked_ids if i not in self.guard.locked]
-        since = dict.fromkeys(pending, math.nan)  # at rest in every reading since
+        """After the final halt: halted cycles (:meth:`HaltGuard.requests`: every drive read, none starves into its
+        link-loss stop, the halt re-sent where owed) until every brake has locked by the guard's rule (at rest for
+        :data:`BRAKE_REST_S` with the whole arm calm, one at a time), or until ``deadline_s`` (a brake is no stopping
+        device: a joint still moving is left to its drive's hold, and logged)."""
+        controller, guard = self.controller, self.guard
+        clock = controller.clock
         try:
-            while pending and clock.now() < deadline_s:
-                due = [i for i in pending if clock.now() - since[i] >= BRAKE_REST_S][:1]
-                replies = controller.bus.transact(
-                    [Request(i, lock) for i in due] + reads, min(deadline_s, clock.now() + 0.02)
-                )
-                if due:
-                    pending.remove(due[0])
-                    since = dict.fromkeys(pending, math.nan)
+            while not guard.all_locked() and clock.now() < deadline_s:
+                replies = controller.bus.transact(guard.requests(), min(deadline_s, clock.now() + 0.02))
                 controller.absorb(replies)
-                now = clock.now()
-                calm = all(abs(v) <= SWING_DPS for v in speeds)  # (a joint swinging elsewhere jolts the others)
-                for reply in replies:
-                    if isinstance(reply.message, STATE_TYPES) and reply.motor_id in since:
-                        if not (calm and abs(speeds[index[reply.motor_id]]) <= BRAKE_REST_DPS):
-                            since[reply.motor_id] = math.nan
-                        elif math.isnan(since[reply.motor_id]):
-                            since[reply.motor_id] = now
+                guard.take(replies, controller.axes, self._within, clock.now())
         except Exception as exc:
             logger.error("the braked joints could not be read at the end: %s: %s", type(exc).__name__, exc)
+        pending = [i for i in guard.braked_ids if i not in guard.locked]
         if pending:
-            names = ", ".join(self.watchdog.names[index[i]] for i in pending)
+            names = ", ".join(self.watchdog.names[self.watchdog.index[i]] for i in pending)
             logger.error("brakes not locked (%s): not seen at rest after the halt; their drives hold them", names)
 
     def _refuse_if_faulted(self) -> None:
@@ -674,9 +660,10 @@ class Supervisor:
         try:
             replies = controller.step(start_s, deadline_s, extra=extra, check=check, apply_pending=False)
             self.watchdog.evaluate(replies, controller.clock.now())
-            at_limit = np.abs(controller.axes.iq_a) >= self._current_limit_a
-            if controller.options.mode is ControlMode.TORQUE:
-                at_limit |= controller.limited
+            at_limit, magnitude = self._at_limit, self._iq_magnitude  # (kept between cycles: no array per cycle)
+            np.greater_equal(np.abs(controller.axes.iq_a, out=magnitude), self._current_limit_a, out=at_limit)
+            if self._torque_mode:
+                np.logical_or(at_limit, controller.limited, out=at_limit)
             self._hold_strikes = 0
             now = controller.clock.now()
             if not at_limit.any():
