@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any
+from xml.etree import ElementTree
 
 import numpy as np
 import pinocchio as pin
@@ -75,10 +77,56 @@ def build_arm(config: ArmConfig) -> ArmModel:
 
 
 def _from_urdf(config: ArmConfig) -> Any:
+    _check_urdf(config)
     try:
         return pin.buildModelFromUrdf(str(config.model.urdf))
     except (ValueError, RuntimeError) as exc:
         raise ConfigError(config.source, "model.urdf", f"Pinocchio cannot build a model from it: {exc}") from None
+
+
+def _check_urdf(config: ArmConfig) -> None:
+    """What Pinocchio builds a model from without a word but no arm has: a link of negative (or not finite) mass or
+    inertia moment, a moving joint whose axis is the zero vector (the ``chain:`` form refuses both when it loads).
+
+    Raises:
+        ConfigError: naming ``model.urdf``, the link or joint and the value.
+    """
+    source, key = config.source, "model.urdf"
+    try:
+        root = ElementTree.parse(str(config.model.urdf)).getroot()
+    except (OSError, ElementTree.ParseError) as exc:
+        raise ConfigError(source, key, f"cannot read it as XML: {exc}") from None
+
+    def numbers(element: ElementTree.Element, attribute: str, what: str) -> list[float]:
+        text = element.get(attribute, "")
+        try:
+            return [float(v) for v in text.split()]
+        except ValueError:
+            raise ConfigError(source, key, f"{what}: {attribute}={text!r} is not a list of numbers") from None
+
+    for link in root.iter("link"):
+        name = link.get("name", "?")
+        for mass in link.iterfind("inertial/mass"):
+            value = numbers(mass, "value", f"link {name!r} mass")
+            if len(value) != 1 or not (math.isfinite(value[0]) and value[0] >= 0):
+                raise ConfigError(source, key, f"link {name!r}: mass {mass.get('value')!r} kg (valid: a number >= 0)")
+        for inertia in link.iterfind("inertial/inertia"):
+            for moment in ("ixx", "iyy", "izz"):
+                value = numbers(inertia, moment, f"link {name!r} inertia")
+                if len(value) != 1 or not (math.isfinite(value[0]) and value[0] >= 0):
+                    raise ConfigError(
+                        source, key, f"link {name!r}: inertia {moment}={inertia.get(moment)!r} kg·m² (valid: >= 0)"
+                    )
+    for joint in root.iter("joint"):
+        if joint.get("type") not in ("revolute", "continuous", "prismatic"):
+            continue
+        name = joint.get("name", "?")
+        for axis in joint.iterfind("axis"):
+            xyz = numbers(axis, "xyz", f"joint {name!r} axis")
+            if len(xyz) != 3 or not all(map(math.isfinite, xyz)) or not any(xyz):
+                raise ConfigError(
+                    source, key, f"joint {name!r}: axis {axis.get('xyz')!r} (valid: three numbers, not all zero)"
+                )
 
 
 def _from_chain(config: ArmConfig) -> Any:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import numbers
 import os
 import shutil
 import subprocess
@@ -255,6 +256,23 @@ class ArmStatus:
         }
 
 
+def _degrees(label: str, value: object) -> float:
+    """A joint angle given to the API, as a float: a real number (not a bool, not a string), finite."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise PlanningError(f"{label}: {value!r} is not a number of degrees")
+    degrees = float(value)
+    if not math.isfinite(degrees):
+        raise PlanningError(f"{label}: {degrees!r} is not a finite number of degrees")
+    return degrees
+
+
+def _seconds(label: str, value: object) -> float:
+    """A duration given to the API, s: a finite real number >= 0."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (0.0 <= float(value) < math.inf):
+        raise ValueError(f"{label}: {value!r} is not a duration (a finite number of seconds >= 0)")
+    return float(value)
+
+
 class MotionHandle:
     """A queued motion; :meth:`wait` blocks until it ends and raises the fault that halted it."""
 
@@ -266,8 +284,9 @@ class MotionHandle:
 
         Raises:
             MotionFault: a fault halted every axis.
+            ValueError: ``timeout_s`` is neither None nor a finite number of seconds >= 0.
         """
-        return self._supervisor.wait(timeout_s)
+        return self._supervisor.wait(None if timeout_s is None else _seconds("timeout_s", timeout_s))
 
     @property
     def done(self) -> bool:
@@ -693,13 +712,31 @@ class Arm:
             raise MotionError("the arm is not connected: use `with Arm.from_config(...) as arm` or arm.connect()")
         return self.supervisor
 
-    def _target(self, targets: Mapping[str, float], base: FloatArray) -> FloatArray:
+    def _target(self, targets: Mapping[str, float], base: FloatArray, label: str = "targets") -> FloatArray:
+        if not isinstance(targets, Mapping):
+            raise PlanningError(
+                f"{label}: a mapping of joint names to degrees is expected (joints: {', '.join(self.names)}), "
+                f"got {type(targets).__name__} {targets!r}"
+            )
         q = base.copy()
         for name, value in targets.items():
             if name not in self._index:
-                raise PlanningError(f"unknown joint {name!r}; joints: {', '.join(self.names)}")
-            q[self._index[name]] = float(value)
+                raise PlanningError(f"{label}: unknown joint {name!r}; joints: {', '.join(self.names)}")
+            q[self._index[name]] = _degrees(f"{label}[{name!r}]", value)
         return q
+
+    def _row(self, point: Sequence[float], label: str) -> FloatArray:
+        """A waypoint given as a full list of angles in joint order."""
+        if (
+            isinstance(point, str | bytes)
+            or not isinstance(point, Sequence | np.ndarray)
+            or len(point) != len(self.names)
+        ):
+            raise PlanningError(
+                f"{label}: a mapping of joint names to degrees or {len(self.names)} angles in joint order "
+                f"({', '.join(self.names)}) is expected, got {point!r}"
+            )
+        return np.array([_degrees(f"{label}[{k}]", v) for k, v in enumerate(point)], dtype=np.float64)
 
     def positions(self) -> dict[str, float]:
         """Measured joint angles, degrees (of the latest cycle's published snapshot)."""
@@ -735,11 +772,16 @@ class Arm:
         """
         supervisor = self._guard()
         previous = supervisor.controller.reference.position
+        if isinstance(waypoints, Mapping | str | bytes) or not isinstance(waypoints, Sequence | np.ndarray):
+            raise PlanningError(f"waypoints: a list of waypoints is expected, got {type(waypoints).__name__}")
         rows = []
-        for point in waypoints:
-            row = self._target(point, previous) if isinstance(point, Mapping) else np.asarray(point, dtype=float)
+        for k, point in enumerate(waypoints):
+            label = f"waypoints[{k}]"
+            row = self._target(point, previous, label) if isinstance(point, Mapping) else self._row(point, label)
             rows.append(row)
             previous = row
+        if not rows:
+            raise PlanningError("waypoints: at least one waypoint is required")
         supervisor.follow(np.array(rows, dtype=np.float64), speed_scale)
         handle = MotionHandle(supervisor)
         if wait:
@@ -750,8 +792,11 @@ class Arm:
         """Let ``duration_s`` seconds pass with the arm under control (holding, or moving with ``wait=False``).
 
         In simulated emulation this is how time passes: the control cycles run in this call. Otherwise it sleeps.
+
+        Raises:
+            ValueError: ``duration_s`` is not a finite number of seconds >= 0.
         """
-        self._guard().controller.pause(duration_s)
+        self._guard().controller.pause(_seconds("duration_s", duration_s))
 
     def identify_tracking(self, *, store: bool = True) -> dict[str, PositionLoopFit]:
         """Identify every joint's position loop with a short full-speed move out and back, one joint at a time (see

@@ -21,8 +21,8 @@ from tests.test_transport_peers import status2
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="pseudo-terminals are POSIX")
 
-FRAME_A = b"t1418A40068012823000000\r"  # 0x141, a4 00 68 01 28 23 00 00
-FRAME_B = b"t1428A40000000000000000\r"
+FRAME_A = b"t1418A400680128230000\r"  # 0x141, a4 00 68 01 28 23 00 00
+FRAME_B = b"t1428A400000000000000\r"
 
 
 @pytest.fixture
@@ -109,9 +109,7 @@ def test_recv_frame_gives_standard_data_frames_as_tuples_and_the_rest_as_python_
 ) -> None:
     master, bus = pty_bus
     remote, extended, short = b"r1410\r", b"T000001418A400000000000000\r", b"t1413A40102\r"
-    # FRAME_A and FRAME_B as python-can writes them (those two carry a ninth byte, which python-can's parser ignores)
-    line_a, line_b = b"t1418A400680128230000\r", b"t1428A400000000000000\r"
-    os.write(master, line_a + b"z\r" + remote + extended + short + b"t14G8A40068012823000000\r" + line_b)
+    os.write(master, FRAME_A + b"z\r" + remote + extended + short + b"t14G8A400680128230000\r" + FRAME_B)
     got = _frame_lines(bus, 5)
     assert got[0] == (0x141, bytes.fromhex("a4 00 68 01 28 23 00 00"))
     kinds = [
@@ -123,6 +121,31 @@ def test_recv_frame_gives_standard_data_frames_as_tuples_and_the_rest_as_python_
     assert got[4] == (0x142, b"\xa4" + bytes(7))  # the garbled line between was dropped and counted
     assert bus.garbled_lines == 1
     assert bus.recv_frame(0.01) is None
+
+
+@pytest.mark.parametrize("path", ["recv_frame", "recv"])
+def test_a_frame_line_with_junk_or_two_lines_run_together_are_garbled_not_frames(
+    pty_bus: tuple[int, SlcanShimBus], path: str
+) -> None:
+    # python-can's parser reads the id, the length and that many bytes, and ignores what follows: each of these was a
+    # frame (0x141 a4 00 68 01 28 23 00 00) to it
+    master, bus = pty_bus
+    junk_after = FRAME_A[:-1] + b"XYZ\r"
+    run_together = FRAME_A[:-1] + FRAME_B  # FRAME_A's \r lost
+    too_many = FRAME_A[:-1] + b"00\r"  # a ninth byte (a length code of 8)
+    stamped = FRAME_A[:-1] + b"1A2B\r"  # an adapter's time stamp: a frame
+    fd_frame = b"d141F" + b"00" * 64 + b"\r"  # CAN FD, 64 bytes: a frame (python-can's message)
+    os.write(master, junk_after + run_together + too_many + stamped + fd_frame + FRAME_B)
+    got: list[tuple[int, bytes]] = []
+    end = time.monotonic() + 2.0
+    while len(got) < 3 and time.monotonic() < end:
+        item = bus.recv_frame(0.05) if path == "recv_frame" else bus.recv(0.05)
+        if isinstance(item, can.Message):
+            got.append((item.arbitration_id, bytes(item.data)))
+        elif item is not None:
+            got.append(item)
+    assert got == [(0x141, bytes.fromhex("a4 00 68 01 28 23 00 00")), (0x141, bytes(64)), (0x142, b"\xa4" + bytes(7))]
+    assert bus.garbled_lines == 3
 
 
 def _read_bytes(fd: int, count: int, timeout_s: float = 5.0) -> bytes:

@@ -79,9 +79,15 @@ class _Reader:
         return ConfigError(self.source, key_path, message)
 
     def number(self, key_path: str, value: object) -> float:
-        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        if isinstance(value, bool) or not isinstance(value, int | float):
             raise self.error(key_path, f"expected a number; found {value!r}")
-        return float(value)
+        try:
+            number = float(value)
+        except OverflowError:  # an integer of hundreds of digits
+            raise self.error(key_path, f"expected a number; found an integer of {len(str(value))} digits") from None
+        if not math.isfinite(number):
+            raise self.error(key_path, f"expected a finite number; found {value!r}")
+        return number
 
     def speed_scale(self, key_path: str, step: Mapping[object, object]) -> float:
         if "speed_scale" not in step:

@@ -392,15 +392,21 @@ class Controller:
             PlanningError: the target or the scale is invalid (nothing is queued).
         """
         target = np.asarray(target_deg, dtype=np.float64)
-        self.planner.move(State.at_rest(target), target, speed_scale=speed_scale)  # validates vector and limits
-        self._queue(MoveCommand(target, speed_scale))
+        # planned once from the reference at rest (the loop plans from the live state when it applies it): the
+        # vector, the limits, the scale and whatever Ruckig refuses (a duration beyond its limits) are refused here
+        scale = self.planner.check_scale(speed_scale)
+        self.planner.move(State.at_rest(self.reference.position), target, speed_scale=scale)
+        self._queue(MoveCommand(target, scale))
 
     def follow(self, waypoints_deg: Sequence[Sequence[float]] | FloatArray, speed_scale: float = 1.0) -> None:
-        """Queue a waypoint path from the current reference."""
-        points = np.asarray(waypoints_deg, dtype=np.float64)
-        for i, point in enumerate(points):
-            self.planner.check_positions(f"waypoints[{i}]", point)
-        self._queue(PathCommand(points, speed_scale))
+        """Queue a waypoint path from the current reference, planned once from it at rest first (as :meth:`move_to`).
+
+        Raises:
+            PlanningError: a waypoint or the scale is invalid (nothing is queued).
+        """
+        scale = self.planner.check_scale(speed_scale)
+        self.planner.path(State.at_rest(self.reference.position), waypoints_deg, speed_scale=scale)
+        self._queue(PathCommand(np.asarray(waypoints_deg, dtype=np.float64), scale))
 
     def play(self, path: Path) -> None:
         """Queue a path planned elsewhere; it must start at the reference of the cycle that applies it."""

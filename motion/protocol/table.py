@@ -639,7 +639,10 @@ def _to_raw(f: Field, value: object) -> int:
         if isinstance(value, float):
             if not math.isfinite(value):
                 raise EncodeError(f.name, f.valid_range(), value, "a finite number is required")
-            raw = round(value * f.den / f.num)
+            scaled = value * f.den / f.num
+            if not math.isfinite(scaled):  # (1e308 A: finite, but no integer field holds it)
+                raise EncodeError(f.name, f.valid_range(), value)
+            raw = round(scaled)
         else:  # exact for integers of any size
             raw = round(Fraction(value * f.den, f.num))
     elif isinstance(value, int):

@@ -13,6 +13,8 @@ against the joint limits through the trajectory's position extrema.
 from __future__ import annotations
 
 import math
+import numbers
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Final
@@ -154,6 +156,32 @@ class Path:
         return self.segments[i].sample(t_s - starts[i])
 
 
+#: Ruckig's results its Python module has no name for (ruckig 0.19.4's ``Result`` lacks them: converting one raises
+#: ``ValueError: -101 is not a valid Result``), from its C++ ``Result`` enum.
+_UNNAMED_RESULTS: Final = {
+    -101: "the trajectory would last longer than Ruckig's numerical limits allow (a speed_scale this small?)",
+    -104: "a velocity, acceleration or jerk limit is zero",
+}
+_UNNAMED_RESULT = re.compile(r"^(-?\d+) is not a valid Result")
+
+
+def _calculate(otg: Ruckig, inp: InputParameter, trajectory: Trajectory) -> Result:
+    """``otg.calculate``, whose results without a Python name raise RuckigError with their C++ meaning.
+
+    Shim (exit: a ruckig release whose Python ``Result`` lists every C++ result, then ``otg.calculate`` directly).
+    """
+    try:
+        return otg.calculate(inp, trajectory)
+    except ValueError as exc:
+        unnamed = _UNNAMED_RESULT.match(str(exc))
+        if unnamed is None:
+            raise
+        code = int(unnamed.group(1))
+        raise RuckigError(
+            f"result {code}: {_UNNAMED_RESULTS.get(code, 'an error Ruckig has no name for here')}"
+        ) from exc
+
+
 class Planner:
     """Plans jerk-limited, time-synchronised joint trajectories within :class:`JointLimits`.
 
@@ -173,10 +201,14 @@ class Planner:
 
     # ------------------------------------------------------------------------------------------------ checks
 
-    def _check_scale(self, speed_scale: float) -> float:
-        if isinstance(speed_scale, bool) or not (isinstance(speed_scale, (int, float)) and 0.0 < speed_scale <= 1.0):
-            raise PlanningError(f"speed_scale: {speed_scale!r} is outside the valid range (0, 1]")
-        return float(speed_scale)
+    def check_scale(self, speed_scale: object) -> float:
+        """``speed_scale`` as a float, or PlanningError naming it and the valid range (any real number type)."""
+        if isinstance(speed_scale, bool) or not isinstance(speed_scale, numbers.Real):
+            raise PlanningError(f"speed_scale: {speed_scale!r} is not a number (valid: (0, 1])")
+        scale = float(speed_scale)
+        if not 0.0 < scale <= 1.0:
+            raise PlanningError(f"speed_scale: {scale!r} is outside the valid range (0, 1]")
+        return scale
 
     def _vector(self, label: str, values: Sequence[float] | FloatArray) -> FloatArray:
         arr = np.asarray(values, dtype=np.float64)
@@ -205,7 +237,7 @@ class Planner:
         trajectory = Trajectory(self.limits.dofs)
         try:
             try:
-                result = self._otg.calculate(inp, trajectory)
+                result = _calculate(self._otg, inp, trajectory)
             except RuckigError as exc:
                 if _PROFILE_SEARCH_FAILED not in str(exc):
                     raise
@@ -217,7 +249,7 @@ class Planner:
                 inp.max_velocity = [v * _OFF_BORDER for v in inp.max_velocity]
                 inp.max_acceleration = [a * _OFF_BORDER for a in inp.max_acceleration]
                 inp.max_jerk = [j * _OFF_BORDER for j in inp.max_jerk]
-                result = self._otg.calculate(inp, trajectory)
+                result = _calculate(self._otg, inp, trajectory)
         except RuckigError as exc:
             raise PlanningError(f"{what}: Ruckig rejected the input: {str(exc).splitlines()[0] or exc}") from exc
         if result not in _OK:
@@ -252,7 +284,7 @@ class Planner:
             PlanningError: a bad scale or vector, a target outside the position limits, a trajectory that would
                 leave them (e.g. overshoot from a fast start), or a Ruckig error.
         """
-        scale = self._check_scale(speed_scale)
+        scale = self.check_scale(speed_scale)
         target = self._vector("target_deg", target_deg)
         self.check_positions("target", target)
         inp = self._input(start, scale)
@@ -326,7 +358,7 @@ class Planner:
         Raises:
             PlanningError: a bad scale, an empty list, a waypoint outside the limits.
         """
-        scale = self._check_scale(speed_scale)
+        scale = self.check_scale(speed_scale)
         rows = [self._vector(f"waypoints[{i}]", w) for i, w in enumerate(waypoints_deg)]
         if not rows:
             raise PlanningError("waypoints: at least one waypoint is required")

@@ -13,9 +13,11 @@ python-can's own ``slcanBus`` (our code, written for this project; only ``_read`
   (an adapter streaming junk), and the buffer is bounded: a line longer than any slcan line
   (:data:`MAX_LINE_BYTES`) is junk, dropped up to its end and counted (:attr:`SlcanShimBus.junk_bytes`, and once in
   :attr:`SlcanShimBus.garbled_lines`).
-- ``_recv_internal`` drops a garbled line (python-can's parser raises ValueError on one, which would end a control
-  loop) and counts it in :attr:`SlcanShimBus.garbled_lines`: the transport then counts the missing reply as a
-  timeout, as it would for a frame lost on the wire.
+- ``_recv_internal`` (and :meth:`SlcanShimBus.recv_frame`) drop a garbled line and count it in
+  :attr:`SlcanShimBus.garbled_lines`: one python-can's parser raises ValueError on (which would end a control loop),
+  and a frame line not as the protocol writes it (:func:`well_formed`), which that parser takes as a frame — it reads
+  the characters it needs and ignores the rest: junk after the data, two lines run together by a lost ``\r``. The
+  transport then counts the missing reply as a timeout, as it would for a frame lost on the wire.
 - :meth:`SlcanShimBus.pending_input` says whether a complete line is buffered: a caller that waits on the port's
   descriptor with ``select`` must not wait while lines it has not taken are already in this buffer.
 - ``shutdown`` releases the port also when the adapter is dead (python-can's writes the close command first and,
@@ -28,8 +30,9 @@ python-can's own ``slcanBus`` (our code, written for this project; only ``_read`
 :class:`motion.transport.can_endpoint.CanEndpoint` uses it for ``interface: slcan`` only while
 :func:`needs_shim` says the installed python-can lacks the fix. **Exit plan**: once a python-can release carries
 pull request 2028, raise :data:`LAST_RELEASE_WITHOUT_FIX` no further, check that the upstream ``slcanBus`` does not
-hide buffered lines from a ``select`` on ``fileno()`` (``CanEndpoint.recv`` relies on that), then delete this
-module, its use in ``can_endpoint.py`` and ``tests/test_slcan_shim.py``.
+hide buffered lines from a ``select`` on ``fileno()`` (``CanEndpoint.recv`` relies on that) and that its parser
+refuses the lines :func:`well_formed` refuses (else keep that check in a smaller subclass), then delete this module,
+its use in ``can_endpoint.py`` and ``tests/test_slcan_shim.py``.
 """
 
 from __future__ import annotations
@@ -55,9 +58,48 @@ _LINE_END: Final = re.compile(rb"[\r\a]")
 MAX_LINE_BYTES: Final = 1 + 8 + 1 + 2 * 64 + 4 + 1
 #: A standard (11-bit) data frame line: ``t``, three hex digits of id, the length 0..8, two hex digits per byte.
 _STANDARD_DATA: Final = re.compile(r"t([0-9A-Fa-f]{3})([0-8])((?:[0-9A-Fa-f]{2})*)\r")
+#: The first letter of each kind of frame line python-can parses (``x``: CANDapter's ``T``), with the digits of its id
+#: and whether a data length code counts CAN FD bytes (a hex digit) or plain ones (0..8), and whether data follows.
+_FRAME_KINDS: Final = {
+    "t": (3, False, True),
+    "T": (8, False, True),
+    "x": (8, False, True),
+    "r": (3, False, False),
+    "R": (8, False, False),
+    "d": (3, True, True),
+    "D": (8, True, True),
+    "b": (3, True, True),
+    "B": (8, True, True),
+}
+_HEX: Final = frozenset("0123456789ABCDEFabcdef")
+#: Digits of the time stamp an adapter may append to a frame line.
+_STAMP_DIGITS: Final = 4
 #: Bytes asked of the port per read (a pty or a USB adapter rarely holds more; the rest comes with the next read).
 _READ_CHUNK_BYTES: Final = 65536
 _RELEASE: Final = re.compile(r"(\d+)(?:\.(\d+))?(?:\.(\d+))?")
+
+
+def well_formed(line: str) -> bool:
+    """Whether a frame line is one as the slcan protocol writes it: its id, length code and exactly the data that code
+    says, hex digits only, an optional 4-digit time stamp, and ``\r``. python-can's parser reads the characters it
+    needs and ignores the rest, so junk after the data, or two lines run together by a lost ``\r``, would pass as a
+    frame."""
+    kind = _FRAME_KINDS.get(line[:1])
+    if kind is None or not line.endswith("\r"):
+        return False
+    id_digits, fd, has_data = kind
+    body = line[1:-1]
+    if not (len(body) > id_digits and _HEX.issuperset(body)):
+        return False
+    code = int(body[id_digits], 16)
+    if fd:
+        size = can.util.dlc2len(code)
+    elif code <= 8:
+        size = code
+    else:
+        return False
+    rest = len(body) - id_digits - 1 - (2 * size if has_data else 0)
+    return rest in (0, _STAMP_DIGITS)
 
 
 def needs_shim(installed: str | None = None) -> bool:
@@ -177,8 +219,16 @@ class SlcanShimBus(slcanBus):
             self.serialPortOrig.close()
 
     def _recv_internal(self, timeout: float | None) -> tuple[can.Message | None, bool]:
+        if not self._queue.qsize():  # (python-can parses what its queue holds first: a line read here goes there)
+            line = self._read(timeout)
+            if line is None:
+                return None, False
+            if line[:1] in _FRAME_KINDS and not well_formed(line):
+                self.garbled_lines += 1  # junk in the line, or two run together: dropped like a frame lost on the wire
+                return None, False
+            self._queue.put_nowait(line)
         try:
-            return super()._recv_internal(timeout)
+            return super()._recv_internal(0.0)
         except (ValueError, IndexError):
             # A garbled line (noise on the adapter's serial link): drop it, like a frame lost on the wire.
             self.garbled_lines += 1
@@ -202,6 +252,9 @@ class SlcanShimBus(slcanBus):
             data = bytes.fromhex(match[3])
             if len(data) == int(match[2]):
                 return int(match[1], 16), data
+        if line[:1] in _FRAME_KINDS and not well_formed(line):
+            self.garbled_lines += 1  # junk in the line, or two run together: dropped like a frame lost on the wire
+            return None
         # Anything else as python-can parses it (the line goes back first in its queue, where it looks first).
         self._queue.put_nowait(line)
         return self.recv(0.0)
