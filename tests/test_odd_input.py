@@ -82,8 +82,12 @@ def test_the_api_refuses_odd_arguments_before_anything_is_queued(
 
 def test_accepted_numbers_of_any_real_type_plan_as_floats(arm: Arm) -> None:
     # numpy's scalars are numbers (np.float32(0.5) was refused as "outside the valid range (0, 1]")
-    arm.move_to({"base_yaw": np.float32(2.0)}, speed_scale=np.float32(0.5))
-    arm.move_to({"base_yaw": np.int64(0)}, speed_scale=1)
+    half: Any = np.float32(0.5)
+    two: Any = np.float32(2.0)
+    zero: Any = np.int64(0)
+    arm.move_to({"base_yaw": two}, speed_scale=half)
+    assert arm.positions()["base_yaw"] == pytest.approx(2.0, abs=0.05)
+    arm.move_to({"base_yaw": zero}, speed_scale=1)
     assert arm.positions()["base_yaw"] == pytest.approx(0.0, abs=0.05)
 
 
