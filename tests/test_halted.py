@@ -18,7 +18,7 @@ import pytest
 from motion.api import Arm
 from motion.config import ArmConfig, load_config
 from motion.config.schema import ControlMode, HaltPolicy
-from motion.emulator import Fault, InjectedFault
+from motion.emulator import DEFAULT_PID, Fault, InjectedFault
 from motion.emulator.drive import RunState
 from motion.errors import FaultKind, MotionFault
 from motion.protocol import Command
@@ -28,6 +28,7 @@ from motion.safety import ArmState, Supervisor
 from motion.safety.halted import STILL_BAND_DEG, HaltGuard
 from motion.transport import Request
 from tests import fault_explorer
+from tests.drive_models import DriveDraw, JointDraw
 from tests.fault_explorer import Schedule
 from tests.motion_rig import logged_requests
 
@@ -326,10 +327,10 @@ def test_explorer_regressions(schedule: Schedule) -> None:
 
 #: Schedules the test command explores (seeded: the same ones in every run), in two worker processes (the test
 #: command's host has two cores, pytest uses one); ``bench/fault_explorer.py`` runs more.
-EXPLORED = 150
+EXPLORED = 200
 
 
-@pytest.mark.timeout(1800)  # (about 60 s here; a slow host — one CPU shared with three busy loops — takes 10 minutes)
+@pytest.mark.timeout(1800)  # (about 90 s here; a slow host — one CPU shared with three busy loops — takes 15 minutes)
 def test_random_fault_schedules_keep_every_invariant() -> None:
     outcomes = list(fault_explorer.explore(seed=29, count=EXPLORED, jobs=2))
     assert len(outcomes) == EXPLORED and sum(o.cycles for o in outcomes) > 100 * EXPLORED  # every run was checked
@@ -382,6 +383,32 @@ def test_the_explorer_sees_brakes_locked_in_motion(monkeypatch: pytest.MonkeyPat
     monkeypatch.setattr(HaltGuard, "requests", lock_at_once)
     outcome = fault_explorer.run(REGRESSIONS[1])
     assert "brake" in outcome.kinds, outcome.violations
+
+
+def test_drawn_drives_reach_the_emulated_drives() -> None:
+    drives = DriveDraw((JointDraw(2.0, 1.2, 0.7, 0.5), JointDraw(0.5, 0.8, 1.3, 1.5)), latency_s=0.001)
+    schedule = dataclasses.replace(REGRESSIONS[0], drives=drives)
+    configured = load_config(CONFIGS / "arm2.yaml")
+    arm = Arm(fault_explorer.config_of(schedule), emulate=True)
+    fault_explorer._with_latency(arm, drives.latency_s)
+    with arm:
+        assert arm.simulation is not None and arm.simulation.timing.latency_s == 0.001
+        for (motor_id, drive), joint, draw in zip(
+            sorted(arm.simulation.emulator.drives.items()), configured.joints, drives.joints, strict=True
+        ):
+            assert motor_id == joint.motor_id
+            assert drive.model.torque_constant_nm_per_a == pytest.approx(
+                joint.torque_constant_nm_per_a * draw.torque_constant
+            )
+            assert drive.pid.speed_kp == round(DEFAULT_PID.speed_kp * draw.gain)
+            assert drive.pid.iq_kp == DEFAULT_PID.iq_kp  # (the current loop as the factory's)
+    # the plant: inertia and friction as drawn
+    emulation = fault_explorer.config_of(schedule).joints[1].emulation
+    assert emulation.rotor_inertia_kgm2 == pytest.approx(configured.joints[1].emulation.rotor_inertia_kgm2 * 1.3)
+    assert emulation.coulomb_friction_nm == pytest.approx(configured.joints[1].emulation.coulomb_friction_nm * 1.5)
+    # the printed literal (a regression test's data) is the schedule, drives included
+    names = {"Schedule": Schedule, "HaltPolicy": HaltPolicy, "ControlMode": ControlMode}
+    assert eval(schedule.describe(), {**names, "DriveDraw": DriveDraw, "JointDraw": JointDraw}) == schedule
 
 
 def test_schedules_are_drawn_reproducibly() -> None:
