@@ -51,7 +51,8 @@ from tests.motion_rig import requests_in_log, skip_if_rate_refused
 ROOT = Path(__file__).resolve().parent.parent
 ARM2 = ROOT / "configs" / "arm2.yaml"
 ARM2_RS485 = ROOT / "configs" / "arm2_rs485.yaml"
-#: The lowest control.rate_hz a configuration allows.
+#: The lowest rate the moving tests run at (a configuration allows 1 Hz; a host that holds less than this over a slcan
+#: pty is too busy for these tests: skipped, with the figures).
 MIN_RATE_HZ = 50.0
 #: Below this rate the moving tests run arm2 in position mode: its torque-mode PD gains, tuned for its configured
 #: 500 Hz, make a poorly damped loop at the lower rates a busy host holds (in simulated time at 75 Hz the elbow trails
@@ -187,7 +188,7 @@ def rate_that_holds(config: Path, emulated: Emulated, tmp: Path, ceiling_hz: flo
     highest = float(data["modes"][data["mode"]]["highest_rate_hz"]) * RATE_SHARE
     text = config.read_text()
     if highest < MIN_RATE_HZ:
-        pytest.skip(f"this host holds no control rate {config.name} allows (rate check: {highest:g} Hz)")
+        pytest.skip(f"this host holds no rate the moving tests run {config.name} at (rate check: {highest:g} Hz)")
     assert f"rate_hz: {data['rate_hz']:g}" in text
     return config_at(config, tmp, min(round(highest), ceiling_hz))
 

@@ -331,7 +331,7 @@ CASES: list[tuple[str, dict[str, Any], Mutation, str, list[str]]] = [
         "joints[1].temperature_limit_c",
         ["allowed: 0 < x <= 100", "found 150"],
     ),
-    ("rate", ARM2, _set("control", "rate_hz", value=20), "control.rate_hz", ["allowed: 50 <= x <= 1000", "found 20"]),
+    ("rate", ARM2, _set("control", "rate_hz", value=0.5), "control.rate_hz", ["allowed: 1 <= x <= 1000", "found 0.5"]),
     (
         "mode",
         ARM2,

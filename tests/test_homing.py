@@ -199,7 +199,7 @@ def test_arm_stop_while_connecting_halts_homing_in_its_first_cycles(tmp_path: Pa
 
 @pytest.fixture(scope="module")
 def arm6_emulated(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Path, Emulated]]:
-    """arm6 at the lowest rate a configuration allows (its six drives over a slcan pty to another Python process hold
+    """arm6 at the lowest rate the moving tests run at (its six drives over a slcan pty to another Python process hold
     little more here), a quarter of a second without a reply allowed, in time and in missed cycles (a shared CPU
     stalls processes: homing runs before the rate check), its drives emulated in real time in a process of their
     own."""

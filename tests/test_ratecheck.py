@@ -8,6 +8,7 @@ host, never a speed)."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -20,7 +21,7 @@ from motion.api import Arm
 from motion.compose import build_controller, check_rate, feedforward_for, rehearsal_watchdog
 from motion.config import ArmConfig
 from motion.config.schema import ControlMode
-from motion.control.ratecheck import RateCheck, RateError, measure_rate
+from motion.control.ratecheck import MAX_SAMPLES, MIN_SAMPLES, RATE_STEP_HZ, RateCheck, RateError, measure_rate
 from motion.emulator import Fault, FrameLog, InjectedFault, TimingModel
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionFault
@@ -28,7 +29,7 @@ from motion.transport import Reply
 from tests.motion_rig import CONFIGS, arm_config, skip_if_rate_refused
 
 ROOT = Path(__file__).resolve().parent.parent
-#: The lowest control.rate_hz a configuration allows.
+#: The lowest rate the moving test runs at (as tests/test_cli.py).
 MIN_RATE_HZ = 50.0
 
 
@@ -135,10 +136,49 @@ def test_rate_check_arithmetic() -> None:
     # bounds: 0.8 / 0.003 = 266.7 Hz and 1 / 0.0045 = 222.2 Hz -> 220 Hz; recommended 0.8 x 220 = 176 -> 175 Hz
     assert check.highest_rate_hz == 220.0 and check.holds
     assert check.recommended_rate_hz == 175.0
-    slow = dataclasses.replace(check, round_trip_p99_s=0.09, host_p99_s=0.0)  # 1 / 0.135 = 7.4 Hz -> 5 Hz
-    assert slow.highest_rate_hz == 5.0 and slow.recommended_rate_hz == 5.0  # not 0 Hz
+    # below 20 Hz in whole Hz (a long RS485 line): 0.8 / 0.135 = 5.9 Hz -> 5 Hz; recommended 0.8 x 5.9 = 4.7 -> 4 Hz
+    slow = dataclasses.replace(check, round_trip_p99_s=0.09, host_p99_s=0.0)
+    assert slow.highest_rate_hz == 5.0 and slow.recommended_rate_hz == 4.0
+    slowest = dataclasses.replace(check, round_trip_p99_s=0.4, host_p99_s=0.0)  # 0.8 / 0.6 = 1.3 Hz -> 1 Hz
+    assert slowest.highest_rate_hz == 1.0 and slowest.recommended_rate_hz == 1.0  # not 0 Hz
     assert not dataclasses.replace(check, rate_hz=225).holds
     assert "holds" in check.summary()
+    # the recommendation is based on the lower end of the spread between the measurement's quarters
+    spread = dataclasses.replace(check, spread_hz=(150.0, 300.0))
+    assert spread.highest_rate_hz == 220.0 and spread.recommended_rate_hz == 120.0  # 0.8 x 150
+    assert "150 to 300 Hz by each quarter of the 10 exchanges" in spread.summary()
+    assert dataclasses.replace(check, spread_hz=(250.0, 300.0)).recommended_rate_hz == 175.0  # (never above 0.8 x 220)
+
+
+@pytest.mark.realtime
+def test_the_real_time_check_measures_long_enough_and_reports_its_spread(tmp_path: Path) -> None:
+    # at least MIN_SAMPLES exchanges and MEASURE_S, at most MAX_SAMPLES; the quarters' spread around the whole's figure
+    copy = tmp_path / "arm2.yaml"
+    copy.write_text((CONFIGS / "arm2.yaml").read_text().replace("rate_hz: 500", "rate_hz: 1"))
+    link, log = tmp_path / "can", tmp_path / "frames.log"
+    command: list[str | Path] = [sys.executable, "-m", "motion.cli", "emulate", "--config", copy]
+    emulator = subprocess.Popen(
+        [*command, "--slcan-link", link, "--log", log],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
+    try:
+        assert emulator.stdout is not None
+        while not emulator.stdout.readline().startswith("emulating motors"):
+            assert emulator.poll() is None, "the emulator did not start"
+        result = _cli("check", "--config", copy, "--interface", "slcan", "--channel", link, "--json")
+        assert result.returncode == 0, result.stderr  # 1 Hz holds on any host
+        figures = json.loads(result.stdout)["modes"]
+        for mode in figures.values():
+            assert MIN_SAMPLES <= mode["samples"] <= MAX_SAMPLES
+            low, high = mode["spread_hz"]
+            assert low <= high and low <= mode["highest_rate_hz"] + RATE_STEP_HZ
+            assert mode["recommended_rate_hz"] <= max(1.0, 0.8 * low)
+    finally:
+        emulator.terminate()
+        emulator.communicate(timeout=10)
 
 
 def _cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
@@ -180,7 +220,7 @@ def test_cli_move_at_a_rate_the_bus_cannot_hold_exits_2_before_moving(tmp_path: 
         assert all(": 9a " in line or ": 92 " in line for line in moved), moved  # nothing but reads was sent
         checked = _cli("check", "--config", config, *bus)
         assert checked.returncode == 2 and "does not hold" in checked.stdout
-        if highest < MIN_RATE_HZ:  # so slow or busy a host that no rate a configuration allows holds: refused is right
+        if highest < MIN_RATE_HZ:  # so slow or busy a host that it holds no rate this test moves at: refused is right
             return
         # the rate the message recommends (room for the spread between measurements), at most 200 Hz
         recommended = float(result.stderr.split("set control.rate_hz to ")[1].split(" Hz")[0])

@@ -521,6 +521,7 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
             f"{c.round_trip_p99_s * 1e3:.2f} ms",
             f"{c.host_p99_s * 1e3:.2f} ms",
             f"{c.highest_rate_hz:g} Hz",
+            "-" if c.spread_hz is None else f"{c.spread_hz[0]:.0f}-{c.spread_hz[1]:.0f} Hz",
             f"{c.recommended_rate_hz:g} Hz",
             "holds" if c.holds else "does not hold",
         )
@@ -538,6 +539,8 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
                     "round_trip_p99_s": c.round_trip_p99_s,
                     "host_p99_s": c.host_p99_s,
                     "highest_rate_hz": c.highest_rate_hz,
+                    "spread_hz": None if c.spread_hz is None else list(c.spread_hz),
+                    "samples": c.samples,
                     "recommended_rate_hz": c.recommended_rate_hz,
                     "holds": c.holds,
                 }
@@ -558,6 +561,7 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
             "round trip p99",
             "host work p99",
             "highest rate",
+            "by quarter",
             "recommended",
             f"{config.control.rate_hz:g} Hz",
         )

@@ -321,7 +321,7 @@ def _control(node: _Node) -> schema.ControlConfig:
     return schema.ControlConfig(
         halt_policy=policy,
         mode=node.choice("mode", schema.ControlMode),
-        rate_hz=node.number("rate_hz", _Range(50, 1000)),
+        rate_hz=node.number("rate_hz", _Range(1, 1000)),
         gravity_feedforward=node.flag("gravity_feedforward"),
         inertia_feedforward=node.flag("inertia_feedforward"),
         rate_margin=node.number("rate_margin", _Range(1, 10)),

@@ -93,7 +93,7 @@ class ControlConfig:
     Attributes:
         halt_policy: what the axes do on halt (required: the safe choice depends on the arm).
         mode: position or torque control.
-        rate_hz: control cycle rate in Hz (50..1000).
+        rate_hz: control cycle rate in Hz (1..1000: a long RS485 line holds a few tens of Hz; the rate check says).
         gravity_feedforward: add the model's gravity torque g(q).
         inertia_feedforward: add the inertial and Coriolis torques of the planned motion (RNEA).
         rate_margin: the margin the rate check at connect requires (1..10, default 1.5): the measured bus round trip

@@ -18,17 +18,21 @@ A rate holds when, with the margin, the round trip fits the share of the period 
 
     round_trip × margin ≤ reply_budget / rate        (round_trip + host) × margin ≤ 1 / rate
 
-The highest rate that holds is the smaller of the two bounds, rounded down to a whole 5 Hz. The p99 of each figure
-is used, so a host that is slow one cycle in a hundred is judged by that cycle.
+The highest rate that holds is the smaller of the two bounds, rounded down to a whole 5 Hz (a whole 1 Hz below
+:data:`FINE_BELOW_HZ`: a long RS485 line holds a few tens of Hz). The p99 of each figure is used, so a host that is
+slow one cycle in a hundred is judged by that cycle.
 
-A p99 of a few dozen exchanges on a shared host moves by several per cent from one measurement to the next (two
-checks a minute apart on one machine: 125 Hz, then 120 Hz). A rate set to exactly the highest one measured may
-therefore be refused by the next connect; the *recommended* rate leaves :data:`RECOMMENDED_SHARE` of it, and is what
-the messages tell a user to set.
+A p99 of a few dozen exchanges on a shared host moves from one measurement to the next (two checks a minute apart on
+one machine: 125 Hz, then 120 Hz; six in a row on a busy one: 120 to 480 Hz). So the check measures for at least
+:data:`MEASURE_S` (and at least :data:`MIN_SAMPLES` exchanges), evaluates each quarter of the exchanges on its own as
+well, and reports the spread of the highest rate between the quarters. The *recommended* rate, what the messages
+tell a user to set, is :data:`RECOMMENDED_SHARE` of the lower end of that spread: a rate the next connect, measuring
+anew, very likely accepts too.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -43,14 +47,22 @@ from motion.errors import ConfigError, TransportError
 from motion.protocol import Command
 from motion.transport.base import Reply, Request
 
-#: Exchanges measured by default (a few dozen: about 0.1 s of bus time for six joints at 1 Mbit/s).
-DEFAULT_SAMPLES: Final = 40
+#: The fewest exchanges measured in real time (a few dozen: about 0.1 s of bus time for six joints at 1 Mbit/s) ...
+MIN_SAMPLES: Final = 40
+#: ... and the least time they take, s: more exchanges on a fast bus, for a p99 that is not one preemption's ...
+MEASURE_S: Final = 0.25
+#: ... and the most exchanges.
+MAX_SAMPLES: Final = 400
+#: The measurement's parts evaluated on their own for the spread (consecutive runs of exchanges).
+SPREAD_PARTS: Final = 4
 #: Exchanges measured in a simulation (each is the same).
 SIMULATED_SAMPLES: Final = 3
 #: The margin a rate must hold with unless the configuration accepts a smaller one (``control.rate_margin``).
 DEFAULT_MARGIN: Final = 1.5
-#: Rates are proposed in steps of this many Hz.
+#: Rates are proposed in steps of this many Hz ...
 RATE_STEP_HZ: Final = 5.0
+#: ... and of 1 Hz below this rate.
+FINE_BELOW_HZ: Final = 20.0
 #: Share of the highest rate that holds which is recommended (room for the spread between measurements).
 RECOMMENDED_SHARE: Final = 0.8
 #: Rehearsals of the host's work per measuring exchange (real time): the p99 of a few dozen samples is nearly their
@@ -60,6 +72,9 @@ REHEARSALS_PER_EXCHANGE: Final = 5
 _REHEARSAL_STEP_S: Final = 1e-6
 #: Time each measuring exchange may take before its reads count as unanswered, s.
 _EXCHANGE_TIMEOUT_S: Final = 0.1
+#: A drive that answers none of this many exchanges in a row does not answer (the check fails); fewer misses count as
+#: round trips of :data:`_EXCHANGE_TIMEOUT_S`.
+_SILENT_EXCHANGES: Final = 3
 
 
 @dataclass(frozen=True, slots=True)
@@ -74,6 +89,8 @@ class RateCheck:
         host_p99_s: p99 of the host's own work per cycle, s (0 in a simulation).
         samples: exchanges measured.
         simulated: measured in simulated time (the bus model only; the host's speed does not matter).
+        spread_hz: the lowest and highest of the rates that hold by each of :data:`SPREAD_PARTS` runs of the
+            exchanges on its own (not rounded); None where too few were measured (a simulation).
     """
 
     rate_hz: float
@@ -83,29 +100,38 @@ class RateCheck:
     host_p99_s: float
     samples: int
     simulated: bool
+    spread_hz: tuple[float, float] | None = None
 
     @property
     def highest_rate_hz(self) -> float:
-        """The highest rate that holds with the margin, rounded down to :data:`RATE_STEP_HZ` (0 if none does)."""
+        """The highest rate that holds with the margin, rounded down to a step (:func:`rate_step`; 0 if none does)."""
+        return round_rate(self._bound_hz(self.round_trip_p99_s, self.host_p99_s))
+
+    def _bound_hz(self, round_trip_s: float, host_s: float) -> float:
         bounds = []
-        if self.round_trip_p99_s > 0:
-            bounds.append(self.reply_budget / (self.round_trip_p99_s * self.margin))
-        total = self.round_trip_p99_s + self.host_p99_s
-        if total > 0:
-            bounds.append(1.0 / (total * self.margin))
-        if not bounds:
-            return math.inf
-        return math.floor(min(bounds) / RATE_STEP_HZ) * RATE_STEP_HZ
+        if round_trip_s > 0:
+            bounds.append(self.reply_budget / (round_trip_s * self.margin))
+        if round_trip_s + host_s > 0:
+            bounds.append(1.0 / ((round_trip_s + host_s) * self.margin))
+        return min(bounds, default=math.inf)
 
     @property
     def recommended_rate_hz(self) -> float:
-        """:data:`RECOMMENDED_SHARE` of :attr:`highest_rate_hz`, rounded down to :data:`RATE_STEP_HZ`: a rate the
-        next measurement will very likely accept too."""
+        """:data:`RECOMMENDED_SHARE` of the lower end of the spread (of :attr:`highest_rate_hz` where no spread was
+        measured), rounded down to a step: a rate the next measurement will very likely accept too."""
         highest = self.highest_rate_hz
         if not math.isfinite(highest):
             return highest
+        low = highest if self.spread_hz is None else min(highest, self.spread_hz[0])
         # never 0 where a rate holds: at the lowest step, the highest itself
-        return max(min(highest, RATE_STEP_HZ), math.floor(highest * RECOMMENDED_SHARE / RATE_STEP_HZ) * RATE_STEP_HZ)
+        return max(min(highest, rate_step(highest)), round_rate(low * RECOMMENDED_SHARE))
+
+    def spread_text(self) -> str:
+        """The spread for people ("" where none was measured)."""
+        if self.spread_hz is None:
+            return ""
+        low, high = self.spread_hz
+        return f"; {low:.0f} to {high:.0f} Hz by each quarter of the {self.samples} exchanges on its own"
 
     @property
     def holds(self) -> bool:
@@ -122,9 +148,23 @@ class RateCheck:
         return (
             f"{clock}: round trip p99 {self.round_trip_p99_s * 1e3:.2f} ms, host work p99 "
             f"{self.host_p99_s * 1e3:.2f} ms per cycle ({self.samples} exchanges); highest rate with margin "
-            f"{self.margin:g}: {self.highest_rate_hz:g} Hz (recommended {self.recommended_rate_hz:g} Hz); configured "
+            f"{self.margin:g}: {self.highest_rate_hz:g} Hz{self.spread_text()} (recommended "
+            f"{self.recommended_rate_hz:g} Hz); configured "
             f"{self.rate_hz:g} Hz " + ("holds" if self.holds else "does NOT hold")
         )
+
+
+def rate_step(rate_hz: float) -> float:
+    """The step rates are proposed in around ``rate_hz``: :data:`RATE_STEP_HZ`, 1 Hz below :data:`FINE_BELOW_HZ`."""
+    return RATE_STEP_HZ if rate_hz >= FINE_BELOW_HZ else 1.0
+
+
+def round_rate(rate_hz: float) -> float:
+    """``rate_hz`` rounded down to its step (:func:`rate_step`); infinity stays."""
+    if not math.isfinite(rate_hz):
+        return rate_hz
+    step = rate_step(rate_hz)
+    return math.floor(rate_hz / step) * step
 
 
 class RateError(ConfigError):
@@ -138,7 +178,8 @@ class RateError(ConfigError):
             f"{check.rate_hz:g} Hz cannot be held: the cycle's bus round trip takes {check.round_trip_p99_s * 1e3:.2f}"
             f" ms (p99) and this host's work {check.host_p99_s * 1e3:.2f} ms, against a period of "
             f"{1e3 / check.rate_hz:.2f} ms ({check.reply_budget:.0%} of it for the replies) with a margin of "
-            f"{check.margin:g}; the highest rate that holds is {check.highest_rate_hz:g} Hz (set control.rate_hz to "
+            f"{check.margin:g}; the highest rate that holds is {check.highest_rate_hz:g} Hz{check.spread_text()} (set "
+            f"control.rate_hz to "
             f"{check.recommended_rate_hz:g} Hz or lower, which leaves room for the spread between measurements, or "
             "accept a smaller margin with control.rate_margin)",
         )
@@ -158,13 +199,14 @@ def measure_rate(
     """Measure the cycle's round trip and the host's work per cycle (after ``read_positions``, before the loop
     starts).
 
-    Only reads are sent: nothing moves. In a simulation the exchange is the same every time, so a few samples do
+    Only reads are sent: nothing moves. In real time: at least :data:`MIN_SAMPLES` exchanges and :data:`MEASURE_S`,
+    at most :data:`MAX_SAMPLES` exchanges. In a simulation the exchange is the same every time, so a few samples do
     (:data:`SIMULATED_SAMPLES`), which keeps the emulated arm's unattended time before the loop short.
 
     Args:
         controller: the controller (its bus, options and request builders).
         margin: the margin the rate must hold with.
-        samples: exchanges to measure (default :data:`DEFAULT_SAMPLES`, or :data:`SIMULATED_SAMPLES`).
+        samples: exchanges to measure (default: as above).
         rehearse: the host's work of a cycle at rest (default the controller's alone,
             :meth:`~motion.control.controller.Controller.rehearse`; the safety layer adds its watchdog's).
 
@@ -174,10 +216,10 @@ def measure_rate(
         MotionError: ``read_positions`` has not run.
     """
     simulated = is_simulated(controller.clock)
-    if samples is None:
-        samples = SIMULATED_SAMPLES if simulated else DEFAULT_SAMPLES
-    if samples < 2:
+    if samples is not None and samples < 2:
         raise ValueError(f"samples: {samples} must be >= 2")
+    fewest = samples or (SIMULATED_SAMPLES if simulated else MIN_SAMPLES)
+    most = samples or (SIMULATED_SAMPLES if simulated else MAX_SAMPLES)
     if not (math.isfinite(margin) and margin >= 1.0):
         raise ValueError(f"margin: {margin!r} must be >= 1")
     ids = controller.ids
@@ -192,19 +234,26 @@ def measure_rate(
     stand_ins = batch[: len(ids)]
     longer, shorter = bus.request_wire_s(setpoints), bus.request_wire_s(stand_ins)
     extra_s = max(0.0, longer - shorter) if longer is not None and shorter is not None else 0.0
-    round_trips = np.empty(samples)
+    round_trips = np.empty(most)
     rehearsals = 1 if simulated else REHEARSALS_PER_EXCHANGE
-    host = np.zeros(samples * rehearsals)
+    host = np.zeros(most * rehearsals)
     if rehearse is None:
         rehearse = controller.rehearse
     at = -math.inf
-    for n in range(samples):
+    began, n = time.monotonic(), 0
+    misses = dict.fromkeys(ids, 0)
+    while n < fewest or (n < most and time.monotonic() - began < MEASURE_S):
         start = clock.now()
         replies = bus.transact(batch, start + _EXCHANGE_TIMEOUT_S)
-        round_trips[n] = clock.now() - start + extra_s
-        missing = sorted({r.motor_id for r in replies if r.message is None})
-        if missing:
-            raise TransportError(f"no reply to the rate check's reads from motor(s) {missing}")
+        missing = {r.motor_id for r in replies if r.message is None}
+        # a reply missing once is a round trip of at least the timeout (a stalled host, a lost frame: the p99 says
+        # so); a drive that answers none of several exchanges in a row does not answer
+        round_trips[n] = max(clock.now() - start, _EXCHANGE_TIMEOUT_S if missing else 0.0) + extra_s
+        for motor_id in ids:
+            misses[motor_id] = misses[motor_id] + 1 if motor_id in missing else 0
+        silent = sorted(i for i, count in misses.items() if count >= _SILENT_EXCHANGES)
+        if silent:
+            raise TransportError(f"no reply to the rate check's reads from motor(s) {silent}")
         for m in range(rehearsals):
             # strictly later than the last (the models step by the time between two cycles and divide by it)
             at = max(clock.now(), at + _REHEARSAL_STEP_S)
@@ -212,12 +261,23 @@ def measure_rate(
             rehearse(replies, at)
             if not simulated:
                 host[n * rehearsals + m] = time.perf_counter() - t0
-    return RateCheck(
+        n += 1
+    round_trips, host = round_trips[:n], host[: n * rehearsals]
+    check = RateCheck(
         rate_hz=controller.options.rate_hz,
         reply_budget=controller.options.reply_budget,
         margin=margin,
         round_trip_p99_s=float(np.percentile(round_trips, 99)),
         host_p99_s=float(np.percentile(host, 99)),
-        samples=samples,
+        samples=n,
         simulated=simulated,
     )
+    if simulated or n < 2 * SPREAD_PARTS:
+        return check
+    parts = [
+        check._bound_hz(float(np.percentile(trips, 99)), float(np.percentile(work, 99)))
+        for trips, work in zip(
+            np.array_split(round_trips, SPREAD_PARTS), np.array_split(host, SPREAD_PARTS), strict=True
+        )
+    ]
+    return dataclasses.replace(check, spread_hz=(min(parts), max(parts)))
