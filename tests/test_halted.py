@@ -191,6 +191,42 @@ def test_a_hold_that_does_not_hold_escalates_to_the_drives_halt(push_nm: float, 
         assert supervisor.halts[1].reaction.value == Command.MOTOR_STOP.name
 
 
+def test_a_hold_for_a_hot_motor_still_escalates_a_blocked_joint() -> None:
+    # (review) the hold begun for the elbow's temperature (75 degC: above the controller's 70, below the drive's own
+    # protection) hid the following error, and the escalation with it: the blocked shoulder's drive pushed at its
+    # current limit, its reference 39 deg past the obstacle, for as long as the arm stayed open
+    config = _config("arm2.yaml", HaltPolicy.HOLD)
+    limit_a = config.joints[0].current_limit_a
+    faults = [Fault(InjectedFault.OVER_TEMPERATURE, 2, 0.25, value=75.0), Fault(InjectedFault.BLOCKED, 1, 0.3)]
+    arm = Arm(config, emulate=True, faults=faults)
+    with arm:
+        fault = _faulted(arm, {"shoulder": 80.0, "elbow": -120.0})
+        assert (fault.kind, fault.joint) == (FaultKind.TEMPERATURE, "elbow")
+        arm.sleep(1.0)
+        supervisor = arm.supervisor
+        assert supervisor is not None and supervisor.state is ArmState.HALTED
+        assert [(f.kind, f.joint) for f in supervisor.faults] == [
+            (FaultKind.TEMPERATURE, "elbow"),
+            (FaultKind.HOLD_FAILED, "shoulder"),
+        ]
+        assert supervisor.faults[1].time_s - supervisor.faults[0].time_s < 0.5
+        assert abs(_drives(arm)[1].iq_a) < limit_a
+
+
+@pytest.mark.parametrize("policy", [HaltPolicy.STOP, HaltPolicy.HOLD, HaltPolicy.OFF])
+def test_at_close_a_silent_drive_starves_no_healthy_v3_drive_into_its_link_loss_stop(policy: HaltPolicy) -> None:
+    # (review) with a 20 ms link timeout (the default at 250 Hz and above), the close's halt batch waited 20 ms for
+    # the silent drive 4 before the next frame: drives 5 and 6 (wrist_pitch, flange_roll) tripped their protection
+    config = _config("arm6_v3.yaml", policy)
+    config = dataclasses.replace(config, safety=dataclasses.replace(config.safety, link_timeout_ms=20.0))
+    arm = Arm(config, emulate=True, emulated_protocol=ProtocolFamily.V3, faults=[Fault(InjectedFault.SILENT, 4, 0.4)])
+    with arm:
+        _faulted(arm, {"shoulder_pitch": 30.0, "elbow_pitch": -40.0})
+        arm.sleep(0.5)
+    losses = {motor_id: drive.link_losses for motor_id, drive in _drives(arm).items()}
+    assert losses == {1: 0, 2: 0, 3: 0, 4: 1, 5: 0, 6: 0}
+
+
 @pytest.mark.parametrize("close_after_s", [0.0, 1.0], ids=["closed-at-once", "halted-a-while"])
 def test_brakes_lock_only_on_joints_at_rest_after_the_halt(close_after_s: float) -> None:
     # case 6: after a fault 0x78 went to joints measured at -92..-148 deg/s (9 ms after those readings: the close

@@ -57,6 +57,8 @@ _HALT_WINDOW_S = 0.002
 _ARMING_SLACK_S = 0.25
 # How long the drives' settings at start and end may take (a few exchanges), s.
 _SETUP_WINDOW_S = 0.2
+#: The longest an exchange after the loop waits for its replies, s (see ``Supervisor._end_window_s``).
+_END_EXCHANGE_S = 0.02
 #: How long a close waits for the braked joints to come to rest before it locks their brakes, s.
 _BRAKE_SETTLE_S = 1.0
 #: A following error seen in this many consecutive cycles of a hold (whose ramp starts from the measured state, so
@@ -129,6 +131,13 @@ class Supervisor:
             link_timeout_ms(controller.period_s, None),
         )
         self.settings = settings
+        # An exchange after the loop (the close's halt and brake reads) waits for replies at most a control period's
+        # share for them, and half a drive's link timeout: a silent drive's wait never starves the healthy ones into
+        # their link-loss stop before the close turns the protection off.
+        window = min(_END_EXCHANGE_S, controller.period_s * controller.options.reply_budget)
+        if self.drives.link_timeout_ms:
+            window = min(window, self.drives.link_timeout_ms / 2000.0)
+        self._end_window_s = window
         self.watchdog = Watchdog(controller, settings, observer)
         if observer is not None:  # the collision signal goes out in every snapshot (views, status)
             controller.published_signal = self.watchdog.collision_signal_nm
@@ -248,7 +257,9 @@ class Supervisor:
         owed = guard.unacknowledged
         order = sorted(self.ids, key=lambda i: (i in owed, i))
         try:
-            replies = bus.transact([Request(i, self._bare(guard.codes[i])) for i in order], clock.now() + 0.02)
+            replies = bus.transact(
+                [Request(i, self._bare(guard.codes[i])) for i in order], clock.now() + self._end_window_s
+            )
             controller.absorb(replies)
             guard.take(replies, controller.axes, self._within, clock.now())
         except Exception as exc:  # the session ends anyway: leave a trace
@@ -267,7 +278,7 @@ class Supervisor:
         clock = controller.clock
         try:
             while not guard.all_locked() and clock.now() < deadline_s:
-                replies = controller.bus.transact(guard.requests(), min(deadline_s, clock.now() + 0.02))
+                replies = controller.bus.transact(guard.requests(), min(deadline_s, clock.now() + self._end_window_s))
                 controller.absorb(replies)
                 guard.take(replies, controller.axes, self._within, clock.now())
         except Exception as exc:
@@ -652,51 +663,60 @@ class Supervisor:
         self._halted_cycle(state, start_s, deadline_s)
 
     def _holding_cycle(self, start_s: float, deadline_s: float) -> None:
-        """The stop ramp, then the hold, streamed; a fault the hold is not for halts, and so does one it is for that
-        persists (:data:`HOLD_ESCALATION_CYCLES`: a blocked joint's following error, a current held at its limit)."""
+        """The stop ramp, then the hold, streamed; a fault the hold is not for halts, and so does a hold that does not
+        hold (:meth:`_hold_escalation`), whatever fault the hold is for or this cycle found besides."""
         controller = self.controller
         extra = (self._next_status_read(),)
         check = self.watchdog.check_setpoint  # the stop ramp must not pass a limit either
         try:
             replies = controller.step(start_s, deadline_s, extra=extra, check=check, apply_pending=False)
             self.watchdog.evaluate(replies, controller.clock.now())
-            at_limit, magnitude = self._at_limit, self._iq_magnitude  # (kept between cycles: no array per cycle)
-            np.greater_equal(np.abs(controller.axes.iq_a, out=magnitude), self._current_limit_a, out=at_limit)
-            if self._torque_mode:
-                np.logical_or(at_limit, controller.limited, out=at_limit)
-            self._hold_strikes = 0
-            now = controller.clock.now()
-            if not at_limit.any():
-                self._at_limit_since = math.nan
-            elif math.isnan(self._at_limit_since):
-                self._at_limit_since = now
-            elif now - self._at_limit_since >= HOLD_AT_LIMIT_S:
-                i = int(np.argmax(at_limit))
-                raise MotionFault(
-                    FaultKind.HOLD_FAILED,
-                    joint=self.watchdog.names[i],
-                    value=float(controller.axes.iq_a[i]),
-                    threshold=float(self._current_limit_a[i]),
-                    time_s=now,
-                    detail=f"torque current at its limit for {now - self._at_limit_since:.3f} s of the hold (blocked?)",
-                )
         except MotionFault as fault:
-            if fault.kind.holdable:  # the kind of fault the hold is for (a motor that stays hot while it cools)
-                if fault.kind is not FaultKind.FOLLOWING_ERROR:
-                    return
-                # ... but a joint that does not follow even the hold is blocked, or pushed
-                self._hold_strikes += 1
-                if self._hold_strikes < HOLD_ESCALATION_CYCLES:
-                    return
-                fault = MotionFault(
+            if not fault.kind.holdable:
+                self._halt(fault, -1, start_s, deadline_s)  # the drives' own halt
+                return
+            # the kind of fault the hold is for (a motor that stays hot while it cools): the hold goes on, unless...
+        escalation = self._hold_escalation(controller.clock.now())
+        if escalation is not None:
+            self._halt(escalation, -1, start_s, deadline_s)
+
+    def _hold_escalation(self, now_s: float) -> MotionFault | None:
+        """A hold that does not hold: a joint that does not follow even the hold (whose ramp starts from the measured
+        state, so that a joint that follows has no error) for :data:`HOLD_ESCALATION_CYCLES`, or a torque current at
+        its limit for :data:`HOLD_AT_LIMIT_S` — a blocked joint, or one pushed: never pushed against for ever."""
+        controller, following = self.controller, self.watchdog.following
+        if following is None:
+            self._hold_strikes = 0
+        else:
+            self._hold_strikes += 1
+            if self._hold_strikes >= HOLD_ESCALATION_CYCLES:
+                return MotionFault(
                     FaultKind.HOLD_FAILED,
-                    joint=fault.joint,
-                    value=fault.value,
-                    threshold=fault.threshold,
-                    time_s=fault.time_s,
-                    detail=f"{fault.kind.value} persisted for {self._hold_strikes} cycles of the hold",
+                    joint=following.joint,
+                    value=following.value,
+                    threshold=following.threshold,
+                    time_s=following.time_s,
+                    detail=f"{following.kind.value} persisted for {self._hold_strikes} cycles of the hold",
                 )
-            self._halt(fault, -1, start_s, deadline_s)  # the drives' own halt
+        at_limit, magnitude = self._at_limit, self._iq_magnitude  # (kept between cycles: no array per cycle)
+        np.greater_equal(np.abs(controller.axes.iq_a, out=magnitude), self._current_limit_a, out=at_limit)
+        if self._torque_mode:
+            np.logical_or(at_limit, controller.limited, out=at_limit)
+        if not at_limit.any():
+            self._at_limit_since = math.nan
+        elif math.isnan(self._at_limit_since):
+            self._at_limit_since = now_s
+        elif now_s - self._at_limit_since >= HOLD_AT_LIMIT_S:
+            i = int(np.argmax(at_limit))
+            return MotionFault(
+                FaultKind.HOLD_FAILED,
+                joint=self.watchdog.names[i],
+                value=float(controller.axes.iq_a[i]),
+                threshold=float(self._current_limit_a[i]),
+                time_s=now_s,
+                detail=f"torque current at its limit for {now_s - self._at_limit_since:.3f} s of the hold (blocked?)",
+            )
+        return None
 
     def _halted_cycle(self, state: ArmState, start_s: float, deadline_s: float) -> None:
         """HALTING and HALTED: every drive gets a frame (its halt while it is not known to be halted, else a state

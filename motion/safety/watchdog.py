@@ -158,6 +158,9 @@ class Watchdog:
         self._counters = [controller.bus.motor_counters(motor_id) for motor_id in self.ids]
         # Following error: work arrays, and whether a cycle has run since start() (the first has no expectation).
         self._following = False
+        #: The following-error fault of the latest evaluation (None: none; evaluated also when another fault came
+        #: first).
+        self.following: MotionFault | None = None
         self._error = np.zeros(n)
         self._slip = np.zeros(n)
         self._moving = np.zeros(n, dtype=bool)
@@ -291,9 +294,12 @@ class Watchdog:
             self._check_collision()
         if complying:  # no reference to follow, so no expectation either until the arm follows one again
             self.restart_following()
+            self.following = None
         else:
-            if self._following:
-                held = held or self._following_fault(q)
+            # evaluated whatever else this cycle found: a hold for a hot motor must still see a joint that does not
+            # follow it (the supervisor escalates a persisting one)
+            self.following = self._following_fault(q) if self._following else None
+            held = held or self.following
             self._following = True
         overruns = self.controller.loop.overruns
         self._overrun_streak = self._overrun_streak + 1 if overruns > self._overruns_seen else 0
