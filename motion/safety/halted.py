@@ -197,6 +197,7 @@ class HaltGuard:
                     self.unacknowledged.discard(motor_id)
                 elif message.command == CommandV3.LOCK_BRAKE:
                     self.locked.add(motor_id)
+                    codes[motor_id] = self.code  # (under 0x80: its output off now, as the policy says)
                     self._rest_since = [math.nan] * len(self.ids)  # the lock jolted the arm: at rest again first
             elif isinstance(message, STATE_TYPES):
                 q, qd = float(q_deg[i]), float(qd_dps[i])

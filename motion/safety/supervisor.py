@@ -42,6 +42,7 @@ from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command, Message
+from motion.protocol.v3.messages import CommandV3
 from motion.safety.halted import HaltGuard
 from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
@@ -70,6 +71,8 @@ HOLD_ESCALATION_CYCLES = 3
 #: current limit may differ from the configured one: above it this never fires, and the persisting following error is
 #: left to escalate; below it, a hold that needs more current escalates to 0x81, the safe side.)
 HOLD_AT_LIMIT_S = 0.1
+#: A halted cycle's replies before its exchange (one that fails before it has none: its frames go out all the same).
+_NO_REPLIES: Final[list[Reply]] = []
 #: The most fault and halt records kept (a cause that repeats is recorded once; this bounds what a long session keeps).
 RECORDS_KEPT = 1000
 
@@ -160,6 +163,8 @@ class Supervisor:
         self._at_limit = np.zeros(len(self._current_limit_a), dtype=bool)
         self._torque_mode = controller.options.mode is ControlMode.TORQUE
         self._send_failing = False
+        #: Where the exception behind the latest ``exception`` fault was raised (its type, file and line).
+        self._exception_origin: tuple[str, str, int] | None = None
         self._halt_until_s: float | None = None  # until when the halt is re-sent; None: no halt went out yet
         # Requests from other threads, taken by the next cycle:
         self._estop_request: FaultKind | None = None
@@ -430,9 +435,13 @@ class Supervisor:
             )
         except Exception as exc:
             detail = f"{type(exc).__name__}: {exc}"
-            self._halt(
-                MotionFault(FaultKind.EXCEPTION, time_s=controller.clock.now(), detail=detail), k, start_s, deadline_s
-            )
+            origin = _origin(exc)
+            # the same exception from the same place again while halted (its message may change every time: a
+            # count, a time) is the same cause: recorded once, the halted cycle goes on
+            if not (origin == self._exception_origin and self.machine.state in (ArmState.HALTING, ArmState.HALTED)):
+                self._exception_origin = origin
+                error = MotionFault(FaultKind.EXCEPTION, time_s=controller.clock.now(), detail=detail)
+                self._halt(error, k, start_s, deadline_s)
         return not controller.stopping and self.machine.state is not ArmState.BUS_LOST
 
     def _next_status_read(self) -> Request:
@@ -725,12 +734,18 @@ class Supervisor:
         controller = self.controller
         requests = self.guard.requests()
         requests.append(self._next_status_read())
+        controller.last_replies = _NO_REPLIES
         try:
             replies = controller.step(start_s, deadline_s, extra=requests, command=False, apply_pending=False)
         except TransportError:
             raise
-        except Exception:  # a cycle hook failed after the exchange: the replies are taken in all the same
-            self._take_halted(state, controller.last_replies)
+        except Exception:
+            replies = controller.last_replies  # a cycle hook failed after the exchange: its replies are taken in
+            if replies is _NO_REPLIES:  # the cycle failed before its exchange: the frames go out all the same
+                budget = controller.options.reply_budget
+                replies = controller.bus.transact(requests, start_s + budget * (deadline_s - start_s))
+                controller.absorb(replies)
+            self._take_halted(state, replies)
             raise
         self._take_halted(state, replies)
 
@@ -824,16 +839,41 @@ class Supervisor:
             )
             return
         if self.guard.locked:
-            self.drives.release_brakes(max(deadline_s, controller.clock.now() + 0.005))
+            self._release_brakes(max(deadline_s, controller.clock.now() + 0.005))
         controller.discard_pending()  # nothing queued while faulted may start after the clear
         controller.follower.hold_at(q)
         controller.reference = State.at_rest(q)
         self.fault = None
         self._halt_until_s = None
         self.guard.reset()
+        self._exception_origin = None
         self._clear_result = None
         self.watchdog.start(controller.clock.now())
         self.machine.fire(ArmEvent.CLEARED)
+
+    def _release_brakes(self, deadline_s: float) -> None:
+        """0x77 to the braked joints, locked since the halt with their drives off. A release that fails halfway
+        (a drive did not answer) locks every brake again at once: a released brake on a drive that is off lets its
+        joint fall (0x81 leaves an off drive off), and the joints stood at rest until now.
+
+        Raises:
+            TransportError: the release failed (the brakes were locked again, as far as the drives answered).
+        """
+        guard = self.guard
+        try:
+            self.drives.release_brakes(deadline_s)
+        except TransportError:
+            controller = self.controller
+            lock = self._bare(CommandV3.LOCK_BRAKE)
+            guard.locked.clear()  # each counts as locked again once its drive acknowledges the lock
+            try:
+                replies = controller.bus.transact(
+                    [Request(i, lock) for i in guard.braked_ids], controller.clock.now() + self._end_window_s
+                )
+                guard.take(replies, controller.axes, self._within, controller.clock.now())
+            except TransportError as exc:
+                logger.error("the brakes could not be locked again after a failed release: %s", exc)
+            raise
 
     def _clear_problems(self, replies: list[Reply]) -> list[str]:
         names = {s.motor_id: s.name for s in self.controller.specs}
@@ -869,6 +909,16 @@ class Supervisor:
                     "(move it back by hand with the drives off: rmd-motion off)"
                 )
         return problems
+
+
+def _origin(exc: BaseException) -> tuple[str, str, int]:
+    """Where ``exc`` was raised: its type, and the file and line of its innermost frame."""
+    tb = exc.__traceback__
+    if tb is None:
+        return type(exc).__qualname__, "", 0
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    return type(exc).__qualname__, tb.tb_frame.f_code.co_filename, tb.tb_lineno
 
 
 def _same_cause(a: MotionFault, b: MotionFault) -> bool:
