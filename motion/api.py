@@ -695,6 +695,7 @@ class Arm:
                 self.supervisor.close()
                 self._remember_turns()
         finally:
+            self._running = None  # (a stop during a later connect goes to that connect's loops, not to this one)
             self._stack.close()
 
     def __enter__(self) -> Arm:

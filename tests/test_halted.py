@@ -26,6 +26,7 @@ from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3.messages import BrakeCommand, CommandV3, CommunicationTimeout, PlanningAcceleration
 from motion.safety import ArmState, Supervisor
 from motion.safety.halted import STILL_BAND_DEG, HaltGuard
+from motion.safety.supervisor import Records
 from motion.transport import Request
 from tests import fault_explorer
 from tests.drive_models import DriveDraw, JointDraw
@@ -508,3 +509,12 @@ def test_drawn_drives_reach_the_emulated_drives() -> None:
 def test_schedules_are_drawn_reproducibly() -> None:
     first = [fault_explorer.drawn(7, k) for k in range(3)]
     assert first == [fault_explorer.drawn(7, k) for k in range(3)] and len(set(first)) == 3
+
+
+def test_records_keep_the_first_and_the_latest() -> None:
+    # (review) the bounded records dropped the oldest: the cause, after a thousand records of a long session
+    records: Records[int] = Records(10)
+    for k in range(25):
+        records.append(k)
+    assert list(records) == [0, 1, 2, 3, 4, 20, 21, 22, 23, 24] and records.dropped == 15
+    assert (len(records), records[0], records[-1], records[4:6]) == (10, 0, 24, [4, 20])

@@ -29,10 +29,10 @@ import logging
 import math
 import threading
 import weakref
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
-from typing import Final
+from typing import Final, TypeVar, overload
 
 import numpy as np
 
@@ -73,8 +73,44 @@ HOLD_ESCALATION_CYCLES = 3
 HOLD_AT_LIMIT_S = 0.1
 #: A halted cycle's replies before its exchange (one that fails before it has none: its frames go out all the same).
 _NO_REPLIES: Final[list[Reply]] = []
+_T = TypeVar("_T")
 #: The most fault and halt records kept (a cause that repeats is recorded once; this bounds what a long session keeps).
 RECORDS_KEPT = 1000
+
+
+class Records(Sequence[_T]):
+    """A session's fault or halt records, bounded: the first ``kept // 2`` (the cause is among them) and the latest
+    ``kept - kept // 2``; :attr:`dropped` counts those left out between."""
+
+    def __init__(self, kept: int) -> None:
+        self._first: list[_T] = []
+        self._first_kept = kept // 2
+        self._latest: collections.deque[_T] = collections.deque(maxlen=kept - kept // 2)
+        #: Records left out between the first and the latest.
+        self.dropped = 0
+
+    def append(self, record: _T) -> None:
+        """Keep ``record`` (and leave out the oldest of the latest, once full)."""
+        if len(self._first) < self._first_kept:
+            self._first.append(record)
+            return
+        if len(self._latest) == self._latest.maxlen:
+            self.dropped += 1
+        self._latest.append(record)
+
+    def __len__(self) -> int:
+        return len(self._first) + len(self._latest)
+
+    @overload
+    def __getitem__(self, index: int) -> _T: ...
+    @overload
+    def __getitem__(self, index: slice) -> list[_T]: ...
+    def __getitem__(self, index: int | slice) -> _T | list[_T]:
+        return [*self._first, *self._latest][index]
+
+    def __iter__(self) -> Iterator[_T]:
+        yield from self._first
+        yield from self._latest
 
 
 class Reaction(StrEnum):
@@ -148,8 +184,8 @@ class Supervisor:
         self._fault: MotionFault | None = None
         self.machine = StateMachine(ArmState.READY, on_change=self._publish_condition)
         self.ids = tuple(s.motor_id for s in controller.specs)
-        self.faults: collections.deque[MotionFault] = collections.deque(maxlen=RECORDS_KEPT)
-        self.halts: collections.deque[HaltRecord] = collections.deque(maxlen=RECORDS_KEPT)
+        self.faults: Records[MotionFault] = Records(RECORDS_KEPT)
+        self.halts: Records[HaltRecord] = Records(RECORDS_KEPT)
         #: The halted state's bookkeeping (:mod:`motion.safety.halted`).
         self.guard = HaltGuard(self.ids, self.drives.braked_ids, family.bare)
         #: Joints whose drive restarted in this session: their turn count is lost, clear() refuses until a new
