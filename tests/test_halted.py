@@ -18,16 +18,17 @@ import pytest
 from motion.api import Arm
 from motion.config import ArmConfig, load_config
 from motion.config.schema import ControlMode, HaltPolicy
+from motion.control.family import FAMILIES
 from motion.emulator import DEFAULT_PID, Fault, InjectedFault
 from motion.emulator.drive import RunState
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
-from motion.protocol import Command
+from motion.protocol import Command, MotorState
 from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3.messages import BrakeCommand, CommandV3, CommunicationTimeout, PlanningAcceleration
 from motion.safety import ArmState, Supervisor
 from motion.safety.halted import STILL_BAND_DEG, HaltGuard
 from motion.safety.supervisor import Records
-from motion.transport import Request
+from motion.transport import Reply, Request
 from tests import fault_explorer
 from tests.drive_models import DriveDraw, JointDraw
 from tests.fault_explorer import Schedule
@@ -518,3 +519,19 @@ def test_records_keep_the_first_and_the_latest() -> None:
         records.append(k)
     assert list(records) == [0, 1, 2, 3, 4, 20, 21, 22, 23, 24] and records.dropped == 15
     assert (len(records), records[0], records[-1], records[4:6]) == (10, 0, 24, [4, 20])
+
+
+def test_a_joint_dithering_on_its_limit_while_halted_is_one_excursion() -> None:
+    # (review) a joint resting on its limit, its reading a count either side of it, was a new excursion (an ERROR
+    # line, a record, its halt re-sent and its rest forgotten) at every crossing
+    guard = HaltGuard([1], [], FAMILIES[ProtocolFamily.V2].bare)
+    guard.begin(Command.MOTOR_STOP)
+    state = MotorState(Command.READ_STATUS_2, 30, 0.0, 0, 0)
+    axes = type("Axes", (), {"q_deg": np.zeros(1), "qd_dps": np.zeros(1), "iq_a": np.zeros(1)})()
+    reported = []
+    for k, q in enumerate([89.9, 90.01, 89.99, 90.01, 89.99, 90.02, 89.4, 90.1]):
+        axes.q_deg[0] = q
+        replies = [Reply(1, state, state, 0.01 * k)]  # (the request: any message)
+        _, outside, _ = guard.take(replies, axes, lambda _i, q_deg: q_deg <= 90.0, 0.01 * k)
+        reported += [k for _ in outside]
+    assert reported == [1, 7]  # out, dithering, back 0.6 deg inside, out again

@@ -63,6 +63,11 @@ RESTLESS_S: Final = 1.0
 OFF_CURRENT_A: Final = 0.3
 
 
+#: A joint that left its limits while halted counts as back inside once this far inside, joint deg: one resting on
+#: its limit, its reading dithering by a count across it, is one excursion, not one per crossing.
+LIMIT_REARM_DEG: Final = 0.5
+
+
 class HaltGuard:
     """Per-drive bookkeeping of the halted state (see the module docstring); called from the control thread only.
 
@@ -205,11 +210,13 @@ class HaltGuard:
                     self._fast.add(i)
                 else:
                     self._fast.discard(i)
-                out = not within(i, q)
-                if out and not self._outside[i]:
-                    outside.append(i)
-                    self._owe(i)
-                self._outside[i] = out
+                if not within(i, q):
+                    if not self._outside[i]:
+                        outside.append(i)
+                        self._owe(i)
+                        self._outside[i] = True
+                elif self._outside[i] and within(i, q - LIMIT_REARM_DEG) and within(i, q + LIMIT_REARM_DEG):
+                    self._outside[i] = False  # back inside, clear of the limit: a next excursion is one again
                 if not self._acknowledged[i]:
                     continue
                 if codes[motor_id] == Command.MOTOR_STOP and (self._swung(i, qd) or self._restless(i, qd)):
