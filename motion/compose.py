@@ -132,6 +132,9 @@ def open_bus(config: ArmConfig, **overrides: object) -> Transport:
 
 #: Connect: the window in which the configured drives answer the generation check on a CAN bus, s.
 GENERATION_CHECK_WINDOW_S = 0.1
+#: ... and how often the drives that have not answered are asked (one that answers later than the window on a busy
+#: host would otherwise be taken for absent, and its generation for the older one).
+GENERATION_CHECK_ATTEMPTS = 3
 
 
 def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
@@ -151,7 +154,13 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
     from motion.transport.detect import describe_mixed  # noqa: PLC0415 - the CAN backend only where it is used
 
     setting = config.bus.protocol
-    found = bus.probe_families([j.motor_id for j in config.joints], GENERATION_CHECK_WINDOW_S) or {}
+    ids = [j.motor_id for j in config.joints]
+    found: dict[int, ProtocolFamily] = {}
+    for _ in range(GENERATION_CHECK_ATTEMPTS):  # (a reply later than the window on a busy host: asked again)
+        answers = bus.probe_families([i for i in ids if i not in found], GENERATION_CHECK_WINDOW_S)
+        found.update(answers or {})
+        if answers is None or len(found) == len(ids):  # (None: this transport cannot tell)
+            break
     answered = set(found.values())
     if len(answered) > 1:
         raise TransportError(f"drives of both protocol generations on one bus ({describe_mixed(found)}): refused")

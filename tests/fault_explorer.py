@@ -54,6 +54,7 @@ from motion.emulator.timing import TimingModel
 from motion.errors import FaultKind, MotionError
 from motion.protocol.v3.messages import CommandV3
 from motion.safety import ArmState
+from motion.safety.halted import CREEP_DPS
 from motion.safety.halted import RESTLESS_S as RESTLESS_RELEASE_S
 from tests.drive_models import DriveDraw, draw_drives, with_drives
 
@@ -235,7 +236,7 @@ class _Checker:
         self.slow_since = [math.nan] * n
         self.swing_start = [math.nan] * n  # when each joint's swings since it last stood began
         self.released = [False] * n  # released with 0x80, and seen swinging or running on then
-        self.fast_since = [math.inf] * n  # since when each joint moves faster than 10 deg/s, without a pause
+        self.fast_since = [math.inf] * n  # since when each joint moves faster than CREEP_DPS, without a pause
         self.ran = [False] * n  # whether its drive has run (been turned on) since connect
         self.previous_state: ArmState | None = None
         self.previous_answered: set[int] = set()
@@ -360,7 +361,7 @@ class _Checker:
 
     def _count_swing(self, i: int, qd: float, t: float) -> None:
         """The plant's count of joint ``i``'s swings since it last stood (slower than :data:`ANCHOR_DPS` for 50 ms)."""
-        if abs(qd) <= 10.0:
+        if abs(qd) <= CREEP_DPS:
             self.fast_since[i] = math.inf
         elif math.isinf(self.fast_since[i]):
             self.fast_since[i] = t

@@ -275,6 +275,10 @@ def test_sigkill_of_the_controller_mid_move_stops_every_v3_drive_within_the_link
     data = yaml.safe_load((ROOT / "configs" / "arm2.yaml").read_text())
     data["control"]["rate_hz"] = 100  # a rate every host holds in real time (the point here is the drives' stop)
     data["safety"]["link_timeout_ms"] = 50
+    # a busy host stalls a process for tens of milliseconds (this test failed on one, the controller faulting with
+    # no_reply before it moved): a quarter of a second, in time and in missed cycles, as the command-line tests allow
+    data["safety"]["reply_timeout_ms"] = 250
+    data["safety"]["max_missed_replies"] = 25
     data["joints"][1]["brake"] = True
     config_path.write_text(yaml.safe_dump(data))
     link = tmp_path / "slcan"

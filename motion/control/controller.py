@@ -86,6 +86,10 @@ class ControllerOptions:
     multi_motor_frame: bool = True
 
 
+#: How often a read before the loop is asked of a drive that did not answer (see ``Controller._read_every_drive``).
+_READ_ATTEMPTS: Final = 3
+
+
 @dataclass(frozen=True, slots=True)
 class MoveCommand:
     """Queued: a coordinated move to ``target_deg`` (joint order)."""
@@ -311,6 +315,29 @@ class Controller:
         self.turns = tuple(int(k) for k in turns)
         self._set_frame(self.base_transmission.with_turns(self.turns))
 
+    def _read_every_drive(self, reads: Sequence[Message], timeout_s: float) -> list[Reply]:
+        """``reads`` to every drive (before the loop runs), asked again of a drive that missed any of them, up to
+        :data:`_READ_ATTEMPTS` times in all (a frame lost, a host that stalled longer than ``timeout_s``: a drive
+        that answers the next time is no communication error); the replies, the latest of each drive that answered
+        every read."""
+        pending: list[int] = list(self.ids)
+        taken: dict[int, list[Reply]] = {}
+        for _ in range(_READ_ATTEMPTS):
+            requests = [Request(motor_id, message) for motor_id in pending for message in reads]
+            replies = self.bus.transact(requests, self.clock.now() + timeout_s)
+            answered: dict[int, list[Reply]] = {}
+            for reply in replies:
+                answered.setdefault(reply.motor_id, []).append(reply)
+            pending = []
+            for motor_id, group in answered.items():
+                if all(r.message is not None for r in group):
+                    taken[motor_id] = group
+                else:
+                    pending.append(motor_id)
+            if not pending:
+                break
+        return [reply for group in taken.values() for reply in group]
+
     def read_angles(self, timeout_s: float = 0.2) -> dict[int, float]:
         """Every drive's multi-turn reading (0x92), motor degrees in the drive's own frame, by motor id (an
         output-shaft reading times the drive's reduction).
@@ -318,8 +345,7 @@ class Controller:
         Raises:
             TransportError: a drive did not answer by ``timeout_s``.
         """
-        request = self.family.bare(Command.READ_MULTI_TURN_ANGLE)
-        replies = self.bus.transact([Request(mid, request) for mid in self.ids], self.clock.now() + timeout_s)
+        replies = self._read_every_drive((self.family.bare(Command.READ_MULTI_TURN_ANGLE),), timeout_s)
         gear = {s.motor_id: s.drive_gear_ratio for s in self.specs}
         angles = {
             r.motor_id: r.message.angle_deg * gear[r.motor_id]
@@ -344,8 +370,7 @@ class Controller:
         """
         family = self.family
         reads = (family.bare(Command.READ_MULTI_TURN_ANGLE), family.bare(Command.READ_STATUS_2))
-        requests = [Request(mid, m) for mid in self.ids for m in reads]
-        replies = self.bus.transact(requests, self.clock.now() + timeout_s)
+        replies = self._read_every_drive(reads, timeout_s)
         angles: dict[int, float] = {}
         states: dict[int, Message] = {}
         for reply in replies:

@@ -54,10 +54,14 @@ SWINGS_TO_RELEASE: Final = 6
 #: A swing is counted beyond this speed, joint deg/s: ten steps of the coarsest speed field (V3: whole deg/s of the
 #: output).
 SWING_DPS: Final = 10.0
-#: A halted joint that keeps moving faster than :data:`SWING_DPS` for this long without coming to rest is not held by
+#: A halted joint that keeps moving faster than :data:`CREEP_DPS` for this long without slowing down is not held by
 #: its drive's hold either (its hold point is elsewhere: a joint pushed past what its drive resists runs back to it at
-#: the drive's top speed, turns away), s: a drive's own stop from full speed takes a few tenths of a second.
+#: the drive's top speed, turns away; a drive that does not stop creeps on), s: a drive's own stop from full speed
+#: takes a few tenths of a second.
 RESTLESS_S: Final = 1.0
+#: ... moving faster than this, joint deg/s: three steps of the coarsest speed field (V3: whole deg/s of the output),
+#: above what a holding drive's reading dithers by.
+CREEP_DPS: Final = 3.0
 #: A drive turned off with 0x80 that reads more torque current than this is driving again, A: some twenty steps of
 #: the coarsest current field (0.01 A V3, 33/2048 A older drives); an off drive reads its noise, a few steps.
 OFF_CURRENT_A: Final = 0.3
@@ -103,12 +107,19 @@ class HaltGuard:
         self._turn = 0
         self._now = math.nan
         self._reads = {motor_id: Request(motor_id, bare(Command.READ_STATUS_2)) for motor_id in self.ids}
+        # (the halted cycle's requests, built once: the reads of every drive, each drive's halt as its code says,
+        # each braked joint's lock)
+        self._read_batch = [self._reads[motor_id] for motor_id in self.ids]
+        self._halts = {motor_id: Request(motor_id, bare(self.codes[motor_id])) for motor_id in self.ids}
+        lock = bare(CommandV3.LOCK_BRAKE) if self.braked_ids else None
+        self._locks = {motor_id: Request(motor_id, lock) for motor_id in self.braked_ids if lock is not None}
 
     def begin(self, code: Command) -> None:
         """A halt with ``code`` goes out to every drive now: none is known to be halted."""
         self.code = code
         braked = self.braked_ids
         self.codes = {i: Command.MOTOR_STOP if i in braked else code for i in self.ids}
+        self._halts = {i: Request(i, self._bare(c)) for i, c in self.codes.items()}
         self.unacknowledged = set(self.ids)
         for i in range(len(self.ids)):
             self._forget(i)
@@ -129,37 +140,37 @@ class HaltGuard:
 
     def halt_requests(self) -> list[Request]:
         """The halt to every drive not known to be halted, in id order."""
-        bare, codes = self._bare, self.codes
-        return [Request(motor_id, bare(codes[motor_id])) for motor_id in sorted(self.unacknowledged)]
+        halts = self._halts
+        return [halts[motor_id] for motor_id in sorted(self.unacknowledged)]
 
     def requests(self) -> list[Request]:
         """The halted cycle's batch: the halt to every drive not known to be halted and, in turn, to one drive
         whatever it shows; a state read to every drive (its readings never have gaps that its encoder's turns could
         slip through while it moves); then 0x78 to the braked joints found at rest."""
-        ids, owed = self.ids, self.unacknowledged
+        ids, owed, halts = self.ids, self.unacknowledged, self._halts
         self._turn = (self._turn + 1) % len(ids)
         reassert = ids[self._turn]
-        bare, codes, reads = self._bare, self.codes, self._reads
-        batch = [Request(i, bare(codes[i])) for i in ids if i in owed or i == reassert]
-        batch += [reads[i] for i in ids]
-        if self.braked_ids:
-            lock = self._bare(CommandV3.LOCK_BRAKE)
-            batch += [Request(motor_id, lock) for motor_id in self._brakes_due()]
+        batch = [halts[i] for i in ids if i in owed or i == reassert] if owed else [halts[reassert]]
+        batch += self._read_batch
+        if self._locks and not self._fast and len(self.locked) < len(self._locks):
+            due = self._brakes_due()
+            if due is not None:
+                batch.append(self._locks[due])
         return batch
 
-    def _brakes_due(self) -> list[int]:
+    def _brakes_due(self) -> int | None:
         """The braked joint whose brake may lock now, if any: one per cycle (a brake that locks jolts the arm; the
-        next one waits for readings at rest after that)."""
-        index = self.index
-        due = [
-            motor_id
-            for motor_id in self.braked_ids
-            if motor_id not in self.locked
-            and motor_id not in self.unacknowledged
-            and self._now - self._rest_since[index[motor_id]] >= BRAKE_REST_S
-            and not self._fast  # the whole arm calm: a joint swinging elsewhere jolts this one through the arm
-        ]
-        return due[:1]
+        next one waits for readings at rest after that), and only while the whole arm is calm (a joint swinging
+        elsewhere jolts this one through the arm: the caller checks that)."""
+        index, now, rest_since = self.index, self._now, self._rest_since
+        for motor_id in self.braked_ids:
+            if (
+                motor_id not in self.locked
+                and motor_id not in self.unacknowledged
+                and now - rest_since[index[motor_id]] >= BRAKE_REST_S
+            ):
+                return motor_id
+        return None
 
     def take(
         self,
@@ -202,7 +213,7 @@ class HaltGuard:
                     self.unacknowledged.discard(motor_id)
                 elif message.command == CommandV3.LOCK_BRAKE:
                     self.locked.add(motor_id)
-                    codes[motor_id] = self.code  # (under 0x80: its output off now, as the policy says)
+                    self._set_code(motor_id, self.code)  # (under 0x80: its output off now, as the policy says)
                     self._rest_since = [math.nan] * len(self.ids)  # the lock jolted the arm: at rest again first
             elif isinstance(message, STATE_TYPES):
                 q, qd = float(q_deg[i]), float(qd_dps[i])
@@ -228,12 +239,17 @@ class HaltGuard:
 
     def release(self, i: int) -> None:
         """Joint ``i``'s drive gets 0x80 from now on (until the next halt): its own hold does not hold it."""
-        self.codes[self.ids[i]] = Command.MOTOR_OFF
+        self._set_code(self.ids[i], Command.MOTOR_OFF)
         self._owe(i)
 
+    def _set_code(self, motor_id: int, code: Command) -> None:
+        """The drive's halt from now on is ``code``."""
+        self.codes[motor_id] = code
+        self._halts[motor_id] = Request(motor_id, self._bare(code))
+
     def _restless(self, i: int, qd: float) -> bool:
-        """Whether joint ``i`` has just moved faster than :data:`SWING_DPS` for :data:`RESTLESS_S` (once a run)."""
-        if abs(qd) <= SWING_DPS:
+        """Whether joint ``i`` has just moved faster than :data:`CREEP_DPS` for :data:`RESTLESS_S` (once a run)."""
+        if abs(qd) <= CREEP_DPS:
             self._moving_since[i] = math.nan
             return False
         if math.isnan(self._moving_since[i]):
