@@ -7,10 +7,12 @@ host, never a speed)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -155,10 +157,24 @@ def test_the_real_time_check_measures_long_enough_and_reports_its_spread(tmp_pat
     # at least MIN_SAMPLES exchanges and MEASURE_S, at most MAX_SAMPLES; the quarters' spread around the whole's figure
     copy = tmp_path / "arm2.yaml"
     copy.write_text((CONFIGS / "arm2.yaml").read_text().replace("rate_hz: 500", "rate_hz: 1"))
-    link, log = tmp_path / "can", tmp_path / "frames.log"
-    command: list[str | Path] = [sys.executable, "-m", "motion.cli", "emulate", "--config", copy]
+    link = tmp_path / "can"
+    with _emulator(copy, link, tmp_path / "frames.log"):
+        result = _cli("check", "--config", copy, "--interface", "slcan", "--channel", link, "--json")
+        assert result.returncode == 0, result.stderr  # 1 Hz holds on any host
+        figures = json.loads(result.stdout)["modes"]
+        for mode in figures.values():
+            assert MIN_SAMPLES <= mode["samples"] <= MAX_SAMPLES
+            low, high = mode["spread_hz"]
+            assert low <= high and low <= mode["highest_rate_hz"] + RATE_STEP_HZ
+            assert mode["recommended_rate_hz"] <= max(1.0, 0.8 * low)
+
+
+@contextlib.contextmanager
+def _emulator(config: Path, link: Path, log: Path, *extra: str) -> Iterator[None]:
+    """``rmd-motion emulate`` of ``config`` on a slcan pty at ``link`` (its frames to ``log``) while in the block."""
+    command: list[str | Path] = [sys.executable, "-m", "motion.cli", "emulate", "--config", config]
     emulator = subprocess.Popen(
-        [*command, "--slcan-link", link, "--log", log],
+        [*command, "--slcan-link", link, "--log", log, *extra],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -168,14 +184,7 @@ def test_the_real_time_check_measures_long_enough_and_reports_its_spread(tmp_pat
         assert emulator.stdout is not None
         while not emulator.stdout.readline().startswith("emulating motors"):
             assert emulator.poll() is None, "the emulator did not start"
-        result = _cli("check", "--config", copy, "--interface", "slcan", "--channel", link, "--json")
-        assert result.returncode == 0, result.stderr  # 1 Hz holds on any host
-        figures = json.loads(result.stdout)["modes"]
-        for mode in figures.values():
-            assert MIN_SAMPLES <= mode["samples"] <= MAX_SAMPLES
-            low, high = mode["spread_hz"]
-            assert low <= high and low <= mode["highest_rate_hz"] + RATE_STEP_HZ
-            assert mode["recommended_rate_hz"] <= max(1.0, 0.8 * low)
+        yield
     finally:
         emulator.terminate()
         emulator.communicate(timeout=10)
@@ -198,18 +207,7 @@ def test_cli_move_at_a_rate_the_bus_cannot_hold_exits_2_before_moving(tmp_path: 
     config.write_text((CONFIGS / "arm2.yaml").read_text())
     assert "rate_hz: 500" in config.read_text()
     link, log = tmp_path / "can", tmp_path / "frames.log"
-    command: list[str | Path] = [sys.executable, "-m", "motion.cli", "emulate", "--config", config]
-    emulator = subprocess.Popen(
-        [*command, "--slcan-link", link, "--log", log, "--latency-ms", "3"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=ROOT,
-    )
-    try:
-        assert emulator.stdout is not None
-        while not emulator.stdout.readline().startswith("emulating motors"):
-            assert emulator.poll() is None, "the emulator did not start"
+    with _emulator(config, link, log, "--latency-ms", "3"):
         bus = ("--interface", "slcan", "--channel", link)
         result = _cli("move", "--config", config, *bus, "shoulder=5")
         assert result.returncode == 2, result.stderr
@@ -232,6 +230,3 @@ def test_cli_move_at_a_rate_the_bus_cannot_hold_exits_2_before_moving(tmp_path: 
         assert result.returncode == 0, result.stderr
         reached = float(result.stdout.split("shoulder=")[1].split()[0])
         assert abs(reached - 5.0) < 1.0, result.stdout  # just done: the drive's own loop still settling
-    finally:
-        emulator.terminate()
-        emulator.communicate(timeout=10)
