@@ -54,8 +54,8 @@ from motion.emulator.timing import TimingModel
 from motion.errors import FaultKind, MotionError
 from motion.protocol.v3.messages import CommandV3
 from motion.safety import ArmState
-from motion.safety.halted import CREEP_DPS
 from motion.safety.halted import RESTLESS_S as RESTLESS_RELEASE_S
+from motion.safety.halted import SWING_DPS
 from tests.drive_models import DriveDraw, draw_drives, with_drives
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -100,6 +100,10 @@ _UNREACHABLE = (InjectedFault.SILENT, InjectedFault.DROP, InjectedFault.CORRUPT)
 #: 0x80 because its drive's hold swung it: below this, the release is a violation.
 SWINGS_SEEN = 4
 _LINK = (InjectedFault.SILENT, InjectedFault.DROP)
+#: A joint faster than this has left the emulated plant's model, deg/s (100 turns a second: no RMD joint turns so
+#: fast; the plant models no end stops, and a joint pushed with nothing resisting it spins up without bound, to
+#: infinite and NaN states): what follows is not checked (:attr:`Outcome.left_model_s`).
+PLANT_MODEL_DPS = 36000.0
 #: The shortest link timeout a V3 arm takes, ms (the default at 250 Hz and above): a quarter of the arm6_v3
 #: schedules have it.
 LINK_TIMEOUT_MIN_MS = 20.0
@@ -140,6 +144,8 @@ class Outcome:
     schedule: Schedule
     violations: list[str] = field(default_factory=list)
     cycles: int = 0
+    #: When the emulated plant left its model (a joint faster than :data:`PLANT_MODEL_DPS`), s; None: it never did.
+    left_model_s: float | None = None
 
     @property
     def kinds(self) -> set[str]:
@@ -236,11 +242,13 @@ class _Checker:
         self.slow_since = [math.nan] * n
         self.swing_start = [math.nan] * n  # when each joint's swings since it last stood began
         self.released = [False] * n  # released with 0x80, and seen swinging or running on then
-        self.fast_since = [math.inf] * n  # since when each joint moves faster than CREEP_DPS, without a pause
+        self.fast_since = [math.inf] * n  # since when each joint moves faster than SWING_DPS, without a pause
         self.ran = [False] * n  # whether its drive has run (been turned on) since connect
         self.previous_state: ArmState | None = None
         self.previous_answered: set[int] = set()
         self.reported: set[str] = set()
+        #: The violations found before the plant left its model.
+        self.kept = 0
         #: Each drive's link-loss trips seen so far (a new one while no link fault acts on it is a violation).
         self.link_losses = {motor_id: getattr(self.drives[motor_id], "link_losses", 0) for motor_id in self.ids}
         for i, motor_id in enumerate(self.ids):
@@ -305,6 +313,12 @@ class _Checker:
         state = supervisor.state
         q_rad, qd_rad = plant.state()
         q, qd = np.degrees(q_rad), np.degrees(qd_rad)
+        if self.outcome.left_model_s is not None:
+            return
+        if not np.all(np.abs(qd) <= PLANT_MODEL_DPS):  # (NaN included)
+            self.outcome.left_model_s = t
+            self.kept = len(self.outcome.violations)
+            return
         halted = state in (ArmState.HALTING, ArmState.HALTED)
         still_states = halted or state is ArmState.HOLDING
         answered = {r.motor_id for r in replies if r.message is not None}
@@ -361,7 +375,7 @@ class _Checker:
 
     def _count_swing(self, i: int, qd: float, t: float) -> None:
         """The plant's count of joint ``i``'s swings since it last stood (slower than :data:`ANCHOR_DPS` for 50 ms)."""
-        if abs(qd) <= CREEP_DPS:
+        if abs(qd) <= SWING_DPS:
             self.fast_since[i] = math.inf
         elif math.isinf(self.fast_since[i]):
             self.fast_since[i] = t
@@ -440,9 +454,14 @@ def run(schedule: Schedule) -> Outcome:
         _with_latency(arm, schedule.drives.latency_s)
     with _wall_limit(WALL_LIMIT_S):
         try:
-            _play(arm, schedule, faults, outcome)
+            kept = _play(arm, schedule, faults, outcome)
         except _WallTimeout as exc:
             outcome.violations.append(f"escape: {exc}")
+            kept = None
+    if outcome.left_model_s is not None and kept is not None:
+        # what the emulation did after its plant left its model (speeds no joint has: no end stops are modelled, and
+        # its state runs to infinity and NaN) says nothing of the controller
+        del outcome.violations[kept:]
     return outcome
 
 
@@ -459,7 +478,10 @@ def _with_latency(arm: Arm, latency_s: float) -> None:
     arm._start_simulation = started  # type: ignore[method-assign]
 
 
-def _play(arm: Arm, schedule: Schedule, faults: list[Fault], outcome: Outcome) -> None:
+def _play(arm: Arm, schedule: Schedule, faults: list[Fault], outcome: Outcome) -> int | None:
+    """Play the schedule; returns how many violations were found before the plant left its model (None: it never
+    did, or no checker ran)."""
+
     def guarded(what: str, call: Callable[[], object]) -> None:
         try:
             call()
@@ -504,7 +526,7 @@ def _play(arm: Arm, schedule: Schedule, faults: list[Fault], outcome: Outcome) -
             for motor_id, drive in sorted(drives.items()):
                 if getattr(drive, "link_losses", 0) and motor_id not in linked:
                     outcome.violations.append(f"link: drive {motor_id} tripped its link-loss protection in the session")
-    del checker
+    return None if checker is None else checker.kept
 
 
 def _act(arm: Arm, schedule: Schedule, guarded: Callable[[str, Callable[[], object]], None]) -> None:

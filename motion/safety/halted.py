@@ -54,14 +54,12 @@ SWINGS_TO_RELEASE: Final = 6
 #: A swing is counted beyond this speed, joint deg/s: ten steps of the coarsest speed field (V3: whole deg/s of the
 #: output).
 SWING_DPS: Final = 10.0
-#: A halted joint that keeps moving faster than :data:`CREEP_DPS` for this long without slowing down is not held by
+#: A halted joint that keeps moving faster than :data:`SWING_DPS` for this long without coming to rest is not held by
 #: its drive's hold either (its hold point is elsewhere: a joint pushed past what its drive resists runs back to it at
-#: the drive's top speed, turns away; a drive that does not stop creeps on), s: a drive's own stop from full speed
-#: takes a few tenths of a second.
+#: the drive's top speed, turns away), s: a drive's own stop from full speed takes a few tenths of a second. (Not
+#: slower motion: at 3 deg/s the explorer found drawn drives whose hold settles a loaded joint that slowly, released
+#: without need.)
 RESTLESS_S: Final = 1.0
-#: ... moving faster than this, joint deg/s: three steps of the coarsest speed field (V3: whole deg/s of the output),
-#: above what a holding drive's reading dithers by.
-CREEP_DPS: Final = 3.0
 #: A drive turned off with 0x80 that reads more torque current than this is driving again, A: some twenty steps of
 #: the coarsest current field (0.01 A V3, 33/2048 A older drives); an off drive reads its noise, a few steps.
 OFF_CURRENT_A: Final = 0.3
@@ -248,8 +246,10 @@ class HaltGuard:
         self._halts[motor_id] = Request(motor_id, self._bare(code))
 
     def _restless(self, i: int, qd: float) -> bool:
-        """Whether joint ``i`` has just moved faster than :data:`CREEP_DPS` for :data:`RESTLESS_S` (once a run)."""
-        if abs(qd) <= CREEP_DPS:
+        """Whether joint ``i`` has just moved faster than :data:`SWING_DPS` for :data:`RESTLESS_S` (once a run), by
+        itself: while another joint moves that fast too (one falling, its drive off or unreachable), a joint its
+        hold resists with is dragged through the arm, and released it would only coast further."""
+        if abs(qd) <= SWING_DPS or len(self._fast) > 1:
             self._moving_since[i] = math.nan
             return False
         if math.isnan(self._moving_since[i]):
@@ -262,8 +262,9 @@ class HaltGuard:
 
     def _swung(self, i: int, qd: float) -> bool:
         """Count the swings of joint ``i`` (its speed beyond :data:`SWING_DPS`, the other way than the last one) since
-        it last stood at rest for :data:`BRAKE_REST_S`: True when they reach :data:`SWINGS_TO_RELEASE`."""
-        if abs(qd) <= SWING_DPS:
+        it last stood at rest for :data:`BRAKE_REST_S`: True when they reach :data:`SWINGS_TO_RELEASE`. Swings while
+        another joint moves that fast too are not its own (see :meth:`_restless`): they are not counted."""
+        if abs(qd) <= SWING_DPS or len(self._fast) > 1:
             return False
         sign = math.copysign(1.0, qd)
         if sign == self._swing_sign[i]:
