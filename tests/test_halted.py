@@ -7,6 +7,7 @@ fault-schedule explorer (:mod:`tests.fault_explorer`) over random schedules and 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import logging
 from collections.abc import Iterator
 from pathlib import Path
@@ -535,3 +536,32 @@ def test_a_joint_dithering_on_its_limit_while_halted_is_one_excursion() -> None:
         _, outside, _ = guard.take(replies, axes, lambda _i, q_deg: q_deg <= 90.0, 0.01 * k)
         reported += [k for _ in outside]
     assert reported == [1, 7]  # out, dithering, back 0.6 deg inside, out again
+
+
+def test_on_rs485_a_silent_drive_goes_last_in_every_halted_cycle(tmp_path: Path) -> None:
+    # (review) the halted cycle put a drive owed its halt (a silent one is owed every cycle) first, in id order: on
+    # RS485, where each request waits its share of the cycle for its reply, its timeouts delayed every other drive's
+    log = tmp_path / "frames.log"
+    arm = Arm(
+        _config("arm2_rs485.yaml", HaltPolicy.STOP),
+        emulate=True,
+        emulator_log=log,
+        faults=[Fault(InjectedFault.SILENT, 1, 0.3)],
+    )
+    starts: list[float] = []
+    with arm:
+        assert arm.controller is not None and arm.frame_log is not None
+        arm.controller.cycle_hooks.append(lambda _c, start_s, _r: starts.append(start_s))
+        with pytest.raises(MotionFault):
+            arm.move_to({"shoulder": 30.0, "elbow": -30.0}, wait=False).wait(3.0)
+        arm.sleep(0.3)
+        assert arm.supervisor is not None and arm.supervisor.state is ArmState.HALTED
+        halted_from = arm.controller.clock.now() - 0.2
+        start_s = arm.frame_log.start_s
+    rig = type("LogOf", (), {"frame_log": log, "log_start_s": start_s, "family": ProtocolFamily.V2})()
+    requests = [(t, motor_id) for t, motor_id, _ in logged_requests(rig)]
+    cycles = [s for s in starts if s >= halted_from]
+    assert len(cycles) > 5
+    for begin, end in itertools.pairwise(cycles):
+        ids = [motor_id for t, motor_id in requests if begin <= t < end]
+        assert ids and ids[0] == 2 and 1 in ids, (begin, ids)  # the healthy drive first, the silent one still asked

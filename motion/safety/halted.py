@@ -104,6 +104,7 @@ class HaltGuard:
         self._fast: set[int] = set()  # joints whose latest reading is faster than SWING_DPS
         self._turn = 0
         self._now = math.nan
+        self._silent: set[int] = set()  # drives whose latest reply is missing
         self._reads = {motor_id: Request(motor_id, bare(Command.READ_STATUS_2)) for motor_id in self.ids}
         # (the halted cycle's requests, built once: the reads of every drive, each drive's halt as its code says,
         # each braked joint's lock)
@@ -138,18 +139,20 @@ class HaltGuard:
 
     def halt_requests(self) -> list[Request]:
         """The halt to every drive not known to be halted, in id order."""
-        halts = self._halts
-        return [halts[motor_id] for motor_id in sorted(self.unacknowledged)]
+        halts, silent = self._halts, self._silent
+        return [halts[motor_id] for motor_id in sorted(self.unacknowledged, key=lambda i: (i in silent, i))]
 
     def requests(self) -> list[Request]:
         """The halted cycle's batch: the halt to every drive not known to be halted and, in turn, to one drive
         whatever it shows; a state read to every drive (its readings never have gaps that its encoder's turns could
         slip through while it moves); then 0x78 to the braked joints found at rest."""
-        ids, owed, halts = self.ids, self.unacknowledged, self._halts
+        ids, owed, halts, silent = self.ids, self.unacknowledged, self._halts, self._silent
         self._turn = (self._turn + 1) % len(ids)
         reassert = ids[self._turn]
+        if silent:  # the drives that missed their last reply last: on RS485 their timeouts delay nobody's frames
+            ids = tuple(sorted(ids, key=lambda i: i in silent))
         batch = [halts[i] for i in ids if i in owed or i == reassert] if owed else [halts[reassert]]
-        batch += self._read_batch
+        batch += [self._reads[i] for i in ids] if silent else self._read_batch
         if self._locks and not self._fast and len(self.locked) < len(self._locks):
             due = self._brakes_due()
             if due is not None:
@@ -196,6 +199,8 @@ class HaltGuard:
         driving: list[int] = []
         outside: list[int] = []
         swinging: list[int] = []
+        answered: set[int] = set()
+        unanswered: set[int] = set()
         for reply in replies:
             i = index.get(reply.motor_id)
             if i is None:
@@ -204,7 +209,10 @@ class HaltGuard:
             motor_id = reply.motor_id
             if message is None:  # silent, dropped or corrupt: whatever it did meanwhile, halt it again
                 self._owe(i)
-            elif isinstance(message, BARE_TYPES):
+                unanswered.add(motor_id)
+                continue
+            answered.add(motor_id)
+            if isinstance(message, BARE_TYPES):
                 if message.command == codes[motor_id]:
                     if not self._acknowledged[i]:
                         self._acknowledged[i] = True
@@ -233,6 +241,9 @@ class HaltGuard:
                 if self._driving(i, q, qd, float(iq_a[i])):
                     driving.append(i)
                     self._owe(i)
+        if unanswered or self._silent:  # silent: not one of its replies came (one that answered some is alive)
+            self._silent -= answered
+            self._silent |= unanswered - answered
         return driving, outside, swinging
 
     def release(self, i: int) -> None:
