@@ -404,6 +404,29 @@ REGRESSIONS: tuple[Schedule, ...] = (
         faults=("drop:1@0.5",),
         actions=((0.0, "move", (30.0, -30.0, 40.0, 20.0, 30.0, 10.0)),),
     ),
+    # a joint dragged through the arm by one whose drive went silent (torque mode: it keeps its last torque) was
+    # released with 0x80 as if its own hold failed
+    Schedule(
+        "arm6.yaml",
+        HaltPolicy.STOP,
+        ControlMode.TORQUE,
+        faults=("silent:3@0.696",),
+        actions=(
+            (0.0, "move", (66.5, -18.5, -15.3, -22.6, -37.6, 79.5)),
+            (0.319, "move", (35.3, -56.1, 21.5, 19.2, -31.9, 10.3)),
+        ),
+        drives=DriveDraw(
+            (
+                JointDraw(0.507, 0.875, 1.24, 0.863),
+                JointDraw(1.65, 0.922, 0.898, 1.06),
+                JointDraw(0.665, 0.98, 1.15, 0.647),
+                JointDraw(0.787, 1.2, 1.03, 0.764),
+                JointDraw(1.44, 0.994, 0.845, 0.86),
+                JointDraw(0.731, 1.05, 0.942, 0.707),
+            ),
+            latency_s=0.000962,
+        ),
+    ),
 )
 
 

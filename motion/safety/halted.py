@@ -251,6 +251,12 @@ class HaltGuard:
         self._set_code(self.ids[i], Command.MOTOR_OFF)
         self._owe(i)
 
+    def _others_unsettled(self) -> bool:
+        """Whether a joint other than the one being read may be moving fast: one read faster than :data:`SWING_DPS`
+        besides it, or one whose drive did not answer (its joint unseen: a silent drive in torque mode keeps its last
+        torque command)."""
+        return len(self._fast) > 1 or bool(self._silent)
+
     def _set_code(self, motor_id: int, code: Command) -> None:
         """The drive's halt from now on is ``code``."""
         self.codes[motor_id] = code
@@ -260,7 +266,7 @@ class HaltGuard:
         """Whether joint ``i`` has just moved faster than :data:`SWING_DPS` for :data:`RESTLESS_S` (once a run), by
         itself: while another joint moves that fast too (one falling, its drive off or unreachable), a joint its
         hold resists with is dragged through the arm, and released it would only coast further."""
-        if abs(qd) <= SWING_DPS or len(self._fast) > 1:
+        if abs(qd) <= SWING_DPS or self._others_unsettled():
             self._moving_since[i] = math.nan
             return False
         if math.isnan(self._moving_since[i]):
@@ -275,7 +281,7 @@ class HaltGuard:
         """Count the swings of joint ``i`` (its speed beyond :data:`SWING_DPS`, the other way than the last one) since
         it last stood at rest for :data:`BRAKE_REST_S`: True when they reach :data:`SWINGS_TO_RELEASE`. Swings while
         another joint moves that fast too are not its own (see :meth:`_restless`): they are not counted."""
-        if abs(qd) <= SWING_DPS or len(self._fast) > 1:
+        if abs(qd) <= SWING_DPS or self._others_unsettled():
             return False
         sign = math.copysign(1.0, qd)
         if sign == self._swing_sign[i]:
