@@ -128,6 +128,7 @@ class HaltGuard:
         """The arm was cleared: nothing is halted, nothing is owed."""
         self.unacknowledged.clear()
         self.locked.clear()
+        self._silent.clear()
         for i in range(len(self.ids)):
             self._forget(i)
             self._outside[i] = False
