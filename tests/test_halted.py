@@ -293,6 +293,21 @@ def test_at_close_every_halt_goes_first_and_a_silent_drive_delays_nobodys(tmp_pa
     assert max(halts[i] for i in healthy) < min(settings.values())  # halts first, every one
 
 
+def test_a_close_keeps_sending_the_halt_to_a_drive_that_acknowledges_late() -> None:
+    # (CI, a loaded host) the halt of a bus closed under a running loop was acknowledged after the close's one
+    # exchange: the arm stayed HALTING, and a drive silent just then was left under its last command
+    arm = Arm(_config("arm2.yaml", HaltPolicy.STOP), emulate=True, faults=[Fault(InjectedFault.SILENT, 2, 0.3, 0.36)])
+    with arm:
+        supervisor, bus = arm.supervisor, arm.bus
+        assert supervisor is not None and bus is not None
+        arm.move_to({"shoulder": 60.0, "elbow": -60.0}, wait=False)
+        arm.sleep(0.31)
+        assert supervisor.state is ArmState.HALTING  # drive 2 missed its replies
+        bus.close()
+        assert supervisor.state is ArmState.HALTED and not supervisor.unacknowledged
+        assert _drives(arm)[2].state is RunState.STOPPED
+
+
 @pytest.mark.parametrize("varying", [False, True], ids=["same-message", "message-with-a-count"])
 def test_an_exception_in_every_halted_cycle_is_recorded_once(caplog: pytest.LogCaptureFixture, varying: bool) -> None:
     # case 9: a cycle hook (or the view's tap) raising in every cycle while halted re-halted and appended a record

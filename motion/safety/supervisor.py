@@ -297,14 +297,23 @@ class Supervisor:
             guard.begin(Command.MOTOR_STOP)  # the drives' own stop now, kept as in a halted cycle (brakes included)
         owed = guard.unacknowledged
         order = sorted(self.ids, key=lambda i: (i in owed, i))
+        until = clock.now() + _SETUP_WINDOW_S
         try:
             replies = bus.transact(
                 [Request(i, self._bare(guard.codes[i])) for i in order], clock.now() + self._end_window_s
             )
             controller.absorb(replies)
             guard.take(replies, controller.axes, self._within, clock.now())
+            # Late acknowledgements (a loaded host, a slow drive): halted cycles, each a short exchange that reads
+            # every drive (none starves into its link-loss stop), until every drive acknowledged or ``until``.
+            while guard.unacknowledged and clock.now() < until:
+                replies = bus.transact(guard.requests(), min(until, clock.now() + self._end_window_s))
+                controller.absorb(replies)
+                guard.take(replies, controller.axes, self._within, clock.now())
         except Exception as exc:  # the session ends anyway: leave a trace
             logger.error("the halt at the end of the session failed: %s: %s", type(exc).__name__, exc)
+        if self.machine.state is ArmState.HALTING and not guard.unacknowledged:
+            self.machine.fire(ArmEvent.ACKNOWLEDGED)
         if self.drives.braked_ids and not self.drives.brakes_locked:
             self._lock_brakes_at_rest(clock.now() + _BRAKE_SETTLE_S)
         self.drives.restore(clock.now() + _SETUP_WINDOW_S, lock=())  # (the brakes: above, only where at rest)
