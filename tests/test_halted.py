@@ -302,9 +302,11 @@ def test_a_close_keeps_sending_the_halt_to_a_drive_that_acknowledges_late() -> N
         assert supervisor is not None and bus is not None
         arm.move_to({"shoulder": 60.0, "elbow": -60.0}, wait=False)
         arm.sleep(0.31)
-        assert supervisor.state is ArmState.HALTING  # drive 2 missed its replies
+        before = supervisor.state
+        assert before is ArmState.HALTING  # drive 2 missed its replies
         bus.close()
-        assert supervisor.state is ArmState.HALTED and not supervisor.unacknowledged
+        after = supervisor.state
+        assert after is ArmState.HALTED and not supervisor.unacknowledged
         assert _drives(arm)[2].state is RunState.STOPPED
 
 
