@@ -386,7 +386,7 @@ def safety_settings(config: ArmConfig) -> SafetySettings:
             math.inf if j.collision_threshold_nm is None else j.collision_threshold_nm for j in config.joints
         ),
         collision_reaction=config.collision_reaction,
-        collision_window_cycles=safety.collision_window_cycles,
+        collision_window_s=safety.collision_window_s,
         coulomb_friction_nm=tuple(j.coulomb_friction_nm for j in config.joints),
     )
 

@@ -43,7 +43,7 @@ column             shape  dtype    meaning (unit)
 ``residual_nm``    N×J    float64  the collision observer's residual: the estimated external torque (N·m); NaN in
                                    the cycles it did not run (no observer, a state reply missing, halted)
 ``collision_signal_nm`` N×J float64 what the collision thresholds apply to: the residual's change over
-                                   ``safety.collision_window_cycles`` (N·m); NaN likewise
+                                   ``safety.collision_window_s`` (N·m); NaN likewise
 ``fault_t_s``      F      float64  detection time of each fault (s)
 ``fault_halt_s``   F      float64  time its halt went out (s)
 ``fault_kind``     F      str      the fault kind (``following_error``, ``no_reply``, ..., ``close`` at the end)

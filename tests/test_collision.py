@@ -101,7 +101,7 @@ def test_observer_sees_nothing_when_the_model_explains_the_motion() -> None:
 def test_configuration_keys_are_validated(tmp_path: Path) -> None:
     data = read_yaml(ARM6)
     config = parse_config(data, "arm6", ARM6.parent)
-    assert config.joints[1].collision_threshold_nm == 1.974 and config.collision_watched
+    assert config.joints[1].collision_threshold_nm == 1.969 and config.collision_watched
     assert config.collision_reaction is HaltPolicy.HOLD  # the halt policy (hold means 0x81 for a collision)
     # the emulated friction defaults to the joint's model
     data["joints"][0]["viscous_friction_nm_per_dps"] = 3.0e-4
@@ -109,8 +109,12 @@ def test_configuration_keys_are_validated(tmp_path: Path) -> None:
     cases = [
         (("joints", 0, "collision_threshold_nm", 0.0), "joints[0].collision_threshold_nm"),
         (("joints", 0, "coulomb_friction_nm", -1.0), "joints[0].coulomb_friction_nm"),
-        (("safety", None, "collision_gain_per_cycle", 1.5), "safety.collision_gain_per_cycle"),
-        (("safety", None, "collision_window_cycles", -1), "safety.collision_window_cycles"),
+        (("safety", None, "collision_observer_gain_per_s", 0.0), "safety.collision_observer_gain_per_s"),
+        (("safety", None, "collision_window_s", -0.01), "safety.collision_window_s"),
+        (("safety", None, "collision_window_s", 2.0), "safety.collision_window_s"),
+        # the keys in control cycles (their meaning changed with the rate) name what replaced them
+        (("safety", None, "collision_window_cycles", 8), "replaced by collision_window_s, in seconds"),
+        (("safety", None, "collision_gain_per_cycle", 0.5), "replaced by collision_observer_gain_per_s"),
         (("safety", None, "collision_reaction", "comply"), "comply needs control.mode torque"),
         (("control", None, "halt_policy", "comply"), "safety.collision_reaction instead"),
     ]

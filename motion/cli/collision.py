@@ -1,7 +1,7 @@
 """``rmd-motion collision-calibrate``: thresholds for the collision observer from the residuals of a program.
 
 The program runs with the observer on and no threshold armed (the other fault sources stay armed); every cycle's
-collision signal (the residual's change over ``safety.collision_window_cycles``, see :mod:`motion.safety.watchdog`)
+collision signal (the residual's change over ``safety.collision_window_s``, see :mod:`motion.safety.watchdog`)
 is watched, and each joint's proposed threshold is its largest |signal| times ``--margin``. The proposal is printed
 and, with ``--write``, written into a copy of the configuration. Run the arm's real work (its fastest moves) on the
 real arm: the thresholds hold only for motions like the ones they were calibrated on. ``--emulate`` runs the program

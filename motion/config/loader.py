@@ -171,6 +171,15 @@ def _to_interval(value: object) -> tuple[float, float]:
     return (low, high)
 
 
+#: Keys of earlier versions, and what replaced them (a key in control cycles changed its meaning with the rate).
+_REPLACED = {
+    "collision_window_cycles": "replaced by collision_window_s, in seconds (the cycles times the control period: "
+    "8 cycles at 250 Hz is 0.032)",
+    "collision_gain_per_cycle": "replaced by collision_observer_gain_per_s, the observer gain K_O in 1/s (the gain "
+    "per cycle times control.rate_hz: 0.5 at 250 Hz is 125)",
+}
+
+
 class _Node:
     """A YAML mapping being read into one of the schema dataclasses.
 
@@ -203,6 +212,8 @@ class _Node:
                     self._defaults[f.name] = f.default_factory()
         allowed -= set(hidden)
         for key in data:
+            if key in _REPLACED and key not in allowed:
+                raise self.error(str(key), _REPLACED[str(key)])
             if key not in allowed:
                 close = difflib.get_close_matches(str(key), allowed, n=1)
                 hint = f" (did you mean {close[0]!r}?)" if close else ""
@@ -345,9 +356,8 @@ def _safety(node: _Node, control: schema.ControlConfig) -> schema.SafetyConfig:
         reply_timeout_ms=node.number("reply_timeout_ms", _Range(0, 1000, lo_open=True)),
         max_missed_replies=node.integer("max_missed_replies", _Range(0, 100)),
         collision_reaction=reaction,
-        # the observer's discrete update is stable and does not overshoot up to the deadbeat gain 1 per cycle
-        collision_gain_per_cycle=node.number("collision_gain_per_cycle", _Range(0, 1, lo_open=True)),
-        collision_window_cycles=node.integer("collision_window_cycles", _Range(0, 100)),
+        collision_observer_gain_per_s=node.number("collision_observer_gain_per_s", _Range(0, 10000, lo_open=True)),
+        collision_window_s=node.number("collision_window_s", _Range(0, 1)),
         link_timeout_ms=(
             node.number("link_timeout_ms", _Range(0, LINK_TIMEOUT_MAX_MS)) if node.has("link_timeout_ms") else None
         ),

@@ -340,11 +340,11 @@ class SafetyConfig:
         max_missed_replies: consecutive missed replies of one drive tolerated before a fault.
         collision_reaction: the reaction to a ``collision`` fault: a halt policy, or ``comply`` (torque mode only);
             None: ``control.halt_policy`` (``hold`` then means 0x81: a collision is not holdable).
-        collision_gain_per_cycle: the momentum observer's gain K_O times the control period (0 < x <= 1): its
-            residual follows an external torque step as ``1 - (1 - x)^n`` after n cycles (1: deadbeat, noisiest).
-        collision_window_cycles: the thresholds apply to the residual's change over this many cycles (0..100; 0: to
-            the residual itself), which cancels slowly varying model errors (see :mod:`motion.safety.watchdog`); a
-            collision must be detected within the window.
+        collision_observer_gain_per_s: the momentum observer's gain K_O, 1/s: its residual follows an external
+            torque step as ``1 - exp(-K_O t)`` (per step ``K_O × dt``, at most 1: deadbeat); the noise the speed
+            field's steps put in the residual grows with it (see :mod:`motion.safety.watchdog`).
+        collision_window_s: the thresholds apply to the residual's change over this long, s (0..1; 0: to the
+            residual itself), which cancels slowly varying model errors; a collision must be detected within it.
         link_timeout_ms: V3-driver drives: the communication-loss time set in each drive at start (0xB3), in
             milliseconds: a drive that gets no frame for this long cuts its output and locks its brake by itself
             (the host died, the cable dropped); 0 leaves the protection off; None: five control periods, at least
@@ -356,8 +356,8 @@ class SafetyConfig:
     reply_timeout_ms: float = 20.0
     max_missed_replies: int = 3
     collision_reaction: HaltPolicy | None = None
-    collision_gain_per_cycle: float = 0.5
-    collision_window_cycles: int = 8
+    collision_observer_gain_per_s: float = 125.0
+    collision_window_s: float = 0.032
     link_timeout_ms: float | None = None
 
 

@@ -239,6 +239,9 @@ class Controller:
         self.cycle_hooks: list[Callable[[Controller, float, list[Reply]], None]] = []
         #: The latest exchange's replies.
         self.last_replies: list[Reply] = []
+        #: When the latest cycle's exchange went out, s: the drives sampled what they answered then (the collision
+        #: observer steps between these instants, the tracking model runs from them: a late cycle is a longer step).
+        self.exchanged_s = 0.0
         #: A per-joint array the safety layer keeps up to date (its collision signal, N·m), published in every
         #: snapshot as it stands (NaN: none).
         self.published_signal: NDArray[np.float64] = np.full(n, np.nan)
@@ -646,12 +649,13 @@ class Controller:
     def _exchange(self, requests: list[Request], start_s: float, deadline_s: float, commanded: bool) -> list[Reply]:
         if self._angle_reads:
             requests.extend(self._angle_reads)
+        self.exchanged_s = sent_s = self.clock.now()
         replies = self.bus.transact(requests, start_s + self._reply_budget * (deadline_s - start_s))
         if self.tracking.unread:
             replies = self.tracking.take_replies(replies)
         self.last_replies = replies  # (for a caller whose cycle a hook below ends with an exception)
         self.absorb(replies)
-        self._track(start_s, self.reference, commanded)
+        self._track(max(start_s, sent_s), self.reference, commanded)
         self._publish(self.loop.cycles + 1, start_s, commanded)  # (the loop counts the cycle once it has ended)
         for hook in self.cycle_hooks:
             hook(self, start_s, replies)
@@ -760,6 +764,7 @@ class Controller:
             raise MotionError("read_positions() must run before the rate check")
         self.reference = ref = follower.sample(now_s)
         self._build(ref)
+        self.exchanged_s = now_s
         self.absorb(replies)
         self._track(now_s, ref, True)
         self._publish(self.loop.cycles, now_s, False)

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from typing import Final
 
 from motion.protocol import Bare, Command, ErrorFlags, Message, MotorState, Status1
+from motion.protocol.scales import IQ_SCALE
 from motion.protocol.table import Direction, ProtocolFamily, WireProtocol, field_range
 from motion.protocol.v3.messages import (
     AccelerationIndex,
@@ -58,6 +59,8 @@ class DriveFamily:
         over_temperature: the error bit of an over-temperature.
         status_type: the 0x9A reply's message class.
         state_type: the motion replies' message class.
+        speed_step_dps: the step of the motion replies' speed field, in the drive's units (deg/s).
+        current_step_a: the step of the motion replies' torque-current field, A.
         max_speed_dps: the largest 0xA4 speed cap on CAN, in the drive's units (deg/s).
         rs485_max_speed_dps: the same on RS485.
     """
@@ -76,6 +79,8 @@ class DriveFamily:
     over_temperature: int
     status_type: type[Message]
     state_type: type[Message]
+    speed_step_dps: float
+    current_step_a: float
     max_speed_dps: float
     rs485_max_speed_dps: float
     _bare: Callable[[int], Message]
@@ -117,6 +122,8 @@ FAMILIES: Final[Mapping[ProtocolFamily, DriveFamily]] = {
         over_temperature=ErrorFlags.OVER_TEMPERATURE,
         status_type=Status1,
         state_type=MotorState,
+        speed_step_dps=1.0,
+        current_step_a=IQ_SCALE[0] / IQ_SCALE[1],
         max_speed_dps=field_range(_A4_V2, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps")[1],
         rs485_max_speed_dps=field_range(_A4_V2, Direction.REQUEST, WireProtocol.RS485, "max_speed_dps")[1],
         _bare=_v2_bare,
@@ -136,6 +143,8 @@ FAMILIES: Final[Mapping[ProtocolFamily, DriveFamily]] = {
         over_temperature=SystemErrorFlags.OVER_TEMPERATURE,
         status_type=Status1V3,
         state_type=MotorStateV3,
+        speed_step_dps=1.0,
+        current_step_a=0.01,  # (the V3 table's iq: int16, 0.01 A)
         max_speed_dps=field_range_v3(_A4_V3, Direction.REQUEST, "max_speed_dps")[1],
         rs485_max_speed_dps=field_range_v3(_A4_V3, Direction.REQUEST, "max_speed_dps")[1],
         _bare=_v3_bare,

@@ -198,7 +198,7 @@ class Attachment(ABC, Generic[W, R]):
             self.stats.unanswered += 1
         request_end = self._bus.occupy(arrival_s, request_time_s) if self.timing.bus_time else arrival_s
         for outgoing in exchange.replies:
-            self._schedule(outgoing, request_end + self.timing.latency_s + outgoing.delay_s)
+            self._schedule(outgoing, request_end + self.timing.reply_delay_s() + outgoing.delay_s)
 
     def _flush(self) -> None:
         now = time.monotonic()

@@ -169,7 +169,7 @@ class Simulation:
             if due is not None and due <= limit_s and due <= start:
                 emulator.advance_to(due)
                 for outgoing in emulator.active_replies(due):
-                    self._push(due + self.timing.latency_s, False, outgoing.wire, outgoing)
+                    self._push(due + self.timing.reply_delay_s(), False, outgoing.wire, outgoing)
                 continue
             if start > limit_s:
                 return
@@ -206,7 +206,7 @@ class Simulation:
         if not exchange.replies:
             self.unanswered += 1
         for outgoing in exchange.replies:
-            ready = arrival_s + self.timing.latency_s + outgoing.delay_s
+            ready = arrival_s + self.timing.reply_delay_s() + outgoing.delay_s
             self._push(ready, False, outgoing.wire, outgoing)
 
     def _log(self, direction: str, wire: CanFrame | bytes, decoded: str, time_s: float) -> None:

@@ -15,8 +15,10 @@ A drive executes a request when it arrives; the model delays the replies (by the
 from __future__ import annotations
 
 import math
+import random
 import re
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import Final
 
 #: Default reply latency of an emulated drive, s (the RS485 document says replies come "within 0.5 ms").
@@ -35,17 +37,31 @@ class TimingModel:
         latency_s: time from the end of a request to the start of the reply, s.
         bus_time: also model the time frames occupy the bus (CAN bits at the bit rate, RS485 bytes at the baud
             rate), serialising the frames of a batch as on the wire.
+        jitter_s: each reply comes up to this much later again, drawn uniformly per reply, s.
+        seed: the seed of the jitter's draws (the same seed, the same replies).
 
     Raises:
-        ValueError: a negative or non-finite latency.
+        ValueError: a negative or non-finite latency or jitter.
     """
 
     latency_s: float = DEFAULT_LATENCY_S
     bus_time: bool = False
+    jitter_s: float = 0.0
+    seed: int = 0
+    _draw: Callable[[], float] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.latency_s) and self.latency_s >= 0):
-            raise ValueError(f"latency must be a time >= 0 s, got {self.latency_s!r}")
+        for name in ("latency_s", "jitter_s"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name.removesuffix('_s')} must be a time >= 0 s, got {value!r}")
+        object.__setattr__(self, "_draw", random.Random(self.seed).random)
+
+    def reply_delay_s(self) -> float:
+        """The time from a request's end to its reply's start, s: the latency, plus this reply's jitter."""
+        if self.jitter_s:
+            return self.latency_s + self.jitter_s * self._draw()
+        return self.latency_s
 
 
 def _crc15_table() -> tuple[int, ...]:

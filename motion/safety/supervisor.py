@@ -264,13 +264,13 @@ class Supervisor:
 
     def _await_collision_check(self) -> None:
         """Hold still until the collision check is armed (it is blind for its first observer steps after a
-        (re)start: :data:`motion.safety.watchdog.COLLISION_SETTLE_CYCLES` plus the window), so that no motion starts
+        (re)start: :attr:`~motion.safety.watchdog.Watchdog.collision_arming_s`), so that no motion starts
         unguarded: called at loop start and after a clear; a fault meanwhile ends the wait (motion is refused)."""
         watchdog, machine = self.watchdog, self.machine
         if not watchdog.collision_guarding:
             return
-        # one observer step per cycle with every reply: twice the steps, and a host's stall, before giving up
-        timeout_s = 2 * watchdog.collision_arming_steps * self.controller.period_s + _ARMING_SLACK_S
+        # twice the time, two cycles, and a host's stall, before giving up
+        timeout_s = 2 * (watchdog.collision_arming_s + self.controller.period_s) + _ARMING_SLACK_S
         if not self.controller.wait_for(lambda: watchdog.collision_armed or machine.state.faulted, timeout_s):
             logger.warning(
                 "the collision check is not armed %.3f s after the loop (re)started: collisions go unseen until it is",

@@ -12,15 +12,15 @@ it on the arm's Pinocchio model): this package never imports the model. It is up
 which every joint's state reply arrived, from the measured angles, speeds and torque currents of the cycle.
 
 What is held against a joint's threshold is the *collision signal*: the residual's change over the last
-``collision_window_cycles`` observer steps (with 0, the residual itself). A collision is a torque step, which the
-residual takes up within a few cycles; what the model gets wrong changes slowly along the motion and cancels in the
-difference: a torque constant or friction 20 % off (the residual carries 20 % of the joint's torque, which for a
-joint that holds its link against gravity can be as large as the collision to detect), and in position mode the bias
-of sampling the drives' current once per set-point (it ripples with every 0xA4 step, and the reply samples it at the
-step; the bias grows with the speed). A contact that builds up more slowly than the window is left to the following
-error. The check is armed :data:`COLLISION_SETTLE_CYCLES` plus the window after the observer (re)starts (loop start,
-``clear()``): there the drives take up their whole load at once, and any model error of that load is a step of the
-residual.
+``collision_window_s`` (with 0, the residual itself). A collision is a torque step, which the residual takes up
+within a few cycles; what the model gets wrong changes slowly along the motion and mostly cancels in the difference.
+What does not cancel is bounded (:mod:`motion.safety.collision_bound`: the model error a drive may have, the steps of
+the reply fields, the current between two samples), and the threshold in force is the joint's configured
+``collision_threshold_nm`` (``rmd-motion collision-calibrate`` proposes it) or that bound, whichever is higher: no
+calibration takes the check below what a drive within the stated bounds can show. A contact that builds up more
+slowly than the window is left to the following error. The check is armed
+:data:`COLLISION_SETTLE_TIME_CONSTANTS` of the observer plus the window after it (re)starts (loop start, ``clear()``):
+there the drives take up their whole load at once, and any model error of that load is a step of the residual.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike
 
-from motion.config.schema import HaltPolicy
+from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller
 from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionFault
@@ -41,6 +41,7 @@ from motion.protocol import MultiTurnAngle, Status1
 from motion.protocol.table import Direction
 from motion.protocol.v3.messages import CommandV3, Runtime, Status1V3
 from motion.protocol.v3.table import field_range
+from motion.safety.collision_bound import CollisionBound, Window
 from motion.trajectory import State
 from motion.transmission import FloatArray
 from motion.transport import Reply
@@ -56,15 +57,39 @@ RUNTIME_WRAP_MS = field_range(CommandV3.READ_RUNTIME, Direction.REPLY, "runtime_
 RUNTIME_SLACK_MS = 1000.0
 # Window of the corrupt-frame count, s.
 CORRUPT_WINDOW_S = 1.0
+#: The share of the tracking model's lag (behind the reference) that a drive within the stated bounds may add to the
+#: following error, by control mode and whether the drives' loop settings are read (0x30, 0x33): torque mode, the
+#: torque constant (±20 %) and rotor inertia (±30 %) of the controller's own loop; position mode with the settings
+#: read, none (the model runs the drive's own loop); without them (V3 drives), a tuning from half to twice the
+#: model's prior: up to twice its lag.
+FOLLOWING_LAG_ERROR: dict[tuple[ControlMode, bool], float] = {
+    (ControlMode.TORQUE, True): 0.5,
+    (ControlMode.TORQUE, False): 0.5,
+    (ControlMode.POSITION, True): 0.0,
+    (ControlMode.POSITION, False): 1.0,
+}
 # Expected joint speed above which a joint counts as moving for the following-error check, deg/s.
 _MOVING_DPS = 1.0
-#: Observer steps after a (re)start before collisions are checked, on top of the window: the residual of the
-#: drives taking up their load settles (at the default gain, 1 - 0.5**5 = 97 %).
-COLLISION_SETTLE_CYCLES = 5
+#: Observer time constants (1 / K_O) after a (re)start before collisions are checked, on top of the window: the
+#: residual of the drives taking up their load settles (1 - exp(-3.5) = 97 %).
+COLLISION_SETTLE_TIME_CONSTANTS = 3.5
 
 
 class CollisionObserver(Protocol):
     """An estimate of the external joint torques (``kinematics.observer.MomentumObserver``)."""
+
+    #: The observer gain K_O, 1/s.
+    gain_per_s: float
+
+    @property
+    def error_terms(self) -> FloatArray:
+        """The filtered motor, rotor-inertial and friction torques (3 × joints, N·m) of the latest step."""
+        ...
+
+    @property
+    def inertia_kgm2(self) -> FloatArray:
+        """The diagonal of M(q) at the latest step, kg·m²."""
+        ...
 
     def reset(self, q_deg: ArrayLike, qd_dps: ArrayLike) -> None:
         """Start (again) from this state: the residual is zero."""
@@ -96,8 +121,7 @@ class SafetySettings:
             a joint that is not watched; empty: no joint is.
         collision_reaction: the reaction to a collision (None: ``halt_policy``; ``hold`` reacts with 0x81, a
             collision is not holdable; ``comply``: gravity compensation, torque mode).
-        collision_window_cycles: the collision signal is the residual's change over this many observer steps (0:
-            the residual itself).
+        collision_window_s: the collision signal is the residual's change over this long, s (0: the residual).
         coulomb_friction_nm: per joint, its Coulomb friction, N·m: a halted joint whose drive's hold swings it is
             released (0x80) only where gravity loads it less (empty: never released).
     """
@@ -113,7 +137,7 @@ class SafetySettings:
     halt_retry_s: float = 0.2
     collision_threshold_nm: tuple[float, ...] = ()
     collision_reaction: HaltPolicy | None = None
-    collision_window_cycles: int = 0
+    collision_window_s: float = 0.0
     coulomb_friction_nm: tuple[float, ...] = ()
 
 
@@ -163,6 +187,8 @@ class Watchdog:
         self.following: MotionFault | None = None
         self._error = np.zeros(n)
         self._slip = np.zeros(n)
+        self._following_limit = np.zeros(n)
+        self._lag_error = FOLLOWING_LAG_ERROR[controller.options.mode, controller.family.reads_loop_settings]
         self._moving = np.zeros(n, dtype=bool)
         thresholds = settings.collision_threshold_nm
         self.collision_threshold = np.array(thresholds, dtype=np.float64) if thresholds else np.full(n, np.inf)
@@ -176,10 +202,15 @@ class Watchdog:
         self.residual_nm = np.full(n, np.nan)
         #: The latest collision signal per joint (the residual's change over the window), N·m.
         self.collision_signal_nm = np.full(n, np.nan)
-        self._history = np.zeros((max(settings.collision_window_cycles, 1), n))
-        self._slot = 0
+        #: The latest threshold in force per joint: the configured one, or the bound where that is higher, N·m.
+        self.collision_limit_nm = self.collision_threshold.copy()
+        self._bound = CollisionBound(controller, observer) if observer is not None else None
+        self._window = Window(settings.collision_window_s, controller.period_s, n)
         self._steps = 0  # observer steps since its (re)start
-        self._armed_at = COLLISION_SETTLE_CYCLES + settings.collision_window_cycles
+        self._reset_s = math.nan  # when it (re)started
+        settle = COLLISION_SETTLE_TIME_CONSTANTS / observer.gain_per_s if observer is not None else 0.0
+        #: How long after the observer (re)starts the collision check is armed, s.
+        self.collision_arming_s = settle + settings.collision_window_s
         #: The loop cycle count of the cycle that computed :attr:`residual_nm` (-1: none yet).
         self.residual_cycle = -1
 
@@ -316,28 +347,30 @@ class Watchdog:
             raise held
 
     def _observe(self, now_s: float) -> bool:
-        """Step the observer with the cycle's measurements; False when a joint's state reply is missing (the next
-        complete cycle integrates over the gap)."""
+        """Step the observer with the cycle's measurements (sampled when the cycle's exchange went out); False when a
+        joint's state reply is missing (the next complete cycle integrates over the gap)."""
         observer, axes = self.observer, self.controller.axes
-        assert observer is not None
+        assert observer is not None and self._bound is not None
         if not axes.fresh.all():
             return False
-        residual, signal = self.residual_nm, self.collision_signal_nm
+        sampled_s = self.controller.exchanged_s
+        residual, signal, window = self.residual_nm, self.collision_signal_nm, self._window
         if math.isnan(self._observed_s):
             observer.reset(axes.q_deg, axes.qd_dps)
             residual[:] = 0.0
-            self._history[:] = 0.0
+            window.clear()
             self._steps = 0
+            self._reset_s = sampled_s
         else:
             tau = self.controller.transmission.joint_torque_nm(axes.iq_a, out=self._tau_motor)
-            residual[:] = observer.update(axes.q_deg, axes.qd_dps, tau, now_s - self._observed_s)
-        if self.settings.collision_window_cycles:
-            np.subtract(residual, self._history[self._slot], out=signal)
-            self._history[self._slot] = residual
-            self._slot = (self._slot + 1) % len(self._history)
+            residual[:] = observer.update(axes.q_deg, axes.qd_dps, tau, sampled_s - self._observed_s)
+        base = window.push(sampled_s, residual, observer.error_terms)
+        if self.settings.collision_window_s:
+            np.subtract(residual, window.residual[base], out=signal)
         else:
             signal[:] = residual
-        self._observed_s = now_s
+        self._bound.limit(window, base, self.collision_threshold, out=self.collision_limit_nm)
+        self._observed_s = sampled_s
         self._steps += 1
         self.residual_cycle = self.controller.loop.cycles
         return True
@@ -348,18 +381,13 @@ class Watchdog:
         return self.observer is not None and bool(np.isfinite(self.collision_threshold).any())
 
     @property
-    def collision_arming_steps(self) -> int:
-        """Observer steps after its (re)start before the check is armed (settling plus the window)."""
-        return self._armed_at + 1
-
-    @property
     def collision_armed(self) -> bool:
         """Whether the latest collision signal was (or would have been) held against the thresholds: the observer
         has settled since its (re)start (calibration looks only at these cycles)."""
-        return self._steps > self._armed_at
+        return self._steps > 1 and self._observed_s - self._reset_s >= self.collision_arming_s
 
     def _check_collision(self) -> None:
-        residual, threshold, over = self.collision_signal_nm, self.collision_threshold, self._over
+        residual, threshold, over = self.collision_signal_nm, self.collision_limit_nm, self._over
         np.abs(residual, out=self._share)
         np.greater(self._share, threshold, out=over)
         if not over.any():
@@ -368,15 +396,22 @@ class Watchdog:
         worst = int(np.argmax(self._share))
         hit = [self.names[i] for i in np.flatnonzero(over)]
         detail = "collision signal (residual change): " + ", ".join(
-            f"{self.names[i]} {residual[i]:+.2f} N·m (threshold {threshold[i]:g})" for i in np.flatnonzero(over)
+            f"{self.names[i]} {residual[i]:+.2f} N·m (threshold {threshold[i]:.3g})" for i in np.flatnonzero(over)
         )
         fault = self._fault(FaultKind.COLLISION, worst, float(residual[worst]), float(threshold[worst]), detail)
         fault.joints = tuple(hit)
         raise fault
 
+    @property
+    def following_error_deg(self) -> FloatArray:
+        """The latest following error per joint, deg (|expected - q|, plus the lag lost by slipping; zeros until a
+        cycle checked it since the expectation (re)started): the watchdog's array."""
+        return self._error
+
     def restart_following(self) -> None:
         """No following-error check in the next cycle; the expectation starts again from the measured state."""
         self._following = False
+        self._error[:] = 0.0
         controller = self.controller
         controller.tracking.reset(controller.axes.q_deg, controller.axes.qd_dps, controller.reference.position)
 
@@ -399,12 +434,23 @@ class Watchdog:
         np.subtract(tracking.expected_deg, q, out=error)
         error += slip
         np.abs(error, out=error)
-        worst = int(error.argmax())
-        limit = self.settings.following_error_deg
-        if error[worst] <= limit:
+        # the limit in force: the configured one, plus the share of the modelled lag a drive within the stated
+        # bounds may add to it (FOLLOWING_LAG_ERROR)
+        limit = self._following_limit
+        np.abs(tracking.lag_deg, out=limit)
+        limit *= self._lag_error
+        limit += self.settings.following_error_deg
+        over = self._share
+        np.divide(error, limit, out=over)
+        worst = int(over.argmax())
+        if over[worst] <= 1.0:
             return None
         return self._fault(
-            FaultKind.FOLLOWING_ERROR, worst, float(error[worst]), limit, "|expected - q| (+ lag lost by slipping)"
+            FaultKind.FOLLOWING_ERROR,
+            worst,
+            float(error[worst]),
+            float(limit[worst]),
+            "|expected - q| (+ lag lost by slipping)",
         )
 
     def _check_restart(self, i: int, message: MultiTurnAngle | Runtime, now_s: float) -> None:

@@ -1,0 +1,83 @@
+"""Clean paths on drawn drives (issue 30): run many seeded cases of :mod:`tests.clean_sweep` and print the false
+faults, the worst collision signal as a share of the threshold in force, and the worst following error as a share
+of its limit, per arm, mode and rate.
+
+    .venv/bin/python bench/clean_sweep.py --count 2000 --jobs 2
+    .venv/bin/python bench/clean_sweep.py --first 17 --count 1      # case 17 alone, described
+
+Case ``k`` is drawn from its own generator (``tests.clean_sweep.drawn``), whatever ``--jobs``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import logging
+import multiprocessing
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from tests import clean_sweep
+
+
+def _run(seed_k: tuple[int, int]) -> tuple[int, clean_sweep.Outcome]:
+    seed, k = seed_k
+    logging.disable(logging.CRITICAL)
+    return k, clean_sweep.run(clean_sweep.drawn(seed, k))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--count", type=int, default=500, help="cases to run (default 500)")
+    parser.add_argument("--first", type=int, default=0, help="index of the first case (default 0)")
+    parser.add_argument("--seed", type=int, default=30, help="seed of the draw (default 30)")
+    parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    args = parser.parse_args()
+    if args.count < 1 or args.jobs < 1 or args.first < 0:
+        parser.error("--count and --jobs must be >= 1, --first >= 0")
+    began = time.perf_counter()
+    work = [(args.seed, k) for k in range(args.first, args.first + args.count)]
+    faults = 0
+    cycles = 0
+    worst: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0, 0])
+    worst_case: list[tuple[float, int, str]] = []
+    with multiprocessing.get_context("fork").Pool(args.jobs) as pool:
+        for done, (k, outcome) in enumerate(pool.imap_unordered(_run, work), 1):
+            case = outcome.case
+            cycles += outcome.cycles
+            key = f"{case.arm} {case.mode.value} {case.rate_hz:g} Hz"
+            row = worst[key]
+            collision = float(outcome.collision_ratio.max(initial=0.0))
+            following = float(outcome.following_ratio.max(initial=0.0))
+            row[0], row[1], row[2] = max(row[0], collision), max(row[1], following), row[2] + 1
+            worst_case.append((max(collision, following), k, case.describe()))
+            if outcome.fault is not None or args.count == 1:
+                faults += outcome.fault is not None
+                print(f"case {k}: {outcome.fault}\n  {case.describe()}", flush=True)
+            if done % 50 == 0:
+                print(
+                    f"... {done}/{args.count} cases, {faults} faults, {time.perf_counter() - began:.0f} s",
+                    file=sys.stderr,
+                )
+    elapsed = time.perf_counter() - began
+    print(
+        f"\n{args.count} cases (seed {args.seed}, first {args.first}), {cycles} control cycles, {elapsed:.0f} s with "
+        f"{args.jobs} worker(s): {faults} false faults"
+    )
+    print("\n| arm, mode, rate | cases | worst collision signal / threshold | worst following error / limit |")
+    print("|---|---|---|---|")
+    for key, (collision, following, count) in sorted(worst.items()):
+        print(f"| {key} | {count} | {collision:.2f} | {following:.2f} |")
+    ratio, k, described = max(worst_case)
+    print(f"\nclosest to a fault: case {k} ({ratio:.2f}): {described}")
+    sys.exit(1 if faults else 0)
+
+
+if __name__ == "__main__":
+    np.seterr(all="ignore")
+    main()

@@ -1,0 +1,163 @@
+"""Clean paths on drawn drives (issue 30): nothing touches the arm, so any fault is a false one.
+
+A :class:`Case` is an example arm in a control mode at a rate, emulated drives drawn by :mod:`tests.drive_models`
+(loop tuning, torque constant, rotor inertia, friction, reply latency and its jitter, the generation the example
+speaks), and a clean path: moves and waypoint follows to poses well inside the limits at drawn speed scales, each
+from where the last one ended. :func:`run` plays it in simulated time with the configuration's own thresholds and
+returns any fault and the worst ratios of the collision signal to the threshold in force and of the following error
+to its limit. Seeded and reproducible (:func:`drawn`): case ``k`` of seed ``s`` is drawn alone.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import random
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from motion import Arm
+from motion.config import ArmConfig, load_config
+from motion.config.schema import ControlMode, SafetyConfig
+from motion.emulator.timing import TimingModel
+from motion.errors import MotionFault
+from tests.drive_models import DriveDraw, draw_drives, with_drives
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+#: The arms swept (those with collision thresholds, and arm2 for the following error), and the rates drawn for each
+#: in position mode (torque mode runs at the example's own rate).
+ARMS: dict[str, tuple[float, ...]] = {
+    "arm6.yaml": (125.0, 250.0),
+    "arm6_v3.yaml": (62.5, 125.0),
+    "arm2.yaml": (100.0, 250.0, 500.0),
+}
+#: The reply latency's jitter drawn, s (on top of the drawn latency, per reply).
+JITTER_RANGE_S = (0.0, 0.0005)
+#: How long a case waits for each step of its path, simulated s.
+STEP_WAIT_S = 20.0
+
+
+@dataclass(frozen=True)
+class Case:
+    """One clean run: see the module docstring."""
+
+    arm: str
+    mode: ControlMode
+    rate_hz: float
+    drives: DriveDraw
+    jitter_s: float
+    steps: tuple[tuple[str, float, tuple[tuple[float, ...], ...]], ...]  # (move | follow, speed scale, poses)
+
+    def describe(self) -> str:
+        """The case as a Python literal."""
+        return (
+            f"Case({self.arm!r}, ControlMode.{self.mode.name}, {self.rate_hz!r}, {self.drives.describe()}, "
+            f"{self.jitter_s!r}, {self.steps!r})"
+        )
+
+
+@dataclass
+class Outcome:
+    """What a case showed: the fault (None: none), the worst |signal| / threshold and |following error| / limit per
+    joint over the cycles the checks ran, and the control cycles run."""
+
+    case: Case
+    fault: MotionFault | None = None
+    collision_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    following_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    cycles: int = 0
+
+
+def _pose(rng: random.Random, config: ArmConfig) -> tuple[float, ...]:
+    """A random pose well inside the limits (a fifth of the range off each end)."""
+    out = []
+    for j in config.joints:
+        span = j.position_max_deg - j.position_min_deg
+        out.append(round(rng.uniform(j.position_min_deg + 0.2 * span, j.position_max_deg - 0.2 * span), 1))
+    return tuple(out)
+
+
+def draw(rng: random.Random) -> Case:
+    """A random clean case."""
+    arm = rng.choice(sorted(ARMS))
+    config = load_config(CONFIGS / arm)
+    tuned = all(j.kp_nm_per_deg > 0 for j in config.joints)
+    mode = ControlMode.TORQUE if tuned and rng.random() < 0.3 else ControlMode.POSITION
+    steps: list[tuple[str, float, tuple[tuple[float, ...], ...]]] = []
+    for _ in range(rng.choice((1, 2, 2, 3))):
+        scale = round(rng.uniform(0.2, 1.0), 2)
+        if rng.random() < 0.5:
+            steps.append(("move", scale, (_pose(rng, config),)))
+        else:
+            steps.append(("follow", scale, tuple(_pose(rng, config) for _ in range(rng.choice((2, 3))))))
+    # the torque-mode gains are tuned for the example's rate (a discrete PD that holds at 125 Hz may not at half)
+    rate = config.control.rate_hz if mode is ControlMode.TORQUE else rng.choice(ARMS[arm])
+    return Case(
+        arm,
+        mode,
+        rate,
+        draw_drives(rng, len(config.joints)),
+        round(rng.uniform(*JITTER_RANGE_S), 6),
+        tuple(steps),
+    )
+
+
+def drawn(seed: int, k: int) -> Case:
+    """Case ``k`` of the sweep seeded ``seed`` (each case from its own generator)."""
+    return draw(random.Random(f"{seed}:{k}"))
+
+
+def config_of(case: Case) -> ArmConfig:
+    """The case's configuration: the example at the case's mode and rate, its emulated drives drawn."""
+    config = with_drives(load_config(CONFIGS / case.arm), case.drives)
+    control = dataclasses.replace(config.control, mode=case.mode, rate_hz=case.rate_hz)
+    return dataclasses.replace(config, control=control)
+
+
+def run(case: Case, *, safety: SafetyConfig | None = None) -> Outcome:
+    """Play ``case`` (with ``safety`` instead of the example's, if given); the first fault ends it."""
+    config = config_of(case)
+    if safety is not None:
+        config = dataclasses.replace(config, safety=safety)
+    n = len(config.joints)
+    outcome = Outcome(case, collision_ratio=np.zeros(n), following_ratio=np.zeros(n))
+    arm = Arm(config, emulate=True)
+    start = arm._start_simulation
+
+    def started() -> Any:
+        transport, clock = start()
+        assert arm.simulation is not None
+        arm.simulation.timing = TimingModel(case.drives.latency_s, jitter_s=case.jitter_s)
+        return transport, clock
+
+    arm._start_simulation = started  # type: ignore[method-assign]
+    limit = config.safety.following_error_deg
+    ratio = np.zeros(n)
+    with arm:
+        supervisor, controller = arm.supervisor, arm.controller
+        assert supervisor is not None and controller is not None
+        watchdog = supervisor.watchdog
+
+        def watch(*_: object) -> None:
+            outcome.cycles += 1
+            if watchdog.collision_guarding and watchdog.collision_armed:
+                np.abs(watchdog.collision_signal_nm, out=ratio)
+                np.divide(ratio, watchdog.collision_limit_nm, out=ratio)
+                np.fmax(outcome.collision_ratio, ratio, out=outcome.collision_ratio)
+            np.fmax(outcome.following_ratio, watchdog.following_error_deg / limit, out=outcome.following_ratio)
+
+        controller.cycle_hooks.append(watch)
+        names = arm.names
+        try:
+            for how, scale, poses in case.steps:
+                targets = [dict(zip(names, pose, strict=True)) for pose in poses]
+                if how == "move":
+                    arm.move_to(targets[0], speed_scale=scale, wait=False).wait(STEP_WAIT_S)
+                else:
+                    arm.follow(targets, speed_scale=scale, wait=False).wait(STEP_WAIT_S)
+            arm.sleep(0.3)
+        except MotionFault as fault:
+            outcome.fault = fault
+    return outcome

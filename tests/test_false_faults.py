@@ -1,0 +1,145 @@
+"""No false faults on drives we did not tune for (issue 30): the collision check's bound, its parameters in time, the
+following-error allowance for drives whose tuning is unknown, and the clean-path sweep's machinery."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from motion.api import Arm
+from motion.config import load_config
+from motion.config.schema import ControlMode
+from motion.emulator.timing import TimingModel
+from motion.errors import MotionFault
+from motion.safety.collision_bound import Window
+from tests import clean_sweep
+from tests.collision_trials import collision_trial, torque_move, torque_variant, with_thresholds
+from tests.drive_models import DriveDraw, JointDraw
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+
+
+def test_false_fault_1_the_collision_signal_stays_below_its_configured_threshold() -> None:
+    # issue 30, false fault 1: arm6, simulated time, nothing touching the arm: move_to then follow faulted
+    # "collision base_yaw +0.21 N·m (threshold 0.174)". The observer took the torque at the step's end for the whole
+    # step (the rectangle rule): half a step of the torque's rate of change, 0.16 N·m on base_yaw, whose drive rings.
+    # (The following error is held off here: base_yaw's ringing is a case of its own, left open in the issue.)
+    config = load_config(CONFIGS / "arm6.yaml")
+    config = dataclasses.replace(config, safety=dataclasses.replace(config.safety, following_error_deg=20.0))
+    peak = np.zeros(len(config.joints))
+    with Arm(config, emulate=True) as arm:
+        watchdog = arm.supervisor.watchdog  # type: ignore[union-attr]
+
+        def record(*_: object) -> None:
+            if watchdog.collision_armed:
+                np.fmax(peak, np.abs(watchdog.collision_signal_nm) / watchdog.collision_threshold, out=peak)
+
+        arm.controller.cycle_hooks.append(record)  # type: ignore[union-attr]
+        arm.move_to({"base_yaw": 40.0, "shoulder_pitch": -30.0})
+        arm.follow([{"base_yaw": -20.0}, {"base_yaw": 10.0, "shoulder_pitch": 20.0}])
+    assert peak.max() < 1.0, peak
+
+
+def test_in_torque_mode_the_bound_alone_holds_clean_moves_and_detects_every_collision() -> None:
+    # thresholds of 1 mN·m: the threshold in force is the bound; no calibration takes the check below it, and the
+    # bound still sees 15 % of a joint's peak torque in the first cycle that can see it
+    config = with_thresholds(torque_variant(load_config(CONFIGS / "arm6.yaml")), [1e-3] * 6)
+    arm = Arm(config, emulate=True)
+    with arm:
+        arm.move_to(dict(zip(arm.names, [30.0, -40.0, 60.0, 45.0, -50.0, 90.0], strict=True)))
+        arm.move_to(dict.fromkeys(arm.names, 0.0))
+        assert arm.supervisor.fault is None  # type: ignore[union-attr]
+    for joint in range(len(config.joints)):
+        trial = collision_trial(config, torque_move(), joint, 0.5)
+        assert trial.isolated and trial.halted, trial
+        assert trial.latency_cycles is not None and trial.latency_cycles <= 2, trial
+
+
+def test_a_configured_threshold_below_the_bound_is_not_the_one_in_force() -> None:
+    config = with_thresholds(torque_variant(load_config(CONFIGS / "arm6.yaml")), [1e-3] * 6)
+    with Arm(config, emulate=True) as arm:
+        arm.move_to({"shoulder_pitch": -30.0, "elbow_pitch": 40.0}, wait=False)
+        arm.sleep(0.4)
+        watchdog = arm.supervisor.watchdog  # type: ignore[union-attr]
+        assert watchdog.collision_armed
+        limit = watchdog.collision_limit_nm
+        assert (limit > 1e-3).all() and (limit == np.maximum(1e-3, watchdog._bound.bound_nm)).all()  # type: ignore[union-attr]
+
+
+def test_a_v3_drive_tuned_softer_than_the_prior_is_no_following_error() -> None:
+    # the V3 drives' loop settings are not read: the model runs its prior, and a drive tuned at half of it lags twice
+    # as far (the wrist joints 5-5.3 deg at full speed against following_error_deg 4): the limit in force takes up
+    # to that much of the modelled lag on top
+    soft = DriveDraw(tuple(JointDraw(0.5) for _ in range(6)))
+    path = (
+        ("move", 1.0, ((0.0, 0.0, 0.0, 80.0, 60.0, 100.0),)),
+        ("move", 1.0, ((0.0, 0.0, 0.0, -80.0, -60.0, -100.0),)),
+    )
+    outcome = clean_sweep.run(clean_sweep.Case("arm6_v3.yaml", ControlMode.POSITION, 125.0, soft, 0.0, path))
+    assert outcome.fault is None
+    assert outcome.following_ratio.max() > 1.0  # beyond the configured limit: the allowance is what held it
+
+
+@pytest.mark.parametrize("period_s", [0.004, 0.008])
+def test_the_window_spans_its_time_whatever_the_rate_and_late_steps(period_s: float) -> None:
+    window = Window(0.032, period_s, 1)
+    times = [k * period_s for k in range(20)]
+    times[12:] = [t + 2.5 * period_s for t in times[12:]]  # a late step, and every one after it
+    for k, t in enumerate(times):
+        base = window.push(t, np.array([float(k)]), np.zeros((4, 1)))
+        start = window.times[base]
+        assert start <= t - 0.032 + 1e-9 or k * period_s < 0.032 + 1e-9  # the window's start, or the oldest step
+        if k * period_s >= 0.032 + period_s:
+            assert window.times[(base + 1) % window.size] > t - 0.032  # ... the latest such step
+
+
+def test_a_late_cycle_is_no_collision_and_no_following_error() -> None:
+    # host stalls of 0.3 to 1.4 periods before every third exchange, during the demo's fastest move: the observer
+    # steps over the measured interval, the tracking model from the instant the set-points went out
+    config = load_config(CONFIGS / "arm6.yaml")
+    with Arm(config, emulate=True) as arm:
+        controller = arm.controller
+        assert controller is not None
+        stalls = iter(np.tile([0.3, 0.0, 0.0, 1.4, 0.0, 0.0, 0.8, 0.0, 0.0], 200))
+
+        def stall(*_: object) -> None:
+            controller.clock.sleep_until(controller.clock.now() + next(stalls) * controller.period_s)
+
+        controller.cycle_hooks.append(stall)
+        try:
+            arm.move_to(dict(zip(arm.names, [60.0, -40.0, 70.0, 80.0, -70.0, 120.0], strict=True)))
+        except MotionFault as fault:
+            pytest.fail(f"a false fault: {fault}")
+        assert controller.loop.overruns > 0  # the stalls made cycles late
+
+
+def test_reply_jitter_is_drawn_reproducibly_within_its_bound() -> None:
+    delays = [TimingModel(0.0003, jitter_s=0.0005, seed=4).reply_delay_s() for _ in range(3)]
+    assert len(set(delays)) == 1  # a fresh model with the same seed draws the same first delay
+    model = TimingModel(0.0003, jitter_s=0.0005, seed=4)
+    drawn = [model.reply_delay_s() for _ in range(500)]
+    assert min(drawn) >= 0.0003 and max(drawn) <= 0.0008 and max(drawn) - min(drawn) > 0.0004
+    with pytest.raises(ValueError, match="jitter"):
+        TimingModel(jitter_s=-1.0)
+
+
+def test_clean_cases_are_drawn_reproducibly_and_see_a_fault() -> None:
+    assert clean_sweep.drawn(30, 5) == clean_sweep.drawn(30, 5)
+    assert clean_sweep.drawn(30, 5) != clean_sweep.drawn(30, 6)
+    # a case the check cannot pass (a following-error limit far below any lag) reports its fault
+    case = clean_sweep.Case(
+        "arm2.yaml",
+        ControlMode.POSITION,
+        250.0,
+        DriveDraw((JointDraw(), JointDraw())),
+        0.0,
+        (("move", 1.0, ((40.0, -40.0),)),),
+    )
+    config = clean_sweep.config_of(case)
+    assert config.control.rate_hz == 250.0
+    tight = dataclasses.replace(config.safety, following_error_deg=0.01)
+    outcome = clean_sweep.run(case, safety=tight)
+    assert outcome.fault is not None and outcome.fault.kind == "following_error"
