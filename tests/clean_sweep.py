@@ -24,6 +24,7 @@ from motion.config.schema import ControlMode, SafetyConfig
 from motion.emulator.timing import TimingModel
 from motion.errors import MotionFault
 from tests.drive_models import DriveDraw, draw_drives, with_drives
+from tests.fault_explorer import target_pose
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 #: The arms swept (those with collision thresholds, and arm2 for the following error), and the rates drawn for each
@@ -70,15 +71,6 @@ class Outcome:
     cycles: int = 0
 
 
-def _pose(rng: random.Random, config: ArmConfig) -> tuple[float, ...]:
-    """A random pose well inside the limits (a fifth of the range off each end)."""
-    out = []
-    for j in config.joints:
-        span = j.position_max_deg - j.position_min_deg
-        out.append(round(rng.uniform(j.position_min_deg + 0.2 * span, j.position_max_deg - 0.2 * span), 1))
-    return tuple(out)
-
-
 def draw(rng: random.Random) -> Case:
     """A random clean case."""
     arm = rng.choice(sorted(ARMS))
@@ -89,9 +81,9 @@ def draw(rng: random.Random) -> Case:
     for _ in range(rng.choice((1, 2, 2, 3))):
         scale = round(rng.uniform(0.2, 1.0), 2)
         if rng.random() < 0.5:
-            steps.append(("move", scale, (_pose(rng, config),)))
+            steps.append(("move", scale, (target_pose(rng, config),)))
         else:
-            steps.append(("follow", scale, tuple(_pose(rng, config) for _ in range(rng.choice((2, 3))))))
+            steps.append(("follow", scale, tuple(target_pose(rng, config) for _ in range(rng.choice((2, 3))))))
     # the torque-mode gains are tuned for the example's rate (a discrete PD that holds at 125 Hz may not at half)
     rate = config.control.rate_hz if mode is ControlMode.TORQUE else rng.choice(ARMS[arm])
     return Case(

@@ -175,11 +175,11 @@ def draw(rng: random.Random) -> Schedule:
     tuned = all(j.kp_nm_per_deg > 0 for j in config.joints)  # torque mode needs the joints' gains
     mode = ControlMode.TORQUE if tuned and rng.random() < 0.25 else ControlMode.POSITION
     faults = tuple(_draw_fault(rng, rng.choice(ids)) for _ in range(rng.choice((1, 1, 2, 2, 3))))
-    actions: list[tuple[float, str, tuple[float, ...]]] = [(0.0, "move", _target(rng, config))]
+    actions: list[tuple[float, str, tuple[float, ...]]] = [(0.0, "move", target_pose(rng, config))]
     for _ in range(rng.randint(0, 4)):
         t = round(rng.uniform(0.05, 1.8), 3)
         what = rng.choice(("move", "move", "stop", "hold", "clear", "clear"))
-        actions.append((t, what, _target(rng, config) if what == "move" else ()))
+        actions.append((t, what, target_pose(rng, config) if what == "move" else ()))
     homeable = [j.name for j in config.joints if j.homing is not None]
     home = (rng.choice(homeable),) if homeable and rng.random() < 0.05 else ()
     drives = draw_drives(rng, len(ids)) if rng.random() < DRAWN_DRIVES else None
@@ -205,7 +205,7 @@ def _draw_fault(rng: random.Random, motor_id: int) -> str:
     return f"{kind.value}:{motor_id}@{start}{end}{param}"
 
 
-def _target(rng: random.Random, config: ArmConfig) -> tuple[float, ...]:
+def target_pose(rng: random.Random, config: ArmConfig) -> tuple[float, ...]:
     """A random pose well inside the limits (a fifth of the range off each end)."""
     out = []
     for j in config.joints:
