@@ -78,7 +78,12 @@ def figure(log: TelemetryLog) -> Figure:
                 following.axhline(sign * float(limit), color="0.6", linestyle=":", linewidth=1.0)
         collision.plot(t, log["collision_signal_nm"][:, j], color="tab:green", linewidth=1.0, label="signal")
         collision.plot(t, log["residual_nm"][:, j], color="0.6", linewidth=0.8, label="residual")
-        if thresholds[j] is not None:
+        in_force = log["collision_limit_nm"][:, j]
+        if np.isfinite(in_force).any():  # the threshold in force, cycle by cycle (version 5 logs)
+            for sign in (1.0, -1.0):
+                label = "threshold in force" if sign > 0 else None
+                collision.plot(t, sign * in_force, color="tab:red", linestyle=":", linewidth=1.0, label=label)
+        elif thresholds[j] is not None:
             for sign in (1.0, -1.0):
                 collision.axhline(sign * float(thresholds[j]), color="tab:red", linestyle=":", linewidth=1.0)
         position.set_ylabel(f"{name}\n{PANELS[0][1]}")

@@ -44,6 +44,9 @@ column             shape  dtype    meaning (unit)
                                    the cycles it did not run (no observer, a state reply missing, halted)
 ``collision_signal_nm`` N×J float64 what the collision thresholds apply to: the residual's change over
                                    ``safety.collision_window_s`` (N·m); NaN likewise
+``collision_limit_nm`` N×J float64 the threshold in force: the joint's ``collision_threshold_nm`` or the bound of
+                                   what a drive within its model error can show, whichever is higher (N·m; inf: not
+                                   watched); NaN likewise
 ``fault_t_s``      F      float64  detection time of each fault (s)
 ``fault_halt_s``   F      float64  time its halt went out (s)
 ``fault_kind``     F      str      the fault kind (``following_error``, ``no_reply``, ..., ``close`` at the end)
@@ -97,10 +100,11 @@ if TYPE_CHECKING:
     from motion.safety.supervisor import HaltRecord
 
 SCHEMA: Final = "rmd-motion-telemetry"
-VERSION: Final = 4
-#: Columns added by version 3 and by version 4 (NaN in older logs).
+VERSION: Final = 5
+#: Columns added by versions 3, 4 and 5 (NaN in older logs).
 _V3_COLUMNS: Final = ("residual_nm", "collision_signal_nm")
 _V4_COLUMNS: Final = ("q_exp_deg",)
+_V5_COLUMNS: Final = ("collision_limit_nm",)
 #: Rows per chunk of the per-cycle log (16 s at 250 Hz).
 CHUNK_ROWS: Final = 4096
 #: Frames per chunk of the bus trace.
@@ -128,6 +132,7 @@ CYCLE_COLUMNS: Final[Mapping[str, tuple[bool, type[np.generic], str]]] = {
     "limited": (True, np.bool_, "1"),
     "residual_nm": (True, np.float64, "N*m"),
     "collision_signal_nm": (True, np.float64, "N*m"),
+    "collision_limit_nm": (True, np.float64, "N*m"),
 }
 #: Fault columns: name -> unit.
 FAULT_COLUMNS: Final[Mapping[str, str]] = {
@@ -270,7 +275,8 @@ def load_log(path: str | os.PathLike[str]) -> TelemetryLog:
         raise ValueError(f"{os.fspath(path)}: telemetry log version {meta['version']} is newer than {VERSION}")
     version = int(meta.get("version", 0))
     if version < VERSION and "q_deg" in arrays:
-        for name in (*(_V3_COLUMNS if version < 3 else ()), *_V4_COLUMNS):
+        older = (*(_V3_COLUMNS if version < 3 else ()), *(_V4_COLUMNS if version < 4 else ()), *_V5_COLUMNS)
+        for name in older:
             arrays.setdefault(name, np.full(arrays["q_deg"].shape, np.nan))
     missing = [name for name in (*CYCLE_COLUMNS, *FAULT_COLUMNS) if name not in arrays]
     if missing:
@@ -366,6 +372,7 @@ class Recorder:
         if watchdog is not None and watchdog.residual_cycle == chunk["cycle"][row]:
             chunk["residual_nm"][row] = watchdog.residual_nm
             chunk["collision_signal_nm"][row] = watchdog.collision_signal_nm
+            chunk["collision_limit_nm"][row] = watchdog.collision_limit_nm
 
     def finish(self) -> None:
         """Complete the last row's busy time and residuals once the loop has ended (call after the loop stopped)."""

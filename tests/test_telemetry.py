@@ -249,6 +249,13 @@ def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:
         assert np.asarray(following.lines[3].get_xdata())[0] == log["fault_t_s"][0]
         assert np.array_equal(collision.lines[0].get_ydata(), log["collision_signal_nm"][:, j], equal_nan=True)
         assert np.array_equal(collision.lines[1].get_ydata(), log["residual_nm"][:, j], equal_nan=True)
+        # the threshold in force, cycle by cycle: never below the configured one, above it where the bound is
+        in_force = log["collision_limit_nm"][:, j]
+        assert np.array_equal(collision.lines[2].get_ydata(), in_force, equal_nan=True)
+        configured = log.meta["collision_threshold_nm"][j]
+        seen = in_force[np.isfinite(in_force)]
+        assert seen.size and (seen >= configured).all()
+    assert (log["collision_limit_nm"] > np.array(log.meta["collision_threshold_nm"])).any()
     timing = fig.axes[-1]
     assert np.array_equal(timing.lines[0].get_ydata(), log["jitter_s"] * 1e6)
 
@@ -266,11 +273,12 @@ def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:
 
 def test_a_version_3_log_loads_without_expected_positions(position_run: PositionRun, tmp_path: Path) -> None:
     log = position_run.log
-    columns = {name: array for name, array in log.columns.items() if name != "q_exp_deg"}
+    columns = {name: array for name, array in log.columns.items() if name not in ("q_exp_deg", "collision_limit_nm")}
     TelemetryLog(columns, {**log.meta, "version": 3}).save(tmp_path / "v3.npz")
     old = load_log(tmp_path / "v3.npz")
     assert np.isnan(old["q_exp_deg"]).all() and old["q_exp_deg"].shape == log["q_deg"].shape
     assert np.array_equal(old.following_error_deg(), log.lag_deg())  # what version 3 called the following error
+    assert np.isnan(old["collision_limit_nm"]).all()
     plot_log(old, tmp_path / "v3.png")
 
 
