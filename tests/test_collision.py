@@ -344,6 +344,7 @@ def test_calibrate_command_proposes_and_writes_thresholds(tmp_path: Path) -> Non
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     proposed = [j["threshold_nm"] for j in report["joints"]]
+    assert all(j["bound_peak_nm"] > 0 for j in report["joints"])  # the bound the thresholds are held above
     configured = [j.collision_threshold_nm for j in load_config(ARM6).joints]
     # the position-mode path alone: the same figures as the configuration for the joints it dominates
     assert proposed[1:3] == pytest.approx(configured[1:3], rel=0.01)

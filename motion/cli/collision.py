@@ -5,7 +5,8 @@ collision signal (the residual's change over ``safety.collision_window_s``, see 
 is watched, and each joint's proposed threshold is its largest |signal| times ``--margin``. The proposal is printed
 and, with ``--write``, written into a copy of the configuration. Run the arm's real work (its fastest moves) on the
 real arm: the thresholds hold only for motions like the ones they were calibrated on. ``--emulate`` runs the program
-on the configuration's emulated drives in simulated time instead.
+on the configuration's emulated drives in simulated time instead. The report also gives each joint's largest bound
+(:mod:`motion.safety.collision_bound`): the threshold in force is never below the bound, whatever is configured.
 """
 
 from __future__ import annotations
@@ -74,6 +75,7 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
     config = session.config
     program = load_program(args.program, config)
     peak = np.zeros(len(config.joints))
+    bound = np.zeros(len(config.joints))  # the largest bound seen: the threshold in force is never below the bound
 
     def body(arm: Arm) -> int:
         supervisor, controller = arm.supervisor, arm.controller
@@ -84,6 +86,7 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
         def record(*_: object) -> None:  # a cycle hook: the signal of the cycle before (NaN ignored)
             if watchdog.collision_armed:
                 np.fmax(peak, np.abs(watchdog.collision_signal_nm), out=peak)
+                np.fmax(bound, watchdog.collision_bound_nm, out=bound)
 
         controller.cycle_hooks.append(record)
         run_program(arm, program, 1.0)
@@ -119,6 +122,7 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
                         "name": name,
                         "signal_peak_nm": round(float(peak[i]), 6),
                         "threshold_nm": round(float(thresholds[i]), 6),
+                        "bound_peak_nm": round(float(bound[i]), 6),
                         "peak_torque_nm": config.joints[i].peak_torque_nm,
                     }
                     for i, name in enumerate(names)
@@ -133,10 +137,14 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
             f"{peak[i]:.4f}",
             f"{thresholds[i]:.4f}",
             f"{100 * thresholds[i] / config.joints[i].peak_torque_nm:.1f} %",
+            f"{bound[i]:.4f}",
         )
         for i, name in enumerate(names)
     ]
-    print_table(("joint", "largest |signal| N·m", f"threshold N·m (x{args.margin:g})", "of peak torque"), rows)
+    header = ("joint", "largest |signal| N·m", f"threshold N·m (x{args.margin:g})", "of peak torque")
+    print_table((*header, "largest bound N·m"), rows)
+    print("(in force in every cycle: the threshold, or the bound of what a drive within its model error can show")
+    print(" where that is higher; see README, How it works)")
     if written:
         print(f"wrote {written} (collision_threshold_nm per joint; comments are not copied)")
     return EXIT_OK

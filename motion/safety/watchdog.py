@@ -205,6 +205,7 @@ class Watchdog:
         #: The latest threshold in force per joint: the configured one, or the bound where that is higher, N·m.
         self.collision_limit_nm = self.collision_threshold.copy()
         self._bound = CollisionBound(controller, observer) if observer is not None else None
+        self._zero_bound = np.zeros(n)
         self._window = Window(settings.collision_window_s, controller.period_s, n)
         self._steps = 0  # observer steps since its (re)start
         self._reset_s = math.nan  # when it (re)started
@@ -374,6 +375,12 @@ class Watchdog:
         self._steps += 1
         self.residual_cycle = self.controller.loop.cycles
         return True
+
+    @property
+    def collision_bound_nm(self) -> FloatArray:
+        """The latest bound of the collision signal per joint, N·m (:mod:`motion.safety.collision_bound`; zeros
+        without an observer): the watchdog's array."""
+        return self._bound.bound_nm if self._bound is not None else self._zero_bound
 
     @property
     def collision_guarding(self) -> bool:
