@@ -100,6 +100,10 @@ _UNREACHABLE = (InjectedFault.SILENT, InjectedFault.DROP, InjectedFault.CORRUPT)
 #: 0x80 because its drive's hold swung it: below this, the release is a violation.
 SWINGS_SEEN = 4
 _LINK = (InjectedFault.SILENT, InjectedFault.DROP)
+#: Kinds that move or pin joints from outside (a push, an obstruction): the arm is not held to the still invariant
+#: while they act and for :data:`SETTLE_S` after (a drive's hold pulls a joint an obstruction pinned off its hold
+#: position back once the obstruction is gone: its hold working, not the arm moving by itself).
+_EXTERNAL = (InjectedFault.COLLISION, InjectedFault.BLOCKED)
 #: A joint faster than this has left the emulated plant's model, deg/s (100 turns a second: no RMD joint turns so
 #: fast; the plant models no end stops, and a joint pushed with nothing resisting it spins up without bound, to
 #: infinite and NaN states): what follows is not checked (:attr:`Outcome.left_model_s`).
@@ -328,9 +332,9 @@ class _Checker:
         gone = [
             self._since(motor_id, _SWITCHED_OFF, t) or self._acting(t, _UNREACHABLE, motor_id) for motor_id in self.ids
         ]
-        # a push on one joint moves the whole arm (within the stiffness of the drives' holds), and so does a joint
-        # nothing holds (released, switched off, or out of reach) that swings
-        disturbed = self._acting(t, (InjectedFault.COLLISION,)) or any(
+        # a push on one joint (or an obstruction) moves the whole arm (within the stiffness of the drives' holds),
+        # and so does a joint nothing holds (released, switched off, or out of reach) that swings
+        disturbed = self._acting(t, _EXTERNAL) or any(
             (f or g) and abs(v) > DISTURBING_DPS for f, g, v in zip(free, gone, qd, strict=True)
         )
         if not still_states:
