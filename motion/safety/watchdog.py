@@ -442,9 +442,11 @@ class Watchdog:
         error += slip
         np.abs(error, out=error)
         # the limit in force: the configured one, plus the share of the modelled lag a drive within the stated
-        # bounds may add to it (FOLLOWING_LAG_ERROR)
+        # bounds may add to it (FOLLOWING_LAG_ERROR), but not of the lag a slower joint lost (that is its error: a
+        # blocked joint is still caught as soon as by the raw reference)
         limit = self._following_limit
         np.abs(tracking.lag_deg, out=limit)
+        limit -= np.abs(slip, out=self._share)
         limit *= self._lag_error
         limit += self.settings.following_error_deg
         over = self._share
