@@ -44,7 +44,7 @@ def main() -> None:
         parser.error("--count and --jobs must be >= 1, --first >= 0")
     began = time.perf_counter()
     work = [(args.seed, k) for k in range(args.first, args.first + args.count)]
-    faults = 0
+    faults = refused = 0
     cycles = 0
     worst: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0, 0])
     worst_case: list[tuple[float, int, str]] = []
@@ -58,6 +58,10 @@ def main() -> None:
             following = float(outcome.following_ratio.max(initial=0.0))
             row[0], row[1], row[2] = max(row[0], collision), max(row[1], following), row[2] + 1
             worst_case.append((max(collision, following), k, case.describe()))
+            if outcome.refused is not None:
+                refused += 1
+                print(f"case {k}: refused by the rate check ({case.arm}, {case.rate_hz:g} Hz)", flush=True)
+                continue
             if fault is not None or args.count == 1:
                 faults += fault is not None
                 print(f"case {k}: {fault}\n  {case.describe()}", flush=True)
@@ -69,7 +73,7 @@ def main() -> None:
     elapsed = time.perf_counter() - began
     print(
         f"\n{args.count} cases (seed {args.seed}, first {args.first}), {cycles} control cycles, {elapsed:.0f} s with "
-        f"{args.jobs} worker(s): {faults} false faults"
+        f"{args.jobs} worker(s): {faults} false faults, {refused} refused by the rate check"
     )
     print("\n| arm, mode, rate | cases | worst collision signal / threshold | worst following error / limit |")
     print("|---|---|---|---|")

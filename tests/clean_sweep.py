@@ -10,6 +10,7 @@ to its limit. Seeded and reproducible (:func:`drawn`): case ``k`` of seed ``s`` 
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import random
 from dataclasses import dataclass, field
@@ -21,6 +22,7 @@ import numpy as np
 from motion import Arm
 from motion.config import ArmConfig, load_config
 from motion.config.schema import ControlMode, SafetyConfig
+from motion.control.ratecheck import RateError
 from motion.emulator.timing import TimingModel
 from motion.errors import MotionFault
 from tests.drive_models import DriveDraw, draw_drives, with_drives
@@ -66,6 +68,7 @@ class Outcome:
 
     case: Case
     fault: MotionFault | None = None
+    refused: str | None = None  # the rate check refused the case's rate on its drawn drives (nothing moved)
     collision_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
     following_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
     cycles: int = 0
@@ -127,7 +130,13 @@ def run(case: Case, *, safety: SafetyConfig | None = None) -> Outcome:
     arm._start_simulation = started  # type: ignore[method-assign]
     limit = config.safety.following_error_deg
     ratio = np.zeros(n)
-    with arm:
+    try:
+        arm.connect()
+    except RateError as refused:
+        outcome.refused = str(refused)
+        arm.close()
+        return outcome
+    with contextlib.closing(arm):
         supervisor, controller = arm.supervisor, arm.controller
         assert supervisor is not None and controller is not None
         watchdog = supervisor.watchdog
