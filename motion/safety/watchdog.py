@@ -83,7 +83,8 @@ class CollisionObserver(Protocol):
 
     @property
     def error_terms(self) -> FloatArray:
-        """The filtered motor, rotor-inertial and friction torques (3 × joints, N·m) of the latest step."""
+        """The filtered motor, rotor-inertial and friction torques and the sampling bound (4 × joints, N·m) of the
+        latest step."""
         ...
 
     @property
