@@ -1,6 +1,7 @@
 """Clean paths on drawn drives (issue 30): run many seeded cases of :mod:`tests.clean_sweep` and print the false
 faults, the worst collision signal as a share of the threshold in force, and the worst following error as a share
-of its limit, per arm, mode and rate.
+of its limit, per arm, mode and rate; then each case's first step again with a collision (15 % of a drawn joint's peak
+torque at a drawn instant) and the control cycles it took to detect it.
 
     .venv/bin/python bench/clean_sweep.py --count 2000 --jobs 2
     .venv/bin/python bench/clean_sweep.py --first 17 --count 1      # case 17 alone, described
@@ -23,14 +24,22 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from tests import clean_sweep
+from tests.collision_trials import STEP_SHARE
 
 
-def _run(seed_k: tuple[int, int]) -> tuple[int, clean_sweep.Outcome, str | None]:
-    seed, k = seed_k
+def _run(
+    seed_k_bound: tuple[int, int, bool],
+) -> tuple[int, clean_sweep.Outcome, str | None, tuple[str, int | None, str]]:
+    seed, k, bound_only = seed_k_bound
     logging.disable(logging.CRITICAL)
-    outcome = clean_sweep.run(clean_sweep.drawn(seed, k))
+    case = clean_sweep.drawn(seed, k)
+    outcome = clean_sweep.run(case, bound_only=bound_only)
     fault, outcome.fault = outcome.fault, None  # (a MotionFault does not pickle back: its text goes instead)
-    return k, outcome, None if fault is None else str(fault)
+    detection: tuple[str, int | None, str] = ("", None, "")
+    if outcome.refused is None:
+        trial = clean_sweep.detect(case, bound_only=bound_only)
+        detection = (trial.joint, trial.latency_cycles if trial.isolated else None, str(trial.fault))
+    return k, outcome, None if fault is None else str(fault), detection
 
 
 def main() -> None:
@@ -39,17 +48,21 @@ def main() -> None:
     parser.add_argument("--first", type=int, default=0, help="index of the first case (default 0)")
     parser.add_argument("--seed", type=int, default=30, help="seed of the draw (default 30)")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    parser.add_argument(
+        "--bound-only", action="store_true", help="every collision threshold 1 mN·m: the bound is the one in force"
+    )
     args = parser.parse_args()
     if args.count < 1 or args.jobs < 1 or args.first < 0:
         parser.error("--count and --jobs must be >= 1, --first >= 0")
     began = time.perf_counter()
-    work = [(args.seed, k) for k in range(args.first, args.first + args.count)]
-    faults = refused = 0
+    work = [(args.seed, k, args.bound_only) for k in range(args.first, args.first + args.count)]
+    faults = refused = late = 0
+    latencies: list[int | None] = []
     cycles = 0
     worst: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0, 0])
     worst_case: list[tuple[float, int, str]] = []
     with multiprocessing.get_context("fork").Pool(args.jobs) as pool:
-        for done, (k, outcome, fault) in enumerate(pool.imap_unordered(_run, work), 1):
+        for done, (k, outcome, fault, (joint, latency, caught)) in enumerate(pool.imap_unordered(_run, work), 1):
             case = outcome.case
             cycles += outcome.cycles
             key = f"{case.arm} {case.mode.value} {case.rate_hz:g} Hz"
@@ -62,6 +75,14 @@ def main() -> None:
                 refused += 1
                 print(f"case {k}: refused by the rate check ({case.arm}, {case.rate_hz:g} Hz)", flush=True)
                 continue
+            latencies.append(latency)
+            if latency is None or latency > clean_sweep.DETECTION_CYCLES:
+                late += 1
+                print(
+                    f"case {k} ({key}): a collision on {joint} at {case.collision}: detected in {latency} cycles: "
+                    f"{caught}",
+                    flush=True,
+                )
             if fault is not None or args.count == 1:
                 faults += fault is not None
                 print(f"case {k}: {fault}\n  {case.describe()}", flush=True)
@@ -75,13 +96,20 @@ def main() -> None:
         f"\n{args.count} cases (seed {args.seed}, first {args.first}), {cycles} control cycles, {elapsed:.0f} s with "
         f"{args.jobs} worker(s): {faults} false faults, {refused} refused by the rate check"
     )
+    caught = sorted(x for x in latencies if x is not None)
+    if caught:
+        print(
+            f"collisions of {STEP_SHARE:.0%} of peak torque: {len(caught)} of {len(latencies)} detected (isolated), "
+            f"{late} not within {clean_sweep.DETECTION_CYCLES} cycles; cycles to detect: median "
+            f"{caught[len(caught) // 2]}, worst {caught[-1]}"
+        )
     print("\n| arm, mode, rate | cases | worst collision signal / threshold | worst following error / limit |")
     print("|---|---|---|---|")
     for key, (collision, following, count) in sorted(worst.items()):
         print(f"| {key} | {count} | {collision:.2f} | {following:.2f} |")
     ratio, k, described = max(worst_case)
     print(f"\nclosest to a fault: case {k} ({ratio:.2f}): {described}")
-    sys.exit(1 if faults else 0)
+    sys.exit(1 if faults or late else 0)
 
 
 if __name__ == "__main__":

@@ -125,6 +125,17 @@ class MomentumObserver:
         return self._terms_out
 
     @property
+    def coulomb_nm(self) -> FloatArray:
+        """The modelled Coulomb friction per joint, N·m, configuration order (smoothed over ±``COULOMB_SMOOTHING_DPS``:
+        within a few times that of rest the friction the model takes is not the joint's)."""
+        return self._coulomb[self._to_config]
+
+    @property
+    def coulomb_smoothing_dps(self) -> float:
+        """The half-width of the Coulomb model's smoothing, deg/s."""
+        return math.degrees(self._smoothing)
+
+    @property
     def inertia_kgm2(self) -> FloatArray:
         """The diagonal of M(q) at the latest step (rotors included), kg·m², configuration order."""
         return self._inertia_out

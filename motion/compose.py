@@ -247,6 +247,16 @@ def arm_figure(config: ArmConfig) -> ArmFigure:
     return ArmFigure(config)
 
 
+def velocity_torques_for(config: ArmConfig) -> Callable[[FloatArray, FloatArray], FloatArray]:
+    """The arm's velocity-product torques C(q, q̇) q̇ (Coriolis and centripetal), N·m, as a function of the joint
+    angles and speeds (deg, deg/s), for the model of the PD loop's tracking in torque mode."""
+    from kinematics import build_arm, feedforward  # noqa: PLC0415 - as above
+
+    dynamics = feedforward(build_arm(config), gravity=False, inertia=True)
+    still = np.zeros(len(config.joints))
+    return lambda q_deg, qd_dps: dynamics(q_deg, qd_dps, still)
+
+
 def gravity_for(config: ArmConfig) -> Feedforward:
     """Gravity alone, g(q): the ``comply`` reaction to a collision streams it (torque mode), and a halted joint whose
     drive's hold swings it is released only where it cannot make the joint fall (:mod:`motion.safety.halted`)."""
@@ -271,7 +281,9 @@ def build_controller(
     )
     inertia = inertia_for(config) if feedforward is not None else None
     if inertia is not None:
-        controller.tracking.set_inertia(inertia, fed_forward=config.control.inertia_feedforward)
+        controller.tracking.set_inertia(
+            inertia, fed_forward=config.control.inertia_feedforward, bias=velocity_torques_for(config)
+        )
     return controller
 
 

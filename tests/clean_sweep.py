@@ -20,11 +20,13 @@ from typing import Any
 import numpy as np
 
 from motion import Arm
+from motion.api import MotionHandle
 from motion.config import ArmConfig, load_config
 from motion.config.schema import ControlMode, SafetyConfig
 from motion.control.ratecheck import RateError
 from motion.emulator.timing import TimingModel
 from motion.errors import MotionFault
+from tests.collision_trials import Trial, collision_trial, with_thresholds
 from tests.drive_models import DriveDraw, draw_drives, with_drives
 from tests.fault_explorer import target_pose
 
@@ -40,6 +42,13 @@ ARMS: dict[str, tuple[float, ...]] = {
 JITTER_RANGE_S = (0.0, 0.0005)
 #: How long a case waits for each step of its path, simulated s.
 STEP_WAIT_S = 20.0
+#: When the collision of :func:`detect` comes, s after its step started (mid-move, or at rest after a short one).
+ONSET_RANGE_S = (0.2, 1.2)
+#: The collision threshold of every joint with ``bound_only`` (the bound is then the threshold in force), N·m.
+BOUND_ONLY_NM = 1e-3
+#: The most control cycles a collision of :data:`tests.collision_trials.STEP_SHARE` of the joint's peak torque may
+#: take to be detected (issue 30).
+DETECTION_CYCLES = 5
 
 
 @dataclass(frozen=True)
@@ -52,12 +61,13 @@ class Case:
     drives: DriveDraw
     jitter_s: float
     steps: tuple[tuple[str, float, tuple[tuple[float, ...], ...]], ...]  # (move | follow, speed scale, poses)
+    collision: tuple[int, float, float] | None = None  # for detect(): joint, onset s into the first step, sign
 
     def describe(self) -> str:
         """The case as a Python literal."""
         return (
             f"Case({self.arm!r}, ControlMode.{self.mode.name}, {self.rate_hz!r}, {self.drives.describe()}, "
-            f"{self.jitter_s!r}, {self.steps!r})"
+            f"{self.jitter_s!r}, {self.steps!r}, {self.collision!r})"
         )
 
 
@@ -89,14 +99,10 @@ def draw(rng: random.Random) -> Case:
             steps.append(("follow", scale, tuple(target_pose(rng, config) for _ in range(rng.choice((2, 3))))))
     # the torque-mode gains are tuned for the example's rate (a discrete PD that holds at 125 Hz may not at half)
     rate = config.control.rate_hz if mode is ControlMode.TORQUE else rng.choice(ARMS[arm])
-    return Case(
-        arm,
-        mode,
-        rate,
-        draw_drives(rng, len(config.joints)),
-        round(rng.uniform(*JITTER_RANGE_S), 6),
-        tuple(steps),
-    )
+    drives = draw_drives(rng, len(config.joints))
+    jitter = round(rng.uniform(*JITTER_RANGE_S), 6)
+    collision = (rng.randrange(len(config.joints)), round(rng.uniform(*ONSET_RANGE_S), 3), rng.choice((-1.0, 1.0)))
+    return Case(arm, mode, rate, drives, jitter, tuple(steps), collision)
 
 
 def drawn(seed: int, k: int) -> Case:
@@ -104,20 +110,19 @@ def drawn(seed: int, k: int) -> Case:
     return draw(random.Random(f"{seed}:{k}"))
 
 
-def config_of(case: Case) -> ArmConfig:
-    """The case's configuration: the example at the case's mode and rate, its emulated drives drawn."""
+def config_of(case: Case, *, bound_only: bool = False) -> ArmConfig:
+    """The case's configuration: the example at the case's mode and rate, its emulated drives drawn (with
+    ``bound_only``, every joint's collision threshold 1 mN·m: the bound is the threshold in force)."""
     config = with_drives(load_config(CONFIGS / case.arm), case.drives)
     control = dataclasses.replace(config.control, mode=case.mode, rate_hz=case.rate_hz)
-    return dataclasses.replace(config, control=control)
+    config = dataclasses.replace(config, control=control)
+    if bound_only and any(j.collision_threshold_nm is not None for j in config.joints):
+        config = with_thresholds(config, [BOUND_ONLY_NM] * len(config.joints))
+    return config
 
 
-def run(case: Case, *, safety: SafetyConfig | None = None) -> Outcome:
-    """Play ``case`` (with ``safety`` instead of the example's, if given); the first fault ends it."""
-    config = config_of(case)
-    if safety is not None:
-        config = dataclasses.replace(config, safety=safety)
-    n = len(config.joints)
-    outcome = Outcome(case, collision_ratio=np.zeros(n), following_ratio=np.zeros(n))
+def _arm(case: Case, config: ArmConfig) -> Arm:
+    """An emulated arm of ``config`` whose drives answer with the case's latency and jitter (not connected)."""
     arm = Arm(config, emulate=True)
     start = arm._start_simulation
 
@@ -128,6 +133,37 @@ def run(case: Case, *, safety: SafetyConfig | None = None) -> Outcome:
         return transport, clock
 
     arm._start_simulation = started  # type: ignore[method-assign]
+    return arm
+
+
+def _step(arm: Arm, step: tuple[str, float, tuple[tuple[float, ...], ...]]) -> MotionHandle:
+    """Start one step of a path (not waiting for it)."""
+    how, scale, poses = step
+    targets = [dict(zip(arm.names, pose, strict=True)) for pose in poses]
+    if how == "move":
+        return arm.move_to(targets[0], speed_scale=scale, wait=False)
+    return arm.follow(targets, speed_scale=scale, wait=False)
+
+
+def detect(case: Case, *, bound_only: bool = False) -> Trial:
+    """The case's first step with its collision: :data:`tests.collision_trials.STEP_SHARE` of the joint's peak
+    torque, the case's onset after the step started (see :func:`tests.collision_trials.collision_trial`)."""
+    assert case.collision is not None and case.steps
+    config = config_of(case, bound_only=bound_only)
+    joint, onset_s, sign = case.collision
+    return collision_trial(
+        config, lambda arm: _step(arm, case.steps[0]), joint, onset_s, sign=sign, arm=_arm(case, config)
+    )
+
+
+def run(case: Case, *, safety: SafetyConfig | None = None, bound_only: bool = False) -> Outcome:
+    """Play ``case`` (with ``safety`` instead of the example's, if given); the first fault ends it."""
+    config = config_of(case, bound_only=bound_only)
+    if safety is not None:
+        config = dataclasses.replace(config, safety=safety)
+    n = len(config.joints)
+    outcome = Outcome(case, collision_ratio=np.zeros(n), following_ratio=np.zeros(n))
+    arm = _arm(case, config)
     limit = config.safety.following_error_deg
     ratio = np.zeros(n)
     try:
@@ -150,14 +186,9 @@ def run(case: Case, *, safety: SafetyConfig | None = None) -> Outcome:
             np.fmax(outcome.following_ratio, watchdog.following_error_deg / limit, out=outcome.following_ratio)
 
         controller.cycle_hooks.append(watch)
-        names = arm.names
         try:
-            for how, scale, poses in case.steps:
-                targets = [dict(zip(names, pose, strict=True)) for pose in poses]
-                if how == "move":
-                    arm.move_to(targets[0], speed_scale=scale, wait=False).wait(STEP_WAIT_S)
-                else:
-                    arm.follow(targets, speed_scale=scale, wait=False).wait(STEP_WAIT_S)
+            for step in case.steps:
+                _step(arm, step).wait(STEP_WAIT_S)
             arm.sleep(0.3)
         except MotionFault as fault:
             outcome.fault = fault

@@ -155,11 +155,13 @@ def collision_trial(
     share: float = STEP_SHARE,
     sign: float = 1.0,
     initial_deg: Sequence[float] | None = None,
+    arm: Arm | None = None,
 ) -> Trial:
-    """Start ``motion``, apply ``sign × share × peak torque`` to ``joint`` (joint angle sense) ``onset_s`` later."""
+    """Start ``motion``, apply ``sign × share × peak torque`` to ``joint`` (joint angle sense) ``onset_s`` later
+    (on ``arm``, not connected yet, where given: an emulated arm of ``config``)."""
     spec = config.joints[joint]
     torque = sign * share * spec.peak_torque_nm
-    arm = Arm(config, emulate=True, initial_deg=initial_deg)
+    arm = Arm(config, emulate=True, initial_deg=initial_deg) if arm is None else arm
     with arm:
         supervisor, controller, emulator = arm.supervisor, arm.controller, arm.emulator
         assert supervisor is not None and controller is not None and emulator is not None

@@ -15,7 +15,7 @@ from motion.config.schema import ControlMode
 from motion.emulator import Fault, InjectedFault
 from motion.emulator.timing import TimingModel
 from motion.errors import MotionFault
-from motion.safety.collision_bound import Window
+from motion.safety.collision_bound import TERM_ROWS, Window
 from tests import clean_sweep
 from tests.collision_trials import collision_trial, torque_move, torque_variant, with_thresholds, without_thresholds
 from tests.drive_models import DriveDraw, JointDraw
@@ -23,7 +23,7 @@ from tests.drive_models import DriveDraw, JointDraw
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 
 
-def test_false_fault_1_the_collision_signal_stays_below_its_configured_threshold() -> None:
+def test_false_fault_1_the_collision_signal_stays_below_the_threshold_in_force() -> None:
     # issue 30, false fault 1: arm6, simulated time, nothing touching the arm: move_to then follow faulted
     # "collision base_yaw +0.21 N·m (threshold 0.174)". The observer took the torque at the step's end for the whole
     # step (the rectangle rule): half a step of the torque's rate of change, 0.16 N·m on base_yaw, whose drive rings.
@@ -36,7 +36,7 @@ def test_false_fault_1_the_collision_signal_stays_below_its_configured_threshold
 
         def record(*_: object) -> None:
             if watchdog.collision_armed:
-                np.fmax(peak, np.abs(watchdog.collision_signal_nm) / watchdog.collision_threshold, out=peak)
+                np.fmax(peak, np.abs(watchdog.collision_signal_nm) / watchdog.collision_limit_nm, out=peak)
 
         arm.controller.cycle_hooks.append(record)  # type: ignore[union-attr]
         arm.move_to({"base_yaw": 40.0, "shoulder_pitch": -30.0})
@@ -90,7 +90,7 @@ def test_the_window_spans_its_time_whatever_the_rate_and_late_steps(period_s: fl
     times = [k * period_s for k in range(20)]
     times[12:] = [t + 2.5 * period_s for t in times[12:]]  # a late step, and every one after it
     for k, t in enumerate(times):
-        base = window.push(t, np.array([float(k)]), np.zeros((4, 1)))
+        base = window.push(t, np.array([float(k)]), np.zeros((TERM_ROWS, 1)))
         start = window.times[base]
         assert start <= t - 0.032 + 1e-9 or k * period_s < 0.032 + 1e-9  # the window's start, or the oldest step
         if k * period_s >= 0.032 + period_s:

@@ -140,6 +140,7 @@ class ExpectedTracking:
         self.inertia_kgm2: FloatArray | None = None
         self.inertia_feedforward = False
         self._inertia_of: Callable[[FloatArray], FloatArray] | None = None
+        self._bias_of: Callable[[FloatArray, FloatArray], FloatArray] | None = None
         self._inertia_at = np.zeros(n)  # the joint angles the mass matrix was evaluated at, deg
         self._mass_inv = np.zeros((n, n))
         # State and the command in force since the last step.
@@ -179,11 +180,15 @@ class ExpectedTracking:
         inertia_kgm2: Sequence[float] | FloatArray | Callable[[FloatArray], FloatArray],
         *,
         fed_forward: bool,
+        bias: Callable[[FloatArray, FloatArray], FloatArray] | None = None,
     ) -> None:
         """Torque mode: the arm's inertia, kg·m² (joint side, rotors included): per joint (independent joints), an
         N×N mass matrix, or a function of the joint angles (deg, evaluated at each cycle's reference) giving either;
-        and whether the feed-forward covers it (then only the sampling and the torque limit make the joints trail
-        the reference)."""
+        whether the feed-forward covers it (then only the sampling and the torque limit make the joints trail
+        the reference); and, where it does not, the arm's velocity-product torques C(q, q̇) q̇ as a function of the
+        joint angles and speeds (deg, deg/s; N·m), evaluated at the model's state each cycle: a joint whose inertia
+        grows as the arm stretches out is slowed by them, and the PD loop lets it trail by as much."""
+        self._bias_of = None if fed_forward else bias
         if callable(inertia_kgm2):
             self._inertia_of = inertia_kgm2
             self._set_mass(inertia_kgm2(self._x))
@@ -423,6 +428,7 @@ class ExpectedTracking:
                     _RAD_PER_DEG,
                     _DEG_PER_RAD,
                 )
+                self._bias_step()
                 return
             except (TypeError, ValueError):  # (a reference not a float64 array: numpy takes it)
                 pass
@@ -443,6 +449,16 @@ class ExpectedTracking:
         np.maximum(tau, self._negative_limit_nm, out=tau)
         np.dot(self._mass_inv, tau, out=self._accel_dps2)
         self._accel_dps2 *= _DEG_PER_RAD
+        self._bias_step()
+
+    def _bias_step(self) -> None:
+        """Take the velocity-product torques at the model's state out of its acceleration (where they are given)."""
+        if self._bias_of is None:
+            return
+        w = self._w
+        np.dot(self._mass_inv, self._bias_of(self._x, self._v), out=w)
+        w *= _DEG_PER_RAD
+        self._accel_dps2 -= w
 
     def _torque_step(self, dt: float) -> None:
         x, v = self._x, self._v

@@ -12,6 +12,22 @@ Per joint, over the window, in N·m:
   position mode a drive's loop can push right after each 0xA4 step and brake before the next sample, so that its
   current between two samples swings beyond both: that part is not bounded here, and a configured threshold above
   the bound covers it, see the configuration reference);
+- **position-mode steps**: a 0xA4 target moves by ``v dt`` each cycle; a drive whose loops are faster than the
+  period answers each step with a push and a brake inside the cycle (its speed ripples by up to the angle loop's
+  ``k v dt``), and the current sampled at the cycle's exchange is the same phase of that response every cycle, not
+  the cycle's mean. A drive whose speed loop is ideal samples the brake that ends each step's response,
+  ``M k v``, where the mean is the acceleration's torque ``M a``: the sample is off by up to
+  ``X = M (k |v| + |a|)`` (``M``: the joint's inertia, M(q)'s diagonal; ``k``: the tracking model's angle-loop
+  gain, twice its prior where the drives' settings are not read; ``v``, ``a``: the reference's speed and
+  acceleration). The phase being the same every cycle, the signal moves by the change of ``X`` (filtered as the
+  residual) over the window, not by ``X`` itself; a step longer or shorter than the one before by a share ``f``
+  of the period moves the sample within the response, by up to ``f X`` (at most ``X``), at each end of the
+  window;
+- **friction at rest**: within :data:`REST_BAND_SMOOTHINGS` smoothing widths of the observer's Coulomb model (plus
+  a step of the speed field) of rest, the joint's friction is anything up to its breakaway, ``(1 + ε) F_c``, either
+  way (a joint held by stiction takes whatever torque the drive pushes with), and its sampled speed does not say
+  which way the smoothed model should take it: at each end of the window, the filtered ``(1 + ε) F_c`` of the steps
+  at rest;
 - **field steps**: the speed field comes in steps ``s`` (1 deg/s of what the drive reports: of the motor for the
   older family, of the output for V3), rounded; in the momentum ``M q̇`` a rounding error ``e`` puts
   ``K_O M (e − ē)`` into the residual (``ē`` the filtered past errors), at most ``K_O M s`` at each end: ``2 K_O M s``
@@ -28,6 +44,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from motion.config.schema import ControlMode
 from motion.transmission import FloatArray
 
 if TYPE_CHECKING:
@@ -37,10 +54,21 @@ if TYPE_CHECKING:
 #: The model error the collision check bears without a false fault, as a fraction of the configured figure: the
 #: drive's torque constant, its rotor inertia, the joint's friction (viscous and Coulomb).
 MODEL_ERROR = (0.2, 0.3, 0.5)
-#: Rows of the observer's error terms: motor, rotor-inertial, friction torque (scaled by the model error), the
-#: sampling bound (taken at both ends of the window).
-TERM_ROWS = 4
+#: Rows of the window's error terms: the observer's motor, rotor-inertial, friction torque (scaled by the model
+#: error) and sampling bound (taken at both ends of the window), and the position-mode steps' ``X`` (its change).
+TERM_ROWS = 7
+_OBSERVER_ROWS = 4
 _SAMPLING_ROW = 3
+_STEP_ROW = 4
+_REST_ROW = 5
+_PHASE_ROW = 6
+_END_ROWS = (_SAMPLING_ROW, _REST_ROW, _PHASE_ROW)  # taken at both ends of the window (the others: their change)
+#: A joint counts as at rest for the friction-at-rest row within this many smoothing widths of the observer's
+#: Coulomb model (tanh(3) = 0.995 of the friction), plus one step of the speed field.
+REST_BAND_SMOOTHINGS = 3.0
+#: Where the drives' loop settings are not read, their angle-loop gain may be this many times the tracking model's
+#: prior (the tuning drawn in the tests: half to twice the factory's).
+UNREAD_GAIN_FACTOR = 2.0
 #: Times closer than this count as the same instant (simulated time's sums of periods), s.
 _SAME_S = 1e-6
 
@@ -93,7 +121,7 @@ class CollisionBound:
         family, specs = controller.family, controller.specs
         transmissions = controller.transmission.transmissions
         self._observer = observer
-        self._error = np.array((*MODEL_ERROR, 0.0), dtype=np.float64)[:, None]
+        self._error = np.array((*MODEL_ERROR, 0.0, 1.0, 0.0, 0.0), dtype=np.float64)[:, None]
         # the speed field's step in joint rad/s, times 2 K_O (times M's diagonal at each step)
         step_rad_s = np.array(
             [
@@ -106,6 +134,61 @@ class CollisionBound:
         self._delta = np.zeros((TERM_ROWS, len(specs)))
         #: The latest bound per joint, N·m.
         self.bound_nm = np.zeros(len(specs))
+        # position mode: the steps' X = M k |v| per joint (M from the observer, k from the tracking model, v from the
+        # reference), filtered as the residual; the terms of the latest step, all rows
+        self._controller = controller
+        self._steps = controller.options.mode is ControlMode.POSITION
+        self._gain_factor = 1.0 if family.reads_loop_settings else UNREAD_GAIN_FACTOR
+        self._x = np.zeros(len(specs))
+        self._gain = np.zeros(len(specs))
+        self._dt_before = 0.0
+        self._period_s = controller.period_s
+        # friction at rest: the band of measured joint speeds, deg/s, and the breakaway bound, N·m
+        self._rest_band_dps = np.degrees(step_rad_s) + REST_BAND_SMOOTHINGS * observer.coulomb_smoothing_dps
+        self._breakaway_nm = (1.0 + MODEL_ERROR[2]) * observer.coulomb_nm
+        self._at_rest = np.zeros(len(specs), dtype=bool)
+        self.terms = np.zeros((TERM_ROWS, len(specs)))
+
+    def restart(self) -> None:
+        """The observer (re)started: the filtered terms start again from zero, as the observer's do."""
+        self.terms[:] = 0.0
+        self._dt_before = 0.0
+
+    def step(self, dt_s: float) -> FloatArray:
+        """The error terms of the observer's latest step (``dt_s`` long), with this bound's own rows: the array the
+        window keeps."""
+        terms, x, controller = self.terms, self._x, self._controller
+        share = min(self._observer.gain_per_s * dt_s, 1.0)
+        terms[:_OBSERVER_ROWS] = self._observer.error_terms
+        at_rest = self._at_rest
+        np.abs(controller.axes.qd_dps, out=x)
+        np.less_equal(x, self._rest_band_dps, out=at_rest)
+        np.multiply(self._breakaway_nm, at_rest, out=x)
+        self._filter(_REST_ROW, share)
+        if self._steps:
+            gain, reference = self._gain, controller.reference
+            np.abs(reference.velocity, out=x)
+            x *= controller.tracking.angle_gain_per_s
+            x *= self._gain_factor
+            x += np.abs(reference.acceleration, out=gain)
+            x *= self._observer.inertia_kgm2
+            x *= math.pi / 180.0
+            # where the sample falls in the drive's response moves with the step's length: a step longer or shorter
+            # than the one before by a share f of the period moves it by up to f of the response (at most all of it)
+            change = min(abs(dt_s - self._dt_before) / self._period_s, 1.0) if self._dt_before else 0.0
+            np.multiply(x, change, out=gain)
+            self._filter(_STEP_ROW, share)
+            np.copyto(x, gain)
+            self._filter(_PHASE_ROW, share)
+        self._dt_before = dt_s
+        return terms
+
+    def _filter(self, row: int, share: float) -> None:
+        """Take the row's new value (in ``self._x``) up through the residual's filter (``share`` of the step)."""
+        x, terms = self._x, self.terms
+        x -= terms[row]
+        x *= share
+        terms[row] += x
 
     def limit(self, window: Window, base: int, configured: FloatArray, out: FloatArray) -> FloatArray:
         """The threshold in force at the window's newest step (from ``base``): the bound, or ``configured`` where
@@ -120,9 +203,10 @@ class CollisionBound:
         np.abs(delta, out=delta)
         delta *= self._error
         np.sum(delta, axis=0, out=bound)
-        bound += head[_SAMPLING_ROW]
-        if window.window_s:
-            bound += start[_SAMPLING_ROW]
+        for row in _END_ROWS:
+            bound += head[row]
+            if window.window_s:
+                bound += start[row]
         np.multiply(self._speed, self._observer.inertia_kgm2, out=self._delta[0])
         bound += self._delta[0]
         bound += self._current

@@ -70,6 +70,10 @@ FOLLOWING_LAG_ERROR: dict[tuple[ControlMode, bool], float] = {
 }
 # Expected joint speed above which a joint counts as moving for the following-error check, deg/s.
 _MOVING_DPS = 1.0
+#: A joint's speed may trail the model's (and the reference's) by this many cycles of their change without slipping:
+#: the phase of the exchange's sample and of the drive's loops against the model's (a blocked joint at a steady
+#: speed loses the whole lag at once; one blocked while the arm speeds up, a little later).
+SLIP_PHASE_CYCLES = 2.0
 #: Observer time constants (1 / K_O) after a (re)start before collisions are checked, on top of the window: the
 #: residual of the drives taking up their load settles (1 - exp(-3.5) = 97 %).
 COLLISION_SETTLE_TIME_CONSTANTS = 3.5
@@ -90,6 +94,16 @@ class CollisionObserver(Protocol):
     @property
     def inertia_kgm2(self) -> FloatArray:
         """The diagonal of M(q) at the latest step, kg·m²."""
+        ...
+
+    @property
+    def coulomb_nm(self) -> FloatArray:
+        """The modelled Coulomb friction per joint, N·m."""
+        ...
+
+    @property
+    def coulomb_smoothing_dps(self) -> float:
+        """The half-width of the Coulomb model's smoothing, deg/s."""
         ...
 
     def reset(self, q_deg: ArrayLike, qd_dps: ArrayLike) -> None:
@@ -191,6 +205,11 @@ class Watchdog:
         self._following_limit = np.zeros(n)
         self._lag_error = FOLLOWING_LAG_ERROR[controller.options.mode, controller.family.reads_loop_settings]
         self._moving = np.zeros(n, dtype=bool)
+        self._behind = np.zeros(n, dtype=bool)
+        self._sign = np.zeros(n)
+        self._change = np.zeros(n)
+        self._expected_before = np.zeros(n)  # the model's and the reference's speeds at the previous check
+        self._reference_before = np.zeros(n)
         thresholds = settings.collision_threshold_nm
         self.collision_threshold = np.array(thresholds, dtype=np.float64) if thresholds else np.full(n, np.inf)
         if self.collision_threshold.shape != (n,):
@@ -359,14 +378,18 @@ class Watchdog:
         residual, signal, window = self.residual_nm, self.collision_signal_nm, self._window
         if math.isnan(self._observed_s):
             observer.reset(axes.q_deg, axes.qd_dps)
+            self._bound.restart()
+            dt_s = 0.0
             residual[:] = 0.0
             window.clear()
             self._steps = 0
             self._reset_s = sampled_s
         else:
             tau = self.controller.transmission.joint_torque_nm(axes.iq_a, out=self._tau_motor)
-            residual[:] = observer.update(axes.q_deg, axes.qd_dps, tau, sampled_s - self._observed_s)
-        base = window.push(sampled_s, residual, observer.error_terms)
+            dt_s = sampled_s - self._observed_s
+            residual[:] = observer.update(axes.q_deg, axes.qd_dps, tau, dt_s)
+        terms = self._bound.step(dt_s)
+        base = window.push(sampled_s, residual, terms)
         if self.settings.collision_window_s:
             np.subtract(residual, window.residual[base], out=signal)
         else:
@@ -422,23 +445,25 @@ class Watchdog:
         self._error[:] = 0.0
         controller = self.controller
         controller.tracking.reset(controller.axes.q_deg, controller.axes.qd_dps, controller.reference.position)
+        np.copyto(self._expected_before, controller.axes.qd_dps)
+        np.copyto(self._reference_before, controller.reference.velocity)
 
     def _following_fault(self, q: FloatArray) -> MotionFault | None:
-        """|expected - measured| against the threshold; a joint slower than expected also loses the lag it was
-        expected to have (a joint that stops while it should move is as far from the reference as it is), so that a
-        blocked joint is caught as soon as the raw reference-minus-measured error would catch it."""
-        tracking, qd = self.controller.tracking, self.controller.axes.qd_dps
-        error, slip = self._error, self._slip
-        expected_dps = tracking.expected_dps
-        moving = self._moving
-        np.abs(expected_dps, out=error)
-        np.greater(error, _MOVING_DPS, out=moving)
-        np.subtract(expected_dps, qd, out=slip)
-        np.divide(slip, expected_dps, out=slip, where=moving)
-        np.minimum(slip, 1.0, out=slip)
-        np.maximum(slip, 0.0, out=slip)
-        slip *= moving
+        """|expected - measured| against the threshold; a joint slower than both the model and the reference also
+        loses the lag it was expected to have (a joint that stops while it should move is as far from the reference
+        as it is), so that a blocked joint is caught as soon as the raw reference-minus-measured error would catch
+        it. Slower than both: where the model swings past a stopping or turning reference and back (torque mode), a
+        joint a little behind the model's swing is slower than one of them, and its lag is no slip."""
+        controller = self.controller
+        tracking, qd = controller.tracking, controller.axes.qd_dps
+        slip, other = self._slip, self._error
+        self._slip_share(tracking.expected_dps, self._expected_before, qd, slip)
+        self._slip_share(controller.reference.velocity, self._reference_before, qd, other)
+        np.minimum(slip, other, out=slip)
+        np.multiply(tracking.lag_deg, controller.reference.velocity, out=other)
+        slip *= np.greater(other, 0.0, out=self._behind)  # the model behind the reference, not past it
         slip *= tracking.lag_deg
+        error = self._error
         np.subtract(tracking.expected_deg, q, out=error)
         error += slip
         np.abs(error, out=error)
@@ -462,6 +487,27 @@ class Watchdog:
             float(limit[worst]),
             "|expected - q| (+ lag lost by slipping)",
         )
+
+    def _slip_share(self, speed_dps: FloatArray, previous_dps: FloatArray, qd: FloatArray, out: FloatArray) -> None:
+        """The share of ``speed_dps`` the measured speed falls short of, 0..1, into ``out``: the shortfall less
+        :data:`SLIP_PHASE_CYCLES` times the speed's change since the previous cycle (``previous_dps``; a joint a
+        cycle or two behind a turning swing is no slip), over the speed (0 where that is below the moving
+        threshold). ``previous_dps`` then takes ``speed_dps``."""
+        moving, sign, change = self._moving, self._sign, self._change
+        np.subtract(speed_dps, previous_dps, out=change)
+        np.abs(change, out=change)
+        change *= SLIP_PHASE_CYCLES
+        np.copyto(previous_dps, speed_dps)
+        np.sign(speed_dps, out=sign)
+        np.subtract(speed_dps, qd, out=out)
+        out *= sign
+        out -= change
+        np.abs(speed_dps, out=change)
+        np.greater(change, _MOVING_DPS, out=moving)
+        np.divide(out, change, out=out, where=moving)
+        np.minimum(out, 1.0, out=out)
+        np.maximum(out, 0.0, out=out)
+        out *= moving
 
     def _check_restart(self, i: int, message: MultiTurnAngle | Runtime, now_s: float) -> None:
         """The family's restart sign in a 0x92 or 0xB1 reply of joint ``i``.
