@@ -29,15 +29,15 @@ from tests.collision_trials import STEP_SHARE
 
 def _run(
     seed_k_bound: tuple[int, int, bool],
-) -> tuple[int, clean_sweep.Outcome, str | None, tuple[str, int | None, str]]:
+) -> tuple[int, clean_sweep.Outcome, str | None, tuple[str, int | None, str] | None]:
     seed, k, bound_only = seed_k_bound
     logging.disable(logging.CRITICAL)
     case = clean_sweep.drawn(seed, k)
     outcome = clean_sweep.run(case, bound_only=bound_only)
     fault, outcome.fault = outcome.fault, None  # (a MotionFault does not pickle back: its text goes instead)
-    detection: tuple[str, int | None, str] = ("", None, "")
-    if outcome.refused is None:
-        trial = clean_sweep.detect(case, bound_only=bound_only)
+    detection: tuple[str, int | None, str] | None = None
+    trial = clean_sweep.detect(case, bound_only=bound_only) if outcome.refused is None else None
+    if trial is not None:
         detection = (trial.joint, trial.latency_cycles if trial.isolated else None, str(trial.fault))
     return k, outcome, None if fault is None else str(fault), detection
 
@@ -62,7 +62,7 @@ def main() -> None:
     worst: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0, 0])
     worst_case: list[tuple[float, int, str]] = []
     with multiprocessing.get_context("fork").Pool(args.jobs) as pool:
-        for done, (k, outcome, fault, (joint, latency, caught)) in enumerate(pool.imap_unordered(_run, work), 1):
+        for done, (k, outcome, fault, detection) in enumerate(pool.imap_unordered(_run, work), 1):
             case = outcome.case
             cycles += outcome.cycles
             key = f"{case.arm} {case.mode.value} {case.rate_hz:g} Hz"
@@ -75,14 +75,16 @@ def main() -> None:
                 refused += 1
                 print(f"case {k}: refused by the rate check ({case.arm}, {case.rate_hz:g} Hz)", flush=True)
                 continue
-            latencies.append(latency)
-            if latency is None or latency > clean_sweep.DETECTION_CYCLES:
-                late += 1
-                print(
-                    f"case {k} ({key}): a collision on {joint} at {case.collision}: detected in {latency} cycles: "
-                    f"{caught}",
-                    flush=True,
-                )
+            if detection is not None:  # (None: an arm without a collision check)
+                joint, latency, caught = detection
+                latencies.append(latency)
+                if latency is None or latency > clean_sweep.DETECTION_CYCLES:
+                    late += 1
+                    print(
+                        f"case {k} ({key}): a collision on {joint} at {case.collision}: detected in {latency} "
+                        f"cycles: {caught}",
+                        flush=True,
+                    )
             if fault is not None or args.count == 1:
                 faults += fault is not None
                 print(f"case {k}: {fault}\n  {case.describe()}", flush=True)

@@ -91,6 +91,8 @@ class MomentumObserver:
         self._inputs = np.zeros((4, n))
         self._terms_out = np.zeros((4, n))
         self._inertia_out = np.zeros(n)
+        self._mass_rows = np.zeros((n, n))
+        self._mass_out = np.zeros((n, n))
         self._started = False
         self._first = True
 
@@ -114,6 +116,8 @@ class MomentumObserver:
         mass = crba_full(self._model, self._data, self._q)
         np.dot(mass, self._v, out=self._p)
         np.take(np.diagonal(mass), self._to_config, out=self._inertia_out)
+        np.take(mass, self._to_config, axis=0, out=self._mass_rows)
+        np.take(self._mass_rows, self._to_config, axis=1, out=self._mass_out)
 
     @property
     def error_terms(self) -> FloatArray:
@@ -123,6 +127,11 @@ class MomentumObserver:
         half change of the motor torque per step, bounds what the trapezoid rule misses of a torque that changes
         monotonically between two samples."""
         return self._terms_out
+
+    @property
+    def mass_kgm2(self) -> FloatArray:
+        """M(q) at the latest step (rotors included), kg·m², configuration order (the observer's array)."""
+        return self._mass_out
 
     @property
     def coulomb_nm(self) -> FloatArray:

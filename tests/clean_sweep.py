@@ -145,11 +145,14 @@ def _step(arm: Arm, step: tuple[str, float, tuple[tuple[float, ...], ...]]) -> M
     return arm.follow(targets, speed_scale=scale, wait=False)
 
 
-def detect(case: Case, *, bound_only: bool = False) -> Trial:
+def detect(case: Case, *, bound_only: bool = False) -> Trial | None:
     """The case's first step with its collision: :data:`tests.collision_trials.STEP_SHARE` of the joint's peak
-    torque, the case's onset after the step started (see :func:`tests.collision_trials.collision_trial`)."""
+    torque, the case's onset after the step started (see :func:`tests.collision_trials.collision_trial`); None for an
+    arm without a collision check (no joint has a threshold)."""
     assert case.collision is not None and case.steps
     config = config_of(case, bound_only=bound_only)
+    if all(j.collision_threshold_nm is None for j in config.joints):
+        return None
     joint, onset_s, sign = case.collision
     return collision_trial(
         config, lambda arm: _step(arm, case.steps[0]), joint, onset_s, sign=sign, arm=_arm(case, config)

@@ -16,10 +16,11 @@ Per joint, over the window, in N·m:
   period answers each step with a push and a brake inside the cycle (its speed ripples by up to the angle loop's
   ``k v dt``), and the current sampled at the cycle's exchange is the same phase of that response every cycle, not
   the cycle's mean. A drive whose speed loop is ideal samples the brake that ends each step's response,
-  ``M k v``, where the mean is the acceleration's torque ``M a``: the sample is off by up to
-  ``X = M (k |v| + |a|)`` (``M``: the joint's inertia, M(q)'s diagonal; ``k``: the tracking model's angle-loop
-  gain, twice its prior where the drives' settings are not read; ``v``, ``a``: the reference's speed and
-  acceleration). The phase being the same every cycle, the signal moves by the change of ``X`` (filtered as the
+  ``M k v``, where the mean is the acceleration's torque ``M a``; and every joint's drive does the same at the same
+  instants, which reaches its neighbours through M's off-diagonal terms: the sample is off by up to
+  ``X = |M| (k |v| + |a|)`` (``|M|``: M(q) with its terms' magnitudes; ``k``: the tracking model's angle-loop
+  gain, twice its prior where the drives' settings are not read; ``v``, ``a``: the reference's speeds and
+  accelerations). The phase being the same every cycle, the signal moves by the change of ``X`` (filtered as the
   residual) over the window, not by ``X`` itself; a step longer or shorter than the one before by a share ``f``
   of the period moves the sample within the response, by up to ``f X`` (at most ``X``), at each end of the
   window;
@@ -31,7 +32,8 @@ Per joint, over the window, in N·m:
 - **field steps**: the speed field comes in steps ``s`` (1 deg/s of what the drive reports: of the motor for the
   older family, of the output for V3), rounded; in the momentum ``M q̇`` a rounding error ``e`` puts
   ``K_O M (e − ē)`` into the residual (``ē`` the filtered past errors), at most ``K_O M s`` at each end: ``2 K_O M s``
-  with M's diagonal at the step; the current field's step puts at most one step's torque into the change.
+  with M at the step, every joint's speed through M's row (``|M| s``: a shoulder's speed step reaches the wrist's
+  momentum); the current field's step puts at most one step's torque into the change.
 
 The timing: the observer steps over the measured interval between the exchanges that sampled the drives (a late
 cycle is a longer step, not an error); the frames' positions in their batch are the same every cycle.
@@ -141,6 +143,7 @@ class CollisionBound:
         self._gain_factor = 1.0 if family.reads_loop_settings else UNREAD_GAIN_FACTOR
         self._x = np.zeros(len(specs))
         self._gain = np.zeros(len(specs))
+        self._mass = np.zeros((len(specs), len(specs)))
         self._dt_before = 0.0
         self._period_s = controller.period_s
         # friction at rest: the band of measured joint speeds, deg/s, and the breakaway bound, N·m
@@ -160,6 +163,7 @@ class CollisionBound:
         terms, x, controller = self.terms, self._x, self._controller
         share = min(self._observer.gain_per_s * dt_s, 1.0)
         terms[:_OBSERVER_ROWS] = self._observer.error_terms
+        np.abs(self._observer.mass_kgm2, out=self._mass)
         at_rest = self._at_rest
         np.abs(controller.axes.qd_dps, out=x)
         np.less_equal(x, self._rest_band_dps, out=at_rest)
@@ -167,12 +171,12 @@ class CollisionBound:
         self._filter(_REST_ROW, share)
         if self._steps:
             gain, reference = self._gain, controller.reference
-            np.abs(reference.velocity, out=x)
-            x *= controller.tracking.angle_gain_per_s
-            x *= self._gain_factor
-            x += np.abs(reference.acceleration, out=gain)
-            x *= self._observer.inertia_kgm2
-            x *= math.pi / 180.0
+            np.abs(reference.velocity, out=gain)
+            gain *= controller.tracking.angle_gain_per_s
+            gain *= self._gain_factor
+            gain += np.abs(reference.acceleration, out=x)
+            gain *= math.pi / 180.0
+            np.dot(self._mass, gain, out=x)  # each joint's own ripple and its neighbours' through M
             # where the sample falls in the drive's response moves with the step's length: a step longer or shorter
             # than the one before by a share f of the period moves it by up to f of the response (at most all of it)
             change = min(abs(dt_s - self._dt_before) / self._period_s, 1.0) if self._dt_before else 0.0
@@ -207,7 +211,7 @@ class CollisionBound:
             bound += head[row]
             if window.window_s:
                 bound += start[row]
-        np.multiply(self._speed, self._observer.inertia_kgm2, out=self._delta[0])
+        np.dot(self._mass, self._speed, out=self._delta[0])
         bound += self._delta[0]
         bound += self._current
         return np.maximum(configured, bound, out=out)

@@ -71,8 +71,8 @@ FOLLOWING_LAG_ERROR: dict[tuple[ControlMode, bool], float] = {
 # Expected joint speed above which a joint counts as moving for the following-error check, deg/s.
 _MOVING_DPS = 1.0
 #: A joint's speed may trail the model's (and the reference's) by this many cycles of their change without slipping:
-#: the phase of the exchange's sample and of the drive's loops against the model's (a blocked joint at a steady
-#: speed loses the whole lag at once; one blocked while the arm speeds up, a little later).
+#: the phase of the exchange's sample and of the drive's loops against the model's (a blocked joint falls short by
+#: its whole speed, far beyond that).
 SLIP_PHASE_CYCLES = 2.0
 #: Observer time constants (1 / K_O) after a (re)start before collisions are checked, on top of the window: the
 #: residual of the drives taking up their load settles (1 - exp(-3.5) = 97 %).
@@ -94,6 +94,11 @@ class CollisionObserver(Protocol):
     @property
     def inertia_kgm2(self) -> FloatArray:
         """The diagonal of M(q) at the latest step, kg·m²."""
+        ...
+
+    @property
+    def mass_kgm2(self) -> FloatArray:
+        """M(q) at the latest step, kg·m² (joints × joints)."""
         ...
 
     @property
@@ -489,10 +494,10 @@ class Watchdog:
         )
 
     def _slip_share(self, speed_dps: FloatArray, previous_dps: FloatArray, qd: FloatArray, out: FloatArray) -> None:
-        """The share of ``speed_dps`` the measured speed falls short of, 0..1, into ``out``: the shortfall less
-        :data:`SLIP_PHASE_CYCLES` times the speed's change since the previous cycle (``previous_dps``; a joint a
-        cycle or two behind a turning swing is no slip), over the speed (0 where that is below the moving
-        threshold). ``previous_dps`` then takes ``speed_dps``."""
+        """The share of ``speed_dps`` the measured speed falls short of, 0..1, into ``out``; 0 where the shortfall is
+        within :data:`SLIP_PHASE_CYCLES` times the speed's change since the previous cycle (``previous_dps``; a
+        joint a cycle or two behind a turning swing is no slip) and where the speed is below the moving threshold.
+        ``previous_dps`` then takes ``speed_dps``."""
         moving, sign, change = self._moving, self._sign, self._change
         np.subtract(speed_dps, previous_dps, out=change)
         np.abs(change, out=change)
@@ -501,9 +506,11 @@ class Watchdog:
         np.sign(speed_dps, out=sign)
         np.subtract(speed_dps, qd, out=out)
         out *= sign
-        out -= change
+        np.greater(out, change, out=moving)
+        out *= moving
         np.abs(speed_dps, out=change)
         np.greater(change, _MOVING_DPS, out=moving)
+        out *= moving
         np.divide(out, change, out=out, where=moving)
         np.minimum(out, 1.0, out=out)
         np.maximum(out, 0.0, out=out)

@@ -1,0 +1,92 @@
+"""The example arms' collision thresholds, as their configurations say they were calibrated: margin 2 on the largest
+collision signal of the demo's waypoint path (position mode) and torque move, and of each joint alone moved from rest
+to 80 % of its range, to the other side and back (position and torque mode), all at speed scale 1.0, on the
+example's emulated drives in simulated time (the same figures on any host).
+
+    .venv/bin/python bench/calibrate_examples.py                       # print them
+    .venv/bin/python bench/calibrate_examples.py --write               # and write them into configs/
+
+The threshold in force never goes below the collision bound (``motion/safety/collision_bound.py``), whatever is
+written; these are the margin above it that the example's own paths need.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+from motion.api import Arm
+from motion.config import ArmConfig, load_config
+from tests.collision_trials import demo_path, nominal_run, torque_move, torque_variant, without_thresholds
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+EXAMPLES = ("arm6.yaml", "arm6_v3.yaml")
+MARGIN = 2.0
+#: A joint alone goes to this share of its range, to the same share of the other side, and back to 0.
+SHARE = 0.8
+
+
+def _alone(name: str, far_deg: float, other_deg: float) -> Callable[[Arm], object]:
+    def motion(arm: Arm) -> object:
+        arm.move_to({name: far_deg}, speed_scale=1.0)
+        arm.move_to({name: other_deg}, speed_scale=1.0)
+        return arm.move_to({name: 0.0}, speed_scale=1.0, wait=False)
+
+    return motion
+
+
+def peaks(config: ArmConfig) -> tuple[np.ndarray, list[str]]:
+    """The largest |collision signal| per joint over the calibration motions, and any fault they met."""
+    position = without_thresholds(config)
+    torque = torque_variant(position)
+    peak = np.zeros(len(config.joints))
+    faults: list[str] = []
+    runs = [(position, demo_path(1.0)), (torque, torque_move(1.0))]
+    for joint in config.joints:
+        motion = _alone(joint.name, SHARE * joint.position_max_deg, SHARE * joint.position_min_deg)
+        runs += [(position, motion), (torque, motion)]
+    for run_config, motion in runs:
+        run = nominal_run(run_config, motion)
+        if run.fault is not None:
+            faults.append(str(run.fault))
+        np.fmax(peak, run.signal_peak_nm, out=peak)
+    return peak, faults
+
+
+def write(path: Path, thresholds: list[float]) -> None:
+    """Replace the file's ``collision_threshold_nm`` values, in joint order."""
+    text = path.read_text()
+    values = iter(thresholds)
+    text, count = re.subn(r"(collision_threshold_nm: )[0-9.]+", lambda m: f"{m.group(1)}{next(values):.4g}", text)
+    if count != len(thresholds):
+        raise SystemExit(f"{path}: {count} collision_threshold_nm keys for {len(thresholds)} joints")
+    path.write_text(text)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--write", action="store_true", help="write the thresholds into the example files")
+    args = parser.parse_args()
+    for name in EXAMPLES:
+        path = CONFIGS / name
+        config = load_config(path)
+        peak, faults = peaks(config)
+        thresholds = [float(f"{MARGIN * p:.4g}") for p in peak]
+        print(f"{name}:")
+        for joint, p, t in zip(config.joints, peak, thresholds, strict=True):
+            print(f"  {joint.name}: largest signal {p:.4g} N·m, threshold {t:.4g} (was {joint.collision_threshold_nm})")
+        for fault in faults:
+            print(f"  fault on the way: {fault}")
+        if args.write:
+            write(path, thresholds)
+
+
+if __name__ == "__main__":
+    main()
