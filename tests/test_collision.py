@@ -101,7 +101,7 @@ def test_observer_sees_nothing_when_the_model_explains_the_motion() -> None:
 def test_configuration_keys_are_validated(tmp_path: Path) -> None:
     data = read_yaml(ARM6)
     config = parse_config(data, "arm6", ARM6.parent)
-    assert config.joints[1].collision_threshold_nm == 1.969 and config.collision_watched
+    assert config.joints[1].collision_threshold_nm == 0.9636 and config.collision_watched
     assert config.collision_reaction is HaltPolicy.HOLD  # the halt policy (hold means 0x81 for a collision)
     # the emulated friction defaults to the joint's model
     data["joints"][0]["viscous_friction_nm_per_dps"] = 3.0e-4

@@ -20,8 +20,9 @@ Per joint, over the window, in N·m:
   instants, which reaches its neighbours through M's off-diagonal terms: the sample is off by up to
   ``X = |M| (k |v| + |a|)`` (``|M|``: M(q) with its terms' magnitudes; ``k``: the tracking model's angle-loop
   gain, twice its prior where the drives' settings are not read; ``v``, ``a``: the reference's speeds and
-  accelerations). The phase being the same every cycle, the signal moves by the change of ``X`` (filtered as the
-  residual) over the window, not by ``X`` itself; a step longer or shorter than the one before by a share ``f``
+  accelerations), times :data:`STEP_SHARE` for a speed loop that overshoots. The phase being the same every
+  cycle, the signal moves by the change of that (filtered as the residual) over the window, not by ``X`` itself;
+  a step longer or shorter than the one before by a share ``f``
   of the period moves the sample within the response, by up to ``f X`` (at most ``X``), at each end of the
   window;
 - **friction at rest**: within :data:`REST_BAND_SMOOTHINGS` smoothing widths of the observer's Coulomb model (plus
@@ -65,6 +66,9 @@ _STEP_ROW = 4
 _REST_ROW = 5
 _PHASE_ROW = 6
 _END_ROWS = (_SAMPLING_ROW, _REST_ROW, _PHASE_ROW)  # taken at both ends of the window (the others: their change)
+#: The most of ``X`` the sample is off by: an ideal speed loop's brake is ``X``; a real one's overshoot adds to it
+#: (the example arms' drawn drives: up to 1.2).
+STEP_SHARE = 1.25
 #: A joint counts as at rest for the friction-at-rest row within this many smoothing widths of the observer's
 #: Coulomb model (tanh(3) = 0.995 of the friction), plus one step of the speed field.
 REST_BAND_SMOOTHINGS = 3.0
@@ -123,7 +127,7 @@ class CollisionBound:
         family, specs = controller.family, controller.specs
         transmissions = controller.transmission.transmissions
         self._observer = observer
-        self._error = np.array((*MODEL_ERROR, 0.0, 1.0, 0.0, 0.0), dtype=np.float64)[:, None]
+        self._error = np.array((*MODEL_ERROR, 0.0, STEP_SHARE, 0.0, 0.0), dtype=np.float64)[:, None]
         # the speed field's step in joint rad/s, times 2 K_O (times M's diagonal at each step)
         step_rad_s = np.array(
             [
