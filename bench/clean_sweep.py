@@ -5,6 +5,7 @@ torque at a drawn instant) and the control cycles it took to detect it.
 
     .venv/bin/python bench/clean_sweep.py --count 2000 --jobs 2
     .venv/bin/python bench/clean_sweep.py --first 17 --count 1      # case 17 alone, described
+    .venv/bin/python bench/clean_sweep.py --count 200 --bound-only  # the bound alone in force
 
 Case ``k`` is drawn from its own generator (``tests.clean_sweep.drawn``), whatever ``--jobs``.
 """
@@ -58,6 +59,7 @@ def main() -> None:
     work = [(args.seed, k, args.bound_only) for k in range(args.first, args.first + args.count)]
     faults = refused = late = 0
     latencies: list[int | None] = []
+    detections: dict[str, list[int]] = collections.defaultdict(lambda: [0, 0])  # arm and joint: in time, trials
     cycles = 0
     worst: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0, 0])
     worst_case: list[tuple[float, int, str]] = []
@@ -78,6 +80,9 @@ def main() -> None:
             if detection is not None:  # (None: an arm without a collision check)
                 joint, latency, caught = detection
                 latencies.append(latency)
+                tally = detections[f"{case.arm} {joint}"]
+                tally[0] += latency is not None and latency <= clean_sweep.DETECTION_CYCLES
+                tally[1] += 1
                 if latency is None or latency > clean_sweep.DETECTION_CYCLES:
                     late += 1
                     print(
@@ -105,6 +110,11 @@ def main() -> None:
             f"{late} not within {clean_sweep.DETECTION_CYCLES} cycles; cycles to detect: median "
             f"{caught[len(caught) // 2]}, worst {caught[-1]}"
         )
+    if detections:
+        print("\n| arm, joint | collisions detected within the cycles / trials |")
+        print("|---|---|")
+        for key, (in_time, trials) in sorted(detections.items()):
+            print(f"| {key} | {in_time} / {trials} |")
     print("\n| arm, mode, rate | cases | worst collision signal / threshold | worst following error / limit |")
     print("|---|---|---|---|")
     for key, (collision, following, count) in sorted(worst.items()):
