@@ -774,3 +774,11 @@ def test_status_on_an_adapter_flooding_junk_exits_3_in_time_naming_the_junk() ->
     assert result.returncode == 3, result.stderr
     assert "communication error" in result.stderr and "bytes of junk" in result.stderr, result.stderr
     assert elapsed < RUN_TIMEOUT_S / 2  # a few reads' deadlines and the start of Python; before: for ever
+
+
+def test_pid_set_help_names_the_six_gains_in_order() -> None:
+    # issue 31: a tuple metavar on the six gains made argparse's help raise ValueError (a traceback, exit 1)
+    result = cli("pid", "set", "--help")
+    assert result.returncode == 0, result.stderr
+    assert "JOINT GAIN GAIN GAIN GAIN GAIN GAIN" in " ".join(result.stdout.split())
+    assert "ANGLE_KP ANGLE_KI SPEED_KP SPEED_KI IQ_KP IQ_KI" in " ".join(result.stdout.split())

@@ -384,10 +384,41 @@ def test_scan_names_each_drives_generation_firmware_and_model(tmp_path: Path) ->
     assert result.returncode == 0, result.stderr
     drives = json.loads(result.stdout)["drives"]
     assert [(d["motor_id"], d["protocol"], d["model"]) for d in drives] == [
-        (1, "v3", "EMU-V3 firmware 20240528"),
-        (2, "v3", "EMU-V3 firmware 20240528"),
+        (1, "v3", "EMUX8V3 firmware 20240528"),
+        (2, "v3", "EMUX8V3 firmware 20240528"),
     ]
-    assert "speak the V3-driver protocol" in result.stderr
+    assert "speak the V3-driver protocol (V4.2), not the configuration's (bus.protocol: v2)" in result.stderr
+
+
+def test_scan_of_a_v3_arm_over_its_own_emulator_with_the_default_ids_exits_0(tmp_path: Path) -> None:
+    # issue 31: with a V3 configuration, the ids that did not answer as V3 drives were sent the older family's 0x9A
+    # through the V3 codec (exit 2, "'0x9A' is outside the valid range"); and `emulate --config` of a V3
+    # configuration emulated drives of the older generation unless told --protocol v3
+    link = tmp_path / "slcan"
+    arm6_v3 = str(ROOT / "configs" / "arm6_v3.yaml")
+    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", arm6_v3, "--slcan-link", str(link)]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert process.stdout is not None
+        assert process.stdout.readline().startswith(f"slcan: {link}")
+        assert "emulating motors" in process.stdout.readline()
+        result = _cli("scan", "--config", arm6_v3, "--interface", "slcan", "--channel", str(link), "--json")
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.communicate(timeout=10)
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert [(d["motor_id"], d["protocol"]) for d in report["drives"]] == [(i, "v3") for i in range(1, 7)]
+    assert report["missing"] == []
+    assert "protocol" not in result.stderr  # one generation, the configuration's: nothing to warn of
+
+
+def test_the_emulated_model_is_seven_ascii_characters() -> None:
+    # the document's 0xB5 reply carries 7 ASCII characters (X8S2V10); the emulated one was NUL-padded (EMU-V3\0)
+    reply = _one(_emulator(), BareV3(CommandV3.READ_MODEL))
+    assert isinstance(reply, MotorModel) and len(reply.model) == 7 and reply.model.isprintable()
+    frame = frames.encode_can_reply(reply, 1)
+    assert b"\0" not in bytes(frame.data[1:]) and frame.data[1:].decode("ascii") == reply.model
 
 
 def _arm2(protocol: str | None = None) -> ArmConfig:

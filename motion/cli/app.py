@@ -106,6 +106,9 @@ def emulate(args: argparse.Namespace, interrupts: Interrupts) -> int:
             raise UsageError("--start-pose needs --config (the joints it names)")
         return run_emulate(args, None)
     config = load_config_or_example(args.config)
+    if args.protocol is None:  # the configuration's generation, where it names one (auto: the older, as before)
+        configured = config.bus.protocol.value
+        args.protocol = configured if configured in {f.value for f in ProtocolFamily} else ProtocolFamily.V2.value
     family = ProtocolFamily(args.protocol)
     return run_emulate(args, arm_emulator_factory(config, parse_pose(config, args.start_pose), family))
 
@@ -228,13 +231,16 @@ def _actions(
 
 def _settings_commands(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
     _, put = _actions(sub, "pid", drives.pid, "read or write the drives' PI gains (0x30, 0x31 RAM, 0x32 ROM)")
-    put.description = "write the six PI gains of one joint (- keeps the present gain)"
+    names = tuple(f.upper() for f in drives.PID_FIELDS)
+    put.description = (
+        f"write the six PI gains of one joint, in this order: {' '.join(names)} (- keeps the present gain)"
+    )
     where = put.add_mutually_exclusive_group()
     where.add_argument("--ram", action="store_true", help="RAM: lost at the next power cycle (default)")
     where.add_argument("--rom", action="store_true", help="ROM: kept at power-off; wears the flash (needs --yes)")
     put.add_argument("--yes", action="store_true", help="confirm a ROM write")
-    names = tuple(f.upper() for f in drives.PID_FIELDS)
-    put.add_argument("gains", nargs=len(names), type=drives.pid_value_arg, metavar=names)
+    # (one metavar for the six: argparse's help cannot format a tuple metavar of a positional argument)
+    put.add_argument("gains", nargs=len(names), type=drives.pid_value_arg, metavar="GAIN", help=" ".join(names))
 
     _, put = _actions(sub, "accel", drives.accel, "read or write the drives' acceleration limit (0x33, 0x34 RAM)")
     put.description = "write one joint's acceleration limit to RAM, motor-shaft deg/s² (0: no limit)"

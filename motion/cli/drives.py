@@ -8,7 +8,8 @@ releases the torque: an arm under gravity falls unless it has brakes).
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
@@ -69,14 +70,16 @@ from motion.protocol.v3.messages import (
     VersionDate,
 )
 from motion.transport import Request, Transport
-from motion.transport.can_transport import CanPort, CanTransport
+from motion.transport.can_transport import CanTransport
 from motion.transport.detect import detect_can
 
 if TYPE_CHECKING:
     from motion.api import Arm
 
-#: Scan: the reply window of the whole CAN batch (the drives answer in parallel), s.
-SCAN_CAN_S: Final = 0.1
+#: Scan: the reply window of a CAN batch (the drives answer in parallel), s, plus a share per request: an adapter
+#: (and an emulator in its own process on a busy host) passes the frames one after the other.
+SCAN_CAN_S: Final = 0.25
+SCAN_CAN_PER_REQUEST_S: Final = 0.01
 #: Scan: the reply window of each RS485 request (one drive after the other), s.
 SCAN_RS485_PER_ID_S: Final = 0.03
 #: ``hold``: the drive's speed cap while holding, as a share of the joint's velocity limit.
@@ -134,18 +137,36 @@ def _model_text(info: ProductInfo | None) -> str:
 _V3_SCAN_READS: Final = (CommandV3.READ_STATUS_1, CommandV3.READ_VERSION_DATE, CommandV3.READ_MODEL)
 
 
-def _scan_v3(
-    port: CanPort, clock: Callable[[], float], ids: Sequence[int]
-) -> tuple[dict[int, Status1V3], dict[int, str]]:
-    """Status, firmware date and model of V3 drives, through a second transport on the same port that speaks their
-    generation."""
+@contextmanager
+def _speaking(bus: CanTransport, family: ProtocolFamily) -> Iterator[Transport]:
+    """``bus`` where it speaks ``family``, else a second transport on its port that does (a scan meets drives of
+    either generation on one bus)."""
+    if bus.family is family:
+        yield bus
+        return
+    with CanTransport.over(bus.port, clock=bus.clock, family=family, owns_port=False) as other:
+        yield other
+
+
+def _scan_v3(bus: Transport, ids: Sequence[int], window_s: float) -> tuple[dict[int, Status1V3], dict[int, str]]:
+    """Status, firmware date and model of V3 drives, on a transport that speaks their generation."""
     requests = [Request(i, BareV3(c)) for i in ids for c in _V3_SCAN_READS]
-    with CanTransport.over(port, clock=clock, family=ProtocolFamily.V3, owns_port=False) as bus:
-        replies = bus.transact(requests, clock() + SCAN_CAN_S)
+    replies = bus.transact(requests, bus.clock() + window_s)
     status = {r.motor_id: r.message for r in replies if isinstance(r.message, Status1V3)}
     dates = {r.motor_id: r.message.date for r in replies if isinstance(r.message, VersionDate)}
     models = {r.motor_id: r.message.model for r in replies if isinstance(r.message, MotorModel)}
     return status, {i: f"{models.get(i, '?')} firmware {dates.get(i, '?')}" for i in status}
+
+
+def _scan_older(bus: Transport, ids: Sequence[int], window_s: float) -> dict[int, Status1]:
+    """The 0x9A status of drives of the older generation, on a transport that speaks it."""
+    replies = bus.transact([Request(i, Bare(Command.READ_STATUS_1)) for i in ids], bus.clock() + window_s)
+    return {r.motor_id: r.message for r in replies if isinstance(r.message, Status1)}
+
+
+def _can_window(requests: int) -> float:
+    """Scan's reply window for a CAN batch of ``requests``, s."""
+    return SCAN_CAN_S + SCAN_CAN_PER_REQUEST_S * requests
 
 
 def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
@@ -156,22 +177,28 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
     rs485 = not isinstance(session.config.bus, CanBusConfig)
     v3_status: dict[int, Status1V3] = {}
     v3_models: dict[int, str] = {}
+    found: dict[int, Status1] = {}
+    models: dict[int, ProductInfo] = {}
     with session.open_bus(check=False) as bus:
-        # A real CAN bus: the reply ids tell the generations apart (a simulated bus knows its drives' generation).
+        per_id_s = SCAN_RS485_PER_ID_S if rs485 else 0.0
         if isinstance(bus, CanTransport):
-            generations = detect_can(bus.port, ids, SCAN_CAN_S)
+            # A real CAN bus: the reply ids tell the generations apart; each is asked in its own generation.
+            generations = detect_can(bus.port, ids, _can_window(len(ids)))
             v3_ids = sorted(i for i, f in generations.items() if f is ProtocolFamily.V3)
             if v3_ids:
-                v3_status, v3_models = _scan_v3(bus.port, bus.clock, v3_ids)
-        older = [i for i in ids if i not in v3_status]
-        window = SCAN_RS485_PER_ID_S * len(older) if rs485 else SCAN_CAN_S
-        replies = bus.transact([Request(i, Bare(Command.READ_STATUS_1)) for i in older], bus.clock() + window)
-        found = {r.motor_id: r.message for r in replies if isinstance(r.message, Status1)}
-        models: dict[int, ProductInfo] = {}
-        if rs485 and found:
-            requests = [Request(i, Bare(Command.READ_MODEL)) for i in sorted(found)]
-            replies = bus.transact(requests, bus.clock() + SCAN_RS485_PER_ID_S * len(requests))
-            models = {r.motor_id: r.message for r in replies if isinstance(r.message, ProductInfo)}
+                with _speaking(bus, ProtocolFamily.V3) as v3_bus:
+                    v3_status, v3_models = _scan_v3(v3_bus, v3_ids, _can_window(len(v3_ids) * len(_V3_SCAN_READS)))
+            older = [i for i in ids if i not in v3_status]
+            with _speaking(bus, ProtocolFamily.V2) as older_bus:
+                found = _scan_older(older_bus, older, _can_window(len(older)))
+        elif bus.family is ProtocolFamily.V3:  # an RS485 line or a simulated bus of V3 drives: they alone
+            v3_status, v3_models = _scan_v3(bus, ids, SCAN_CAN_S + per_id_s * len(ids) * len(_V3_SCAN_READS))
+        else:
+            found = _scan_older(bus, ids, SCAN_CAN_S + per_id_s * len(ids))
+            if rs485 and found:
+                requests = [Request(i, Bare(Command.READ_MODEL)) for i in sorted(found)]
+                replies = bus.transact(requests, bus.clock() + SCAN_RS485_PER_ID_S * len(requests))
+                models = {r.motor_id: r.message for r in replies if isinstance(r.message, ProductInfo)}
         where, family = bus.describe(), bus.family
     names = session.names
     answered: dict[int, Status1 | Status1V3] = {**found, **v3_status}
@@ -203,10 +230,14 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
     else:
         print(f"{where}: {len(drives)} of {len(ids)} ids answered")
         print_table(("id", "joint", "protocol", "voltage", "temp", "flags", "model"), rows)
-    if v3_status:
+    other = sorted(i for i in answered if (ProtocolFamily.V3 if i in v3_status else ProtocolFamily.V2) is not family)
+    if other:
+        speaks = (
+            "V3-driver protocol (V4.2)" if family is ProtocolFamily.V2 else "older protocol (CAN v2.3 / RS485 v1.62)"
+        )
         warn(
-            f"motor(s) {', '.join(map(str, sorted(v3_status)))} speak the V3-driver protocol (V4.2): rmd-motion reads "
-            "them, but controls only drives of the older protocol so far"
+            f"motor(s) {', '.join(map(str, other))} speak the {speaks}, not the configuration's "
+            f"(bus.protocol: {family.value}): one arm's drives speak one generation"
         )
     if missing:
         warn(f"communication error: configured joint(s) not answering: {', '.join(missing)}")

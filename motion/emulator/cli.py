@@ -218,9 +218,9 @@ def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = Fal
     parser.add_argument(
         "--protocol",
         choices=[f.value for f in ProtocolFamily],
-        default=ProtocolFamily.V2.value,
         help="the drives' protocol generation: v2 (the CAN v2.3 / RS485 v1.62 documents) or v3 (driver V3, "
-        "V4.2 document: replies on 0x240+id, RS485 frames with a CRC16; with --ids so far) (default %(default)s)",
+        "V4.2 document: replies on 0x240+id, RS485 frames with a CRC16) (default: with --config, its bus.protocol "
+        "where that names one; else v2)",
     )
     parser.add_argument(
         "--brakes",
@@ -242,7 +242,7 @@ def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -
     Raises:
         ValueError: conflicting options, or drives or faults the emulator rejects (ConfigError is one).
     """
-    family = ProtocolFamily(args.protocol)
+    family = ProtocolFamily(args.protocol or ProtocolFamily.V2.value)
     if args.baud not in RS485_BAUDRATES[family]:
         allowed = ", ".join(map(str, RS485_BAUDRATES[family]))
         raise ValueError(f"--baud {args.baud}: {family.value} drives run at {allowed} baud")

@@ -75,7 +75,7 @@ from motion.protocol.v3.table import COMMANDS_V3, field_range
 
 #: What an emulated V3 drive reports as its firmware date (0xB2) and model (0xB5).
 VERSION_DATE: Final = 20240528
-MODEL_NAME: Final = "EMU-V3"
+MODEL_NAME: Final = "EMUX8V3"  # 7 ASCII characters, as the document's X8S2V10
 
 
 def _reply_limits(command: CommandV3, name: str) -> tuple[float, float]:
