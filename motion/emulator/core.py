@@ -448,7 +448,7 @@ class Emulator:
                 n = self._index[target_id]
                 drive.observe(float(self._positions[n]), float(self._velocities[n]))
                 if isinstance(drive, EmulatedDriveV3):
-                    answer = drive.handle_v3(message, self.time_s)
+                    answer = drive.handle_v3(message, self.time_s, transport)
                     if answer is None:  # 0x76, 0xB4, 0xB6 have no reply
                         continue
                     reply = answer

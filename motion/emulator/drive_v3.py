@@ -239,8 +239,9 @@ class EmulatedDriveV3(EmulatedDrive):
 
     # --- requests -------------------------------------------------------------------------------------------------
 
-    def handle_v3(self, message: Message, now_s: float) -> Message | None:
-        """Execute one V3 request at ``now_s`` (simulation time) and return the reply, or None (0x76, 0xB4, 0xB6).
+    def handle_v3(self, message: Message, now_s: float, transport: WireProtocol = WireProtocol.CAN) -> Message | None:
+        """Execute one V3 request at ``now_s`` (simulation time), come over ``transport``, and return the reply, or
+        None (0x76, 0xB4, 0xB6).
 
         Raises:
             ValueError: the message is not a V3 request (the emulator decodes frames with the codec first).
@@ -265,7 +266,7 @@ class EmulatedDriveV3(EmulatedDrive):
             return None
         if layout.echo:
             return message
-        return self._reply_v3(command, layout.cls, message)
+        return self._reply_v3(command, layout.cls, message, transport)
 
     def _execute_v3(self, command: CommandV3, message: Message, now_s: float) -> None:
         if isinstance(message, PidParameter) and command is not CommandV3.READ_PID:
@@ -345,7 +346,9 @@ class EmulatedDriveV3(EmulatedDrive):
     def _output_speed(self) -> int:
         return round(_clamp(self._speed_dps / self.model.gear_ratio, _SPEED_MAX_DPS))
 
-    def _reply_v3(self, command: CommandV3, cls: type[Message], request: Message) -> Message:
+    def _reply_v3(
+        self, command: CommandV3, cls: type[Message], request: Message, transport: WireProtocol = WireProtocol.CAN
+    ) -> Message:
         gear = self.model.gear_ratio
         temperature = self._temperature()
         iq = _amps(self.iq_a)
@@ -387,7 +390,11 @@ class EmulatedDriveV3(EmulatedDrive):
         if cls is MotorModel:
             return MotorModel(MODEL_NAME)
         if cls is CanIdReply and isinstance(request, CanIdCommand):
-            return CanIdReply(ReadWrite.READ, _REPLY_ID_BASE + self.motor_id)
+            # a read answers with the reply id in DATA[6..7] on CAN, and with the id itself in DATA[7] on RS485 (V4.2
+            # section 7.4, example 2; docs/protocol.md V14)
+            if transport is WireProtocol.CAN:
+                return CanIdReply(ReadWrite.READ, _REPLY_ID_BASE + self.motor_id)
+            return CanIdReply(ReadWrite.READ, self.motor_id << 8)
         if cls is BareV3:
             return BareV3(command)
         raise AssertionError(f"no V3 reply builder for {cls.__name__}")  # a new table class needs one here
