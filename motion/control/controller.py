@@ -264,8 +264,7 @@ class Controller:
         self._amps = np.zeros(n)  # torque mode: the cycle's currents, A (work array)
         # Constant per cycle, looked up once: the 0xA4 speed cap's terms, per joint (motor id, motor deg per joint
         # deg, zero offset, floor), and the builder of the mode's batch.
-        self._velocity_limit_dps = np.array(limits.velocity_dps, dtype=np.float64)  # joint side
-        velocity_limit = np.abs(transmission.motor_rate(self._velocity_limit_dps))
+        velocity_limit = np.abs(transmission.motor_rate(np.array(limits.velocity_dps)))
         self._speed_floor_dps = velocity_limit * options.speed_floor_share
         self._speed_ceiling_dps = family.speed_ceiling_dps(options.protocol)
         self._speed_headroom = options.speed_headroom
@@ -288,7 +287,7 @@ class Controller:
         self.axes = AxisStates(self.specs, transmission, self.family)
         # Per axis: motor id, motor deg per joint deg (as ArmTransmission has them), zero offset, speed floor, the
         # drive's degrees per motor degree (1, or 1 / its reduction where it takes output-shaft angles) and the speed
-        # cap's ceiling in motor deg/s (the field's range, the joint's velocity limit).
+        # cap's ceiling in motor deg/s.
         self._position_axes = tuple(
             zip(
                 self.ids,
@@ -296,12 +295,7 @@ class Controller:
                 [t.zero_offset_deg for t in transmission.transmissions],
                 self._speed_floor_dps.tolist(),
                 [1.0 / s.drive_gear_ratio for s in self.specs],
-                # the field's range and the joint's velocity limit: a stale or jumping set-point never drives a joint
-                # past its limit, the catch-up headroom stays below it
-                np.minimum(
-                    [self._speed_ceiling_dps * s.drive_gear_ratio for s in self.specs],
-                    np.abs(transmission.motor_rate(self._velocity_limit_dps)),
-                ).tolist(),
+                [self._speed_ceiling_dps * s.drive_gear_ratio for s in self.specs],
                 strict=True,
             )
         )
