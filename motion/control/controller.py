@@ -69,8 +69,7 @@ class ControllerOptions:
         rate_hz: control rate, Hz.
         protocol: the wire protocol of the bus (decides 0xA4 layout and the use of 0x280).
         speed_headroom: 0xA4 max speed = planned motor speed × headroom + floor, so that the drive's own position
-            loop (which lags the stream by speed / its gain) can catch up during the move; never above the joint's
-            velocity limit.
+            loop (which lags the stream by speed / its gain) can catch up during the move.
         speed_floor_share: the floor as a share of the joint's velocity limit (motor side), so that the last
             set-points of a move, where the planned speed goes to zero, are still reached promptly.
         reply_budget: share of the period given to ``transact`` (the rest is for computing the next cycle).
