@@ -17,9 +17,11 @@ from typing import Any
 import numpy as np
 import pytest
 
+from motion.api import Arm
 from motion.config import ArmConfig
 from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller
+from motion.control.ratecheck import FLAG_AGE_S
 from motion.emulator import Fault, InjectedFault
 from motion.errors import MotionError, MotionFault, PlanningError, TransportError
 from motion.protocol import Command, MultiTurnPositionSpeed
@@ -626,3 +628,28 @@ def test_the_reference_stops_where_the_arm_was_halted(tmp_path: Path) -> None:
         later = rig.controller.snapshot
         assert not later.moving and np.array_equal(halted.reference_deg, later.reference_deg)
         assert np.abs(later.reference_deg - later.position_deg).max() < 2.0
+
+
+@pytest.mark.parametrize("family", [ProtocolFamily.V2, ProtocolFamily.V3])
+def test_at_a_low_rate_every_drives_flags_are_read_within_50_ms(family: ProtocolFamily) -> None:
+    # issue 31, item 7: at 50 Hz with six drives each drive's 0x9A was read every 12 cycles (240 ms), so an
+    # under-voltage was acted on 172 ms after it appeared; on CAN the cycle now carries enough of the round-robin
+    # reads that every drive's flags are at most FLAG_AGE_S old
+    name = "arm6.yaml" if family is ProtocolFamily.V2 else "arm6_v3.yaml"
+    config = arm_config(name, mode=ControlMode.POSITION, rate_hz=50.0)
+    latencies = []
+    for offset_s in (0.0, 0.007, 0.013, 0.021, 0.034, 0.046):
+        arm = Arm(config, emulate=True, emulated_protocol=family)
+        with arm:
+            supervisor, emulator = arm.supervisor, arm.emulator
+            assert supervisor is not None and emulator is not None
+            assert supervisor.status_reads_per_cycle == 6  # 12 reads, at most 2 cycles apart
+            arm.move_to({"base_yaw": 30.0}, wait=False)
+            arm.sleep(0.3 + offset_s)
+            onset_s = emulator.time_s
+            emulator.add_fault(Fault(InjectedFault.UNDER_VOLTAGE, 3, onset_s, onset_s + 2.0, value=12.0))
+            with pytest.raises(MotionFault) as caught:
+                supervisor.wait(1.0)
+            assert "voltage" in caught.value.kind and caught.value.joint == "elbow_pitch", caught.value
+            latencies.append(supervisor.halts[0].detected_s - onset_s)
+    assert max(latencies) <= FLAG_AGE_S + 1.0 / 50.0, latencies  # the read's age, and the cycle that carries it

@@ -44,7 +44,7 @@ import numpy as np
 from motion.control.clock import is_simulated
 from motion.control.controller import Controller
 from motion.errors import ConfigError, TransportError
-from motion.protocol import Command
+from motion.protocol import Command, WireProtocol
 from motion.transport.base import Reply, Request
 
 #: The fewest exchanges measured in real time (a few dozen: about 0.1 s of bus time for six joints at 1 Mbit/s) ...
@@ -72,6 +72,22 @@ REHEARSALS_PER_EXCHANGE: Final = 5
 _REHEARSAL_STEP_S: Final = 1e-6
 #: Time each measuring exchange may take before its reads count as unanswered, s.
 _EXCHANGE_TIMEOUT_S: Final = 0.1
+#: The oldest a drive's flags (0x9A) and restart read (0x92, V3: 0xB1) may be where the bus has room for them, s.
+FLAG_AGE_S: Final = 0.05
+
+
+def status_reads_per_cycle(drives: int, period_s: float, protocol: WireProtocol) -> int:
+    """How many of the round-robin status reads (two per drive: 0x9A and the restart read) each cycle carries: on
+    CAN, enough that every drive's are at most :data:`FLAG_AGE_S` old (each read is one more frame, and a slow loop's
+    bus has room for them; at 250 Hz with six drives, one); on RS485 one (each read is an exchange of its own on the
+    half-duplex line: the flags are ``2 × drives`` cycles old there)."""
+    reads = 2 * drives
+    if protocol is not WireProtocol.CAN:
+        return 1
+    cycles = max(1, math.floor(FLAG_AGE_S / period_s + 1e-9))  # the most cycles between two reads of one drive's
+    return min(reads, math.ceil(reads / cycles))
+
+
 #: A drive that answers none of this many exchanges in a row does not answer (the check fails); fewer misses count as
 #: round trips of :data:`_EXCHANGE_TIMEOUT_S`.
 _SILENT_EXCHANGES: Final = 3
@@ -223,10 +239,12 @@ def measure_rate(
     if not (math.isfinite(margin) and margin >= 1.0):
         raise ValueError(f"margin: {margin!r} must be >= 1")
     ids = controller.ids
-    # A cycle's frames: one motion read per joint as the set-points, the family's angle reads, one status read.
-    bare = controller.family.bare
+    # A cycle's frames: one motion read per joint as the set-points, the family's angle reads, its status reads.
+    family = controller.family
+    bare = family.bare
     batch = [Request(i, bare(Command.READ_STATUS_2)) for i in ids] + controller.angle_reads
-    batch.append(Request(ids[0], bare(Command.READ_STATUS_1)))
+    status = [Request(i, bare(c)) for i in ids for c in (Command.READ_STATUS_1, family.restart_read)]
+    batch += status[: status_reads_per_cycle(len(ids), controller.period_s, controller.options.protocol)]
     clock, bus = controller.clock, controller.bus
     # What a cycle's set-points take on the wire beyond the reads that stand in for them (measured: the reads; the
     # difference: the wire's speed), for transports that know it.

@@ -40,6 +40,7 @@ from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller, Feedforward
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.family import STATE_TYPES, STATUS_TYPES
+from motion.control.ratecheck import status_reads_per_cycle
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command, Message
 from motion.protocol.v3.messages import CommandV3
@@ -214,6 +215,10 @@ class Supervisor:
         reads = (Command.READ_STATUS_1, family.restart_read)
         self._status_reads = [Request(i, bare(command)) for i in self.ids for command in reads]
         self._round_robin = 0  # a counter of its own: the cycle index k jumps over skipped cycles
+        #: How many of them each cycle carries (CAN: every drive's flags at most FLAG_AGE_S old).
+        self.status_reads_per_cycle = status_reads_per_cycle(
+            len(self.ids), controller.period_s, controller.options.protocol
+        )
         self._state_reads = [Request(i, bare(Command.READ_STATUS_2)) for i in self.ids]
         # Clearing: 0x9B where the family has it (its reply is the status); else the drives clear level-2 errors
         # themselves, and the status is read.
@@ -467,7 +472,7 @@ class Supervisor:
                 if self._estop_request is not None:
                     reason, self._estop_request = self._estop_request, None
                     raise MotionFault(reason, time_s=controller.clock.now(), detail=self._estop_detail)
-                extra = (self._next_status_read(),)
+                extra = self._next_status_reads()
                 replies = controller.step(start_s, deadline_s, extra=extra, check=self.watchdog.check_setpoint)
                 self.watchdog.evaluate(replies, controller.clock.now())
                 if self.machine.state is ArmState.MOVING and controller.idle:
@@ -489,11 +494,16 @@ class Supervisor:
                 self._halt(error, k, start_s, deadline_s)
         return not controller.stopping and self.machine.state is not ArmState.BUS_LOST
 
-    def _next_status_read(self) -> Request:
-        """0x9A or 0x92 for the next drive in turn: every drive's flags and multi-turn angle are at most
-        ``2 n_axes`` cycles old."""
-        self._round_robin = (self._round_robin + 1) % len(self._status_reads)
-        return self._status_reads[self._round_robin]
+    def _next_status_reads(self) -> tuple[Request, ...]:
+        """0x9A or 0x92 for the next drives in turn, :attr:`status_reads_per_cycle` of them: every drive's flags and
+        multi-turn angle are at most ``2 n_axes / status_reads_per_cycle`` cycles old."""
+        reads, count = self._status_reads, len(self._status_reads)
+        if self.status_reads_per_cycle == 1:
+            self._round_robin = (self._round_robin + 1) % count
+            return (reads[self._round_robin],)
+        first = self._round_robin + 1
+        self._round_robin = (self._round_robin + self.status_reads_per_cycle) % count
+        return tuple(reads[(first + j) % count] for j in range(self.status_reads_per_cycle))
 
     def _halt(self, fault: MotionFault, k: int, start_s: float, deadline_s: float) -> None:
         """React to ``fault``: the stop ramp where the policy, the kind and the state allow it, else the halt."""
@@ -695,7 +705,7 @@ class Supervisor:
             reason, self._estop_request = self._estop_request, None
             raise MotionFault(reason, time_s=now, detail=f"E-stop requested while {state.value}")
         if state is ArmState.COMPLYING and self.gravity is not None:
-            extra = (self._next_status_read(),)
+            extra = self._next_status_reads()
             try:
                 replies = controller.comply_step(start_s, deadline_s, self.gravity, extra=extra)
                 self.watchdog.evaluate(replies, controller.clock.now(), complying=True)
@@ -720,7 +730,7 @@ class Supervisor:
         """The stop ramp, then the hold, streamed; a fault the hold is not for halts, and so does a hold that does not
         hold (:meth:`_hold_escalation`), whatever fault the hold is for or this cycle found besides."""
         controller = self.controller
-        extra = (self._next_status_read(),)
+        extra = self._next_status_reads()
         check = self.watchdog.check_setpoint  # the stop ramp must not pass a limit either
         try:
             replies = controller.step(start_s, deadline_s, extra=extra, check=check, apply_pending=False)
@@ -778,7 +788,7 @@ class Supervisor:
         of their own, and braked joints lock once at rest."""
         controller = self.controller
         requests = self.guard.requests()
-        requests.append(self._next_status_read())
+        requests.extend(self._next_status_reads())
         controller.last_replies = _NO_REPLIES
         try:
             replies = controller.step(start_s, deadline_s, extra=requests, command=False, apply_pending=False)

@@ -1,7 +1,8 @@
 """Per-cycle fault monitors: every reply is watched, and the first violated limit becomes a :class:`MotionFault`.
 
-Sources, in the order they are checked: drive error flags (0x9A, read round-robin with 0x92 so every drive's flags
-are at most ``2 n_axes`` cycles old, and every 0x9B reply), a drive that restarted (its 0x92 multi-turn angle jumps
+Sources, in the order they are checked: drive error flags (0x9A, read round-robin with 0x92, on CAN enough per cycle
+that every drive's flags are at most ``motion.control.ratecheck.FLAG_AGE_S`` old, on RS485 one per cycle: ``2 n_axes``
+cycles; and every 0x9B reply), a drive that restarted (its 0x92 multi-turn angle jumps
 by whole turns from the angle tracked from its encoder), motor temperature in every reply, supply voltage, missing
 replies (consecutive misses and time since the last good reply), corrupt frames, measured position beyond the joint
 limits, collisions (the momentum observer's residual per joint against its threshold), following error, and
