@@ -10,8 +10,7 @@ Per joint, over the window, in N·m:
 - **sampling**: the trapezoid rule takes the motor torque between two samples as their mean; a torque that changes
   monotonically between them is off by at most half the change, through the filter, at each end of the window (in
   position mode a drive's loop can push right after each 0xA4 step and brake before the next sample, so that its
-  current between two samples swings beyond both: that part is not bounded here, and a configured threshold above
-  the bound covers it, see the configuration reference);
+  current between two samples swings beyond both: the next row);
 - **position-mode steps**: a 0xA4 target moves by ``v dt`` each cycle; a drive whose loops are faster than the
   period answers each step with a push and a brake inside the cycle (its speed ripples by up to the angle loop's
   ``k v dt``), and the current sampled at the cycle's exchange is the same phase of that response every cycle, not
@@ -128,7 +127,7 @@ class CollisionBound:
         transmissions = controller.transmission.transmissions
         self._observer = observer
         self._error = np.array((*MODEL_ERROR, 0.0, STEP_SHARE, 0.0, 0.0), dtype=np.float64)[:, None]
-        # the speed field's step in joint rad/s, times 2 K_O (times M's diagonal at each step)
+        # the speed field's step in joint rad/s, times 2 K_O (through |M| at each step)
         step_rad_s = np.array(
             [
                 math.radians(abs(t.joint_rate(family.speed_step_dps * s.drive_gear_ratio)))
@@ -140,8 +139,8 @@ class CollisionBound:
         self._delta = np.zeros((TERM_ROWS, len(specs)))
         #: The latest bound per joint, N·m.
         self.bound_nm = np.zeros(len(specs))
-        # position mode: the steps' X = M k |v| per joint (M from the observer, k from the tracking model, v from the
-        # reference), filtered as the residual; the terms of the latest step, all rows
+        # position mode: the steps' X = |M| (k |v| + |a|) per joint (M from the observer, k from the tracking model, v
+        # and a from the reference), filtered as the residual; the terms of the latest step, all rows
         self._controller = controller
         self._steps = controller.options.mode is ControlMode.POSITION
         self._gain_factor = 1.0 if family.reads_loop_settings else UNREAD_GAIN_FACTOR
