@@ -23,7 +23,7 @@ rectangle rule's error is half a step of the torque's rate of change: 0.16 N·m 
 **What the residual cannot know** (:meth:`MomentumObserver.error_terms`): the same filter applied to the terms the
 drive's true figures scale — the motor torque (the torque constant), the rotor's inertial torque
 (``gear_ratio² J q̈``), the friction torque — so that a drive whose figures are off by a fraction ε puts exactly
-``ε ×`` that filtered term into the residual; and the diagonal of M(q), with which the speed field's steps enter.
+``ε ×`` that filtered term into the residual; and M(q), through which the speed field's steps enter.
 :mod:`motion.safety.watchdog` bounds the collision signal's false part with them.
 
 Pinocchio's shape: the model and its data are built once; an update runs ``crba``, ``computeCoriolisMatrix`` and
@@ -85,12 +85,11 @@ class MomentumObserver:
         self._v_previous = np.zeros(n)
         # the filtered error terms (model order): motor torque, rotor inertial torque, friction torque, half the motor
         # torque's change over the step (what the trapezoid rule may miss of it); their
-        # values at the previous step (for the trapezoid rule); and the terms and M's diagonal in configuration order
+        # values at the previous step (for the trapezoid rule); and the terms and M in configuration order
         self._terms = np.zeros((4, n))
         self._terms_previous = np.zeros((4, n))
         self._inputs = np.zeros((4, n))
         self._terms_out = np.zeros((4, n))
-        self._inertia_out = np.zeros(n)
         self._mass_rows = np.zeros((n, n))
         self._mass_out = np.zeros((n, n))
         self._started = False
@@ -115,7 +114,6 @@ class MomentumObserver:
     def _momentum(self) -> None:
         mass = crba_full(self._model, self._data, self._q)
         np.dot(mass, self._v, out=self._p)
-        np.take(np.diagonal(mass), self._to_config, out=self._inertia_out)
         np.take(mass, self._to_config, axis=0, out=self._mass_rows)
         np.take(self._mass_rows, self._to_config, axis=1, out=self._mass_out)
 
@@ -143,11 +141,6 @@ class MomentumObserver:
     def coulomb_smoothing_dps(self) -> float:
         """The half-width of the Coulomb model's smoothing, deg/s."""
         return math.degrees(self._smoothing)
-
-    @property
-    def inertia_kgm2(self) -> FloatArray:
-        """The diagonal of M(q) at the latest step (rotors included), kg·m², configuration order."""
-        return self._inertia_out
 
     def reset(self, q_deg: ArrayLike, qd_dps: ArrayLike) -> None:
         """Start (again) at this state: p0 = M(q) q̇, the residual zero."""

@@ -93,11 +93,6 @@ class CollisionObserver(Protocol):
         ...
 
     @property
-    def inertia_kgm2(self) -> FloatArray:
-        """The diagonal of M(q) at the latest step, kg·m²."""
-        ...
-
-    @property
     def mass_kgm2(self) -> FloatArray:
         """M(q) at the latest step, kg·m² (joints × joints)."""
         ...
