@@ -23,7 +23,7 @@ from motion.api import Arm
 from motion.compose import build_controller, check_rate, feedforward_for, rehearsal_watchdog
 from motion.config import ArmConfig
 from motion.config.schema import ControlMode
-from motion.control.ratecheck import MAX_SAMPLES, MIN_SAMPLES, RATE_STEP_HZ, RateCheck, RateError, measure_rate
+from motion.control.ratecheck import MAX_SAMPLES, MIN_SAMPLES, RateCheck, RateError, measure_rate
 from motion.emulator import Fault, FrameLog, InjectedFault, TimingModel
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionFault
@@ -165,7 +165,9 @@ def test_the_real_time_check_measures_long_enough_and_reports_its_spread(tmp_pat
         for mode in figures.values():
             assert MIN_SAMPLES <= mode["samples"] <= MAX_SAMPLES
             low, high = mode["spread_hz"]
-            assert low <= high and low <= mode["highest_rate_hz"] + RATE_STEP_HZ
+            # (every quarter may hold more than the whole: the whole's p99 round trip and p99 host work can come
+            # from different quarters, and the whole takes both; the recommendation takes the lower of the two)
+            assert low <= high
             assert mode["recommended_rate_hz"] <= max(1.0, 0.8 * low)
 
 
