@@ -1,7 +1,7 @@
 """The example arms' collision thresholds, as their configurations say they were calibrated: margin 2 on the largest
-collision signal of the demo's waypoint path (position mode) and torque move, and of each joint alone moved from rest
-to 80 % of its range, to the other side and back (position and torque mode), all at speed scale 1.0, on the
-example's emulated drives in simulated time (the same figures on any host).
+collision signal of each control mode (``{position: N, torque: N}``): the demo's waypoint path (position mode) and
+torque move, and each joint alone moved from rest to 80 % of its range, to the other side and back (in both modes),
+all at speed scale 1.0, on the example's emulated drives in simulated time (the same figures on any host).
 
     .venv/bin/python bench/calibrate_examples.py                       # print them
     .venv/bin/python bench/calibrate_examples.py --write               # and write them into configs/
@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from motion.api import Arm
 from motion.config import ArmConfig, load_config
+from motion.config.schema import ControlMode
 from tests.collision_trials import demo_path, nominal_run, torque_move, torque_variant, without_thresholds
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -42,29 +43,35 @@ def _alone(name: str, far_deg: float, other_deg: float) -> Callable[[Arm], objec
     return motion
 
 
-def peaks(config: ArmConfig) -> tuple[np.ndarray, list[str]]:
-    """The largest |collision signal| per joint over the calibration motions, and any fault they met."""
+def peaks(config: ArmConfig) -> tuple[dict[str, np.ndarray], list[str]]:
+    """The largest |collision signal| per joint over the calibration motions, per control mode, and any fault they
+    met."""
     position = without_thresholds(config)
     torque = torque_variant(position)
-    peak = np.zeros(len(config.joints))
+    peak = {"position": np.zeros(len(config.joints)), "torque": np.zeros(len(config.joints))}
     faults: list[str] = []
-    runs = [(position, demo_path(1.0)), (torque, torque_move(1.0))]
+    runs = [("position", position, demo_path(1.0)), ("torque", torque, torque_move(1.0))]
     for joint in config.joints:
         motion = _alone(joint.name, SHARE * joint.position_max_deg, SHARE * joint.position_min_deg)
-        runs += [(position, motion), (torque, motion)]
-    for run_config, motion in runs:
+        runs += [("position", position, motion), ("torque", torque, motion)]
+    for mode, run_config, motion in runs:
         run = nominal_run(run_config, motion)
         if run.fault is not None:
             faults.append(str(run.fault))
-        np.fmax(peak, run.signal_peak_nm, out=peak)
+        np.fmax(peak[mode], run.signal_peak_nm, out=peak[mode])
     return peak, faults
 
 
-def write(path: Path, thresholds: list[float]) -> None:
-    """Replace the file's ``collision_threshold_nm`` values, in joint order."""
+def write(path: Path, thresholds: list[tuple[float, float]]) -> None:
+    """Replace the file's ``collision_threshold_nm`` values, in joint order, with ``{position: N, torque: N}``."""
     text = path.read_text()
     values = iter(thresholds)
-    text, count = re.subn(r"(collision_threshold_nm: )[0-9.]+", lambda m: f"{m.group(1)}{next(values):.4g}", text)
+
+    def value(match: re.Match[str]) -> str:
+        position, torque = next(values)
+        return f"{match.group(1)}{{position: {position:.4g}, torque: {torque:.4g}}}"
+
+    text, count = re.subn(r"(collision_threshold_nm: )(?:[0-9.]+|\{[^}]*\})", value, text)
     if count != len(thresholds):
         raise SystemExit(f"{path}: {count} collision_threshold_nm keys for {len(thresholds)} joints")
     path.write_text(text)
@@ -78,10 +85,17 @@ def main() -> None:
         path = CONFIGS / name
         config = load_config(path)
         peak, faults = peaks(config)
-        thresholds = [float(f"{MARGIN * p:.4g}") for p in peak]
+        thresholds = [
+            (float(f"{MARGIN * p:.4g}"), float(f"{MARGIN * t:.4g}"))
+            for p, t in zip(peak["position"], peak["torque"], strict=True)
+        ]
         print(f"{name}:")
-        for joint, p, t in zip(config.joints, peak, thresholds, strict=True):
-            print(f"  {joint.name}: largest signal {p:.4g} N·m, threshold {t:.4g} (was {joint.collision_threshold_nm})")
+        for i, joint in enumerate(config.joints):
+            print(
+                f"  {joint.name}: largest signal {peak['position'][i]:.4g} N·m in position mode, "
+                f"{peak['torque'][i]:.4g} in torque mode; thresholds {thresholds[i]} (were "
+                f"{joint.collision_threshold_nm}, {joint.collision_threshold_in(ControlMode.TORQUE)})"
+            )
         for fault in faults:
             print(f"  fault on the way: {fault}")
         if args.write:

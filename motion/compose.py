@@ -394,9 +394,7 @@ def safety_settings(config: ArmConfig) -> SafetySettings:
         following_error_deg=safety.following_error_deg,
         reply_timeout_s=safety.reply_timeout_ms / 1000.0 + (safety.max_missed_replies + 1) * period,
         max_missed_replies=safety.max_missed_replies,
-        collision_threshold_nm=tuple(
-            math.inf if j.collision_threshold_nm is None else j.collision_threshold_nm for j in config.joints
-        ),
+        collision_threshold_nm=tuple(math.inf if t is None else t for t in config.collision_thresholds_nm),
         collision_reaction=config.collision_reaction,
         collision_window_s=safety.collision_window_s,
         coulomb_friction_nm=tuple(j.coulomb_friction_nm for j in config.joints),

@@ -111,13 +111,12 @@ def homing_variant(config: ArmConfig, names: Sequence[str]) -> ArmConfig:
 
     def relaxed(joint: JointConfig) -> JointConfig:
         if joint.name not in homed:
-            return dataclasses.replace(joint, collision_threshold_nm=None)
+            return joint.without_collision_threshold()
         return dataclasses.replace(
-            joint,
+            joint.without_collision_threshold(),
             position_min_deg=-_UNLIMITED_DEG,
             position_max_deg=_UNLIMITED_DEG,
             power_on_window_deg=None,
-            collision_threshold_nm=None,
         )
 
     control = dataclasses.replace(

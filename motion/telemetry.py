@@ -609,7 +609,7 @@ class TelemetrySession:
             "channel": bus.channel if isinstance(bus, CanBusConfig) else bus.port,
             "emulated": self.emulated,
             "following_error_limit_deg": config.safety.following_error_deg,
-            "collision_threshold_nm": [j.collision_threshold_nm for j in config.joints],
+            "collision_threshold_nm": list(config.collision_thresholds_nm),
             "trace": Path(self.options.trace).name if self.options.trace is not None else None,
         }
         if self.recorder is not None:

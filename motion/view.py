@@ -566,7 +566,7 @@ def _serve_live(
 
     try:
         server = _start_server(host, port)
-        page = _Page(server, config, figure(config), [j.collision_threshold_nm for j in config.joints])
+        page = _Page(server, config, figure(config), list(config.collision_thresholds_nm))
     except Exception as exc:  # the arm's process raises it as a MotionError
         send(("error", f"{type(exc).__name__}: {exc}"))
         return

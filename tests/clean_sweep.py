@@ -116,7 +116,7 @@ def config_of(case: Case, *, bound_only: bool = False) -> ArmConfig:
     config = with_drives(load_config(CONFIGS / case.arm), case.drives)
     control = dataclasses.replace(config.control, mode=case.mode, rate_hz=case.rate_hz)
     config = dataclasses.replace(config, control=control)
-    if bound_only and any(j.collision_threshold_nm is not None for j in config.joints):
+    if bound_only and config.collision_watched:
         config = with_thresholds(config, [BOUND_ONLY_NM] * len(config.joints))
     return config
 
@@ -151,7 +151,7 @@ def detect(case: Case, *, bound_only: bool = False) -> Trial | None:
     arm without a collision check (no joint has a threshold)."""
     assert case.collision is not None and case.steps
     config = config_of(case, bound_only=bound_only)
-    if all(j.collision_threshold_nm is None for j in config.joints):
+    if not config.collision_watched:
         return None
     joint, onset_s, sign = case.collision
     return collision_trial(

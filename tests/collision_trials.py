@@ -52,15 +52,13 @@ def torque_variant(config: ArmConfig) -> ArmConfig:
 
 def without_thresholds(config: ArmConfig) -> ArmConfig:
     """``config`` with no collision threshold (the observer still runs with ``observe_collisions``)."""
-    return dataclasses.replace(
-        config, joints=tuple(dataclasses.replace(j, collision_threshold_nm=None) for j in config.joints)
-    )
+    return dataclasses.replace(config, joints=tuple(j.without_collision_threshold() for j in config.joints))
 
 
 def with_thresholds(config: ArmConfig, thresholds_nm: Sequence[float]) -> ArmConfig:
     """``config`` with these collision thresholds, one per joint, N·m."""
     joints = tuple(
-        dataclasses.replace(j, collision_threshold_nm=float(t))
+        dataclasses.replace(j, collision_threshold_nm=float(t), collision_threshold_torque_nm=None)
         for j, t in zip(config.joints, thresholds_nm, strict=True)
     )
     return dataclasses.replace(config, joints=joints)

@@ -16,6 +16,8 @@ import pytest
 
 from kinematics.observer import momentum_observer
 from motion.api import Arm
+from motion.cli.collision import written_thresholds
+from motion.compose import safety_settings
 from motion.config import load_config, parse_config, read_yaml
 from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.ratecheck import RateError
@@ -98,6 +100,39 @@ def test_observer_sees_nothing_when_the_model_explains_the_motion() -> None:
 # ------------------------------------------------------------------------------------------------ configuration
 
 
+def test_a_threshold_per_control_mode_is_the_one_in_force_in_that_mode() -> None:
+    # position mode's 0xA4 steps put several times more into the sampled current than torque mode does (arm6_v3's
+    # shoulder: 4.0 against 1.4 N·m on the same paths): one number for both modes blinds torque mode
+    data = read_yaml(ARM6)
+    data["joints"][1]["collision_threshold_nm"] = {"position": 0.9, "torque": 0.3}
+    data["joints"][2]["collision_threshold_nm"] = 0.8
+    config = parse_config(data, "arm6", ARM6.parent)
+    torque = dataclasses.replace(config, control=dataclasses.replace(config.control, mode=ControlMode.TORQUE))
+    assert config.collision_thresholds_nm[1:3] == (0.9, 0.8)
+    assert torque.collision_thresholds_nm[1:3] == (0.3, 0.8)
+    assert safety_settings(torque).collision_threshold_nm[1:3] == (0.3, 0.8)
+    unwatched = dataclasses.replace(torque, joints=tuple(j.without_collision_threshold() for j in torque.joints))
+    assert not unwatched.collision_watched
+
+
+def test_calibrating_one_mode_keeps_the_other_modes_threshold() -> None:
+    data = read_yaml(ARM6)
+    for joint, threshold in zip(
+        data["joints"], (0.4, {"position": 0.9, "torque": 0.3}, 1.0, 0.07, 0.1, 0.03), strict=True
+    ):
+        joint["collision_threshold_nm"] = threshold
+    config = parse_config(data, "arm6", ARM6.parent)  # position mode
+    written = written_thresholds(config, np.array([0.5, 0.6, 1.0, 0.1, 0.1, 0.1]))
+    assert written["shoulder_pitch"] == {"position": 0.6, "torque": 0.3}  # its own torque-mode figure, kept
+    assert written["base_yaw"] == {"position": 0.5, "torque": 0.4}  # the number it had for both, kept for torque
+    assert written["elbow_pitch"] == 1.0  # the same for both: one number
+    torque = dataclasses.replace(config, control=dataclasses.replace(config.control, mode=ControlMode.TORQUE))
+    assert written_thresholds(torque, np.array([0.5, 0.6, 1.0, 0.1, 0.1, 0.1]))["shoulder_pitch"] == {
+        "torque": 0.6,
+        "position": 0.9,
+    }
+
+
 def test_configuration_keys_are_validated(tmp_path: Path) -> None:
     data = read_yaml(ARM6)
     config = parse_config(data, "arm6", ARM6.parent)
@@ -108,6 +143,10 @@ def test_configuration_keys_are_validated(tmp_path: Path) -> None:
     assert parse_config(data, "arm6", ARM6.parent).joints[0].emulation.viscous_friction_nm_per_dps == 3.0e-4
     cases = [
         (("joints", 0, "collision_threshold_nm", 0.0), "joints[0].collision_threshold_nm"),
+        (("joints", 0, "collision_threshold_nm", {"position": 1.0}), "joints[0].collision_threshold_nm.torque"),
+        (("joints", 0, "collision_threshold_nm", {"position": 1.0, "torque": -1}), "threshold_nm.torque: out of"),
+        (("joints", 0, "collision_threshold_nm", {"position": 1.0, "speed": 1}), "unknown key 'speed'"),
+        (("joints", 0, "collision_threshold_torque_nm", 1.0), "unknown key"),
         (("joints", 0, "coulomb_friction_nm", -1.0), "joints[0].coulomb_friction_nm"),
         (("safety", None, "collision_observer_gain_per_s", 0.0), "safety.collision_observer_gain_per_s"),
         (("safety", None, "collision_window_s", -0.01), "safety.collision_window_s"),

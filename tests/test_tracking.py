@@ -49,9 +49,8 @@ def _tuned(config: ArmConfig, gain_scale: float) -> ArmConfig:
     angle_kp = round(DEFAULT_PID.angle_kp * gain_scale)
     joints = tuple(
         dataclasses.replace(
-            j,
+            j.without_collision_threshold(),
             emulation=dataclasses.replace(j.emulation, pid=EmulatedPidConfig(angle_kp=angle_kp)),
-            collision_threshold_nm=None,
         )
         for j in config.joints
     )

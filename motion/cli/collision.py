@@ -23,6 +23,7 @@ from motion.cli.common import EXIT_OK, Interrupts, Session, add_emulate_flag, pr
 from motion.cli.moves import run_program, with_arm
 from motion.cli.program import load_program
 from motion.config import ArmConfig, write_joint_values
+from motion.config.schema import ControlMode
 from motion.errors import MotionError
 
 #: Default margin: proposed threshold = largest |collision signal| × this. On arm6's demo runs, twice the nominal
@@ -33,13 +34,29 @@ HELP: Final = "run a program with the collision observer on and propose per-join
 
 def unarmed(config: ArmConfig) -> ArmConfig:
     """``config`` without collision thresholds (nothing can fault on a collision while calibrating)."""
-    joints = tuple(dataclasses.replace(j, collision_threshold_nm=None) for j in config.joints)
+    joints = tuple(j.without_collision_threshold() for j in config.joints)
     return dataclasses.replace(config, joints=joints)
 
 
 def propose(signal_peak_nm: np.ndarray, margin: float) -> np.ndarray:
     """Thresholds, N·m: the largest |signal| of each joint times ``margin``, rounded up to 0.1 mN·m."""
     return np.ceil(np.asarray(signal_peak_nm, dtype=np.float64) * margin * 1e4) / 1e4
+
+
+def written_thresholds(config: ArmConfig, thresholds: np.ndarray) -> dict[str, float | dict[str, float]]:
+    """What ``--write`` puts in each joint's ``collision_threshold_nm``: the proposal for the configuration's mode,
+    and the other mode's threshold kept where it has one of its own (``{position: N, torque: N}``); else one number
+    (both modes: calibrate in the other mode too before running in it)."""
+    mode = config.control.mode
+    other = ControlMode.TORQUE if mode is ControlMode.POSITION else ControlMode.POSITION
+    values: dict[str, float | dict[str, float]] = {}
+    for joint, threshold in zip(config.joints, thresholds, strict=True):
+        kept = joint.collision_threshold_in(other)
+        if kept is None or kept == float(threshold):
+            values[joint.name] = float(threshold)
+        else:
+            values[joint.name] = {mode.value: float(threshold), other.value: kept}
+    return values
 
 
 def _margin_arg(text: str) -> float:
@@ -107,9 +124,7 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
     names = config.joint_names
     written = None
     if args.write:
-        write_joint_values(
-            config.source, args.write, "collision_threshold_nm", dict(zip(names, map(float, thresholds), strict=True))
-        )
+        write_joint_values(config.source, args.write, "collision_threshold_nm", written_thresholds(config, thresholds))
         written = args.write
     if args.json:
         print_json(
@@ -146,5 +161,8 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
     print("(in force in every cycle: the threshold, or the bound of what a drive within its model error can show")
     print(" where that is higher; see README, How it works)")
     if written:
-        print(f"wrote {written} (collision_threshold_nm per joint; comments are not copied)")
+        print(
+            f"wrote {written} (collision_threshold_nm per joint for {config.control.mode.value} mode, the other"
+            " mode's kept where it has its own; comments are not copied)"
+        )
     return EXIT_OK

@@ -159,6 +159,10 @@ def _to_numbers(value: object, count: int, form: str) -> list[float]:
     return items
 
 
+#: The keys of a per-mode ``collision_threshold_nm``, in the order of its two numbers.
+_THRESHOLD_MODES = ("position", "torque")
+
+
 def _to_vector3(value: object) -> schema.Vec3:
     x, y, z = _to_numbers(value, 3, "[x, y, z]")
     return (x, y, z)
@@ -205,6 +209,8 @@ class _Node:
         allowed = set(extra)
         for kind in schemas:
             for f in fields(kind):
+                if f.metadata.get("derived"):
+                    continue  # set from another key (e.g. the torque-mode half of collision_threshold_nm)
                 allowed.add(f.name)
                 if f.default is not MISSING:
                     self._defaults[f.name] = f.default
@@ -385,6 +391,7 @@ def _joint(node: _Node, mode: schema.ControlMode) -> schema.JointConfig:
     rotor_inertia = node.number("rotor_inertia_kgm2", _NON_NEGATIVE)
     viscous = node.number("viscous_friction_nm_per_dps", _NON_NEGATIVE)
     coulomb = node.number("coulomb_friction_nm", _NON_NEGATIVE)
+    thresholds = _collision_thresholds(node)
     joint = schema.JointConfig(
         name=node.text("name"),
         motor_id=node.integer("motor_id", _Range(MOTOR_ID_MIN, MOTOR_ID_MAX)),
@@ -405,9 +412,8 @@ def _joint(node: _Node, mode: schema.ControlMode) -> schema.JointConfig:
         rotor_inertia_kgm2=rotor_inertia,
         viscous_friction_nm_per_dps=viscous,
         coulomb_friction_nm=coulomb,
-        collision_threshold_nm=(
-            node.number("collision_threshold_nm", _POSITIVE) if node.has("collision_threshold_nm") else None
-        ),
+        collision_threshold_nm=thresholds[0],
+        collision_threshold_torque_nm=thresholds[1],
         power_on_window_deg=node.interval("power_on_window_deg") if node.has("power_on_window_deg") else None,
         brake=node.flag("brake"),
         emulation=_emulation(node.child("emulation", schema.EmulationConfig), rotor_inertia, viscous, coulomb),
@@ -429,6 +435,33 @@ def _joint(node: _Node, mode: schema.ControlMode) -> schema.JointConfig:
     if node.has("homing"):
         joint = dataclasses.replace(joint, homing=_homing(node.child("homing", schema.HomingConfig), joint))
     return joint
+
+
+def _to_thresholds(value: object) -> tuple[float, float]:
+    """``collision_threshold_nm``: a number (both control modes) or ``{position: N, torque: N}``."""
+    if not isinstance(value, Mapping):
+        number = _to_number(value, _POSITIVE)
+        return number, number
+    unknown = sorted(str(k) for k in value if k not in _THRESHOLD_MODES)
+    if unknown:
+        raise _Invalid(f"unknown key {unknown[0]!r}; allowed keys: position, torque", f".{unknown[0]}")
+    numbers = []
+    for mode in _THRESHOLD_MODES:
+        if mode not in value:
+            raise _Invalid("required key is missing (a number, > 0; or give one number for both modes)", f".{mode}")
+        try:
+            numbers.append(_to_number(value[mode], _POSITIVE))
+        except _Invalid as exc:
+            raise _Invalid(exc.message, f".{mode}") from None
+    return numbers[0], numbers[1]
+
+
+def _collision_thresholds(node: _Node) -> tuple[float | None, float | None]:
+    """The joint's collision thresholds in position and torque mode (None: not watched)."""
+    if not node.has("collision_threshold_nm"):
+        return None, None
+    expected = "a number, > 0, or {position: N, torque: N}"
+    return node._read("collision_threshold_nm", expected, _to_thresholds, None)
 
 
 def _homing(node: _Node, joint: schema.JointConfig) -> schema.HomingConfig:
@@ -632,7 +665,10 @@ def load_config(path: str | os.PathLike[str]) -> schema.ArmConfig:
 
 
 def write_joint_values(
-    source: str | os.PathLike[str], target: str | os.PathLike[str], key: str, values: Mapping[str, float]
+    source: str | os.PathLike[str],
+    target: str | os.PathLike[str],
+    key: str,
+    values: Mapping[str, float | Mapping[str, float]],
 ) -> schema.ArmConfig:
     """Write a copy of the configuration ``source`` to ``target`` with ``key`` set on the named joints (e.g. the
     proposed ``collision_threshold_nm``), and return the copy validated. The copy is written by the YAML library:
@@ -650,7 +686,7 @@ def write_joint_values(
     for name, value in values.items():
         if name not in joints:
             raise ConfigError(str(source_path), "joints", f"no joint {name!r}")
-        joints[name][key] = float(value)
+        joints[name][key] = float(value) if isinstance(value, int | float) else {k: float(v) for k, v in value.items()}
     model = data.get("model", {})
     if isinstance(model, dict) and "urdf" in model:
         urdf = (source_path.parent / str(model["urdf"])).resolve()

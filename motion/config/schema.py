@@ -6,7 +6,7 @@ derives both from here, so a key without a default below is required in the file
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
 from typing import ClassVar, TypeAlias
@@ -277,8 +277,12 @@ class JointConfig:
             gear_ratio² times this to the joint's diagonal of M(q)).
         viscous_friction_nm_per_dps: the joint's viscous friction, joint side, in N·m per deg/s (observer model).
         coulomb_friction_nm: the joint's Coulomb friction, joint side, in N·m (observer model).
-        collision_threshold_nm: the collision observer's residual beyond which the arm faults (``collision``), in
-            N·m (None: the joint is not watched; see ``rmd-motion collision-calibrate``).
+        collision_threshold_nm: the collision observer's residual beyond which the arm faults (``collision``) in
+            position mode, N·m (None: the joint is not watched; see ``rmd-motion collision-calibrate``). In YAML one
+            number for both modes or ``{position: N, torque: N}``: position mode's 0xA4 steps put far more into the
+            sampled current than torque mode does.
+        collision_threshold_torque_nm: the same in torque mode (None: ``collision_threshold_nm``); set from
+            ``collision_threshold_nm`` in YAML.
         power_on_window_deg: where the joint is guaranteed to be when the drives power up, ``(min, max)`` in degrees,
             narrower than ``360 / gear_ratio`` (None: no window; the drive's turn count is assumed, see
             :mod:`motion.control.turns`).
@@ -308,10 +312,21 @@ class JointConfig:
     viscous_friction_nm_per_dps: float = 2.0e-4
     coulomb_friction_nm: float = 0.05
     collision_threshold_nm: float | None = None
+    collision_threshold_torque_nm: float | None = field(default=None, metadata={"derived": True})
     power_on_window_deg: tuple[float, float] | None = None
     homing: HomingConfig | None = None
     brake: bool = False
     emulation: EmulationConfig = field(default_factory=EmulationConfig)
+
+    def collision_threshold_in(self, mode: ControlMode) -> float | None:
+        """The collision threshold in force in ``mode`` (None: not watched), N·m."""
+        if mode is ControlMode.TORQUE and self.collision_threshold_torque_nm is not None:
+            return self.collision_threshold_torque_nm
+        return self.collision_threshold_nm
+
+    def without_collision_threshold(self) -> JointConfig:
+        """This joint, not watched for collisions in either mode."""
+        return replace(self, collision_threshold_nm=None, collision_threshold_torque_nm=None)
 
     @property
     def peak_torque_nm(self) -> float:
@@ -385,7 +400,12 @@ class ArmConfig:
     @property
     def collision_watched(self) -> bool:
         """Whether any joint has a collision threshold (the observer then runs and its fault source is armed)."""
-        return any(j.collision_threshold_nm is not None for j in self.joints)
+        return any(t is not None for t in self.collision_thresholds_nm)
+
+    @property
+    def collision_thresholds_nm(self) -> tuple[float | None, ...]:
+        """Each joint's collision threshold in the configured control mode (None: not watched), N·m."""
+        return tuple(j.collision_threshold_in(self.control.mode) for j in self.joints)
 
     @property
     def collision_reaction(self) -> HaltPolicy:
