@@ -427,6 +427,29 @@ def test_scan_of_a_v3_arm_over_its_own_emulator_with_the_default_ids_exits_0(tmp
     assert "protocol" not in result.stderr  # one generation, the configuration's: nothing to warn of
 
 
+def test_scan_asks_a_configured_drive_that_answered_late_once_more_with_a_longer_window(tmp_path: Path) -> None:
+    # under a busy host (slow-host --hogs 3) the emulator's replies came after scan's window and every configured
+    # joint was reported missing (exit 3): motor 2 here answers 0.8 s late, after the first window (0.57 s for 32
+    # ids) and within the second (four times as long, for the missing ids alone)
+    link = tmp_path / "slcan"
+    arm6_v3 = str(ROOT / "configs" / "arm6_v3.yaml")
+    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", arm6_v3, "--slcan-link", str(link)]
+    process = subprocess.Popen(
+        [*command, "--fault", "delay:2@0:800"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT
+    )
+    try:
+        assert process.stdout is not None
+        assert process.stdout.readline().startswith(f"slcan: {link}")
+        assert "emulating motors" in process.stdout.readline()
+        result = _cli("scan", "--config", arm6_v3, "--interface", "slcan", "--channel", str(link), "--json")
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.communicate(timeout=10)
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert [d["motor_id"] for d in report["drives"]] == [1, 2, 3, 4, 5, 6] and report["missing"] == []
+
+
 def test_the_emulated_model_is_seven_ascii_characters() -> None:
     # the document's 0xB5 reply carries 7 ASCII characters (X8S2V10); the emulated one was NUL-padded (EMU-V3\0)
     reply = _one(_emulator(), BareV3(CommandV3.READ_MODEL))

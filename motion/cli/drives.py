@@ -82,6 +82,8 @@ SCAN_CAN_S: Final = 0.25
 SCAN_CAN_PER_REQUEST_S: Final = 0.01
 #: Scan: the reply window of each RS485 request (one drive after the other), s.
 SCAN_RS485_PER_ID_S: Final = 0.03
+#: Scan: a configured drive that did not answer is asked again with windows this many times longer.
+SCAN_RETRY_STRETCH: Final = 4.0
 #: ``hold``: the drive's speed cap while holding, as a share of the joint's velocity limit.
 HOLD_SPEED_SHARE: Final = 0.1
 #: The PI gains in the order ``pid set`` takes them (the frame's order).
@@ -169,36 +171,59 @@ def _can_window(requests: int) -> float:
     return SCAN_CAN_S + SCAN_CAN_PER_REQUEST_S * requests
 
 
+def _scan_ids(
+    bus: Transport, ids: Sequence[int], stretch: float, *, rs485: bool
+) -> tuple[dict[int, Status1], dict[int, ProductInfo], dict[int, Status1V3], dict[int, str]]:
+    """Ask ``ids`` who they are (windows ``stretch`` times the defaults): the older family's statuses and RS485
+    models, the V3 drives' statuses and models."""
+    v3_status: dict[int, Status1V3] = {}
+    v3_models: dict[int, str] = {}
+    found: dict[int, Status1] = {}
+    models: dict[int, ProductInfo] = {}
+    per_id_s = SCAN_RS485_PER_ID_S if rs485 else 0.0
+    if isinstance(bus, CanTransport):
+        # A real CAN bus: the reply ids tell the generations apart; each is asked in its own generation.
+        generations = detect_can(bus.port, ids, stretch * _can_window(len(ids)))
+        v3_ids = sorted(i for i, f in generations.items() if f is ProtocolFamily.V3)
+        if v3_ids:
+            with _speaking(bus, ProtocolFamily.V3) as v3_bus:
+                window = stretch * _can_window(len(v3_ids) * len(_V3_SCAN_READS))
+                v3_status, v3_models = _scan_v3(v3_bus, v3_ids, window)
+        older = [i for i in ids if i not in v3_status]
+        with _speaking(bus, ProtocolFamily.V2) as older_bus:
+            found = _scan_older(older_bus, older, stretch * _can_window(len(older)))
+    elif bus.family is ProtocolFamily.V3:  # an RS485 line or a simulated bus of V3 drives: they alone
+        window = stretch * (SCAN_CAN_S + per_id_s * len(ids) * len(_V3_SCAN_READS))
+        v3_status, v3_models = _scan_v3(bus, ids, window)
+    else:
+        found = _scan_older(bus, ids, stretch * (SCAN_CAN_S + per_id_s * len(ids)))
+        if rs485 and found:
+            requests = [Request(i, Bare(Command.READ_MODEL)) for i in sorted(found)]
+            replies = bus.transact(requests, bus.clock() + stretch * SCAN_RS485_PER_ID_S * len(requests))
+            models = {r.motor_id: r.message for r in replies if isinstance(r.message, ProductInfo)}
+    return found, models, v3_status, v3_models
+
+
 def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """Which motor ids answer 0x9A, in which protocol generation (CAN: told by the reply id), and their model (RS485:
     0x12; V3 drives: 0xB5 and the firmware date 0xB2)."""
     session = Session.from_args(args)
     ids: tuple[int, ...] = args.ids or tuple(range(MOTOR_ID_MIN, MOTOR_ID_MAX + 1))
     rs485 = not isinstance(session.config.bus, CanBusConfig)
-    v3_status: dict[int, Status1V3] = {}
-    v3_models: dict[int, str] = {}
-    found: dict[int, Status1] = {}
-    models: dict[int, ProductInfo] = {}
+    configured = {j.motor_id for j in session.config.joints}
     with session.open_bus(check=False) as bus:
-        per_id_s = SCAN_RS485_PER_ID_S if rs485 else 0.0
-        if isinstance(bus, CanTransport):
-            # A real CAN bus: the reply ids tell the generations apart; each is asked in its own generation.
-            generations = detect_can(bus.port, ids, _can_window(len(ids)))
-            v3_ids = sorted(i for i, f in generations.items() if f is ProtocolFamily.V3)
-            if v3_ids:
-                with _speaking(bus, ProtocolFamily.V3) as v3_bus:
-                    v3_status, v3_models = _scan_v3(v3_bus, v3_ids, _can_window(len(v3_ids) * len(_V3_SCAN_READS)))
-            older = [i for i in ids if i not in v3_status]
-            with _speaking(bus, ProtocolFamily.V2) as older_bus:
-                found = _scan_older(older_bus, older, _can_window(len(older)))
-        elif bus.family is ProtocolFamily.V3:  # an RS485 line or a simulated bus of V3 drives: they alone
-            v3_status, v3_models = _scan_v3(bus, ids, SCAN_CAN_S + per_id_s * len(ids) * len(_V3_SCAN_READS))
-        else:
-            found = _scan_older(bus, ids, SCAN_CAN_S + per_id_s * len(ids))
-            if rs485 and found:
-                requests = [Request(i, Bare(Command.READ_MODEL)) for i in sorted(found)]
-                replies = bus.transact(requests, bus.clock() + SCAN_RS485_PER_ID_S * len(requests))
-                models = {r.motor_id: r.message for r in replies if isinstance(r.message, ProductInfo)}
+        found, models, v3_status, v3_models = _scan_ids(bus, ids, 1.0, rs485=rs485)
+        # a configured drive that did not answer is asked once more with a longer window (a busy host or adapter can
+        # hold replies back longer than the first window): it is reported missing only then
+        again = [i for i in ids if i in configured and i not in found and i not in v3_status]
+        if again:
+            more_found, more_models, more_v3_status, more_v3_models = _scan_ids(
+                bus, again, SCAN_RETRY_STRETCH, rs485=rs485
+            )
+            found.update(more_found)
+            models.update(more_models)
+            v3_status.update(more_v3_status)
+            v3_models.update(more_v3_models)
         where, family = bus.describe(), bus.family
     names = session.names
     answered: dict[int, Status1 | Status1V3] = {**found, **v3_status}

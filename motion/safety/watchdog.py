@@ -42,7 +42,7 @@ from motion.protocol import MultiTurnAngle, Status1
 from motion.protocol.table import Direction
 from motion.protocol.v3.messages import CommandV3, Runtime, Status1V3
 from motion.protocol.v3.table import field_range
-from motion.safety.collision_bound import CollisionBound, Window
+from motion.safety.collision_bound import MODEL_ERROR, CollisionBound, Window
 from motion.trajectory import State
 from motion.transmission import FloatArray
 from motion.transport import Reply
@@ -60,9 +60,10 @@ RUNTIME_SLACK_MS = 1000.0
 CORRUPT_WINDOW_S = 1.0
 #: The share of the tracking model's lag (behind the reference) that a drive within the stated bounds may add to the
 #: following error, by control mode and whether the drives' loop settings are read (0x30, 0x33): torque mode, the
-#: torque constant (±20 %) and rotor inertia (±30 %) of the controller's own loop; position mode with the settings
-#: read, none (the model runs the drive's own loop); without them (V3 drives), a tuning from half to twice the
-#: model's prior: up to twice its lag.
+#: torque constant (±20 %) and rotor inertia (±30 %) of the controller's own loop (and, through the PD's stiffness,
+#: the torque constant's share of the torque asked for and the friction's of the Coulomb figure:
+#: :data:`motion.safety.collision_bound.MODEL_ERROR`); position mode with the settings read, none (the model runs the
+#: drive's own loop); without them (V3 drives), a tuning from half to twice the model's prior: up to twice its lag.
 FOLLOWING_LAG_ERROR: dict[tuple[ControlMode, bool], float] = {
     (ControlMode.TORQUE, True): 0.5,
     (ControlMode.TORQUE, False): 0.5,
@@ -205,6 +206,16 @@ class Watchdog:
         self._slip = np.zeros(n)
         self._following_limit = np.zeros(n)
         self._lag_error = FOLLOWING_LAG_ERROR[controller.options.mode, controller.family.reads_loop_settings]
+        # torque mode: what a drive within the stated model error adds through the PD's stiffness, deg: its torque
+        # constant's share of the torque asked for, and its friction's of the Coulomb figure (per N·m, and fixed)
+        self._torque_allowance: FloatArray | None = None
+        self._friction_allowance = np.zeros(n)
+        if controller.options.mode is ControlMode.TORQUE:
+            stiffness = np.array([s.kp_nm_per_deg for s in specs], dtype=np.float64)
+            stiff = stiffness > 0.0
+            self._torque_allowance = np.divide(MODEL_ERROR[0], stiffness, out=np.zeros(n), where=stiff)
+            friction = np.array(settings.coulomb_friction_nm or (0.0,) * n, dtype=np.float64)
+            np.divide(MODEL_ERROR[2] * friction, stiffness, out=self._friction_allowance, where=stiff)
         self._moving = np.zeros(n, dtype=bool)
         self._behind = np.zeros(n, dtype=bool)
         self._sign = np.zeros(n)
@@ -476,6 +487,11 @@ class Watchdog:
         limit -= np.abs(slip, out=self._share)
         limit *= self._lag_error
         limit += self.settings.following_error_deg
+        if self._torque_allowance is not None:
+            share = np.abs(controller.torque_nm, out=self._share)
+            share *= self._torque_allowance
+            limit += share
+            limit += self._friction_allowance
         over = self._share
         np.divide(error, limit, out=over)
         worst = int(over.argmax())
