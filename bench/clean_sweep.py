@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import logging
-import multiprocessing
 import sys
 import time
 from pathlib import Path
@@ -28,27 +26,13 @@ from tests import clean_sweep
 from tests.collision_trials import STEP_SHARE
 
 
-def _run(
-    seed_k_bound: tuple[int, int, bool],
-) -> tuple[int, clean_sweep.Outcome, str | None, tuple[str, int | None, str] | None]:
-    seed, k, bound_only = seed_k_bound
-    logging.disable(logging.CRITICAL)
-    case = clean_sweep.drawn(seed, k)
-    outcome = clean_sweep.run(case, bound_only=bound_only)
-    fault, outcome.fault = outcome.fault, None  # (a MotionFault does not pickle back: its text goes instead)
-    detection: tuple[str, int | None, str] | None = None
-    trial = clean_sweep.detect(case, bound_only=bound_only) if outcome.refused is None else None
-    if trial is not None:
-        detection = (trial.joint, trial.latency_cycles if trial.isolated else None, str(trial.fault))
-    return k, outcome, None if fault is None else str(fault), detection
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--count", type=int, default=500, help="cases to run (default 500)")
     parser.add_argument("--first", type=int, default=0, help="index of the first case (default 0)")
     parser.add_argument("--seed", type=int, default=30, help="seed of the draw (default 30)")
     parser.add_argument("--jobs", type=int, default=2, help="worker processes (default 2)")
+    parser.add_argument("--quick", action="store_true", help="paths of one step, as the test command's sweep")
     parser.add_argument(
         "--bound-only", action="store_true", help="every collision threshold 1 mN·m: the bound is the one in force"
     )
@@ -56,48 +40,56 @@ def main() -> None:
     if args.count < 1 or args.jobs < 1 or args.first < 0:
         parser.error("--count and --jobs must be >= 1, --first >= 0")
     began = time.perf_counter()
-    work = [(args.seed, k, args.bound_only) for k in range(args.first, args.first + args.count)]
     faults = refused = late = 0
     latencies: list[int | None] = []
     detections: dict[str, list[int]] = collections.defaultdict(lambda: [0, 0])  # arm and joint: in time, trials
     cycles = 0
     worst: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0, 0])
     worst_case: list[tuple[float, int, str]] = []
-    with multiprocessing.get_context("fork").Pool(args.jobs) as pool:
-        for done, (k, outcome, fault, detection) in enumerate(pool.imap_unordered(_run, work), 1):
-            case = outcome.case
-            cycles += outcome.cycles
-            key = f"{case.arm} {case.mode.value} {case.rate_hz:g} Hz"
-            row = worst[key]
-            collision = float(outcome.collision_ratio.max(initial=0.0))
-            following = float(outcome.following_ratio.max(initial=0.0))
-            row[0], row[1], row[2] = max(row[0], collision), max(row[1], following), row[2] + 1
-            worst_case.append((max(collision, following), k, case.describe()))
-            if outcome.refused is not None:
-                refused += 1
-                print(f"case {k}: refused by the rate check ({case.arm}, {case.rate_hz:g} Hz)", flush=True)
-                continue
-            if detection is not None:  # (None: an arm without a collision check)
-                joint, latency, caught = detection
-                latencies.append(latency)
-                tally = detections[f"{case.arm} {joint}"]
-                tally[0] += latency is not None and latency <= clean_sweep.DETECTION_CYCLES
-                tally[1] += 1
-                if latency is None or latency > clean_sweep.DETECTION_CYCLES:
-                    late += 1
-                    print(
-                        f"case {k} ({key}): a collision on {joint} at {case.collision}: detected in {latency} "
-                        f"cycles: {caught}",
-                        flush=True,
-                    )
-            if fault is not None or args.count == 1:
-                faults += fault is not None
-                print(f"case {k}: {fault}\n  {case.describe()}", flush=True)
-            if done % 50 == 0:
+    swept = clean_sweep.sweep(
+        args.seed,
+        args.count,
+        first=args.first,
+        jobs=args.jobs,
+        quick=args.quick,
+        bound_only=args.bound_only,
+        detecting=True,
+    )
+    for done, one in enumerate(swept, 1):
+        k, outcome, fault, detection = one.k, one.outcome, one.fault, one.detection
+        case = outcome.case
+        cycles += outcome.cycles
+        key = f"{case.arm} {case.mode.value} {case.rate_hz:g} Hz"
+        row = worst[key]
+        collision = float(outcome.collision_ratio.max(initial=0.0))
+        following = float(outcome.following_ratio.max(initial=0.0))
+        row[0], row[1], row[2] = max(row[0], collision), max(row[1], following), row[2] + 1
+        worst_case.append((max(collision, following), k, case.describe()))
+        if outcome.refused is not None:
+            refused += 1
+            print(f"case {k}: refused by the rate check ({case.arm}, {case.rate_hz:g} Hz)", flush=True)
+            continue
+        if detection is not None:  # (None: an arm without a collision check)
+            joint, latency, caught = detection
+            latencies.append(latency)
+            tally = detections[f"{case.arm} {joint}"]
+            tally[0] += latency is not None and latency <= clean_sweep.DETECTION_CYCLES
+            tally[1] += 1
+            if latency is None or latency > clean_sweep.DETECTION_CYCLES:
+                late += 1
                 print(
-                    f"... {done}/{args.count} cases, {faults} faults, {time.perf_counter() - began:.0f} s",
-                    file=sys.stderr,
+                    f"case {k} ({key}): a collision on {joint} at {case.collision}: detected in {latency} "
+                    f"cycles: {caught}",
+                    flush=True,
                 )
+        if fault is not None or args.count == 1:
+            faults += fault is not None
+            print(f"case {k}: {fault}\n  {case.describe()}", flush=True)
+        if done % 50 == 0:
+            print(
+                f"... {done}/{args.count} cases, {faults} faults, {time.perf_counter() - began:.0f} s",
+                file=sys.stderr,
+            )
     elapsed = time.perf_counter() - began
     print(
         f"\n{args.count} cases (seed {args.seed}, first {args.first}), {cycles} control cycles, {elapsed:.0f} s with "

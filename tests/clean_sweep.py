@@ -5,14 +5,18 @@ A :class:`Case` is an example arm in a control mode at a rate, emulated drives d
 speaks), and a clean path: moves and waypoint follows to poses well inside the limits at drawn speed scales, each
 from where the last one ended. :func:`run` plays it in simulated time with the configuration's own thresholds and
 returns any fault and the worst ratios of the collision signal to the threshold in force and of the following error
-to its limit. Seeded and reproducible (:func:`drawn`): case ``k`` of seed ``s`` is drawn alone.
+to the limit in force. Seeded and reproducible (:func:`drawn`): case ``k`` of seed ``s`` is drawn alone.
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import functools
+import logging
+import multiprocessing
 import random
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -81,22 +85,31 @@ class Outcome:
     refused: str | None = None  # the rate check refused the case's rate on its drawn drives (nothing moved)
     collision_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
     following_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    following_peak_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))  # the largest |following error|
     cycles: int = 0
 
 
-def draw(rng: random.Random) -> Case:
-    """A random clean case."""
+@functools.cache
+def example(arm: str) -> ArmConfig:
+    """The example configuration ``arm`` (loaded once per process: a frozen dataclass)."""
+    return load_config(CONFIGS / arm)
+
+
+def draw(rng: random.Random, *, quick: bool = False) -> Case:
+    """A random clean case (``quick``: a path of one step, a move or a follow of two poses, as the test command's
+    sweep runs; else one to three steps of up to three poses)."""
     arm = rng.choice(sorted(ARMS))
-    config = load_config(CONFIGS / arm)
+    config = example(arm)
     tuned = all(j.kp_nm_per_deg > 0 for j in config.joints)
     mode = ControlMode.TORQUE if tuned and rng.random() < 0.3 else ControlMode.POSITION
     steps: list[tuple[str, float, tuple[tuple[float, ...], ...]]] = []
-    for _ in range(rng.choice((1, 2, 2, 3))):
+    for _ in range(1 if quick else rng.choice((1, 2, 2, 3))):
         scale = round(rng.uniform(0.2, 1.0), 2)
         if rng.random() < 0.5:
             steps.append(("move", scale, (target_pose(rng, config),)))
         else:
-            steps.append(("follow", scale, tuple(target_pose(rng, config) for _ in range(rng.choice((2, 3))))))
+            poses = 2 if quick else rng.choice((2, 3))
+            steps.append(("follow", scale, tuple(target_pose(rng, config) for _ in range(poses))))
     # the torque-mode gains are tuned for the example's rate (a discrete PD that holds at 125 Hz may not at half)
     rate = config.control.rate_hz if mode is ControlMode.TORQUE else rng.choice(ARMS[arm])
     drives = draw_drives(rng, len(config.joints))
@@ -105,15 +118,15 @@ def draw(rng: random.Random) -> Case:
     return Case(arm, mode, rate, drives, jitter, tuple(steps), collision)
 
 
-def drawn(seed: int, k: int) -> Case:
+def drawn(seed: int, k: int, *, quick: bool = False) -> Case:
     """Case ``k`` of the sweep seeded ``seed`` (each case from its own generator)."""
-    return draw(random.Random(f"{seed}:{k}"))
+    return draw(random.Random(f"{seed}:{k}"), quick=quick)
 
 
 def config_of(case: Case, *, bound_only: bool = False) -> ArmConfig:
     """The case's configuration: the example at the case's mode and rate, its emulated drives drawn (with
     ``bound_only``, every joint's collision threshold 1 mN·m: the bound is the threshold in force)."""
-    config = with_drives(load_config(CONFIGS / case.arm), case.drives)
+    config = with_drives(example(case.arm), case.drives)
     control = dataclasses.replace(config.control, mode=case.mode, rate_hz=case.rate_hz)
     config = dataclasses.replace(config, control=control)
     if bound_only and config.collision_watched:
@@ -165,9 +178,8 @@ def run(case: Case, *, safety: SafetyConfig | None = None, bound_only: bool = Fa
     if safety is not None:
         config = dataclasses.replace(config, safety=safety)
     n = len(config.joints)
-    outcome = Outcome(case, collision_ratio=np.zeros(n), following_ratio=np.zeros(n))
+    outcome = Outcome(case, collision_ratio=np.zeros(n), following_ratio=np.zeros(n), following_peak_deg=np.zeros(n))
     arm = _arm(case, config)
-    limit = config.safety.following_error_deg
     ratio = np.zeros(n)
     try:
         arm.connect()
@@ -182,11 +194,14 @@ def run(case: Case, *, safety: SafetyConfig | None = None, bound_only: bool = Fa
 
         def watch(*_: object) -> None:
             outcome.cycles += 1
+            checked = watchdog.following_limit_deg > 0.0  # (zero until the first check)
             if watchdog.collision_guarding and watchdog.collision_armed:
                 np.abs(watchdog.collision_signal_nm, out=ratio)
                 np.divide(ratio, watchdog.collision_limit_nm, out=ratio)
                 np.fmax(outcome.collision_ratio, ratio, out=outcome.collision_ratio)
-            np.fmax(outcome.following_ratio, watchdog.following_error_deg / limit, out=outcome.following_ratio)
+            np.divide(watchdog.following_error_deg, watchdog.following_limit_deg, out=ratio, where=checked)
+            np.fmax(outcome.following_ratio, ratio, out=outcome.following_ratio, where=checked)
+            np.fmax(outcome.following_peak_deg, watchdog.following_error_deg, out=outcome.following_peak_deg)
 
         controller.cycle_hooks.append(watch)
         try:
@@ -196,3 +211,52 @@ def run(case: Case, *, safety: SafetyConfig | None = None, bound_only: bool = Fa
         except MotionFault as fault:
             outcome.fault = fault
     return outcome
+
+
+@dataclass
+class Swept:
+    """One case of :func:`sweep`, as a worker process sends it back: the outcome (its fault as text: a MotionFault
+    does not pickle) and, with ``detecting``, the collision's joint, the cycles it took (None: not isolated) and the
+    fault it met."""
+
+    k: int
+    outcome: Outcome
+    fault: str | None
+    detection: tuple[str, int | None, str] | None = None
+
+
+def sweep_one(seed: int, k: int, quick: bool, bound_only: bool, detecting: bool) -> Swept:
+    """Play case ``k`` of the draw ``seed`` (and, with ``detecting``, its first step again with its collision)."""
+    logging.disable(logging.CRITICAL)
+    case = drawn(seed, k, quick=quick)
+    outcome = run(case, bound_only=bound_only)
+    fault, outcome.fault = outcome.fault, None
+    swept = Swept(k, outcome, None if fault is None else str(fault))
+    trial = detect(case, bound_only=bound_only) if detecting and outcome.refused is None else None
+    if trial is not None:
+        swept.detection = (trial.joint, trial.latency_cycles if trial.isolated else None, str(trial.fault))
+    return swept
+
+
+def _sweep_one(args: tuple[int, int, bool, bool, bool]) -> Swept:
+    return sweep_one(*args)
+
+
+def sweep(
+    seed: int,
+    count: int,
+    *,
+    first: int = 0,
+    jobs: int = 1,
+    quick: bool = False,
+    bound_only: bool = False,
+    detecting: bool = False,
+) -> Iterator[Swept]:
+    """Cases ``first .. first + count - 1`` of the draw ``seed`` in ``jobs`` worker processes (1: in this one), each
+    as it comes."""
+    work = [(seed, k, quick, bound_only, detecting) for k in range(first, first + count)]
+    if jobs == 1:
+        yield from map(_sweep_one, work)
+        return
+    with multiprocessing.get_context("spawn").Pool(jobs) as pool:
+        yield from pool.imap_unordered(_sweep_one, work)

@@ -198,6 +198,11 @@ class ExpectedTracking:
             self._set_mass(np.asarray(inertia_kgm2, dtype=np.float64))
         self.inertia_feedforward = fed_forward
 
+    @property
+    def mass_inverse(self) -> FloatArray:
+        """Torque mode: M⁻¹ of the model arm, 1/(kg·m²) (zeros without an inertia; updated in place)."""
+        return self._mass_inv
+
     def _set_mass(self, inertia: FloatArray) -> None:
         if self.inertia_kgm2 is None:
             self.inertia_kgm2 = np.zeros((self.n, self.n))

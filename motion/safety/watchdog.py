@@ -56,6 +56,7 @@ RESTART_JUMP_MOTOR_DEG = 180.0
 #: the slack given to the host's clock against the drive's, ms.
 RUNTIME_WRAP_MS = field_range(CommandV3.READ_RUNTIME, Direction.REPLY, "runtime_ms")[1] + 1
 RUNTIME_SLACK_MS = 1000.0
+_DEG_PER_RAD = 180.0 / math.pi
 # Window of the corrupt-frame count, s.
 CORRUPT_WINDOW_S = 1.0
 #: The share of the tracking model's lag (behind the reference) that a drive within the stated bounds may add to the
@@ -206,19 +207,20 @@ class Watchdog:
         self._slip = np.zeros(n)
         self._following_limit = np.zeros(n)
         self._lag_error = FOLLOWING_LAG_ERROR[controller.options.mode, controller.family.reads_loop_settings]
-        # torque mode: what a drive within the stated model error adds through the PD's stiffness, deg: its torque
-        # constant's share of the torque asked for, and its friction's of the Coulomb figure (per N·m, and fixed)
-        self._torque_allowance: FloatArray | None = None
+        # torque mode: what a drive within the stated model error adds (see _torque_allowance)
+        self._torque_mode = controller.options.mode is ControlMode.TORQUE
+        self._kp = np.array([s.kp_nm_per_deg for s in specs], dtype=np.float64)
+        self._kd = np.array([s.kd_nm_per_dps for s in specs], dtype=np.float64)
         self._friction_allowance = np.zeros(n)
-        if controller.options.mode is ControlMode.TORQUE:
-            stiffness = np.array([s.kp_nm_per_deg for s in specs], dtype=np.float64)
-            stiff = stiffness > 0.0
-            self._torque_allowance = np.divide(MODEL_ERROR[0], stiffness, out=np.zeros(n), where=stiff)
-            friction = np.array(settings.coulomb_friction_nm or (0.0,) * n, dtype=np.float64)
-            np.divide(MODEL_ERROR[2] * friction, stiffness, out=self._friction_allowance, where=stiff)
+        friction = np.array(settings.coulomb_friction_nm or (0.0,) * n, dtype=np.float64)
+        np.divide(MODEL_ERROR[2] * friction, self._kp, out=self._friction_allowance, where=self._kp > 0.0)
+        self._minv = np.diagonal(controller.tracking.mass_inverse)  # a view: the model updates M⁻¹ in place
+        self._sensitivity = np.zeros((3, n))  # d(angle)/d(torque constant): deg, deg/s, deg/s²
+        self._sensitivity_s = math.nan
+        self._speed_slack = np.zeros(n)
         self._moving = np.zeros(n, dtype=bool)
         self._behind = np.zeros(n, dtype=bool)
-        self._sign = np.zeros(n)
+        self._magnitude = np.zeros(n)
         self._change = np.zeros(n)
         self._expected_before = np.zeros(n)  # the model's and the reference's speeds at the previous check
         self._reference_before = np.zeros(n)
@@ -362,7 +364,7 @@ class Watchdog:
         else:
             # evaluated whatever else this cycle found: a hold for a hot motor must still see a joint that does not
             # follow it (the supervisor escalates a persisting one)
-            self.following = self._following_fault(q) if self._following else None
+            self.following = self._following_fault(q, now_s) if self._following else None
             held = held or self.following
             self._following = True
         overruns = self.controller.loop.overruns
@@ -451,27 +453,44 @@ class Watchdog:
         cycle checked it since the expectation (re)started): the watchdog's array."""
         return self._error
 
+    @property
+    def following_limit_deg(self) -> FloatArray:
+        """The following-error limit in force per joint at the latest check, deg (the configured one plus what a drive
+        within the stated model error adds): the watchdog's array."""
+        return self._following_limit
+
     def restart_following(self) -> None:
         """No following-error check in the next cycle; the expectation starts again from the measured state."""
         self._following = False
         self._error[:] = 0.0
+        self._sensitivity[:] = 0.0
+        self._sensitivity_s = math.nan
         controller = self.controller
         controller.tracking.reset(controller.axes.q_deg, controller.axes.qd_dps, controller.reference.position)
         np.copyto(self._expected_before, controller.axes.qd_dps)
         np.copyto(self._reference_before, controller.reference.velocity)
 
-    def _following_fault(self, q: FloatArray) -> MotionFault | None:
+    def _following_fault(self, q: FloatArray, now_s: float) -> MotionFault | None:
         """|expected - measured| against the threshold; a joint slower than both the model and the reference also
         loses the lag it was expected to have (a joint that stops while it should move is as far from the reference
         as it is), so that a blocked joint is caught as soon as the raw reference-minus-measured error would catch
-        it. Slower than both: where the model swings past a stopping or turning reference and back (torque mode), a
-        joint a little behind the model's swing is slower than one of them, and its lag is no slip."""
+        it. Slower than both, both moving the same way: where the model swings past a stopping or turning reference
+        and back (torque mode), a joint a little behind the model's swing is slower than one of them, and a joint that
+        turns back before the model does (a drive whose torque constant is above the model's swings less far) is
+        slower than the model in its own direction and than the reference in the other: neither is a slip."""
         controller = self.controller
         tracking, qd = controller.tracking, controller.axes.qd_dps
         slip, other = self._slip, self._error
-        self._slip_share(tracking.expected_dps, self._expected_before, qd, slip)
-        self._slip_share(controller.reference.velocity, self._reference_before, qd, other)
+        slack = None
+        if self._torque_mode:
+            self._advance_sensitivity(now_s)
+            slack = np.abs(self._sensitivity[1], out=self._speed_slack)
+            slack *= MODEL_ERROR[0]  # the speed a drive within the model error may lack: no slip
+        self._slip_share(tracking.expected_dps, self._expected_before, qd, slip, slack)
+        self._slip_share(controller.reference.velocity, self._reference_before, qd, other, None)
         np.minimum(slip, other, out=slip)
+        np.multiply(tracking.expected_dps, controller.reference.velocity, out=other)
+        slip *= np.greater(other, 0.0, out=self._behind)  # the model and the reference moving the same way
         np.multiply(tracking.lag_deg, controller.reference.velocity, out=other)
         slip *= np.greater(other, 0.0, out=self._behind)  # the model behind the reference, not past it
         slip *= tracking.lag_deg
@@ -487,10 +506,10 @@ class Watchdog:
         limit -= np.abs(slip, out=self._share)
         limit *= self._lag_error
         limit += self.settings.following_error_deg
-        if self._torque_allowance is not None:
-            share = np.abs(controller.torque_nm, out=self._share)
-            share *= self._torque_allowance
-            limit += share
+        if self._torque_mode:
+            np.abs(self._sensitivity[0], out=self._share)
+            self._share *= MODEL_ERROR[0]
+            limit += self._share
             limit += self._friction_allowance
         over = self._share
         np.divide(error, limit, out=over)
@@ -505,19 +524,51 @@ class Watchdog:
             "|expected - q| (+ lag lost by slipping)",
         )
 
-    def _slip_share(self, speed_dps: FloatArray, previous_dps: FloatArray, qd: FloatArray, out: FloatArray) -> None:
-        """The share of ``speed_dps`` the measured speed falls short of, 0..1, into ``out``; 0 where the shortfall is
-        within :data:`SLIP_PHASE_CYCLES` times the speed's change since the previous cycle (``previous_dps``; a
-        joint a cycle or two behind a turning swing is no slip) and where the speed is below the moving threshold.
-        ``previous_dps`` then takes ``speed_dps``."""
-        moving, sign, change = self._moving, self._sign, self._change
+    def _advance_sensitivity(self, now_s: float) -> None:
+        """Torque mode: what a drive within the stated model error adds to the following error.
+
+        A drive whose torque constant is off by ε delivers ``(1 + ε) τ`` for every torque ``τ`` asked of it: the joint
+        then moves by ``ε s`` from the model (and its speed by ``ε ṡ``), where ``s`` (the sensitivity to the torque
+        constant) is the motion the torque asked for makes through the PD loop, ``M s̈ = τ − Kp s − Kd ṡ`` (M⁻¹'s
+        diagonal at the model's pose; the torque held over each step, as the drives hold it). Static, that is the
+        share of the gravity feed-forward the PD must hold up; moving, it rings as the loop does (a lightly damped
+        loop, such as a base joint stretched out, swings by several times the static figure, and a weaker drive turns
+        back cycles after the model). The friction's share of the Coulomb figure adds through the PD's stiffness."""
+        position, speed, acceleration = self._sensitivity
+        dt = now_s - self._sensitivity_s
+        self._sensitivity_s = now_s
+        if dt > 0.0:  # (NaN after a restart: the sensitivity starts from rest)
+            np.multiply(speed, dt, out=self._share)
+            position += self._share
+            np.multiply(acceleration, 0.5 * dt * dt, out=self._share)
+            position += self._share
+            np.multiply(acceleration, dt, out=self._share)
+            speed += self._share
+        np.multiply(self._kp, position, out=acceleration)
+        np.multiply(self._kd, speed, out=self._share)
+        acceleration += self._share
+        np.subtract(self.controller.torque_nm, acceleration, out=acceleration)
+        acceleration *= self._minv
+        acceleration *= _DEG_PER_RAD
+
+    def _slip_share(
+        self, speed_dps: FloatArray, previous_dps: FloatArray, qd: FloatArray, out: FloatArray, slack: FloatArray | None
+    ) -> None:
+        """The share of ``speed_dps`` the measured speed's magnitude falls short of, 0..1, into ``out``; 0 where the
+        shortfall is within :data:`SLIP_PHASE_CYCLES` times the speed's change since the previous cycle
+        (``previous_dps``; a joint a cycle or two behind a turning swing is no slip) plus ``slack`` (deg/s: what a
+        drive within the model error may lack), and where the speed is below the moving threshold. ``previous_dps``
+        then takes ``speed_dps``."""
+        moving, magnitude, change = self._moving, self._magnitude, self._change
         np.subtract(speed_dps, previous_dps, out=change)
         np.abs(change, out=change)
         change *= SLIP_PHASE_CYCLES
+        if slack is not None:
+            change += slack
         np.copyto(previous_dps, speed_dps)
-        np.sign(speed_dps, out=sign)
-        np.subtract(speed_dps, qd, out=out)
-        out *= sign
+        np.abs(qd, out=magnitude)
+        np.abs(speed_dps, out=out)
+        out -= magnitude  # slower in magnitude: a joint swinging the other way at speed is moving, not stuck
         np.greater(out, change, out=moving)
         out *= moving
         np.abs(speed_dps, out=change)
