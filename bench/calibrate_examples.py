@@ -1,18 +1,23 @@
-"""The example arms' collision thresholds, as their configurations say they were calibrated: margin 2 on the largest
-collision signal of each control mode (``{position: N, torque: N}``): the demo's waypoint path (position mode) and
+"""The example arms' collision thresholds, as their configurations say they were calibrated: margin 1.5 on the largest
+collision signal of each control mode (``{position: N, torque: N}``) over the demo's waypoint path (position mode) and
 torque move, and each joint alone moved from rest to 80 % of its range, to the other side and back (in both modes),
-all at speed scale 1.0, on the example's emulated drives in simulated time (the same figures on any host).
+all at speed scale 1.0, on the example's emulated drives as configured and on four corners of the drive models the
+checks must bear (every joint's loop tuning at half or twice the factory's, its torque constant, rotor inertia and
+friction at the ends of their stated error: ``tests/drive_models.py``), in simulated time (the same figures on any
+host).
 
-    .venv/bin/python bench/calibrate_examples.py                       # print them
-    .venv/bin/python bench/calibrate_examples.py --write               # and write them into configs/
+    .venv/bin/python bench/calibrate_examples.py --jobs 2              # print them
+    .venv/bin/python bench/calibrate_examples.py --jobs 2 --write      # and write them into configs/
 
 The threshold in force never goes below the collision bound (``motion/safety/collision_bound.py``), whatever is
-written; these are the margin above it that the example's own paths need.
+written; these are the margin above it that the example's own paths need on drives we did not tune for.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
+import multiprocessing
 import re
 import sys
 from collections.abc import Callable
@@ -26,10 +31,18 @@ from motion.api import Arm
 from motion.config import ArmConfig, load_config
 from motion.config.schema import ControlMode
 from tests.collision_trials import demo_path, nominal_run, torque_move, torque_variant, without_thresholds
+from tests.drive_models import DriveDraw, JointDraw, with_drives
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 EXAMPLES = ("arm6.yaml", "arm6_v3.yaml")
-MARGIN = 2.0
+MARGIN = 1.5
+#: The drive models calibrated on besides the configured one: each applied to every joint.
+CORNERS = (
+    JointDraw(2.0, 0.8, 1.3, 1.5),
+    JointDraw(2.0, 1.2, 0.7, 0.5),
+    JointDraw(0.5, 0.8, 1.3, 1.5),
+    JointDraw(0.5, 1.2, 0.7, 0.5),
+)
 #: A joint alone goes to this share of its range, to the same share of the other side, and back to 0.
 SHARE = 0.8
 
@@ -62,6 +75,17 @@ def peaks(config: ArmConfig) -> tuple[dict[str, np.ndarray], list[str]]:
     return peak, faults
 
 
+def _peaks_on(name_corner: tuple[str, int]) -> tuple[str, int, dict[str, np.ndarray], list[str]]:
+    """:func:`peaks` of the example ``name`` on its configured drives (corner -1) or on a corner of the models."""
+    name, corner = name_corner
+    logging.disable(logging.CRITICAL)
+    config = load_config(CONFIGS / name)
+    if corner >= 0:
+        config = with_drives(config, DriveDraw((CORNERS[corner],) * len(config.joints)))
+    peak, faults = peaks(config)
+    return name, corner, peak, faults
+
+
 def write(path: Path, thresholds: list[tuple[float, float]]) -> None:
     """Replace the file's ``collision_threshold_nm`` values, in joint order, with ``{position: N, torque: N}``."""
     text = path.read_text()
@@ -80,11 +104,25 @@ def write(path: Path, thresholds: list[tuple[float, float]]) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--write", action="store_true", help="write the thresholds into the example files")
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
     args = parser.parse_args()
+    work = [(name, corner) for name in EXAMPLES for corner in range(-1, len(CORNERS))]
+    found: dict[str, dict[str, np.ndarray]] = {}
+    with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
+        for name, corner, peak, faults in pool.imap_unordered(_peaks_on, work):
+            drives = "configured drives" if corner < 0 else f"corner {CORNERS[corner]}"
+            print(f"{name}, {drives}: position {np.round(peak['position'], 4)}, torque {np.round(peak['torque'], 4)}")
+            for fault in faults:
+                print(f"  fault on the way: {fault}")
+            mine = found.setdefault(
+                name, {"position": np.zeros(len(peak["position"])), "torque": np.zeros(len(peak["torque"]))}
+            )
+            for mode in mine:
+                np.fmax(mine[mode], peak[mode], out=mine[mode])
     for name in EXAMPLES:
         path = CONFIGS / name
         config = load_config(path)
-        peak, faults = peaks(config)
+        peak = found[name]
         thresholds = [
             (float(f"{MARGIN * p:.4g}"), float(f"{MARGIN * t:.4g}"))
             for p, t in zip(peak["position"], peak["torque"], strict=True)
@@ -96,8 +134,6 @@ def main() -> None:
                 f"{peak['torque'][i]:.4g} in torque mode; thresholds {thresholds[i]} (were "
                 f"{joint.collision_threshold_nm}, {joint.collision_threshold_in(ControlMode.TORQUE)})"
             )
-        for fault in faults:
-            print(f"  fault on the way: {fault}")
         if args.write:
             write(path, thresholds)
 

@@ -43,6 +43,7 @@ def main() -> None:
     faults = refused = late = 0
     latencies: list[int | None] = []
     detections: dict[str, list[int]] = collections.defaultdict(lambda: [0, 0])  # arm and joint: in time, trials
+    calibrated_detections: dict[str, list[int]] = collections.defaultdict(lambda: [0, 0])  # ... on its own drives
     cycles = 0
     worst: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0, 0])
     worst_case: list[tuple[float, int, str]] = []
@@ -57,6 +58,11 @@ def main() -> None:
     )
     for done, one in enumerate(swept, 1):
         k, outcome, fault, detection = one.k, one.outcome, one.fault, one.detection
+        if one.calibrated_detection is not None:
+            joint, latency, _ = one.calibrated_detection
+            tally = calibrated_detections[f"{outcome.case.arm} {outcome.case.mode.value} {joint}"]
+            tally[0] += latency is not None and latency <= clean_sweep.DETECTION_CYCLES
+            tally[1] += 1
         case = outcome.case
         cycles += outcome.cycles
         key = f"{case.arm} {case.mode.value} {case.rate_hz:g} Hz"
@@ -72,7 +78,7 @@ def main() -> None:
         if detection is not None:  # (None: an arm without a collision check)
             joint, latency, caught = detection
             latencies.append(latency)
-            tally = detections[f"{case.arm} {joint}"]
+            tally = detections[f"{case.arm} {case.mode.value} {joint}"]
             tally[0] += latency is not None and latency <= clean_sweep.DETECTION_CYCLES
             tally[1] += 1
             if latency is None or latency > clean_sweep.DETECTION_CYCLES:
@@ -103,10 +109,14 @@ def main() -> None:
             f"{caught[len(caught) // 2]}, worst {caught[-1]}"
         )
     if detections:
-        print("\n| arm, joint | collisions detected within the cycles / trials |")
-        print("|---|---|")
+        print(
+            f"\n| arm, mode, joint | detected within {clean_sweep.DETECTION_CYCLES} cycles / trials: the example's "
+            f"thresholds | calibrated on the case's drives (margin {clean_sweep.CALIBRATION_MARGIN:g}) |"
+        )
+        print("|---|---|---|")
         for key, (in_time, trials) in sorted(detections.items()):
-            print(f"| {key} | {in_time} / {trials} |")
+            mine, theirs = calibrated_detections.get(key, (0, 0))
+            print(f"| {key} | {in_time} / {trials} | {mine} / {theirs} |")
     print("\n| arm, mode, rate | cases | worst collision signal / threshold | worst following error / limit |")
     print("|---|---|---|---|")
     for key, (collision, following, count) in sorted(worst.items()):

@@ -58,6 +58,7 @@ class ArmPlant:
         self._q = np.radians(start_cfg[self._to_model])
         self._v = np.zeros(n)
         self._tau = np.zeros(n)
+        self._work = np.zeros(n)  # (step's scratch: it runs at the emulator's rate, several times per cycle)
         self._p = np.zeros(n)
         self._pd = np.zeros(n)
         #: Joints held through the next step (model index -> the side it may leave toward, 0: none).
@@ -71,8 +72,12 @@ class ArmPlant:
 
     def _export(self) -> None:
         # p (emulator order) = direction * (q - offset)
-        self._p[self._emu_index] = self._sign * (self._q - self._offset_rad)
-        self._pd[self._emu_index] = self._sign * self._v
+        work = self._work
+        np.subtract(self._q, self._offset_rad, out=work)
+        work *= self._sign
+        self._p[self._emu_index] = work
+        np.multiply(self._sign, self._v, out=work)
+        self._pd[self._emu_index] = work
 
     def state(self) -> tuple[FloatArray, FloatArray]:
         """Current ``(positions_rad, velocities_rad_s)`` in the emulator's coordinates."""
@@ -86,15 +91,22 @@ class ArmPlant:
 
     def step(self, dt_s: float, torques_nm: FloatArray) -> tuple[FloatArray, FloatArray]:
         """Apply the drives' torques (emulator order, N·m on ``p``) for ``dt_s``; semi-implicit Euler."""
-        tau = self._tau
-        np.multiply(torques_nm[self._emu_index], self._sign, out=tau)
-        tau -= self._viscous * self._v
-        tau -= self._coulomb * np.tanh(self._v / self._smoothing)
-        acceleration = pin.aba(self._model, self._data, self._q, self._v, tau)
+        tau, work, v = self._tau, self._work, self._v
+        np.take(torques_nm, self._emu_index, out=tau)
+        tau *= self._sign
+        np.multiply(self._viscous, v, out=work)
+        tau -= work
+        np.divide(v, self._smoothing, out=work)
+        np.tanh(work, out=work)
+        work *= self._coulomb
+        tau -= work
+        acceleration = pin.aba(self._model, self._data, self._q, v, tau)
         if self._held:
             acceleration = self._constrained(acceleration, tau)
-        self._v += acceleration * dt_s
-        self._q += self._v * dt_s
+        np.multiply(acceleration, dt_s, out=work)
+        v += work
+        np.multiply(v, dt_s, out=work)
+        self._q += work
         self._export()
         return self._p, self._pd
 

@@ -41,7 +41,7 @@ import sys
 import threading
 import time
 import xml.etree.ElementTree as ET
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -82,6 +82,7 @@ _LIVE_ROWS = {
         ("iq", "iq_a"),
         ("q_exp", "expected_deg"),
         ("signal", "collision_signal_nm"),
+        ("limit", "collision_limit_nm"),
     )
 }
 #: The largest snapshot datagram read, bytes (a few hundred for six joints).
@@ -89,7 +90,12 @@ _FEED_MAX = 65536
 #: How long the page's process may take to start (it imports viser and builds the arm's model), s.
 START_TIMEOUT_S = 60.0
 _PLOTS = ("position", "following error", "torque current", "collision signal")
-_PLOT_SERIES = (("reference", "expected", "measured"), ("expected − measured",), ("iq",), ("signal", "threshold"))
+_PLOT_SERIES = (
+    ("reference", "expected", "measured"),
+    ("expected − measured",),
+    ("iq",),
+    ("signal", "threshold in force"),
+)
 _SERIES_COLORS = ("#f0a028", "#999999", "#466ebe")
 _FAULTED_STATES = frozenset({"holding", "halting", "halted", "complying", "bus_lost"})
 
@@ -253,12 +259,16 @@ def _figure(
 # ------------------------------------------------------------------------------------------------ the panels
 
 
+#: The page's per-joint series.
+_HISTORY_KEYS = ("q", "q_ref", "q_exp", "iq", "signal", "limit")
+
+
 class _History:
     """Rolling per-joint series for the plots (the page's own arrays)."""
 
     def __init__(self, joints: int, length: int) -> None:
         self.t = np.full(length, np.nan)
-        self.rows = {key: np.full((length, joints), np.nan) for key in ("q", "q_ref", "q_exp", "iq", "signal")}
+        self.rows = {key: np.full((length, joints), np.nan) for key in _HISTORY_KEYS}
         self._n = 0
 
     def push(self, t_s: float, values: dict[str, FloatArray]) -> None:
@@ -286,16 +296,25 @@ class _History:
         return self.t[len(self.t) - n :], {k: v[len(v) - n :] for k, v in self.rows.items()}
 
 
+def _limit_in_force(log: TelemetryLog) -> FloatArray:
+    """The collision threshold in force per cycle and joint; a log from before it was recorded (version < 5) gives
+    the configured thresholds instead (NaN where none)."""
+    limit: FloatArray = log["collision_limit_nm"]
+    if np.isnan(limit).all():
+        configured = log.meta.get("collision_threshold_nm") or [None] * limit.shape[1]
+        limit = np.broadcast_to(
+            np.array([math.nan if t is None else t for t in configured], dtype=np.float64), limit.shape
+        )
+    return limit
+
+
 class _Page:
     """The page's panels and the two figures, shared by the live view and the replay."""
 
-    def __init__(
-        self, server: Any, config: ArmConfig, geometry: ArmGeometry, thresholds: Sequence[float | None]
-    ) -> None:
+    def __init__(self, server: Any, config: ArmConfig, geometry: ArmGeometry) -> None:
         viser = _viser()
         self.server = server
         self.names = [html.escape(name, quote=True) for name in config.joint_names]
-        self.thresholds = np.array([math.nan if t is None else t for t in thresholds], dtype=np.float64)
         server.gui.configure_theme(control_width="large", show_share_button=False)
         self.measured = _figure(
             server, config=config, geometry=geometry, name="measured", rgb=_MEASURED_RGB, opacity=None
@@ -349,8 +368,8 @@ class _Page:
         if len(t) < 2:
             return
         j = self.names.index(self.joint.value)
-        q, q_ref, q_exp, iq, signal = (rows[k][:, j] for k in ("q", "q_ref", "q_exp", "iq", "signal"))
-        threshold = np.full(len(t), self.thresholds[j])
+        q, q_ref, q_exp, iq, signal, limit = (rows[k][:, j] for k in _HISTORY_KEYS)
+        threshold = np.where(np.isfinite(limit), limit, np.nan)  # (inf: a joint not watched)
         self.plots["position"].data = (t, q_ref, q_exp, q)
         self.plots["following error"].data = (t, q_exp - q)
         self.plots["torque current"].data = (t, iq)
@@ -566,7 +585,7 @@ def _serve_live(
 
     try:
         server = _start_server(host, port)
-        page = _Page(server, config, figure(config), list(config.collision_thresholds_nm))
+        page = _Page(server, config, figure(config))
     except Exception as exc:  # the arm's process raises it as a MotionError
         send(("error", f"{type(exc).__name__}: {exc}"))
         return
@@ -661,8 +680,7 @@ class Replay:
             raise MotionError("the log holds no cycle to replay")
         self.log = log
         self.server = _start_server(host, port)
-        thresholds = log.meta.get("collision_threshold_nm") or [None] * len(names)
-        self._page = _Page(self.server, config, geometry, thresholds)
+        self._page = _Page(self.server, config, geometry)
         t = log["t_s"]
         self._t = t
         self._values = {
@@ -671,6 +689,7 @@ class Replay:
             "q_exp": log["q_exp_deg"],
             "iq": log["iq_a"],
             "signal": log["collision_signal_nm"],
+            "limit": _limit_in_force(log),
         }
         faults = log["fault_t_s"]
         self._fault_t = faults

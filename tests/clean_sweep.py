@@ -25,12 +25,13 @@ import numpy as np
 
 from motion import Arm
 from motion.api import MotionHandle
+from motion.cli.collision import propose
 from motion.config import ArmConfig, load_config
 from motion.config.schema import ControlMode, SafetyConfig
 from motion.control.ratecheck import RateError
 from motion.emulator.timing import TimingModel
 from motion.errors import MotionFault
-from tests.collision_trials import Trial, collision_trial, with_thresholds
+from tests.collision_trials import Trial, collision_trial, with_thresholds, without_thresholds
 from tests.drive_models import DriveDraw, draw_drives, with_drives
 from tests.fault_explorer import target_pose
 
@@ -50,6 +51,8 @@ STEP_WAIT_S = 20.0
 ONSET_RANGE_S = (0.2, 1.2)
 #: The collision threshold of every joint with ``bound_only`` (the bound is then the threshold in force), N·m.
 BOUND_ONLY_NM = 1e-3
+#: The margin of the thresholds :func:`calibrated` proposes (``collision-calibrate --margin``).
+CALIBRATION_MARGIN = 1.5
 #: The most control cycles a collision of :data:`tests.collision_trials.STEP_SHARE` of the joint's peak torque may
 #: take to be detected (issue 30).
 DETECTION_CYCLES = 5
@@ -134,9 +137,10 @@ def config_of(case: Case, *, bound_only: bool = False) -> ArmConfig:
     return config
 
 
-def _arm(case: Case, config: ArmConfig) -> Arm:
-    """An emulated arm of ``config`` whose drives answer with the case's latency and jitter (not connected)."""
-    arm = Arm(config, emulate=True)
+def _arm(case: Case, config: ArmConfig, *, observe: bool = False) -> Arm:
+    """An emulated arm of ``config`` whose drives answer with the case's latency and jitter (not connected;
+    ``observe``: the collision observer runs without thresholds)."""
+    arm = Arm(config, emulate=True, observe_collisions=observe)
     start = arm._start_simulation
 
     def started() -> Any:
@@ -158,14 +162,37 @@ def _step(arm: Arm, step: tuple[str, float, tuple[tuple[float, ...], ...]]) -> M
     return arm.follow(targets, speed_scale=scale, wait=False)
 
 
-def detect(case: Case, *, bound_only: bool = False) -> Trial | None:
+def calibrated(case: Case, config: ArmConfig) -> ArmConfig:
+    """``config`` with thresholds calibrated as ``rmd-motion collision-calibrate --margin`` :data:`CALIBRATION_MARGIN`
+    would on the case's own drives: the largest |signal| of its first step, clean, per joint, times the margin."""
+    arm = _arm(case, without_thresholds(config), observe=True)
+    peak = np.zeros(len(config.joints))
+    with contextlib.closing(arm):
+        arm.connect()
+        assert arm.supervisor is not None and arm.controller is not None
+        watchdog = arm.supervisor.watchdog
+
+        def record(*_: object) -> None:
+            if watchdog.collision_armed:
+                np.fmax(peak, np.abs(watchdog.collision_signal_nm), out=peak)
+
+        arm.controller.cycle_hooks.append(record)
+        _step(arm, case.steps[0]).wait(STEP_WAIT_S)
+        arm.sleep(0.3)
+    return with_thresholds(config, list(propose(peak, CALIBRATION_MARGIN)))
+
+
+def detect(case: Case, *, bound_only: bool = False, calibrating: bool = False) -> Trial | None:
     """The case's first step with its collision: :data:`tests.collision_trials.STEP_SHARE` of the joint's peak
     torque, the case's onset after the step started (see :func:`tests.collision_trials.collision_trial`); None for an
-    arm without a collision check (no joint has a threshold)."""
+    arm without a collision check (no joint has a threshold). ``calibrating``: with thresholds calibrated on the
+    case's own drives and step (:func:`calibrated`) instead of the example's."""
     assert case.collision is not None and case.steps
     config = config_of(case, bound_only=bound_only)
     if not config.collision_watched:
         return None
+    if calibrating:
+        config = calibrated(case, config)
     joint, onset_s, sign = case.collision
     return collision_trial(
         config, lambda arm: _step(arm, case.steps[0]), joint, onset_s, sign=sign, arm=_arm(case, config)
@@ -223,19 +250,26 @@ class Swept:
     outcome: Outcome
     fault: str | None
     detection: tuple[str, int | None, str] | None = None
+    calibrated_detection: tuple[str, int | None, str] | None = None  # with thresholds calibrated on its drives
 
 
 def sweep_one(seed: int, k: int, quick: bool, bound_only: bool, detecting: bool) -> Swept:
-    """Play case ``k`` of the draw ``seed`` (and, with ``detecting``, its first step again with its collision)."""
+    """Play case ``k`` of the draw ``seed`` (and, with ``detecting``, its first step again with its collision, with
+    the example's thresholds and with thresholds calibrated on the case's drives)."""
     logging.disable(logging.CRITICAL)
     case = drawn(seed, k, quick=quick)
     outcome = run(case, bound_only=bound_only)
     fault, outcome.fault = outcome.fault, None
     swept = Swept(k, outcome, None if fault is None else str(fault))
-    trial = detect(case, bound_only=bound_only) if detecting and outcome.refused is None else None
-    if trial is not None:
-        swept.detection = (trial.joint, trial.latency_cycles if trial.isolated else None, str(trial.fault))
+    if detecting and outcome.refused is None:
+        swept.detection = _detected(detect(case, bound_only=bound_only))
+        if not bound_only:
+            swept.calibrated_detection = _detected(detect(case, calibrating=True))
     return swept
+
+
+def _detected(trial: Trial | None) -> tuple[str, int | None, str] | None:
+    return None if trial is None else (trial.joint, trial.latency_cycles if trial.isolated else None, str(trial.fault))
 
 
 def _sweep_one(args: tuple[int, int, bool, bool, bool]) -> Swept:

@@ -384,9 +384,11 @@ def test_calibrate_command_proposes_and_writes_thresholds(tmp_path: Path) -> Non
     report = json.loads(result.stdout)
     proposed = [j["threshold_nm"] for j in report["joints"]]
     assert all(j["bound_peak_nm"] > 0 for j in report["joints"])  # the bound the thresholds are held above
-    configured = [j.collision_threshold_nm for j in load_config(ARM6).joints]
-    # the position-mode path alone: the same figures as the configuration for the joints it dominates
-    assert proposed[1:3] == pytest.approx(configured[1:3], rel=0.01)
+    configured = np.array([j.collision_threshold_nm for j in load_config(ARM6).joints])
+    # the example's position-mode thresholds are margin 1.5 over this path (and more) on the configured drives and on
+    # stiffer and softer ones (bench/calibrate_examples.py): margin 2 on this path alone on the configured drives
+    # stays within 2 / 1.5 of them
+    assert (np.array(proposed) <= configured * 2.0 / 1.5 * 1.01).all(), (proposed, configured)
     written = load_config(out)
     assert [j.collision_threshold_nm for j in written.joints] == pytest.approx(proposed)
     assert written.model.urdf == load_config(ARM6).model.urdf

@@ -68,6 +68,22 @@ def test_a_configured_threshold_below_the_bound_is_not_the_one_in_force() -> Non
         assert watchdog.collision_armed
         limit = watchdog.collision_limit_nm
         assert (limit > 1e-3).all() and (limit == np.maximum(1e-3, watchdog._bound.bound_nm)).all()  # type: ignore[union-attr]
+        # ... and it is the one the snapshots publish (the live view plots it against the signal): each cycle's
+        # snapshot carries the evaluation of the cycle before, as it does the signal
+        seen: list[tuple[np.ndarray, np.ndarray]] = []
+
+        def record(*_: object) -> None:
+            snapshot = arm.controller.snapshot  # type: ignore[union-attr]
+            seen.append((snapshot.collision_limit_nm.copy(), watchdog.collision_limit_nm.copy()))
+
+        arm.controller.cycle_hooks.append(record)  # type: ignore[union-attr]
+        arm.sleep(0.2)
+        matched = [
+            np.array_equal(seen[k][0], seen[k - 1][1]) or np.array_equal(seen[k][0], seen[k][1])
+            for k in range(1, len(seen))
+        ]
+        assert len(matched) > 10 and all(matched)
+        assert len({tuple(published) for published, _ in seen}) > 1  # it moves with the bound
 
 
 def test_a_v3_drive_tuned_softer_than_the_prior_is_no_following_error() -> None:

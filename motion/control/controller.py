@@ -245,6 +245,7 @@ class Controller:
         #: A per-joint array the safety layer keeps up to date (its collision signal, N·m), published in every
         #: snapshot as it stands (NaN: none).
         self.published_signal: NDArray[np.float64] = np.full(n, np.nan)
+        self.published_limit: NDArray[np.float64] = np.full(n, np.nan)
         # The 0x280 frame commands motors 1..4 whether they belong to the arm or not, so it is used only when all
         # four are joints of this arm: a foreign drive on the bus is never switched into torque mode.
         in_multi = [i for i, s in enumerate(self.specs) if s.motor_id in MULTI_TORQUE_MOTOR_IDS]
@@ -713,6 +714,7 @@ class Controller:
                 axes.fresh,
                 self.tracking.expected_deg,
                 self.published_signal,
+                self.published_limit,
             )
         )
         start = end - path.duration_s if path is not None else math.nan

@@ -29,6 +29,7 @@ JOINT_ROWS = (
     "fresh",
     "expected_deg",
     "collision_signal_nm",
+    "collision_limit_nm",
 )
 
 
@@ -101,6 +102,12 @@ class CycleSnapshot(NamedTuple):
         """The collision observer's signal per joint, N·m (what ``collision_threshold_nm`` applies to; NaN without
         an observer; the safety layer's evaluation of the cycle before)."""
         return self._row(7)
+
+    @property
+    def collision_limit_nm(self) -> NDArray[np.float64]:
+        """The collision threshold in force per joint, N·m: the configured one, or the bound where that is higher
+        (:mod:`motion.safety.collision_bound`; inf for a joint not watched, NaN without an observer)."""
+        return self._row(8)
 
     @property
     def temperature_c(self) -> NDArray[np.float64]:

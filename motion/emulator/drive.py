@@ -131,7 +131,7 @@ class Setpoint:
 
 
 def _clamp(x: float, limit: float) -> float:
-    return -limit if x < -limit else min(x, limit)
+    return -limit if x < -limit else (limit if x > limit else x)
 
 
 class EmulatedDrive:

@@ -177,6 +177,8 @@ class EmulatedDriveV3(EmulatedDrive):
     def _latch_errors(self) -> None:
         super()._latch_errors()
         # Level-2 errors recover by themselves once their cause is gone (the output stays off until commanded).
+        if not self.errors:  # (the common case, without building flags)
+            return
         if self.errors & ErrorFlags.LOW_VOLTAGE and self.voltage_v >= self.model.low_voltage_v:
             self.errors &= ~ErrorFlags.LOW_VOLTAGE
         if self.errors & ErrorFlags.OVER_TEMPERATURE and self.temperature_c <= self.model.over_temperature_c:

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import math
 import random
-import re
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
@@ -78,16 +77,43 @@ def _crc15_table() -> tuple[int, ...]:
 _CRC15_TABLE: Final = _crc15_table()
 #: SOF, identifier, RTR, IDE, r0 and DLC: the bits before the data.
 _CAN_HEADER_BITS: Final = 19
-#: Maximal runs of four or more equal bits in a bit string.
-_LONG_RUNS: Final = re.compile("0{4,}|1{4,}")
+
+
+def _stuff_step(state: int, bit: int) -> tuple[int, int]:
+    """One bit through the stuffing: ``state`` is ``last bit × 8 + run length`` (run 1..4); returns the next state
+    and the stuff bits inserted after this bit (a fifth equal bit takes a complementary one, which starts the next
+    run)."""
+    last, run = divmod(state, 8)
+    run = run + 1 if bit == last else 1
+    if run == _CAN_STUFF_RUN:
+        return (1 - bit) * 8 + 1, 1
+    return bit * 8 + run, 0
+
+
+def _stuff_table() -> tuple[tuple[int, ...], ...]:
+    """Per stuffing state and byte value (most significant bit first): ``next state × 4 + stuff bits``."""
+    table: list[tuple[int, ...]] = [(0,) * 256] * 16
+    for state in [last * 8 + run for last in (0, 1) for run in range(1, _CAN_STUFF_RUN)]:
+        row = []
+        for byte in range(256):
+            current, stuffed = state, 0
+            for shift in range(7, -1, -1):
+                current, more = _stuff_step(current, (byte >> shift) & 1)
+                stuffed += more
+            row.append(current * 4 + stuffed)
+        table[state] = tuple(row)
+    return tuple(table)
+
+
+_STUFF_TABLE: Final = _stuff_table()
 
 
 def can_frame_bits(arbitration_id: int, data: bytes) -> int:
     """Bits a classic CAN data frame with an 11-bit identifier occupies on the bus, stuff bits included.
 
     The frame from SOF to the end of the data is one integer; the CRC is computed a byte at a time from a table (with
-    a zero register leading zero bits change nothing, so the 19 header bits are padded to 24), and the stuff bits are
-    counted per run of equal bits rather than per bit (the emulated bus times every frame of every cycle).
+    a zero register leading zero bits change nothing, so the 19 header bits are padded to 24), and the stuff bits a
+    byte at a time through a table of the stuffing states (the emulated bus times every frame of every cycle).
 
     Args:
         arbitration_id: the 11-bit identifier.
@@ -101,21 +127,19 @@ def can_frame_bits(arbitration_id: int, data: bytes) -> int:
     for byte in message.to_bytes(3 + n, "big"):
         crc = ((crc << 8) & 0x7FFF) ^ _CRC15_TABLE[((crc >> 7) ^ byte) & 0xFF]
     width = _CAN_HEADER_BITS + 8 * n + 15
-    bits = format((message << 15) | crc, f"0{width}b")
-    # Stuffing: after five equal bits a complementary bit is inserted, which starts the next run and so joins the
-    # run of the other value that follows. Only runs of four or more can take a stuff bit (four only when the stuff
-    # bit of the run just before joins it); ``joined_at``: where the run that a stuff bit joins starts.
-    stuffed, joined_at = 0, -1
-    for match in _LONG_RUNS.finditer(bits):
-        start, end = match.span()
-        before = 1 if start == joined_at else 0
-        if end - start + before < _CAN_STUFF_RUN:
-            continue
-        # the first stuff bit after (5 - before) bits, then one after every 5 more
-        after_first = end - start - (_CAN_STUFF_RUN - before)
-        stuffed += 1 + after_first // _CAN_STUFF_RUN
-        if after_first % _CAN_STUFF_RUN == 0:
-            joined_at = end
+    frame = (message << 15) | crc
+    # Stuffing, a byte at a time through a table of the stuffing states (last bit, run length): after five equal
+    # bits a complementary bit is inserted, which starts the next run. SOF (0) opens the first run; the bits after
+    # it that do not fill a byte go one by one.
+    state, stuffed = 1, 0
+    rest = width - 1
+    for shift in range(rest - 1, rest - 1 - rest % 8, -1):
+        state, more = _stuff_step(state, (frame >> shift) & 1)
+        stuffed += more
+    table = _STUFF_TABLE
+    for byte in (frame & ((1 << (rest - rest % 8)) - 1)).to_bytes((rest - rest % 8) // 8, "big"):
+        code = table[state][byte]
+        state, stuffed = code >> 2, stuffed + (code & 3)
     return width + stuffed + _CAN_UNSTUFFED_TAIL_BITS
 
 

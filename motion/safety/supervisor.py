@@ -179,8 +179,9 @@ class Supervisor:
             window = min(window, self.drives.link_timeout_ms / 2000.0)
         self._end_window_s = window
         self.watchdog = Watchdog(controller, settings, observer)
-        if observer is not None:  # the collision signal goes out in every snapshot (views, status)
+        if observer is not None:  # the collision signal and the threshold in force go out in every snapshot
             controller.published_signal = self.watchdog.collision_signal_nm
+            controller.published_limit = self.watchdog.collision_limit_nm
         self.gravity = gravity
         self._fault: MotionFault | None = None
         self.machine = StateMachine(ArmState.READY, on_change=self._publish_condition)
