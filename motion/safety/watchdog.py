@@ -474,10 +474,12 @@ class Watchdog:
         """|expected - measured| against the threshold; a joint slower than both the model and the reference also
         loses the lag it was expected to have (a joint that stops while it should move is as far from the reference
         as it is), so that a blocked joint is caught as soon as the raw reference-minus-measured error would catch
-        it. Slower than both, both moving the same way: where the model swings past a stopping or turning reference
-        and back (torque mode), a joint a little behind the model's swing is slower than one of them, and a joint that
-        turns back before the model does (a drive whose torque constant is above the model's swings less far) is
-        slower than the model in its own direction and than the reference in the other: neither is a slip."""
+        it. Slower than both: in magnitude, by more than a joint within the model error may lag (:meth:`_slip_share`),
+        with both moving the same way. Where the model swings past a stopping or turning reference and back (torque
+        mode), a joint a little behind the model's swing is slower than one of them; a joint that turns back before
+        the model does (a drive stronger than the model swings less far) moves against the model, and one that turns
+        back after it (a weaker drive) is still at speed in the other direction or a few cycles behind: none is a
+        slip."""
         controller = self.controller
         tracking, qd = controller.tracking, controller.axes.qd_dps
         slip, other = self._slip, self._error
