@@ -11,6 +11,7 @@ does not chatter at rest).
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -47,6 +48,8 @@ class ArmPlant:
         cfg = [joints[i] for i in self._to_model]
         emu_of_cfg = np.argsort(self._order)  # configuration index -> emulator index
         self._emu_index = emu_of_cfg[self._to_model]
+        self._model_of_emu = [int(m) for m in np.argsort(self._emu_index)]  # emulator index -> model coordinate
+        self._free_of: dict[tuple[int, ...], tuple[Any, Any]] = {}  # held joints -> the free ones' indexes
         self._sign = np.array([float(j.direction) for j in cfg])
         self._offset_rad = np.radians([j.zero_offset_deg for j in cfg])
         per_rad_s = 180.0 / math.pi
@@ -118,12 +121,16 @@ class ArmPlant:
         self._held.clear()
         if not held:
             return free_acceleration
-        free = np.setdiff1d(np.arange(self.size), held)
+        key = tuple(sorted(held))
+        if key not in self._free_of:  # (the same few sets step after step: a brake, a stop)
+            free = np.setdiff1d(np.arange(self.size), held)
+            self._free_of[key] = (free, np.ix_(free, free))
+        free, block = self._free_of[key]
         acceleration = np.zeros(self.size)
         if free.size:
             mass = crba_full(self._model, self._data, self._q)
             bias = pin.nonLinearEffects(self._model, self._data, self._q, self._v)
-            acceleration[free] = np.linalg.solve(mass[np.ix_(free, free)], tau[free] - bias[free])
+            acceleration[free] = np.linalg.solve(mass[block], tau[free] - bias[free])
         self._v[held] = 0.0
         return acceleration
 
@@ -131,7 +138,7 @@ class ArmPlant:
         """Put the joint of emulator index ``index`` at ``position_rad`` (emulator coordinate) at rest, held there
         through the next step (the rest of the arm moves with it fixed); ``side``: see
         :meth:`motion.emulator.Plant.hold` (emulator coordinate)."""
-        m = int(np.flatnonzero(self._emu_index == index)[0])
+        m = self._model_of_emu[index]
         self._q[m] = self._sign[m] * position_rad + self._offset_rad[m]
         self._v[m] = 0.0
         self._held[m] = int(self._sign[m]) * side

@@ -404,22 +404,30 @@ def test_scan_names_each_drives_generation_firmware_and_model(tmp_path: Path) ->
     assert "speak the V3-driver protocol (V4.2), not the configuration's (bus.protocol: v2)" in result.stderr
 
 
-def test_scan_of_a_v3_arm_over_its_own_emulator_with_the_default_ids_exits_0(tmp_path: Path) -> None:
-    # issue 31: with a V3 configuration, the ids that did not answer as V3 drives were sent the older family's 0x9A
-    # through the V3 codec (exit 2, "'0x9A' is outside the valid range"); and `emulate --config` of a V3
-    # configuration emulated drives of the older generation unless told --protocol v3
+def _scan_arm6_v3_emulated(tmp_path: Path, *emulate_args: str) -> subprocess.CompletedProcess[str]:
+    """``rmd-motion scan --json`` of arm6_v3 over ``rmd-motion emulate --config`` of it (extra ``emulate_args``) on an
+    slcan pty."""
     link = tmp_path / "slcan"
     arm6_v3 = str(ROOT / "configs" / "arm6_v3.yaml")
     command = [sys.executable, "-m", "motion.cli", "emulate", "--config", arm6_v3, "--slcan-link", str(link)]
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    process = subprocess.Popen(
+        [*command, *emulate_args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT
+    )
     try:
         assert process.stdout is not None
         assert process.stdout.readline().startswith(f"slcan: {link}")
         assert "emulating motors" in process.stdout.readline()
-        result = _cli("scan", "--config", arm6_v3, "--interface", "slcan", "--channel", str(link), "--json")
+        return _cli("scan", "--config", arm6_v3, "--interface", "slcan", "--channel", str(link), "--json")
     finally:
         process.send_signal(signal.SIGTERM)
         process.communicate(timeout=10)
+
+
+def test_scan_of_a_v3_arm_over_its_own_emulator_with_the_default_ids_exits_0(tmp_path: Path) -> None:
+    # issue 31: with a V3 configuration, the ids that did not answer as V3 drives were sent the older family's 0x9A
+    # through the V3 codec (exit 2, "'0x9A' is outside the valid range"); and `emulate --config` of a V3
+    # configuration emulated drives of the older generation unless told --protocol v3
+    result = _scan_arm6_v3_emulated(tmp_path)
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert [(d["motor_id"], d["protocol"]) for d in report["drives"]] == [(i, "v3") for i in range(1, 7)]
@@ -431,20 +439,7 @@ def test_scan_asks_a_configured_drive_that_answered_late_once_more_with_a_longer
     # under a busy host (slow-host --hogs 3) the emulator's replies came after scan's window and every configured
     # joint was reported missing (exit 3): motor 2 here answers 0.8 s late, after the first window (0.57 s for 32
     # ids) and within the second (four times as long, for the missing ids alone)
-    link = tmp_path / "slcan"
-    arm6_v3 = str(ROOT / "configs" / "arm6_v3.yaml")
-    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", arm6_v3, "--slcan-link", str(link)]
-    process = subprocess.Popen(
-        [*command, "--fault", "delay:2@0:800"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT
-    )
-    try:
-        assert process.stdout is not None
-        assert process.stdout.readline().startswith(f"slcan: {link}")
-        assert "emulating motors" in process.stdout.readline()
-        result = _cli("scan", "--config", arm6_v3, "--interface", "slcan", "--channel", str(link), "--json")
-    finally:
-        process.send_signal(signal.SIGTERM)
-        process.communicate(timeout=10)
+    result = _scan_arm6_v3_emulated(tmp_path, "--fault", "delay:2@0:800")
     assert result.returncode == 0, result.stderr
     report = json.loads(result.stdout)
     assert [d["motor_id"] for d in report["drives"]] == [1, 2, 3, 4, 5, 6] and report["missing"] == []
