@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import select
 import sys
@@ -14,6 +15,7 @@ import pytest
 from motion.errors import PortLost
 from motion.protocol import CanFrame
 from motion.transport import CanTransport
+from motion.transport.base import port_gone
 from motion.transport.can_endpoint import CanEndpoint
 from motion.transport.slcan_shim import MAX_LINE_BYTES, SlcanShimBus, needs_shim
 from tests.junk_flood import JunkFlood
@@ -198,6 +200,25 @@ def test_endpoint_uses_the_shim_while_python_can_lacks_the_fix() -> None:
 
 
 # ---------------------------------------------------------------------------------------------- issue 29
+
+
+def test_a_terminal_error_of_a_dying_adapter_is_a_can_error_that_says_the_port_is_gone(
+    pty_bus: tuple[int, SlcanShimBus], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # a busy host, an adapter dying mid-move: pyserial's flush() after the write ran tcdrain on the dead pty, whose
+    # termios.error(EIO) is no OSError: it escaped the transport, and the arm halted for an "exception" instead of
+    # a lost bus ("error: (5, 'Input/output error')")
+    import termios
+
+    _, bus = pty_bus
+
+    def dead(*_: object) -> None:
+        raise termios.error(errno.EIO, "Input/output error")
+
+    monkeypatch.setattr(bus.serialPortOrig, "flush", dead)
+    with pytest.raises(can.CanOperationError, match="Input/output error") as raised:
+        bus.send_frame(0x141, bytes(8), 0.1)
+    assert port_gone(raised.value)
 
 
 def test_a_line_longer_than_any_slcan_line_is_junk_dropped_to_its_end(pty_bus: tuple[int, SlcanShimBus]) -> None:

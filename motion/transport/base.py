@@ -61,6 +61,11 @@ from dataclasses import dataclass
 from typing import Final, NamedTuple, Self
 
 from motion.errors import PortLost, TransportError
+
+try:
+    import termios
+except ImportError:  # (not a POSIX system: pyserial's ports raise OSError alone there)
+    termios = None  # type: ignore[assignment]
 from motion.protocol import Bare, Command, Message, MultiMotorTorque
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, ProtocolFamily
 from motion.protocol.v3.messages import BareV3, CommandV3
@@ -77,6 +82,11 @@ logger = logging.getLogger("motion.transport")
 #: ENXIO, ENODEV: a device unplugged; EBADF: its descriptor closed), as against a refusal that may pass (a full
 #: transmit queue, a write timeout).
 GONE_ERRNOS: Final = frozenset({errno.EIO, errno.ENXIO, errno.ENODEV, errno.EBADF})
+#: What a port's terminal calls raise where pyserial does not wrap them: ``termios.error`` (not an OSError; its
+#: arguments are the errno and its text), e.g. from ``flush()``'s tcdrain on a pty whose far end closed.
+TERMINAL_ERRORS: Final[tuple[type[Exception], ...]] = (termios.error,) if termios is not None else ()
+#: Everything a serial port's read, write or flush raises when it fails (pyserial's SerialException is an OSError).
+PORT_ERRORS: Final[tuple[type[Exception], ...]] = (OSError, ValueError, *TERMINAL_ERRORS)
 #: What ``poll`` reports on a descriptor whose device is gone: hung up, or no longer open.
 _GONE_EVENTS: Final = getattr(select, "POLLHUP", 0) | getattr(select, "POLLNVAL", 0)
 
@@ -89,6 +99,8 @@ def port_gone(exc: BaseException, fd: int | None = None) -> bool:
     cause: BaseException | None = exc
     while cause is not None and id(cause) not in seen:
         if isinstance(cause, OSError) and cause.errno in GONE_ERRNOS:
+            return True
+        if isinstance(cause, TERMINAL_ERRORS) and cause.args and cause.args[0] in GONE_ERRNOS:
             return True
         seen.add(id(cause))
         cause = cause.__cause__ or cause.__context__

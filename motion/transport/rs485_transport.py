@@ -43,7 +43,7 @@ from motion.protocol import MultiMotorTorque, Rs485Parser, rs485_frame
 from motion.protocol.table import RS485_BAUDRATES, Direction, ProtocolFamily
 from motion.protocol.v3 import frames as frames_v3
 from motion.protocol.v3.frames import Rs485ParserV3
-from motion.transport.base import Request, Transport, port_failure, port_lost, probe_in_turn
+from motion.transport.base import PORT_ERRORS, Request, Transport, port_failure, port_lost, probe_in_turn
 
 #: Baud rates RMD RS485 drives of the older generation support (v1.62: 115200 is the factory default).
 BAUDRATES: Final = RS485_BAUDRATES[ProtocolFamily.V2]
@@ -260,7 +260,7 @@ class Rs485Transport(Transport):
     def _write(self, frame: bytes) -> None:
         try:
             self._serial.write(frame)
-        except (serial.SerialException, OSError) as exc:
+        except (serial.SerialException, *PORT_ERRORS) as exc:
             raise self._failure("write to", exc) from exc
         if self.frame_tap is not None:
             self.frame_tap(self.clock(), False, None, frame)

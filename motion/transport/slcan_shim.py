@@ -49,6 +49,8 @@ from typing import Any, Final
 import can
 from can.interfaces.slcan import slcanBus
 
+from motion.transport.base import PORT_ERRORS
+
 #: The newest python-can release whose slcan reads one byte per call (python-can issue 2027, fixed by PR 2028).
 LAST_RELEASE_WITHOUT_FIX: Final = (4, 6, 1)
 
@@ -189,7 +191,7 @@ class SlcanShimBus(slcanBus):
                         raise can.CanOperationError("device reports readiness to read but returned no data")
                 else:  # no descriptor: block in the port's own read, for at most its timeout
                     self._buffer += self.serialPortOrig.read(1)
-        except (OSError, ValueError) as exc:  # what pyserial raises (SerialException is an OSError)
+        except PORT_ERRORS as exc:
             raise can.CanOperationError(f"Could not read from serial device: {exc}") from exc
 
     def _take_waiting(self) -> bool:
@@ -276,5 +278,5 @@ class SlcanShimBus(slcanBus):
                 port.write_timeout = timeout
             port.write(b"t%03X%d%s\r" % (arbitration_id, len(data), hexlify(data).upper()))
             port.flush()
-        except (OSError, ValueError) as exc:  # what pyserial raises (SerialException is an OSError)
+        except PORT_ERRORS as exc:
             raise can.CanOperationError(f"Could not write to serial device: {exc}") from exc
