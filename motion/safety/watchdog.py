@@ -207,7 +207,7 @@ class Watchdog:
         self._slip = np.zeros(n)
         self._following_limit = np.zeros(n)
         self._lag_error = FOLLOWING_LAG_ERROR[controller.options.mode, controller.family.reads_loop_settings]
-        # torque mode: what a drive within the stated model error adds (see _torque_allowance)
+        # torque mode: what a drive within the stated model error adds (see _advance_sensitivity)
         self._torque_mode = controller.options.mode is ControlMode.TORQUE
         self._kp = np.array([s.kp_nm_per_deg for s in specs], dtype=np.float64)
         self._kd = np.array([s.kd_nm_per_dps for s in specs], dtype=np.float64)
