@@ -31,7 +31,7 @@ from motion.config.schema import ControlMode, SafetyConfig
 from motion.control.ratecheck import RateError
 from motion.emulator.timing import TimingModel
 from motion.errors import MotionFault
-from tests.collision_trials import Trial, collision_trial, with_thresholds, without_thresholds
+from tests.collision_trials import Trial, collision_trial, nominal_run, with_thresholds, without_thresholds
 from tests.drive_models import DriveDraw, draw_drives, with_drives
 from tests.fault_explorer import target_pose
 
@@ -165,20 +165,9 @@ def _step(arm: Arm, step: tuple[str, float, tuple[tuple[float, ...], ...]]) -> M
 def calibrated(case: Case, config: ArmConfig) -> ArmConfig:
     """``config`` with thresholds calibrated as ``rmd-motion collision-calibrate --margin`` :data:`CALIBRATION_MARGIN`
     would on the case's own drives: the largest |signal| of its first step, clean, per joint, times the margin."""
-    arm = _arm(case, without_thresholds(config), observe=True)
-    peak = np.zeros(len(config.joints))
-    with contextlib.closing(arm):
-        arm.connect()
-        assert arm.supervisor is not None and arm.controller is not None
-        watchdog = arm.supervisor.watchdog
-
-        def record(*_: object) -> None:
-            if watchdog.collision_armed:
-                np.fmax(peak, np.abs(watchdog.collision_signal_nm), out=peak)
-
-        arm.controller.cycle_hooks.append(record)
-        _step(arm, case.steps[0]).wait(STEP_WAIT_S)
-        arm.sleep(0.3)
+    unarmed = without_thresholds(config)
+    run = nominal_run(unarmed, lambda arm: _step(arm, case.steps[0]), arm=_arm(case, unarmed, observe=True))
+    peak = run.signal_peak_nm
     return with_thresholds(config, list(propose(peak, CALIBRATION_MARGIN)))
 
 

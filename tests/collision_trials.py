@@ -92,10 +92,17 @@ class Run:
 
 
 def nominal_run(
-    config: ArmConfig, motion: Motion, *, initial_deg: Sequence[float] | None = None, settle_s: float = 0.3
+    config: ArmConfig,
+    motion: Motion,
+    *,
+    initial_deg: Sequence[float] | None = None,
+    settle_s: float = 0.3,
+    arm: Arm | None = None,
 ) -> Run:
-    """Run ``motion`` to its end (plus ``settle_s``) with the observer on; the largest |signal| per joint."""
-    arm = Arm(config, emulate=True, observe_collisions=True, initial_deg=initial_deg)
+    """Run ``motion`` to its end (plus ``settle_s``) with the observer on; the largest |signal| per joint (on ``arm``,
+    not connected yet, where given: an emulated arm of ``config`` observing collisions)."""
+    if arm is None:
+        arm = Arm(config, emulate=True, observe_collisions=True, initial_deg=initial_deg)
     peak = np.zeros(len(config.joints))
     fault = None
     with arm:
