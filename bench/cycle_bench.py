@@ -69,7 +69,7 @@ from motion.protocol import (
     can_frame,
     rs485_frame,
 )
-from motion.protocol.compiled import ACCELERATED, CODECS, frozen_builder
+from motion.protocol.compiled import CODECS, frozen_builder
 from motion.protocol.messages import ErrorFlags
 from motion.protocol.rs485_frame import rs485_frame_time_s
 from motion.protocol.table import (
@@ -207,7 +207,6 @@ class CodecRow:
 
     what: str
     codec_ns: float
-    python_ns: float
     fast_path_ns: float
     bare_ns: float
     object_ns: float
@@ -263,8 +262,6 @@ def run_codec(number: int = 10_000, repeat: int = 15) -> list[CodecRow]:
         names = {
             "encode": can_frame.encode_request,
             "decode": can_frame.decode_reply,
-            "python_encode": can_frame._encode_request,
-            "python_decode": can_frame._decode_reply,
             "fast_encode": layout.encode,
             "fast_decode": layout.decode,
             "m": message,
@@ -279,9 +276,9 @@ def run_codec(number: int = 10_000, repeat: int = 15) -> list[CodecRow]:
             "values": tuple(getattr(message, f.name) for f in dataclasses.fields(message)),
         }
         statements = (
-            ("encode(m, 3)", "python_encode(m, 3)", "fast_encode(m)", "pack(*raw)", "new_frame(i, d)")
+            ("encode(m, 3)", "fast_encode(m)", "pack(*raw)", "new_frame(i, d)")
             if request
-            else ("decode(i, d)", "python_decode(i, d)", "fast_decode(d)", "unpack(d)", "new_message(*values)")
+            else ("decode(i, d)", "fast_decode(d)", "unpack(d)", "new_message(*values)")
         )
         rows.append(CodecRow(what, *_best_ns(statements, names, number, repeat)))
     return rows
@@ -290,24 +287,16 @@ def run_codec(number: int = 10_000, repeat: int = 15) -> list[CodecRow]:
 def print_codec(rows: Sequence[CodecRow]) -> None:
     """Print the part 0 table (Markdown)."""
     print("\n### 0. One CAN frame through the codec against the bare `struct` of the same bytes, ns per call\n")
-    print(f"`can_frame` codec: {_codec_kind()}\n")
     print(
-        "| frame | `can_frame` codec | its Python path | the compiled Python fast path alone | bare `struct.Struct` "
+        "| frame | `can_frame` codec | the compiled fast path alone | bare `struct.Struct` "
         "| **codec / bare** | the object it returns, built alone (frame / message) | object alone / bare |"
     )
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---:|---:|---:|---:|")
     for r in rows:
         print(
-            f"| {r.what} | {r.codec_ns:.0f} | {r.python_ns:.0f} | {r.fast_path_ns:.0f} | {r.bare_ns:.0f} "
+            f"| {r.what} | {r.codec_ns:.0f} | {r.fast_path_ns:.0f} | {r.bare_ns:.0f} "
             f"| **{r.ratio:.1f}x** | {r.object_ns:.0f} | {r.object_ratio:.1f}x |"
         )
-
-
-def _codec_kind() -> str:
-    """Which implementation the public calls are (the C extension's, or the Python path)."""
-    if can_frame.encode_request is can_frame._encode_request:
-        return "the Python path (the C extension is not used: `rmd-motion --version` says why)"
-    return "the C extension's (`motion/_speedups.c`; `RMD_MOTION_PURE_PYTHON=1` runs the Python path)"
 
 
 # ---------------------------------------------------------------------------------------------------- part 1
@@ -874,8 +863,7 @@ def _machine() -> str:
     return (
         f"{datetime.datetime.now().astimezone():%Y-%m-%d %H:%M %Z}; {model}, {os.cpu_count()} logical CPUs; "
         f"{platform.system()} {platform.release()}; Python {platform.python_version()}, numpy {np.__version__}, "
-        f"pin {version('pin')}, ruckig {version('ruckig')}, python-can {version('python-can')}; load average {load}; "
-        f"{'C accelerator in use' if ACCELERATED else 'pure Python (no C accelerator)'}"
+        f"pin {version('pin')}, ruckig {version('ruckig')}, python-can {version('python-can')}; load average {load}"
     )
 
 

@@ -17,14 +17,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from kinematics.model import ArmModel
 from motion.errors import ConfigError
-from motion.protocol.compiled import SPEEDUPS
 
 FloatArray = NDArray[np.float64]
 #: Joint torques in N·m from joint angles (deg), speeds (deg/s) and accelerations (deg/s²).
 FeedForward = Callable[[FloatArray, FloatArray, FloatArray], FloatArray]
 
-#: The C extension where it is used (``motion/_speedups.c``: its ``gather_scaled``), else None.
-_C = SPEEDUPS
 _RAD_PER_DEG = math.pi / 180.0  # (numpy's deg2rad multiplies by this same float)
 
 
@@ -127,15 +124,13 @@ def frame_pose(arm: ArmModel, frame: str, q_deg: ArrayLike) -> FramePose:
 
 
 def _model_radians(arm: ArmModel, values: ArrayLike, name: str, buffer: FloatArray) -> FloatArray:
-    """:func:`_model_order` in radians, into ``buffer`` (one C call where the extension is built: its
-    ``gather_scaled``, the same float64s); a new array otherwise, or for values it does not take."""
-    if _C is not None:
-        try:  # (a try costs nothing in a control cycle)
-            _C.gather_scaled(buffer, values, arm.to_model, _RAD_PER_DEG)
-            return buffer
-        except (TypeError, ValueError):  # (not one float64 per joint: _model_order converts or says what is wrong)
-            pass
-    return _model_order(arm, values, name)
+    """:func:`_model_order` in radians, into ``buffer`` (no new array for a float64 array of one value per joint)."""
+    array = np.asarray(values, dtype=np.float64)
+    if array.shape != arm.to_model.shape:
+        return _model_order(arm, array, name)  # (says what is wrong)
+    np.take(array, arm.to_model, out=buffer)
+    buffer *= _RAD_PER_DEG
+    return buffer
 
 
 class _ArmFeedForward:

@@ -26,7 +26,6 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from motion.errors import ConfigError, EncodeError
-from motion.protocol.compiled import SPEEDUPS
 from motion.protocol.scales import IQ_RAW_LIMIT, IQ_SCALE, iq_amps, iq_raw
 
 FloatArray = NDArray[np.float64]
@@ -277,30 +276,6 @@ class ArmTransmission:
                 limited.append(False)
         return raws, limited
 
-    def iq_amps_limited_into(
-        self, joint_torque_nm: FloatArray, amps: FloatArray, limited: BoolArray, addend: FloatArray | None = None
-    ) -> None:
-        """The control cycle's form of :meth:`iq_raw_limited_list`, without allocating: ``joint_torque_nm`` (an
-        N-array of float64) plus ``addend`` where given (in place: the torque asked for), then the limited torque
-        currents in amperes into ``amps`` (the raw values' :func:`~motion.protocol.scales.iq_amps`) and the joints
-        whose current was limited into ``limited``. One C call where the extension is built (its ``torque_currents``:
-        the same operations, the same float64s).
-
-        Raises:
-            EncodeError: a torque is not a finite number (``amps`` and ``limited`` unchanged).
-        """
-        if _C is not None:
-            bad = _C.torque_currents(
-                amps, joint_torque_nm, self._nm_per_a, self._raw_limit, limited, addend, _RAW_PER_A, *IQ_SCALE
-            )
-            if bad is None:
-                return
-        elif addend is not None:
-            joint_torque_nm += addend
-        raw, limited_list = self.iq_raw_limited_list(joint_torque_nm.tolist())  # (raises for a torque not finite)
-        amps[:] = [iq_amps(r) for r in raw]
-        limited[:] = limited_list
-
     def iq_raw_checked(self, joint_torque_nm: ArrayLike) -> IntArray:
         """Raw torque currents for joint torques.
 
@@ -314,7 +289,3 @@ class ArmTransmission:
             iq = float(torque[i] / self._nm_per_a[i])
             raise _iq_error(int(self._raw_limit[i]), float(torque[i]), iq, self.names[i])
         return raw
-
-
-#: The C extension where it is used (``motion/_speedups.c``: its ``torque_currents``), else None.
-_C: Final = SPEEDUPS

@@ -15,7 +15,6 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 import kinematics as kin
-from kinematics import dynamics
 from motion.config import ArmConfig, load_config, parse_config
 from motion.errors import ConfigError
 
@@ -251,14 +250,9 @@ def test_feedforward_variants() -> None:
     np.testing.assert_array_equal(kin.feedforward(ARM2, gravity=False)(Q, QD, QDD), [0.0, 0.0])
 
 
-@pytest.mark.parametrize("accelerated", [True, False])
-def test_the_feedforward_callables_give_the_functions_results_to_the_bit(
-    accelerated: bool, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    # The callables take their arguments into arrays of their own (in C where the extension is built): the results
-    # are the public functions' to the bit, independent of each other, for arrays and lists alike.
-    if not accelerated:
-        monkeypatch.setattr(dynamics, "_C", None)
+def test_the_feedforward_callables_give_the_functions_results_to_the_bit() -> None:
+    # The callables take their arguments into arrays of their own: the results are the public functions' to the bit,
+    # independent of each other, for arrays and lists alike.
     gravity, full = kin.gravity_torque(ARM2, Q), kin.rnea(ARM2, Q, QD, QDD)
     for args in ((Q, QD, QDD), (Q.tolist(), QD.tolist(), QDD.tolist()), (Q[::-1][::-1], QD, QDD.astype(np.float32))):
         first = kin.feedforward(ARM2, inertia=True)

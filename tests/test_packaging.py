@@ -162,7 +162,7 @@ def test_version_is_the_package_version(capsys: pytest.CaptureFixture[str]) -> N
         main(["--version"])
     assert info.value.code == 0
     version = importlib.metadata.version("rmd-motion")
-    assert capsys.readouterr().out == f"rmd-motion {version} (C accelerator in use)\n"
+    assert capsys.readouterr().out == f"rmd-motion {version}\n"
     assert motion.__version__ == importlib.metadata.version("rmd-motion")
 
 

@@ -169,8 +169,7 @@ def test_protocol_core_is_stdlib_only() -> None:
         for imported in _imports(path, "motion.protocol." + path.stem):
             assert imported.split(".")[0] in allowed, f"{path.name} imports {imported}"
             if imported.startswith("motion."):
-                # (motion._speedups: the optional C accelerator, which imports nothing)
-                allowed_motion = ("motion.protocol", "motion.errors", "motion._speedups")
+                allowed_motion = ("motion.protocol", "motion.errors")
                 assert imported.startswith(allowed_motion), f"{path.name} imports {imported}"
 
 

@@ -44,7 +44,7 @@ from motion.errors import (
     PlanningError,
     TransportError,
 )
-from motion.protocol import MultiTurnPositionSpeed, WireProtocol, compiled
+from motion.protocol import MultiTurnPositionSpeed, WireProtocol
 from motion.protocol.table import ProtocolFamily
 
 DESCRIPTION: Final = "Multi-axis motion control of MyActuator RMD drives over CAN or RS485."
@@ -252,11 +252,8 @@ def _settings_commands(sub: argparse._SubParsersAction[argparse.ArgumentParser])
 
 
 def version_text() -> str:
-    """``rmd-motion VERSION (...)``: the version, and whether the optional C accelerator is in use."""
-    if compiled.ACCELERATED:
-        return f"rmd-motion {__version__} (C accelerator in use)"
-    why = compiled.SPEEDUPS_MISSING or f"turned off by {compiled.PURE_PYTHON_ENV}"
-    return f"rmd-motion {__version__} (pure Python: the C accelerator is {why})"
+    """``rmd-motion VERSION``."""
+    return f"rmd-motion {__version__}"
 
 
 def build_parser() -> argparse.ArgumentParser:

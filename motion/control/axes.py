@@ -18,9 +18,8 @@ from numpy.typing import NDArray
 
 from motion.control.family import FAMILIES, DriveFamily
 from motion.protocol import MotorState, MultiTurnAngle
-from motion.protocol.compiled import SPEEDUPS
 from motion.protocol.table import ProtocolFamily
-from motion.transmission import ArmTransmission, FloatArray, Transmission
+from motion.transmission import ArmTransmission, FloatArray
 
 #: Width of the encoder fields of the replies, bits.
 ENCODER_FIELD_BITS = 16
@@ -103,16 +102,6 @@ class AxisStates:
             (float(spec.drive_gear_ratio), t.joint_deg, t.joint_rate)
             for spec, t in zip(specs, transmission.transmissions, strict=True)
         )
-        # The loop of absorb in C where the extension is built (motion/_speedups.c: StateAbsorber; the same
-        # operations in the same order): it holds the arrays above and the transmissions' terms (Transmission's own
-        # joint_deg and joint_rate: a subclass keeps the Python loop).
-        self._absorb_c = None
-        t = transmission.transmissions
-        if _C is not None and not self._angle_every_cycle and all(type(x) is Transmission for x in t):
-            terms = [[getattr(x, name) for x in t] for name in ("direction", "gear_ratio", "zero_offset_deg")]
-            self._absorb_c = _C.StateAbsorber(
-                self.index, MotorState, *arrays, self.counts_per_rev, *[np.array(v, dtype=np.float64) for v in terms]
-            )
 
     def initialise(self, i: int, multi_turn_deg: float, encoder: int) -> None:
         """Anchor axis ``i``: the 0x92 angle and an encoder reading taken at (nearly) the same moment."""
@@ -134,17 +123,7 @@ class AxisStates:
         if self._angle_every_cycle:
             self._absorb_read_angles(replies, keep_fresh)
             return
-        absorb_c = self._absorb_c
-        if absorb_c is None:
-            self._absorb_states(replies, keep_fresh)
-            return
-        if not isinstance(replies, list | tuple):
-            replies = list(replies)
-        # The C loop leaves a reply it cannot take (not a 4-tuple; fields not plain ints and floats) to this one.
-        left = absorb_c(replies, 0, keep_fresh)
-        while left >= 0:
-            self._absorb_states(replies[left : left + 1], True)
-            left = absorb_c(replies, left + 1, True)
+        self._absorb_states(replies, keep_fresh)
 
     def _absorb_states(self, replies: Iterable[tuple[int, object, object, float | None]], keep_fresh: bool) -> None:
         """:meth:`absorb` for drives whose motion replies carry the encoder, in Python."""
@@ -213,7 +192,3 @@ class AxisStates:
     def positions(self) -> FloatArray:
         """A copy of the joint positions, degrees."""
         return self.q_deg.copy()
-
-
-#: The C extension where it is used (``motion/_speedups.c``: its ``StateAbsorber``), else None.
-_C = SPEEDUPS

@@ -42,7 +42,7 @@ from motion.protocol import (
     TorqueControl,
     WireProtocol,
 )
-from motion.protocol.compiled import SPEEDUPS, frozen_builder
+from motion.protocol.compiled import frozen_builder
 from motion.protocol.scales import iq_amps
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS
 from motion.trajectory import Follower, JointLimits, Path, Planner, State
@@ -129,8 +129,6 @@ _SnapshotFields: TypeAlias = tuple[
 ]
 _new_snapshot: Final[Callable[[_SnapshotFields], CycleSnapshot]] = functools.partial(tuple.__new__, CycleSnapshot)
 _NEW_MULTI_TORQUE: Final = frozen_builder(MultiMotorTorque)
-#: The C extension where it is used (``motion/_speedups.c``: its ``torque_pd``), else None.
-_C: Final = SPEEDUPS
 
 
 @dataclass(slots=True)
@@ -261,7 +259,6 @@ class Controller:
         self._single = [i for i in range(len(self.specs)) if i not in self._multi]
         # the joints of the 0x280 frame's four currents, in the frame's order (motors 1..4)
         self._multi_joints = sorted(self._multi, key=lambda i: MULTI_TORQUE_MOTOR_IDS.index(self.ids[i]))
-        self._amps = np.zeros(n)  # torque mode: the cycle's currents, A (work array)
         # Constant per cycle, looked up once: the 0xA4 speed cap's terms, per joint (motor id, motor deg per joint
         # deg, zero offset, floor), and the builder of the mode's batch.
         velocity_limit = np.abs(transmission.motor_rate(np.array(limits.velocity_dps)))
@@ -538,21 +535,9 @@ class Controller:
         return requests
 
     def _torque_requests(self, ref: State) -> list[Request]:
-        # PD plus the feed-forward, per joint: the same operations in the same order whichever way (C calls on the
-        # arrays where the extension is built; Python floats otherwise: for a few joints a numpy call costs more than
-        # the arithmetic), so the torques are the same float64s.
+        # PD plus the feed-forward, per joint, in Python floats (for a few joints a numpy call costs more than the
+        # arithmetic).
         axes = self.axes
-        if _C is not None:
-            torque = self.setpoints.torque_nm
-            try:  # (a try costs nothing in the cycle; contextlib.suppress's object would)
-                _C.torque_pd(torque, self.kp, ref.position, axes.q_deg, self.kd, ref.velocity, axes.qd_dps)
-            except (TypeError, ValueError):  # (a reference not of float64 arrays: Python floats)
-                torque[:] = self._pd_torques(ref)
-            feedforward = None
-            if self.feedforward is not None:
-                feedforward = self.feedforward(axes.q_deg, ref.velocity, ref.acceleration)
-                feedforward = np.asarray(feedforward, dtype=np.float64)
-            return self._torque_frames(feedforward)
         torques = self._pd_torques(ref)
         if self.feedforward is not None:
             feedforward_list = self.feedforward(axes.q_deg, ref.velocity, ref.acceleration).tolist()
@@ -579,17 +564,9 @@ class Controller:
         limited per joint; records the torque and the limiting."""
         record = self.setpoints
         record.torque_nm[:] = torques
-        if _C is not None:
-            return self._torque_frames(None)
         raw, limited = self.transmission.iq_raw_limited_list(torques)
         record.limited[:] = limited
         return self._current_requests([iq_amps(r) for r in raw])
-
-    def _torque_frames(self, addend: FloatArray | None) -> list[Request]:
-        """:meth:`torque_frames` of the recorded torque plus ``addend`` (recorded too), on the arrays."""
-        record, amps = self.setpoints, self._amps
-        self.transmission.iq_amps_limited_into(record.torque_nm, amps, record.limited, addend)
-        return self._current_requests(amps.tolist())
 
     def _current_requests(self, currents: list[float]) -> list[Request]:
         """0xA1 requests of the joints on their own, and the 0x280 frame of motors 1..4 where it applies."""

@@ -17,7 +17,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from motion.errors import MotionFault
-from motion.protocol.compiled import SPEEDUPS
 
 #: Rows of :attr:`CycleSnapshot.joints`, in this order (``fresh`` as 1.0 / 0.0).
 JOINT_ROWS = (
@@ -126,23 +125,10 @@ class CycleSnapshot(NamedTuple):
 
 def frozen(rows: Sequence[NDArray[Any]]) -> NDArray[np.float64]:
     """A read-only copy of ``rows`` stacked (it belongs to a published snapshot)."""
-    array: NDArray[np.float64] | None = None
-    if _C is not None and isinstance(rows, tuple):
-        # Every cycle's snapshot: one C copy into a new matrix (motion/_speedups.c: stack_rows) costs a third of
-        # numpy's array() of the rows, which first discovers their shape and type.
-        try:
-            array = np.empty((len(rows), len(rows[0])))
-            _C.stack_rows(array, rows)
-        except (TypeError, IndexError):  # (not float64 or bool arrays of one length: numpy converts or says why not)
-            array = None
-    if array is None:
-        array = np.array(rows, dtype=np.float64)
+    array = np.array(rows, dtype=np.float64)
     array.flags.writeable = False
     return array
 
-
-#: The C extension where it is used (``motion/_speedups.c``: its ``stack_rows``), else None.
-_C = SPEEDUPS
 
 
 @dataclass(frozen=True, slots=True)

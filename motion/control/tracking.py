@@ -28,13 +28,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Final
 
 import numpy as np
 
 from motion.config.schema import ControlMode
 from motion.protocol import Acceleration, Bare, Command, PidGains
-from motion.protocol.compiled import SPEEDUPS
 from motion.transmission import ArmTransmission, FloatArray
 from motion.transport.base import Reply, Request, Transport
 
@@ -314,22 +312,6 @@ class ExpectedTracking:
         elif not self.enabled:
             np.copyto(self._x, self._target)  # the reference itself: no lag expected
             np.copyto(self._v, self._ref_v)
-        elif self.mode is ControlMode.TORQUE and self.inertia_kgm2 is not None and _C is not None:
-            # the branch below, then the expectation and the lag, in one C call (motion/_speedups.c)
-            _C.torque_advance(
-                self._x,
-                self._v,
-                self._x_law,
-                self._v_law,
-                self.expected_deg,
-                self.expected_dps,
-                self.lag_deg,
-                self._accel_dps2,
-                self._target,
-                t_s - self._t_s,
-            )
-            self._t_s = t_s
-            return
         else:
             dt = t_s - self._t_s
             if self.mode is ControlMode.TORQUE:
@@ -373,12 +355,6 @@ class ExpectedTracking:
 
     def _moved_beyond(self, reference_deg: FloatArray) -> bool:
         """Whether a joint of ``reference_deg`` is more than INERTIA_STEP_DEG from where the mass was evaluated."""
-        if _C is not None:
-            try:  # (a try costs nothing in the cycle; contextlib.suppress's object would)
-                moved: bool = _C.moved_beyond(reference_deg, self._inertia_at, INERTIA_STEP_DEG)
-                return moved
-            except (TypeError, ValueError):  # (a reference not a float64 array: numpy takes it)
-                pass
         distance = self._e
         np.subtract(reference_deg, self._inertia_at, out=distance)
         np.abs(distance, out=distance)
@@ -391,9 +367,6 @@ class ExpectedTracking:
     # ------------------------------------------------------------------------------------------------ models
 
     def _position_step(self, dt: float) -> None:
-        if _C_CHASE is not None:
-            _C_CHASE(self._x, self._v, dt, self._target, self._cap, self.angle_gain_per_s, self._accel, MAX_STEP_S)
-            return
         chase(
             self._x,
             self._v,
@@ -411,32 +384,6 @@ class ExpectedTracking:
         gives, held until the next cycle (as the drives hold the torque)."""
         mass = self.inertia_kgm2
         assert mass is not None
-        if _C is not None:  # the same operations per joint in the same order (motion/_speedups.c)
-            try:  # (see _moved_beyond)
-                _C.torque_law(
-                    self._accel_dps2,
-                    self._tau,
-                    self._target,
-                    self._ref_v,
-                    self._ref_a,
-                    reference_deg,
-                    reference_dps,
-                    reference_dps2,
-                    self.kp,
-                    self._x_law,
-                    self.kd,
-                    self._v_law,
-                    self._negative_limit_nm,
-                    self.torque_limit_nm,
-                    self._mass_inv,
-                    mass if self.inertia_feedforward else None,
-                    _RAD_PER_DEG,
-                    _DEG_PER_RAD,
-                )
-                self._bias_step()
-                return
-            except (TypeError, ValueError):  # (a reference not a float64 array: numpy takes it)
-                pass
         np.copyto(self._target, reference_deg)
         np.copyto(self._ref_v, reference_dps)
         np.copyto(self._ref_a, reference_dps2)
@@ -489,15 +436,6 @@ def chase_work(shape: int) -> ChaseWork:
     return (np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape), np.zeros(shape))
 
 
-#: The C extension where it is used, else None (``motion/_speedups.c``: its ``chase``, ``moved_beyond``,
-#: ``torque_advance`` and ``torque_law`` do the numpy steps' operations per entry in the same order, so the results are
-#: the same to the bit, but for ``torque_law``'s matrix products, which sum in index order where ``np.dot`` sums as its
-#: BLAS does).
-_C: Final = SPEEDUPS
-#: ``chase`` of the C extension, None where the extension is not used.
-_C_CHASE: Final = None if SPEEDUPS is None else SPEEDUPS.chase
-
-
 def chase(
     x: FloatArray,
     v: FloatArray,
@@ -508,21 +446,10 @@ def chase(
     gain: FloatArray,
     accel: FloatArray,
     work: ChaseWork,
-    accelerated: bool = True,
 ) -> None:
     """The position-loop model over ``dt`` seconds, in place: angles ``x`` (deg) and speeds ``v`` (deg/s) chase
     ``target`` at ``min(gain |e|, sqrt(2 accel |e|), cap)``, the speed slewed at ``accel`` (arrays of one shape, one
-    entry per joint or per candidate of :func:`fit_position_loop`; ``work`` from :func:`chase_work`).
-
-    With ``accelerated`` (and the C extension in use) the C twin of the numpy steps below runs on one-dimensional
-    float64 arrays of one length (it checks them all before it changes anything; the numpy steps take anything else,
-    broadcasting included)."""
-    if accelerated and _C_CHASE is not None:
-        try:
-            _C_CHASE(x, v, dt, target, cap, gain, accel, MAX_STEP_S)
-            return
-        except (TypeError, ValueError):
-            pass
+    entry per joint or per candidate of :func:`fit_position_loop`; ``work`` from :func:`chase_work`)."""
     steps = max(1, math.ceil(dt / MAX_STEP_S - 1e-9))
     h = dt / steps
     e, s, w, two_accel, slew, no_slew = work

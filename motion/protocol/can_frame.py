@@ -10,10 +10,10 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Final, Protocol
+from typing import Final
 
 from motion.errors import DecodeError
-from motion.protocol.compiled import CODECS, FALLBACK_ERRORS, MULTI_TORQUE_DECODE, SPEEDUPS, Encoder, frozen_builder
+from motion.protocol.compiled import CODECS, FALLBACK_ERRORS, MULTI_TORQUE_DECODE, Encoder, frozen_builder
 from motion.protocol.messages import Message, MultiMotorTorque
 from motion.protocol.table import (
     CAN_ID_BASE,
@@ -89,8 +89,8 @@ def _encode_checked(message: Message, motor_id: int, direction: Direction) -> Ca
     return CanFrame(CAN_ID_BASE + motor_id, bytes(data))
 
 
-def _encode_request(message: Message, motor_id: int = MOTOR_ID_MIN) -> CanFrame:
-    """Build the CAN frame of a host request (:data:`encode_request`; this is its Python path).
+def encode_request(message: Message, motor_id: int = MOTOR_ID_MIN) -> CanFrame:
+    """Build the CAN frame of a host request.
 
     Args:
         message: the request; a :class:`MultiMotorTorque` goes out on ID 0x280 and ignores ``motor_id``.
@@ -99,17 +99,7 @@ def _encode_request(message: Message, motor_id: int = MOTOR_ID_MIN) -> CanFrame:
     Raises:
         EncodeError: a bad motor id, a value out of range, or a message CAN cannot carry as a request.
     """
-    # _encode inlined: this is the control cycle's hot path.
-    encoder = _REQUEST_ENCODER(message.__class__)
-    if encoder is not None and motor_id.__class__ is int and MOTOR_ID_MIN <= motor_id <= MOTOR_ID_MAX:
-        try:
-            data = encoder(message)
-        except FALLBACK_ERRORS:
-            data = None
-        if data is not None:
-            multi = message.__class__ is MultiMotorTorque
-            return _new_frame(CAN_MULTI_TORQUE_ID if multi else CAN_ID_BASE + motor_id, data)
-    return _encode_checked(message, motor_id, Direction.REQUEST)
+    return _encode(message, motor_id, _REQUEST_ENCODER) or _encode_checked(message, motor_id, Direction.REQUEST)
 
 
 def encode_reply(message: Message, motor_id: int) -> CanFrame:
@@ -164,8 +154,8 @@ def decode_request(arbitration_id: int, data: bytes) -> CanRequest:
     return CanRequest(arbitration_id - CAN_ID_BASE, _decode(data, Direction.REQUEST))
 
 
-def _decode_reply(arbitration_id: int, data: bytes) -> tuple[int, Message]:
-    """Decode a drive reply into ``(motor_id, message)`` (:data:`decode_reply`; this is its Python path).
+def decode_reply(arbitration_id: int, data: bytes) -> tuple[int, Message]:
+    """Decode a drive reply into ``(motor_id, message)``.
 
     Raises:
         DecodeError: wrong length, id outside 0x141..0x160, unknown command or bad field.
@@ -180,56 +170,3 @@ def _decode_reply(arbitration_id: int, data: bytes) -> tuple[int, Message]:
     if arbitration_id == CAN_MULTI_TORQUE_ID:
         raise DecodeError("ID 0x280 carries requests only; drives reply on 0x140 + id", data)
     return arbitration_id - CAN_ID_BASE, _decode_checked(data, Direction.REPLY)
-
-
-class RequestEncoder(Protocol):
-    """The type of :data:`encode_request`."""
-
-    def __call__(self, message: Message, motor_id: int = MOTOR_ID_MIN) -> CanFrame: ...
-
-
-class ReplyDecoder(Protocol):
-    """The type of :data:`decode_reply`."""
-
-    def __call__(self, arbitration_id: int, data: bytes) -> tuple[int, Message]: ...
-
-
-def _native_codecs(
-    encode_fallback: Callable[..., CanFrame] | None = None, decode_fallback: Callable[..., object] | None = None
-) -> tuple[Any, Any] | None:
-    """The C extension's twins of the two hot calls, each deferring to its Python path (or the fallback given: tests)
-    for anything unusual (see ``motion/_speedups.c``), or None where the extension is not used."""
-    if SPEEDUPS is None:
-        return None
-    encoder = SPEEDUPS.CanRequestEncoder(
-        dict(_REQUEST_CODEC.native_single),
-        {cls: dict(by_command) for cls, by_command in _REQUEST_CODEC.native_shared.items()},
-        _new_frame,
-        MultiMotorTorque,
-        CAN_MULTI_TORQUE_ID,
-        CAN_ID_BASE,
-        MOTOR_ID_MIN,
-        MOTOR_ID_MAX,
-        encode_fallback or _encode_request,
-    )
-    replies = tuple(c.native if c is not None and c.native is not None else None for c in _REPLY_CODEC.layouts)
-    decoder = SPEEDUPS.CanReplyDecoder(
-        replies, CAN_ID_BASE, MOTOR_ID_MIN, MOTOR_ID_MAX, decode_fallback or _decode_reply
-    )
-    return encoder, decoder
-
-
-_NATIVE: Final = _native_codecs()
-
-#: Build the CAN frame of a host request: ``encode_request(message, motor_id=1) -> CanFrame``.
-#:
-#: ``message``: the request; a :class:`MultiMotorTorque` goes out on ID 0x280 and ignores ``motor_id``.
-#: ``motor_id``: drive id 1..32. Raises EncodeError: a bad motor id, a value out of range, or a message CAN cannot
-#: carry as a request. The C extension's twin where it is used (the same frames and errors: it defers to the Python
-#: path for anything unusual), else the Python function.
-encode_request: Final[RequestEncoder] = _encode_request if _NATIVE is None else _NATIVE[0]
-#: Decode a drive reply into ``(motor_id, message)``: ``decode_reply(arbitration_id, data)``.
-#:
-#: Raises DecodeError: wrong length, id outside 0x141..0x160, unknown command or bad field. The C extension's twin
-#: where it is used (as :data:`encode_request`), else the Python function.
-decode_reply: Final[ReplyDecoder] = _decode_reply if _NATIVE is None else _NATIVE[1]

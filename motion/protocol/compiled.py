@@ -15,21 +15,14 @@ paths on every command.
 
 Messages are frozen, slotted dataclasses. Their generated ``__init__`` sets each field through
 ``object.__setattr__`` (it must get past the frozen ``__setattr__``); the decoders build an equal object without it,
-through :func:`frozen_builder`: with the optional C extension :mod:`motion._speedups` one call that allocates the
-object and fills its slots (about ten times faster than ``__init__``), without it ``object.__new__`` and the classes'
-own slot descriptors (about twice as fast). Classes with a ``__post_init__`` or a field without a default that the
-layout does not carry are built through ``__init__``.
-
-With the C extension, each CAN layout also gets a C twin of its encoder and decoder (:func:`native_layout`, the
-table's values handed over as they are: ``CompiledLayout.native``), and :mod:`motion.protocol.can_frame`'s two hot
-calls are C objects on top of them that defer to the Python path for anything unusual, as the Python fast path defers
-to the checked one. The tests compare the C twins with the Python fast path on every layout, valid and odd values.
+through :func:`frozen_builder`: ``object.__new__`` and the classes' own slot descriptors (about twice as fast as
+``__init__``). Classes with a ``__post_init__`` or a field without a default that the layout does not carry are built
+through ``__init__``.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import os
 import struct
 from collections.abc import Callable, Collection, Mapping
 from dataclasses import dataclass
@@ -57,48 +50,16 @@ Decoder = Callable[[bytes], Message | None]
 
 T = TypeVar("T")
 
-#: The C extension's interface version this source expects (``ABI`` in ``motion/_speedups.c``).
-SPEEDUPS_ABI: Final = 4
-try:
-    from motion import _speedups
-except ImportError:  # built without a C compiler (the extension is optional): the Python twins run
-    _speedups = None  # type: ignore[assignment]
-#: Why the C extension is not used ("" where it is).
-SPEEDUPS_MISSING: Final = (
-    "not built"
-    if _speedups is None
-    else "out of date: reinstall (pip install -e .)"
-    if getattr(_speedups, "ABI", None) != SPEEDUPS_ABI
-    else ""
-)
-if SPEEDUPS_MISSING:
-    _speedups = None  # type: ignore[assignment]
-
-#: Set (to anything but "" or "0") to run the Python twins even where the C extension is built (tests, comparisons).
-PURE_PYTHON_ENV: Final = "RMD_MOTION_PURE_PYTHON"
-#: The C extension's builder class (see ``motion/_speedups.c``), None where it is not built.
-SlotBuilder: Final = None if _speedups is None else _speedups.SlotBuilder
-#: The C extension where it is built and not turned off by :data:`PURE_PYTHON_ENV`, else None: what the hot path
-#: uses (:func:`frozen_builder`, the tracking model's ``chase``).
-SPEEDUPS: Final = _speedups if os.environ.get(PURE_PYTHON_ENV, "") in ("", "0") else None
-#: Whether the C extension ``motion._speedups`` is used.
-ACCELERATED: Final = SPEEDUPS is not None
-
-
-def frozen_builder(cls: type[T], *, accelerated: bool = ACCELERATED) -> Callable[..., T]:
+def frozen_builder(cls: type[T]) -> Callable[..., T]:
     """A positional constructor of a frozen, slotted dataclass without ``__post_init__`` that sets the slots
     directly (see the module docstring); the class itself when that does not apply. Every field is required.
 
     Args:
         cls: the class.
-        accelerated: use the C extension's ``SlotBuilder`` (default: where it is built
-            and :data:`PURE_PYTHON_ENV` is not set); False gives the pure-Python builder.
     """
     if hasattr(cls, "__post_init__") or not hasattr(cls, "__slots__") or not dataclasses.is_dataclass(cls):
         return cls
     fields = [f.name for f in dataclasses.fields(cls)]
-    if accelerated and SlotBuilder is not None:
-        return SlotBuilder(cls, tuple(fields))
     env: dict[str, Any] = {}
     names = [f"a{i}" for i in range(len(fields))]
     body = _slot_sets(cls, env)(dict(zip(fields, names, strict=True)))
@@ -131,8 +92,6 @@ class CompiledLayout:
         packer: the precompiled struct of the whole payload.
         encode: the fast encoder (see :data:`Encoder`).
         decode: the fast decoder (see :data:`Decoder`).
-        native: the C extension's twin of both (a ``CLayout``: ``encode(message)``, ``decode(payload)`` with the same
-            results or None), where the extension is used and can take the layout; else None.
     """
 
     layout: Layout
@@ -141,7 +100,6 @@ class CompiledLayout:
     packer: struct.Struct
     encode: Encoder
     decode: Decoder
-    native: Any = None
 
 
 def _compilable(layout: Layout) -> bool:
@@ -242,15 +200,6 @@ def _constructor(cls: type[Message], names: list[str], env: dict[str, Any]) -> C
     for i, (name, value) in enumerate(values.items()):
         env[f"D{i}"] = value
         defaults[name] = f"D{i}"
-    fields = [fld.name for fld in dataclasses.fields(cls)]
-    if ACCELERATED:
-        env["B"] = frozen_builder(cls)
-
-        def build_accelerated(values: list[str]) -> str:
-            given = dict(zip(names, values, strict=True)) | defaults
-            return f"return B({', '.join(given[n] for n in fields)})"
-
-        return build_accelerated
     sets = _slot_sets(cls, env)
 
     def build(values: list[str]) -> str:
@@ -336,45 +285,6 @@ def _decoder(
     return decoder
 
 
-_NATIVE_KINDS: Final = {Kind.INT: 0, Kind.REAL: 1, Kind.ENUM: 2, Kind.FLAGS: 3}
-
-
-def native_layout(layout: Layout, command: IntEnum | None, size: int, *, lead: bool, decodes: bool) -> Any:
-    """The C extension's ``CLayout`` of ``layout`` (the table's values handed over as they are), or None where the
-    extension is not used or cannot take it (fields wider than 4 bytes). ``decodes``: False gives one that only
-    encodes (a request's reserved bytes are checked on the Python path alone)."""
-    if SPEEDUPS is None or any(f.width > 4 or f.kind not in _NATIVE_KINDS for f in layout.fields):
-        return None
-    ordered = sorted(layout.fields, key=lambda f: f.offset)
-    specs = tuple(
-        (
-            f.name,
-            _NATIVE_KINDS[f.kind],
-            f.num,
-            f.den,
-            f.lo,
-            f.hi,
-            f.offset,
-            f.width,
-            f.signed,
-            f.enum,
-            f.enum._value2member_map_ if f.enum is not None else None,  # the live map (IntFlag adds to it)
-        )
-        for f in ordered
-    )
-    index = {f.name: i for i, f in enumerate(ordered)}
-    # what the Python decoder builds the message from: the carried fields, the command, the others' defaults
-    given = {"command": command} if layout.has_command_field else {}
-    defaults = _uncarried_defaults(layout.cls, set(index) | set(given))
-    builder: Any = frozen_builder(layout.cls) if decodes and defaults is not None else None
-    constants_of = given | (defaults or {})
-    names = [fld.name for fld in dataclasses.fields(layout.cls)]
-    sources = [index.get(name, -1) for name in names]
-    constants = [None if name in index else constants_of.get(name) for name in names]
-    code = int(command) if lead and command is not None else -1
-    return SPEEDUPS.CLayout(code, size, specs, layout.uncarried, builder, tuple(sources), tuple(constants))
-
-
 def compile_layout(
     layout: Layout, command: IntEnum | None, transport: WireProtocol, direction: Direction
 ) -> CompiledLayout | None:
@@ -393,7 +303,6 @@ def compile_layout(
         packer=packer,
         encode=_encoder(layout, command, ordered, packer, lead=lead),
         decode=_decoder(layout, command, ordered, packer, lead=lead, check_reserved=direction is Direction.REQUEST),
-        native=native_layout(layout, command, size, lead=lead, decodes=direction is Direction.REPLY) if can else None,
     )
 
 
@@ -406,16 +315,11 @@ class Codec:
             dispatcher on ``message.command``.
         decoders: by command byte (256 entries; None where the checked path must decide).
         layouts: the compiled layouts by command byte (None where none).
-        native_single: the C twins of ``encoders`` for classes of one command (``CLayout``; empty without the C
-            extension).
-        native_shared: for classes that serve several commands, their C twins by command value.
     """
 
     encoders: Mapping[type[Message], Encoder]
     decoders: tuple[Decoder | None, ...]
     layouts: tuple[CompiledLayout | None, ...]
-    native_single: Mapping[type[Message], Any] = dataclasses.field(default_factory=dict)
-    native_shared: Mapping[type[Message], Mapping[int, Any]] = dataclasses.field(default_factory=dict)
 
 
 def _dispatcher(by_command: dict[int, Encoder]) -> Encoder:
@@ -454,13 +358,8 @@ def build_codec(transport: WireProtocol, direction: Direction, commands: Mapping
     encoders: dict[type[Message], Encoder] = {cls: c.encode for cls, c in single.items()}
     for cls, by_command in shared.items():
         encoders[cls] = _dispatcher({code: c.encode for code, c in by_command.items()})
-    native_single = {cls: c.native for cls, c in single.items() if c.native is not None}
-    native_shared = {
-        cls: {code: c.native for code, c in by_command.items() if c.native is not None}
-        for cls, by_command in shared.items()
-    }
     decoders = tuple(c.decode if c is not None else None for c in layouts)
-    return Codec(encoders, decoders, tuple(layouts), native_single, native_shared)
+    return Codec(encoders, decoders, tuple(layouts))
 
 
 #: The fast paths, by transport and direction.

@@ -14,15 +14,12 @@ from typing import Any, Final, Protocol
 
 from motion.errors import DecodeError
 from motion.protocol import CanFrame, can_frame
-from motion.protocol.compiled import CODECS, SPEEDUPS
 from motion.protocol.table import (
     CAN_ID_BASE,
-    CAN_PAYLOAD_BYTES,
     MOTOR_ID_MAX,
     MOTOR_ID_MIN,
     Direction,
     ProtocolFamily,
-    WireProtocol,
 )
 from motion.protocol.v3 import frames as frames_v3
 from motion.transport.base import Request, Transport
@@ -45,19 +42,11 @@ def take_in_can_frame(transport: Transport, frame: CanFrame) -> None:
         # Other devices may share the bus; their frames are not drive replies, nor are 0x280 frames.
         transport.bus_counters.unknown_id_frames += 1
         return
-    # Without the C extension the codec's Python fast path straight away (an unpack and a message); can_frame.
-    # decode_reply (the C one: one call) for anything else, which gives the same message or the DecodeError.
-    data = frame.data
-    message = None
-    if _PYTHON_DECODERS is not None:
-        decoder = _PYTHON_DECODERS[data[0]] if len(data) == CAN_PAYLOAD_BYTES else None
-        message = decoder(data) if decoder is not None else None
-    if message is None:
-        try:
-            message = _decode_reply(arbitration_id, data)[1]
-        except DecodeError:
-            transport.motor_counters(motor_id).bad_frames += 1
-            return
+    try:
+        message = _decode_reply(arbitration_id, frame.data)[1]
+    except DecodeError:
+        transport.motor_counters(motor_id).bad_frames += 1
+        return
     transport._offer(motor_id, message)
 
 
@@ -78,7 +67,6 @@ def _take_in_v3(transport: Transport, frame: CanFrame) -> None:
 
 # Looked up once, not for every frame.
 _decode_reply: Final = can_frame.decode_reply
-_PYTHON_DECODERS: Final = None if SPEEDUPS is not None else CODECS[WireProtocol.CAN, Direction.REPLY].decoders
 _OLDER_FAMILY: Final = ProtocolFamily.V2
 _FIRST_MOTOR_ID: Final = MOTOR_ID_MIN
 _LAST_MOTOR_ID: Final = MOTOR_ID_MAX
