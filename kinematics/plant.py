@@ -1,11 +1,11 @@
 """The arm as the emulator's plant: Pinocchio forward dynamics with gravity couples the emulated drives.
 
-Implements :class:`motion.emulator.Plant`. The emulator's plant coordinate of a drive is its joint-side angle
-``p = motor angle / gear_ratio`` in radians, drives in ascending motor-id order; the configuration's joint angle is
-``q = direction · p + zero_offset`` (DESIGN.md's transmission), and the drive's torque on ``p`` acts on ``q`` with
-the sign of ``direction``. Rotor inertias enter as armature (``gear_ratio² × rotor inertia``); viscous and Coulomb
-friction act on each joint (Coulomb smoothed over ±``COULOMB_SMOOTHING_DPS`` so that the explicit integration
-does not chatter at rest).
+Implements :class:`motion.emulator.Plant`. The emulator's plant coordinate of a drive is its joint-side angle ``p =
+motor angle / gear_ratio`` in radians, drives in ascending motor-id order; the configuration's joint angle is ``q =
+direction · p + zero_offset`` (the transmission of docs/architecture.md), and the drive's torque on ``p`` acts on ``q``
+with the sign of ``direction``. Rotor inertias enter as armature (``gear_ratio² × rotor inertia``); viscous and Coulomb
+friction act on each joint (Coulomb smoothed over ±``COULOMB_SMOOTHING_DPS`` so that the explicit integration does not
+chatter at rest).
 """
 
 from __future__ import annotations

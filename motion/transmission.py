@@ -1,6 +1,6 @@
 """Joint <-> motor mapping (ros2_control's SimpleTransmission plus the drive's torque constant).
 
-Conventions (DESIGN.md):
+Conventions (docs/architecture.md, "Units and the transmission"):
 
 * position: ``joint_deg = direction * motor_deg / gear_ratio + zero_offset_deg``, where ``motor_deg`` is the
   drive's multi-turn angle in degrees and ``gear_ratio`` is motor-shaft degrees per joint degree (9 for 1:9);

@@ -88,7 +88,7 @@ def test_position_setpoints_are_the_array_formulas(position: Controller, data: s
     angle = transmission.motor_deg(ref.position)
     speed = np.abs(transmission.motor_rate(ref.velocity)) * options.speed_headroom
     speed += position._speed_floor_dps
-    speed = np.minimum(speed, 65535.0)
+    speed = np.minimum(speed, np.minimum(65535.0, position._speed_limit_dps))  # the field, the joint's limit
     messages = [r.message for r in requests]
     assert all(isinstance(m, MultiTurnPositionSpeed) for m in messages)
     assert [m.angle_deg for m in messages] == angle.tolist()  # type: ignore[attr-defined]

@@ -13,6 +13,7 @@ that instant, so a new target never steps the reference's velocity or accelerati
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import threading
@@ -69,7 +70,10 @@ class ControllerOptions:
         rate_hz: control rate, Hz.
         protocol: the wire protocol of the bus (decides 0xA4 layout and the use of 0x280).
         speed_headroom: 0xA4 max speed = planned motor speed × headroom + floor, so that the drive's own position
-            loop (which lags the stream by speed / its gain) can catch up during the move.
+            loop (which lags the stream by speed / its gain) can catch up during the move; never above the joint's
+            velocity limit (a stale or jumping set-point cannot drive a joint past it).
+        catch_up_share: position mode: the share of each joint's velocity limit the planner leaves free, so that a
+            drive lagging the stream still has room below its cap (the limit) to catch up at the planned top speed.
         speed_floor_share: the floor as a share of the joint's velocity limit (motor side), so that the last
             set-points of a move, where the planned speed goes to zero, are still reached promptly.
         reply_budget: share of the period given to ``transact`` (the rest is for computing the next cycle).
@@ -82,8 +86,18 @@ class ControllerOptions:
     protocol: WireProtocol = WireProtocol.CAN
     speed_headroom: float = 1.5
     speed_floor_share: float = 0.1
+    catch_up_share: float = 0.1
     reply_budget: float = 0.8
     multi_motor_frame: bool = True
+
+
+def planning_limits(limits: JointLimits, options: ControllerOptions) -> JointLimits:
+    """The limits the planner plans within: the joints' own, but for position mode's velocities, which keep
+    ``options.catch_up_share`` of each limit free (the 0xA4 cap is the limit itself)."""
+    if options.mode is not ControlMode.POSITION or not options.catch_up_share:
+        return limits
+    share = 1.0 - options.catch_up_share
+    return dataclasses.replace(limits, velocity_dps=tuple(v * share for v in limits.velocity_dps))
 
 
 #: How often a read before the loop is asked of a drive that did not answer (see ``Controller._read_every_drive``).
@@ -194,7 +208,7 @@ class Controller:
         self.turns: tuple[int, ...] = (0,) * len(self.specs)
         self.options = options
         self.bus = bus
-        self.planner = Planner(limits)
+        self.planner = Planner(planning_limits(limits, options))
         self.feedforward = feedforward
         self.clock: Clock = clock if clock is not None else MonotonicClock()
         self.loop = FixedRateLoop(options.rate_hz, self.cycle, clock=self.clock)
@@ -263,6 +277,8 @@ class Controller:
         # deg, zero offset, floor), and the builder of the mode's batch.
         velocity_limit = np.abs(transmission.motor_rate(np.array(limits.velocity_dps)))
         self._speed_floor_dps = velocity_limit * options.speed_floor_share
+        self._speed_limit_dps = velocity_limit
+        self._drive_gear = np.array([s.drive_gear_ratio for s in self.specs], dtype=np.float64)
         self._speed_ceiling_dps = family.speed_ceiling_dps(options.protocol)
         self._speed_headroom = options.speed_headroom
         self._set_frame(transmission)
@@ -292,7 +308,7 @@ class Controller:
                 [t.zero_offset_deg for t in transmission.transmissions],
                 self._speed_floor_dps.tolist(),
                 [1.0 / s.drive_gear_ratio for s in self.specs],
-                [self._speed_ceiling_dps * s.drive_gear_ratio for s in self.specs],
+                np.minimum(self._speed_ceiling_dps * self._drive_gear, self._speed_limit_dps).tolist(),
                 strict=True,
             )
         )

@@ -130,7 +130,6 @@ def frozen(rows: Sequence[NDArray[Any]]) -> NDArray[np.float64]:
     return array
 
 
-
 @dataclass(frozen=True, slots=True)
 class MotionProgress:
     """How far a motion has come (controller clock).

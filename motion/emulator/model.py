@@ -2,8 +2,9 @@
 
 Sides: a *motor-side* quantity is measured at the motor shaft (what the drive reports: angles, speeds, iq); a
 *joint-side* quantity is measured after the gear (what the plant integrates). ``gear_ratio`` is motor-shaft degrees per
-joint degree, as in the project's transmission convention (DESIGN.md), with direction +1: a drive's emulated joint
-turns the same way as its motor. Friction is joint side, in the units of the arm configuration's ``emulation`` block.
+joint degree, as in the project's transmission convention (docs/architecture.md), with direction +1: a drive's emulated
+joint turns the same way as its motor. Friction is joint side, in the units of the arm configuration's ``emulation``
+block.
 
 The three PI loops of the drive map their uint8 gains (0x30..0x32) to physical gains through the scales below. The
 speed loop is scaled by the inertia the drive was tuned for, so that a gain means a bandwidth whatever the load: a

@@ -50,6 +50,7 @@ Decoder = Callable[[bytes], Message | None]
 
 T = TypeVar("T")
 
+
 def frozen_builder(cls: type[T]) -> Callable[..., T]:
     """A positional constructor of a frozen, slotted dataclass without ``__post_init__`` that sets the slots
     directly (see the module docstring); the class itself when that does not apply. Every field is required.
