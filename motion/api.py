@@ -588,7 +588,11 @@ class Arm:
             self.homing = self._home_joints(joints)
             if self._remembers:
                 save_turn_records(
-                    self.config, self.controller.bus.describe(), self.controller, (j.source for j in self.turns)
+                    self.config,
+                    self.controller.bus.describe(),
+                    self.controller,
+                    (j.source for j in self.turns),
+                    [j.power_on for j in self.turns],
                 )
             self._start_supervisor()
         finally:
@@ -628,7 +632,13 @@ class Arm:
         if not self._remembers or self.controller is None or self.bus is None or not self.turns:
             return
         try:
-            save_turn_records(self.config, self.bus.describe(), self.controller, (j.source for j in self.turns))
+            save_turn_records(
+                self.config,
+                self.bus.describe(),
+                self.controller,
+                (j.source for j in self.turns),
+                [j.power_on for j in self.turns],
+            )
         except OSError as exc:
             logger.warning("turn offsets not kept for the next session: %s", exc)
 

@@ -15,6 +15,8 @@ import json
 import logging
 import math
 import os
+import time
+import weakref
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import fields
 from pathlib import Path
@@ -26,6 +28,7 @@ from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, JointConf
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
+from motion.control.drive_record import DriveRecord, same_power_on
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.family import FAMILIES
 from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
@@ -40,6 +43,7 @@ from motion.control.turns import (
     turn_joint_deg,
 )
 from motion.emulator import DEFAULT_PID, DriveModel, Emulator, Fault, LoadModel, Plant
+from motion.emulator.simulated import SimulatedBus, Simulation
 from motion.errors import ConfigError, MotionError, TransportError
 from motion.protocol import WireProtocol
 from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily
@@ -415,7 +419,6 @@ def build_supervisor(config: ArmConfig, controller: Controller, *, observe: bool
     Raises:
         ConfigError: a joint has ``brake: true`` but its drive's generation has no brake commands.
     """
-    ids = [j.motor_id for j in config.joints]
     braked = [j.motor_id for j in config.joints if j.brake]
     if braked and not controller.family.brakes:
         i, joint = next((i, j) for i, j in enumerate(config.joints) if j.brake)
@@ -430,8 +433,36 @@ def build_supervisor(config: ArmConfig, controller: Controller, *, observe: bool
         safety_settings(config),
         observer=collision_observer_for(config, always=observe),
         gravity=gravity_for(config),
-        drives=DriveSetup(controller.bus, controller.family, ids, braked, session_link_timeout_ms(config)),
+        drives=drive_setup(config, controller),
     )
+
+
+def drive_setup(config: ArmConfig, controller: Controller) -> DriveSetup:
+    """The drive-side settings of a session of ``config`` on ``controller``'s bus, with the host's record of them
+    (:mod:`motion.control.drive_record`)."""
+    ids = [j.motor_id for j in config.joints]
+    braked = [j.motor_id for j in config.joints if j.brake]
+    record, now = drive_record_for(controller.bus)
+    return DriveSetup(
+        controller.bus, controller.family, ids, braked, session_link_timeout_ms(config), record=record, now=now
+    )
+
+
+#: The host's record of the drives' ROM-backed settings, in :func:`state_dir`.
+DRIVE_RECORD_FILE = "drives.json"
+# Emulated drives in simulated time are new with each simulation: their record is kept with it, in memory.
+_SIMULATED_RECORDS: weakref.WeakKeyDictionary[Simulation, DriveRecord] = weakref.WeakKeyDictionary()
+
+
+def drive_record_for(bus: Transport) -> tuple[DriveRecord, Callable[[], float]]:
+    """The record of ``bus``'s drives and the clock its times are in: the file in :func:`state_dir` and the host's
+    wall clock; for a simulated bus, one in memory per simulation and the simulation's clock."""
+    if isinstance(bus, SimulatedBus):
+        record = _SIMULATED_RECORDS.get(bus.simulation)
+        if record is None:
+            record = _SIMULATED_RECORDS[bus.simulation] = DriveRecord(None)
+        return record, bus.simulation.now
+    return DriveRecord(state_dir() / DRIVE_RECORD_FILE), time.time
 
 
 def session_link_timeout_ms(config: ArmConfig) -> int:
@@ -494,7 +525,13 @@ def load_turn_records(config: ArmConfig, where: str) -> dict[str, TurnRecord]:
             return {}
         ids = {j.name: j.motor_id for j in config.joints}
         records = {
-            name: TurnRecord(int(e["motor_id"]), int(e["turns"]), float(e["reading_deg"]), Source(e["source"]))
+            name: TurnRecord(
+                int(e["motor_id"]),
+                int(e["turns"]),
+                float(e["reading_deg"]),
+                Source(e["source"]),
+                None if e.get("power_on") is None else (float(e["power_on"][0]), float(e["power_on"][1])),
+            )
             for name, e in document["joints"].items()
         }
     except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
@@ -503,9 +540,16 @@ def load_turn_records(config: ArmConfig, where: str) -> dict[str, TurnRecord]:
     return {name: r for name, r in records.items() if ids.get(name) == r.motor_id and math.isfinite(r.reading_deg)}
 
 
-def save_turn_records(config: ArmConfig, where: str, controller: Controller, sources: Iterable[Source]) -> Path:
+def save_turn_records(
+    config: ArmConfig,
+    where: str,
+    controller: Controller,
+    sources: Iterable[Source],
+    power_ons: Sequence[tuple[float, float] | None] | None = None,
+) -> Path:
     """Record each joint's turn offset and its drive's reading now (from the controller's latest snapshot), for
-    the next session on ``where``."""
+    the next session on ``where``; ``power_ons``: per joint, the drive's runtime at this session's connect and the
+    host's time then (drives that tell it: :attr:`JointTurns.power_on`)."""
     q = controller.snapshot.position_deg
     joints = {
         j.name: {
@@ -513,9 +557,17 @@ def save_turn_records(config: ArmConfig, where: str, controller: Controller, sou
             "turns": k,
             "reading_deg": drive_reading(t, float(q[i]), k),
             "source": str(source),
+            "power_on": None if power_on is None else list(power_on),
         }
-        for i, (j, t, k, source) in enumerate(
-            zip(config.joints, controller.base_transmission.transmissions, controller.turns, sources, strict=True)
+        for i, (j, t, k, source, power_on) in enumerate(
+            zip(
+                config.joints,
+                controller.base_transmission.transmissions,
+                controller.turns,
+                sources,
+                power_ons or [None] * len(config.joints),
+                strict=True,
+            )
         )
     }
     document = {"schema": TURNS_SCHEMA, "version": TURNS_VERSION, "arm": config.name, "bus": where, "joints": joints}
@@ -543,14 +595,23 @@ def resolve_frames(
         TransportError: a drive did not answer.
     """
     readings = controller.read_angles()
+    runtimes, now = controller.read_runtimes(), time.time()
     base = controller.base_transmission.transmissions
     known = records or {}
+    found = [known.get(j.name) for j in config.joints]
     resolved = resolve_turns(
         config.joint_names,
         base,
         [readings[j.motor_id] for j in config.joints],
         [None if j.name in provisional else j.power_on_window_deg for j in config.joints],
-        [known.get(j.name) for j in config.joints],
+        found,
+        powered_since=[
+            _powered_since(r, runtimes.get(j.motor_id), now) for j, r in zip(config.joints, found, strict=True)
+        ],
+    )
+    resolved = tuple(
+        dataclasses.replace(t, power_on=None if j.motor_id not in runtimes else (runtimes[j.motor_id], now))
+        for j, t in zip(config.joints, resolved, strict=True)
     )
     controller.set_turns([j.turns for j in resolved])
     for joint, t in zip(resolved, base, strict=True):
@@ -565,6 +626,13 @@ def resolve_frames(
                 turn_joint_deg(t),
             )
     return resolved
+
+
+def _powered_since(record: TurnRecord | None, runtime_s: float | None, now_s: float) -> bool | None:
+    """Whether the drive has run since ``record``'s session, by its runtime (None: the drive does not tell)."""
+    if record is None or record.power_on is None or runtime_s is None:
+        return None
+    return same_power_on(record.power_on[0], record.power_on[1], runtime_s, now_s)
 
 
 def emulated_frames(controller: Controller, config: ArmConfig) -> tuple[JointTurns, ...]:

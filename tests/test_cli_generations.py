@@ -5,6 +5,7 @@ run, Ctrl-C, hold / stop / clear. Each generation's emulator runs in its own pro
 from __future__ import annotations
 
 import json
+import re
 import signal
 import subprocess
 import sys
@@ -44,7 +45,23 @@ def any_arm_200hz(any_arm: Emulated, tmp_path_factory: pytest.TempPathFactory) -
     """arm2.yaml at a rate this host holds on :func:`any_arm`'s drives: at most 200 Hz, V3 at most 150 Hz (twice the
     frames: about 200 Hz is the edge of what holds here)."""
     ceiling = 200.0 if any_arm.protocol == "v2" else 150.0
-    return rate_that_holds(ARM2, any_arm, tmp_path_factory.mktemp("config"), ceiling)
+    config = rate_that_holds(ARM2, any_arm, tmp_path_factory.mktemp("config"), ceiling)
+    if any_arm.protocol == "v3":  # the drives keep holding after each command (see with_link_timeout)
+        return with_link_timeout(config, 0)
+    return config
+
+
+def with_link_timeout(config: Path, timeout_ms: int) -> Path:
+    """``config`` with ``safety.link_timeout_ms`` set, in a file beside it: with the protection on (the default) a V3
+    drive stops by itself once its host goes quiet, so the joints of arm2 (no brakes) go limp after each command;
+    with it off they hold where the command left them, as the older drives do."""
+    text = re.sub(r"\n\s+link_timeout_ms: \S+", "", config.read_text())
+    timeout = re.search(r"\n(\s+)reply_timeout_ms: \S+", text)
+    assert timeout is not None, config
+    text = text.replace(timeout.group(0), f"{timeout.group(0)}\n{timeout.group(1)}link_timeout_ms: {timeout_ms}")
+    path = config.with_name(f"link{timeout_ms}-{config.name}")
+    path.write_text(text)
+    return path
 
 
 def test_scan_finds_both_drives(any_arm: Emulated) -> None:
@@ -169,3 +186,48 @@ def test_hold_stop_clear(any_arm: Emulated) -> None:
         result = cli(command, "--config", ARM2, *can_arm.bus_args)
         assert result.returncode == 0, result.stderr
         assert expected in result.stdout
+
+
+def _rom_writes_in(log: str) -> list[str]:
+    """The 0x43 and 0xB3 requests (ROM writes of the V3 drives) in a frame log's lines."""
+    return [w.upper() for w in re.findall(r" IN +\S+ +14[12]: (?:43|B3) [0-9A-F ]+", log, flags=re.IGNORECASE)]
+
+
+def test_a_second_session_writes_no_rom_and_restore_puts_back_the_settings(tmp_path: Path) -> None:
+    # Issue 31 §4: a session writes a ROM-backed setting only where the drive (or, for 0xB3, which has no read, the
+    # host's record) shows it differs; the session's end writes nothing, so the protection stays on and each drive
+    # stops by itself (output off, brake locked) once its host goes quiet; `restore` writes back what was there.
+    braked = tmp_path / "arm2.yaml"
+    braked.write_text(re.sub(r"(\n(\s+)motor_id: \d+)", r"\1\n\2brake: true", ARM2.read_text()))
+    with running_emulator(tmp_path, braked, "--slcan-link", "--protocol", "v3") as emulated:
+        (tmp_path / "config").mkdir()
+        config = with_link_timeout(rate_that_holds(braked, emulated, tmp_path / "config", 150.0), 50)
+        move: tuple[str | Path, ...] = ("move", "--config", config, *emulated.bus_args)
+        offset = emulated.log_size()
+        for target in ("shoulder=5", "shoulder=0"):
+            result = cli(*move, target)
+            skip_if_rate_refused(result)
+            assert result.returncode == 0, result.stderr
+            if target == "shoulder=5":
+                assert len(_rom_writes_in(emulated.log_since(offset))) == 6  # 0x43 of both indexes, 0xB3: each drive
+                offset = emulated.log_size()
+        assert _rom_writes_in(emulated.log_since(offset)) == []
+        joints = status_json(braked, emulated)
+        assert {name: joint["rom_writes"] for name, joint in joints.items()} == {"shoulder": 3, "elbow": 3}
+        assert joints["shoulder"]["position_deg"] == pytest.approx(0.0, abs=0.5)  # held by its brake since
+        held = cli("hold", "--config", braked, *emulated.bus_args)  # the drives would stop 50 ms after it
+        assert held.returncode == 2 and "hold refused" in held.stderr and "shoulder 50 ms" in held.stderr
+        refused = cli("restore", "--config", braked, *emulated.bus_args)
+        assert refused.returncode == 2 and "--yes" in refused.stderr
+        offset = emulated.log_size()
+        restored = cli("restore", "--config", braked, *emulated.bus_args, "--yes")
+        assert restored.returncode == 0, restored.stderr
+        written = _rom_writes_in(emulated.log_since(offset))
+        assert sorted(w.split()[3] for w in written) == ["43"] * 4 + ["B3"] * 2
+        assert all(w.strip().endswith("00 00 00 00") == (w.split()[3] == "B3") for w in written)  # (B3: 0, off)
+        assert "motor 1: position_acceleration" in restored.stdout and "6 ROM write(s)" in restored.stdout
+        assert cli("hold", "--config", braked, *emulated.bus_args).returncode == 0
+        offset = emulated.log_size()
+        again = cli(*move, "shoulder=5")
+        assert again.returncode == 0, again.stderr
+        assert len(_rom_writes_in(emulated.log_since(offset))) == 6  # set for tracking again

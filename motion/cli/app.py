@@ -250,6 +250,15 @@ def _settings_commands(sub: argparse._SubParsersAction[argparse.ArgumentParser])
     zero.add_argument("joint", metavar="JOINT")
     zero.add_argument("--yes", action="store_true", help="confirm the ROM write (flash wear; needs a power cycle)")
 
+    restore = _command(
+        sub,
+        "restore",
+        drives.restore,
+        "write back the drive settings rmd-motion's sessions changed, as they were before the first change (V3: "
+        "planning accelerations 0x43, communication-loss protection off 0xB3)",
+    )
+    restore.add_argument("--yes", action="store_true", help="confirm the ROM writes (flash wear)")
+
 
 def version_text() -> str:
     """``rmd-motion VERSION``."""

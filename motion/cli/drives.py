@@ -27,9 +27,18 @@ from motion.cli.common import (
     print_table,
     warn,
 )
-from motion.compose import build_controller, load_turn_records, resolve_frames, save_turn_records
+from motion.compose import (
+    build_controller,
+    drive_record_for,
+    drive_setup,
+    load_turn_records,
+    resolve_frames,
+    save_turn_records,
+)
 from motion.config import CanBusConfig, JointConfig
 from motion.config.schema import ControlMode
+from motion.control.drive_record import DriveRecord
+from motion.control.drivesetup import LINK_TIMEOUT
 from motion.control.family import FAMILIES
 from motion.control.ratecheck import RateError
 from motion.control.tracking import PositionLoopFit
@@ -92,6 +101,8 @@ PID_FIELDS: Final = field_names(Command.WRITE_PID_RAM, Direction.REQUEST, WirePr
 ACCELERATION_MAX_DPS2: Final = int(
     field_range(Command.WRITE_ACCELERATION_RAM, Direction.REQUEST, WireProtocol.CAN, "acceleration_dps2")[1]
 )
+#: How long the drives have to answer ``restore``'s writes, s.
+RESTORE_WINDOW_S: Final = 0.5
 #: Why ROM writes need ``--yes``.
 FLASH_WARNING: Final = (
     "it writes the drive's flash (ROM), which wears with every write (a limited number of write cycles)"
@@ -284,12 +295,13 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
         records = None if args.forget_turns else load_turn_records(config, bus.describe())
         turns = resolve_frames(controller, config, records=records)
         controller.read_positions()
-        save_turn_records(config, bus.describe(), controller, (j.source for j in turns))
+        save_turn_records(config, bus.describe(), controller, (j.source for j in turns), [j.power_on for j in turns])
         family = controller.family
         status1: dict[int, Status1 | Status1V3] = _ask(
             bus, session, config.joints, family.bare(Command.READ_STATUS_1), family.status_type
         )
         where = bus.describe()
+        record, _ = drive_record_for(bus)
     axes = controller.axes
     joints: list[dict[str, object]] = []
     rows: list[tuple[object, ...]] = []
@@ -311,6 +323,7 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
                 "within_limits": inside,
                 "turns": turns[i].turns,
                 "turns_from": str(turns[i].source),
+                "rom_writes": record.rom_writes(DriveRecord.key(where, joint.motor_id)),
             }
         )
         rows.append(
@@ -324,13 +337,16 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
                 f"{s.voltage_v:.1f} V",
                 ",".join(flags) or "ok",
                 turns[i].describe(),
+                record.rom_writes(DriveRecord.key(where, joint.motor_id)),
             )
         )
     if args.json:
         print_json({"name": config.name, "bus": where, "joints": joints})
         return EXIT_OK
     print(f"{config.name} on {where}")
-    print_table(("joint", "motor", "position", "velocity", "iq", "temp", "voltage", "flags", "turns"), rows)
+    print_table(
+        ("joint", "motor", "position", "velocity", "iq", "temp", "voltage", "flags", "turns", "ROM writes"), rows
+    )
     return EXIT_OK
 
 
@@ -364,6 +380,8 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
     joints = session.config.joints
     with session.open_bus(v3=True) as bus:
         family = FAMILIES[bus.family]
+        if family.link_protection:
+            _refuse_hold_under_protection(bus, joints)
         # (a V3 drive reads and takes output-shaft degrees: motor degrees / its reduction)
         gear = {j.motor_id: j.gear_ratio if family.output_shaft else 1.0 for j in joints}
         angles: dict[int, MultiTurnAngle] = _ask(
@@ -393,6 +411,25 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
     held = ", ".join(f"{j.name} at {joint_deg(j)}" for j in joints)
     print(f"holding (drive position loop, 0xA4): {held}")
     return EXIT_OK
+
+
+def _refuse_hold_under_protection(bus: Transport, joints: Sequence[JointConfig]) -> None:
+    """Raise UsageError where the host's record shows a drive's communication-loss protection on: it would stop the
+    drive that long after ``hold`` ends (0xB3 has no read: a drive the record does not know is held)."""
+    record, _ = drive_record_for(bus)
+    on = {}
+    for joint in joints:
+        written = record.get(DriveRecord.key(bus.describe(), joint.motor_id), LINK_TIMEOUT)
+        if isinstance(written, dict) and written.get("ms"):
+            on[joint.name] = written["ms"]
+    if on:
+        listed = ", ".join(f"{name} {ms} ms" for name, ms in on.items())
+        raise UsageError(
+            f"hold refused: rmd-motion's sessions left these drives' communication-loss protection on (0xB3: "
+            f"{listed}), so they would stop by themselves that long after this command ends; turn it off with "
+            "`rmd-motion restore --yes`, and set safety.link_timeout_ms: 0 for the sessions that should leave the "
+            "drives holding"
+        )
 
 
 def clear(args: argparse.Namespace, interrupts: Interrupts) -> int:
@@ -536,6 +573,27 @@ def zero(args: argparse.Namespace, interrupts: Interrupts) -> int:
     message = _ask_once(session, [joint], Bare(Command.WRITE_ZERO_ROM), Message)[joint.motor_id]
     offset = f" (encoder offset {message.encoder_offset})" if isinstance(message, EncoderOffset) else ""
     print(f"{_label(joint)}: present position written to ROM as zero{offset}; power-cycle the drive to apply it")
+    return EXIT_OK
+
+
+def restore(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """Write back the drive settings rmd-motion's sessions changed, as they were before the first change (V3: the
+    planning accelerations, 0x43; the communication-loss protection off, 0xB3): ROM writes, so ``--yes``."""
+    if not args.yes:
+        raise UsageError(f"restore refused without --yes: {FLASH_WARNING}")
+    session = Session.from_args(args)
+    with session.open_bus(v3=True) as bus:
+        setup = drive_setup(session.config, build_controller(session.config, bus))
+        if not (setup.family.planning_accelerations or setup.family.link_protection):
+            print(
+                f"the drives on {bus.describe()} speak the older protocol: rmd-motion's sessions change none of "
+                "their settings"
+            )
+            return EXIT_OK
+        done = setup.restore_settings(bus.clock() + RESTORE_WINDOW_S)
+    for line in done:
+        print(line)
+    print(f"{setup.rom_writes} ROM write(s); the next session sets the drives for tracking again")
     return EXIT_OK
 
 

@@ -46,6 +46,7 @@ from motion.protocol import (
 from motion.protocol.compiled import frozen_builder
 from motion.protocol.scales import iq_amps
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS
+from motion.protocol.v3.messages import CommandV3, Runtime
 from motion.trajectory import Follower, JointLimits, Path, Planner, State
 from motion.transmission import ArmTransmission, FloatArray
 from motion.transport.base import Reply, Request, Transport
@@ -375,6 +376,22 @@ class Controller:
                 f"no reply to the multi-turn angle read (0x92) from joint(s) {', '.join(missing)}{self.bus.junk_note()}"
             )
         return angles
+
+    def read_runtimes(self, timeout_s: float = 0.2) -> dict[int, float]:
+        """Every drive's runtime (time since its power-on, 0xB1), s, by motor id, where the family tells it (empty
+        where not: the older drives).
+
+        Raises:
+            TransportError: a drive did not answer by ``timeout_s``.
+        """
+        if not self.family.tells_runtime:
+            return {}
+        replies = self._read_every_drive((self.family.bare(CommandV3.READ_RUNTIME),), timeout_s)
+        runtimes = {r.motor_id: r.message.runtime_ms / 1000.0 for r in replies if isinstance(r.message, Runtime)}
+        missing = [s.name for s in self.specs if s.motor_id not in runtimes]
+        if missing:
+            raise TransportError(f"no reply to the runtime read (0xB1) from joint(s) {', '.join(missing)}")
+        return runtimes
 
     def read_positions(self, timeout_s: float = 0.2) -> FloatArray:
         """Read every axis' multi-turn angle (0x92) and encoder (0x9C) and anchor the position tracking.

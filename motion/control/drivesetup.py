@@ -1,34 +1,41 @@
-"""The drive-side settings a control session needs, applied before its loop starts and restored when it ends.
+"""The drive-side settings a control session needs, applied before its loop starts.
 
 What a family asks for (:mod:`motion.control.family`); for the older family there is nothing to set. For V3-driver
 drives:
 
 * **planning accelerations 0** (0x43, position acceleration and deceleration): the drive then tracks each 0xA4 target
-  directly instead of running its own trapezoid on top of the planned stream; the values read before (0x42) are
-  written back at the end. 0x43 writes RAM and ROM (the document offers no RAM-only write), so a session that dies
-  without its end leaves 0 in ROM: ``rmd-motion`` sets them again at its next start, and any other tool sees tracking
-  mode until it sets its own;
-* **communication-loss protection** (0xB3): a few control periods, so that a drive stops by itself (output cut, brake
-  locked) when the host dies or the cable drops; the document has no read of it, so the end writes 0 (off, the
-  factory value);
+  directly instead of running its own trapezoid on top of the planned stream. 0x43 writes RAM and ROM (the document
+  offers no RAM-only write), so the session reads them (0x42) and writes only those that are not 0 yet;
+* **communication-loss protection** (0xB3, ROM): a few control periods, so that a drive stops by itself (output cut,
+  brake locked) when the host dies or the cable drops. The document has no read of it: the session writes it only
+  when the host's record (:mod:`motion.control.drive_record`) does not show this value written to this drive since
+  it was powered on (its runtime, 0xB1, tells: the record cannot tell a power-cycled drive from another one);
 * **holding brakes** (0x77 / 0x78) of the joints configured with one: released when the loop starts, locked when the
   arm has halted (:mod:`motion.safety.supervisor`) and at the end.
+
+The settings are left as they are when the session ends (a drive keeps tracking its stream directly, and stops when
+its host goes silent): ``rmd-motion restore`` writes back what the drives held before rmd-motion first changed them
+(:meth:`DriveSetup.restore_settings`). The ROM writes of a session are counted (:attr:`DriveSetup.rom_writes`, the
+log) and added to the record's count per drive (``rmd-motion status``).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Collection, Sequence
+import time
+from collections.abc import Callable, Collection, Sequence
 
+from motion.control.drive_record import DriveRecord, same_power_on
 from motion.control.family import DriveFamily
 from motion.errors import ConfigError, TransportError
 from motion.protocol.v3.messages import (
-    AccelerationIndex,
     AccelerationRead,
+    BareV3,
     CommandV3,
     CommunicationTimeout,
     PlanningAcceleration,
+    Runtime,
 )
 from motion.transport.base import Reply, Request, Transport
 
@@ -47,6 +54,11 @@ def link_timeout_ms(period_s: float, configured_s: float | None) -> int:
     return math.ceil(round(seconds * 1000.0, 6))
 
 
+#: The record's names of the settings (:mod:`motion.control.drive_record`).
+LINK_TIMEOUT = "link_timeout"
+_ORIGINAL_ACCELERATION = "acceleration_before_{}"
+
+
 class DriveSetup:
     """The settings of one session's drives (see the module docstring).
 
@@ -55,14 +67,25 @@ class DriveSetup:
         family: the drives' family.
         ids: every joint's motor id.
         braked_ids: the ids of joints with a holding brake.
-        link_timeout_ms: the communication-loss time to set, ms (0: leave the protection off).
+        link_timeout_ms: the communication-loss time the drives need, ms (0: the protection off).
+        record: the host's record of the drives' settings (default: one in memory).
+        now: the clock the record's times are in, s (the host's wall clock for real drives, so that sessions in
+            different processes compare; a simulation's clock for its drives).
 
     Raises:
         ConfigError: brakes or a link timeout on a family without them.
     """
 
     def __init__(
-        self, bus: Transport, family: DriveFamily, ids: Sequence[int], braked_ids: Sequence[int], link_timeout_ms: int
+        self,
+        bus: Transport,
+        family: DriveFamily,
+        ids: Sequence[int],
+        braked_ids: Sequence[int],
+        link_timeout_ms: int,
+        *,
+        record: DriveRecord | None = None,
+        now: Callable[[], float] = time.time,
     ) -> None:
         if braked_ids and not family.brakes:
             raise ConfigError(
@@ -73,36 +96,102 @@ class DriveSetup:
         self.ids = tuple(ids)
         self.braked_ids = tuple(braked_ids)
         self.link_timeout_ms = link_timeout_ms if family.link_protection else 0
-        #: The planning accelerations read before they were set to 0, by (motor id, index).
-        self.saved_accelerations: dict[tuple[int, int], int] = {}
-        self.applied = False
+        self.record = record if record is not None else DriveRecord(None)
+        self._now = now
+        #: ROM writes this session sent (0x43, 0xB3).
+        self.rom_writes = 0
         self.brakes_locked = True
 
     def apply(self, deadline_s: float) -> None:
-        """Read and zero the planning accelerations, set the communication-loss time, release the brakes.
+        """Zero the planning accelerations that are not 0, set the communication-loss time where the record does not
+        show it set, release the brakes; record what was written.
 
         Raises:
             TransportError: a drive did not answer a read or a write.
         """
-        indexes = self.family.planning_accelerations
-        if indexes:
-            reads = [Request(i, AccelerationRead(index)) for i in self.ids for index in indexes]
-            for reply in self._ask(reads, deadline_s, "planning acceleration read (0x42)"):
-                message = reply.message
-                assert isinstance(message, PlanningAcceleration)
-                self.saved_accelerations[reply.motor_id, int(message.index)] = message.acceleration_dps2
-            self.applied = True
-            zero = [
-                Request(i, PlanningAcceleration(CommandV3.WRITE_ACCELERATION, index, 0))
-                for i in self.ids
-                for index in indexes
-            ]
-            self._ask(zero, deadline_s, "planning acceleration write (0x43)")
-        if self.link_timeout_ms:
-            self.applied = True
-            timeout = CommunicationTimeout(self.link_timeout_ms)
-            self._ask([Request(i, timeout) for i in self.ids], deadline_s, "communication-loss time (0xB3)")
+        writes: list[Request] = []
+        if self.family.planning_accelerations:
+            writes += self._acceleration_writes(deadline_s)
+        if self.family.link_protection:
+            writes += self._link_timeout_writes(deadline_s)
+        if writes:
+            self._write_rom(writes, deadline_s, "session settings")
+        if self.family.planning_accelerations or self.family.link_protection:
+            logger.info("drive settings: %d ROM write(s) this session (%s)", self.rom_writes, self.bus.describe())
         self.release_brakes(deadline_s)
+
+    def _key(self, motor_id: int) -> str:
+        return DriveRecord.key(self.bus.describe(), motor_id)
+
+    def _acceleration_writes(self, deadline_s: float) -> list[Request]:
+        """0x43 of 0 for each planning acceleration that is not 0 (what it held first is recorded)."""
+        indexes = self.family.planning_accelerations
+        reads = [Request(i, AccelerationRead(index)) for i in self.ids for index in indexes]
+        writes = []
+        for reply in self._ask(reads, deadline_s, "planning acceleration read (0x42)"):
+            message = reply.message
+            assert isinstance(message, PlanningAcceleration)
+            if message.acceleration_dps2 == 0:
+                continue
+            key, name = self._key(reply.motor_id), _ORIGINAL_ACCELERATION.format(int(message.index))
+            if self.record.get(key, name) is None:
+                self.record.put(key, name, message.acceleration_dps2)
+            writes.append(Request(reply.motor_id, PlanningAcceleration(CommandV3.WRITE_ACCELERATION, message.index, 0)))
+        return writes
+
+    def _link_timeout_writes(self, deadline_s: float) -> list[Request]:
+        """0xB3 to each drive the record does not show holding the session's time since its power-on."""
+        reads = [Request(i, BareV3(CommandV3.READ_RUNTIME)) for i in self.ids]
+        now, needed, writes = self._now(), self.link_timeout_ms, []
+        for reply in self._ask(reads, deadline_s, "runtime read (0xB1)"):
+            message = reply.message
+            assert isinstance(message, Runtime)
+            key, runtime_s = self._key(reply.motor_id), message.runtime_ms / 1000.0
+            written = self.record.get(key, LINK_TIMEOUT)
+            if not _still_holds(written, needed, runtime_s, now):
+                writes.append(Request(reply.motor_id, CommunicationTimeout(needed)))
+                self.record.put(key, LINK_TIMEOUT, {"ms": needed, "runtime_s": runtime_s, "at_s": now})
+        return writes
+
+    def _write_rom(self, requests: list[Request], deadline_s: float, what: str) -> None:
+        """Send ROM writes; count them (the session's and, in the record, each drive's) and save the record."""
+        try:
+            self._ask(requests, deadline_s, what)
+        finally:
+            self.rom_writes += len(requests)
+            for request in requests:
+                self.record.count_rom_writes(self._key(request.motor_id), 1)
+            self.record.save()
+
+    def restore_settings(self, deadline_s: float) -> list[str]:
+        """Write back what the drives held before rmd-motion first changed them: the planning accelerations the
+        record kept, the communication-loss protection off (its factory value); forget them in the record. Returns
+        what was written, one line per drive.
+
+        Raises:
+            TransportError: a drive did not answer.
+        """
+        requests, done = [], []
+        for motor_id in self.ids:
+            key, written = self._key(motor_id), []
+            for index in self.family.planning_accelerations:
+                name = _ORIGINAL_ACCELERATION.format(int(index))
+                value = self.record.get(key, name)
+                if value is not None:
+                    requests.append(
+                        Request(motor_id, PlanningAcceleration(CommandV3.WRITE_ACCELERATION, index, int(value)))
+                    )
+                    written.append(f"{index.name.lower()} {value} deg/s²")
+                    self.record.put(key, name, None)
+            if self.family.link_protection:
+                requests.append(Request(motor_id, CommunicationTimeout(0)))
+                written.append("communication-loss protection off")
+                self.record.put(key, LINK_TIMEOUT, None)
+            if written:
+                done.append(f"motor {motor_id}: " + ", ".join(written))
+        if requests:
+            self._write_rom(requests, deadline_s, "restore")
+        return done
 
     def brake_requests(self, code: int) -> list[Request]:
         """0x77 (release) or 0x78 (lock) to every braked joint."""
@@ -115,32 +204,24 @@ class DriveSetup:
             self.brakes_locked = False
 
     def restore(self, deadline_s: float, *, lock: Collection[int] | None = None) -> None:
-        """Lock the brakes, write back the planning accelerations, turn the protection off; best effort (a drive
-        that does not answer is logged: the bus is closing). Once: a second call (the supervisor's close, then the
-        bus's) sends nothing, and a later :meth:`apply` reads what this one wrote back.
+        """The session's end: lock the brakes (the settings stay: module docstring); best effort (a drive that does
+        not answer is logged: the bus is closing). Once: a second call (the supervisor's close, then the bus's) sends
+        nothing.
 
         Args:
             deadline_s: when the drives' answers are due.
             lock: the braked joints whose brakes lock (those seen at rest after the halt); None: every one.
         """
-        if not self.applied and self.brakes_locked:
+        if self.brakes_locked:
             return
         requests = [r for r in self.brake_requests(CommandV3.LOCK_BRAKE) if lock is None or r.motor_id in lock]
-        requests += [
-            Request(motor_id, PlanningAcceleration(CommandV3.WRITE_ACCELERATION, AccelerationIndex(index), value))
-            for (motor_id, index), value in self.saved_accelerations.items()
-        ]
-        if self.link_timeout_ms:
-            requests += [Request(i, CommunicationTimeout(0)) for i in self.ids]
-        if not requests:
-            return
         try:
-            self._ask(requests, deadline_s, "restore")
+            if requests:
+                self._ask(requests, deadline_s, "brake lock (0x78)")
         except TransportError as exc:
-            logger.error("the drives' settings were not all restored: %s", exc)
+            logger.error("the brakes were not all locked: %s", exc)
         finally:
-            self.applied, self.brakes_locked = False, True
-            self.saved_accelerations.clear()
+            self.brakes_locked = True
 
     def _ask(self, requests: list[Request], deadline_s: float, what: str) -> list[Reply]:
         replies = self.bus.transact(requests, deadline_s)
@@ -148,3 +229,14 @@ class DriveSetup:
         if silent:
             raise TransportError(f"no reply to the {what} from motor(s) {', '.join(map(str, silent))}")
         return replies
+
+
+def _still_holds(written: object, needed_ms: int, runtime_s: float, now_s: float) -> bool:
+    """Whether a drive whose runtime reads ``runtime_s`` still holds the time the record shows written: the same
+    time, on a drive that has run since (:func:`~motion.control.drive_record.same_power_on`)."""
+    if not isinstance(written, dict) or written.get("ms") != needed_ms:
+        return False
+    try:
+        return same_power_on(float(written["runtime_s"]), float(written["at_s"]), runtime_s, now_s)
+    except (KeyError, TypeError, ValueError):
+        return False

@@ -52,6 +52,8 @@ class DriveFamily:
         clears_errors: the drives have 0x9B (clear error flags).
         restart_read: the read that shows a drive that restarted (0x92: its angle jumps while the tracked encoder
             does not; 0xB1: its runtime starts again).
+        tells_runtime: the drives tell the time since their power-on (0xB1): a drive that has run since a record
+            of it is known to have kept its counts (:mod:`motion.control.turns`, :mod:`motion.control.drivesetup`).
         link_protection: the drives have the communication-loss protection (0xB3).
         brakes: the drives have holding-brake commands (0x77 release, 0x78 lock).
         planning_accelerations: the 0x42 / 0x43 indexes set to 0 while streaming 0xA4 (empty: none).
@@ -72,6 +74,7 @@ class DriveFamily:
     reads_loop_settings: bool
     clears_errors: bool
     restart_read: int
+    tells_runtime: bool
     link_protection: bool
     brakes: bool
     planning_accelerations: tuple[AccelerationIndex, ...]
@@ -115,6 +118,7 @@ FAMILIES: Final[Mapping[ProtocolFamily, DriveFamily]] = {
         reads_loop_settings=True,
         clears_errors=True,
         restart_read=Command.READ_MULTI_TURN_ANGLE,
+        tells_runtime=False,
         link_protection=False,
         brakes=False,
         planning_accelerations=(),
@@ -136,6 +140,7 @@ FAMILIES: Final[Mapping[ProtocolFamily, DriveFamily]] = {
         reads_loop_settings=False,
         clears_errors=False,
         restart_read=CommandV3.READ_RUNTIME,
+        tells_runtime=True,
         link_protection=True,
         brakes=True,
         planning_accelerations=(AccelerationIndex.POSITION_ACCELERATION, AccelerationIndex.POSITION_DECELERATION),

@@ -14,6 +14,9 @@ nothing is written to the drive.
 How a joint's turns are found at connect (:func:`resolve_turns`), from the drive's reading and what the last session
 left (:class:`TurnRecord`, kept per arm by :mod:`motion.compose`):
 
+0. A drive that tells its runtime (V3, 0xB1) and has run since the record's session keeps the record's count,
+   wherever the joint went meanwhile (its count is continuous while it is powered: an arm that went limp after a
+   session and sagged is still in its frame) (``Source.KEPT``).
 1. The drive reads in its first turn (0 <= reading < 360 motor degrees), as it does right after a power-up: a joint
    with a ``power_on_window_deg`` takes the unique turn count that puts it inside its window (``Source.WINDOW``).
    No such count, or a landing within :func:`edge_margin_deg` of an edge (a joint that was outside its window by
@@ -77,12 +80,15 @@ class TurnRecord:
         turns: the turn offset the session used.
         reading_deg: the drive's multi-turn reading when the session last saw it, motor degrees (drive frame).
         source: how the session's turns were found.
+        power_on: drives that tell their runtime (V3, 0xB1): the runtime at the session's connect and the host's
+            wall-clock time then, s (None: not told).
     """
 
     motor_id: int
     turns: int
     reading_deg: float
     source: Source
+    power_on: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,6 +102,8 @@ class JointTurns:
         reading_deg: the drive's multi-turn reading at connect, motor degrees.
         joint_deg: the joint angle at connect, with ``turns`` applied, degrees.
         window_deg: the joint's power-on window (None: none configured).
+        power_on: the drive's runtime at connect and the host's wall-clock time then, s (None: not told; kept in the
+            turn record).
     """
 
     name: str
@@ -104,6 +112,7 @@ class JointTurns:
     reading_deg: float
     joint_deg: float
     window_deg: tuple[float, float] | None
+    power_on: tuple[float, float] | None = None
 
     def describe(self) -> str:
         """How the turns were found, in words (``rmd-motion status``)."""
@@ -184,12 +193,18 @@ def resolve_joint(
     reading_deg: float,
     window: tuple[float, float] | None,
     record: TurnRecord | None,
+    *,
+    powered_since: bool | None = None,
 ) -> JointTurns:
-    """One joint's turn offset (the rules of the module docstring).
+    """One joint's turn offset (the rules of the module docstring). ``powered_since``: whether the drive has run
+    since the record's session, as its runtime tells (None: it does not tell); a drive that has keeps its count
+    wherever the joint went meanwhile (``Source.KEPT``).
 
     Raises:
         TurnError: a joint with a window whose turns cannot be told.
     """
+    if record is not None and powered_since:
+        return _joint_turns(name, transmission, reading_deg, window, record.turns, Source.KEPT, Source.KEPT)
     continues = record is not None and abs(reading_deg - record.reading_deg) <= CONTINUITY_MOTOR_DEG
     kept = record.turns if record is not None and continues else None
     if window is None:
@@ -240,17 +255,21 @@ def resolve_turns(
     readings_deg: Sequence[float],
     windows: Sequence[tuple[float, float] | None],
     records: Sequence[TurnRecord | None],
+    *,
+    powered_since: Sequence[bool | None] | None = None,
 ) -> tuple[JointTurns, ...]:
-    """Every joint's turn offset; all refusals are collected into one error.
+    """Every joint's turn offset (``powered_since``: see :func:`resolve_joint`, per joint); all refusals are collected
+    into one error.
 
     Raises:
         TurnError: one or more joints with a window whose turns cannot be told (one line each).
     """
     resolved: list[JointTurns] = []
     problems: list[str] = []
-    for args in zip(names, transmissions, readings_deg, windows, records, strict=True):
+    since = [None] * len(names) if powered_since is None else powered_since
+    for *args, powered in zip(names, transmissions, readings_deg, windows, records, since, strict=True):
         try:
-            resolved.append(resolve_joint(*args))
+            resolved.append(resolve_joint(*args, powered_since=powered))
         except TurnError as exc:
             problems.append(str(exc))
     if problems:

@@ -107,6 +107,18 @@ def _amps(current_a: float) -> float:
     return round(_clamp(current_a, _AMPS_MAX), 2)
 
 
+#: The commands that write the drive's ROM (the V4.2 document's sections 2.4, 2.5.1, 2.8, 2.9, 2.30): counted.
+ROM_WRITES: Final = frozenset(
+    {
+        CommandV3.WRITE_PID_ROM,
+        CommandV3.WRITE_ACCELERATION,
+        CommandV3.WRITE_ENCODER_ZERO,
+        CommandV3.WRITE_CURRENT_AS_ZERO,
+        CommandV3.COMMUNICATION_TIMEOUT,
+    }
+)
+
+
 class EmulatedDriveV3(EmulatedDrive):
     """A V3-family drive (see the module docstring).
 
@@ -141,6 +153,8 @@ class EmulatedDriveV3(EmulatedDrive):
         self.powered_on_s = 0.0
         #: Times the communication-loss protection cut the output.
         self.link_losses = 0
+        #: Writes to ROM received (:data:`ROM_WRITES`): the flash's wear.
+        self.rom_writes = 0
         #: 0xB6: the reads sent without requests, each with its interval and next time, s (RAM: a restart ends them).
         self.active_replies: dict[int, tuple[float, float]] = {}
         self._motion: MotionCommand | None = None
@@ -271,6 +285,8 @@ class EmulatedDriveV3(EmulatedDrive):
         return self._reply_v3(command, layout.cls, message, transport)
 
     def _execute_v3(self, command: CommandV3, message: Message, now_s: float) -> None:
+        if command in ROM_WRITES:
+            self.rom_writes += 1
         if isinstance(message, PidParameter) and command is not CommandV3.READ_PID:
             self.pid_floats[message.index] = message.value
             if command is CommandV3.WRITE_PID_ROM:

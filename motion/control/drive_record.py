@@ -1,0 +1,100 @@
+"""The host's record of the drives' ROM-backed settings: what rmd-motion last wrote where the drive cannot be asked
+(the V3 driver's 0xB3 communication-loss time has no read), what a drive held before rmd-motion first changed it (for
+``rmd-motion drives restore``), and how many ROM writes rmd-motion has made to each drive.
+
+A session writes a ROM-backed setting only when the drive's value (read, or for 0xB3 recorded here) differs from what
+the session needs, so a second connect with the same configuration writes nothing (flash wears with every write).
+One JSON file on the host (``drives.json`` in rmd-motion's state folder), keyed by the bus (``Transport.describe()``)
+and the motor id. A drive swapped for another,
+or changed by another tool, is not seen by the record: ``rmd-motion drives restore`` (or deleting the file) makes the
+next session write again. Emulated drives in simulated time are new in every session: their record stays in memory.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+logger = logging.getLogger(__name__)
+
+#: The record file's version (a file of another version is set aside, not read).
+_VERSION = 1
+
+
+class DriveRecord:
+    """The record (module docstring): per drive, named settings and the ROM writes counted.
+
+    Args:
+        path: the JSON file (None: in memory only). A file that cannot be read is logged and replaced at the next
+            write; one that cannot be written is logged (the session goes on: the record only saves writes).
+    """
+
+    def __init__(self, path: Path | None) -> None:
+        self.path = path
+        self._drives: dict[str, dict[str, Any]] = {}
+        if path is not None and path.exists():
+            try:
+                data = json.loads(path.read_text(encoding="utf-8"))
+                if data.get("version") == _VERSION and isinstance(data.get("drives"), dict):
+                    self._drives = data["drives"]
+                else:
+                    logger.warning("%s: not a drive record of version %d; starting a new one", path, _VERSION)
+            except (OSError, ValueError, AttributeError) as exc:
+                logger.warning("%s: unreadable drive record (%s); starting a new one", path, exc)
+
+    @staticmethod
+    def key(bus: str, motor_id: int) -> str:
+        """The record's key of a drive: its bus's description and its id."""
+        return f"{bus} #{motor_id}"
+
+    def get(self, key: str, name: str) -> Any:
+        """A setting of drive ``key`` (None: not recorded)."""
+        return self._drives.get(key, {}).get(name)
+
+    def put(self, key: str, name: str, value: Any) -> None:
+        """Record a setting (None removes it)."""
+        entry = self._drives.setdefault(key, {})
+        if value is None:
+            entry.pop(name, None)
+        else:
+            entry[name] = value
+
+    def count_rom_writes(self, key: str, writes: int) -> None:
+        """Add ``writes`` ROM writes to drive ``key``'s count."""
+        entry = self._drives.setdefault(key, {})
+        entry["rom_writes"] = int(entry.get("rom_writes", 0)) + writes
+
+    def rom_writes(self, key: str) -> int:
+        """The ROM writes rmd-motion has made to drive ``key`` (as recorded)."""
+        return int(self._drives.get(key, {}).get("rom_writes", 0))
+
+    def save(self) -> None:
+        """Write the file (atomically: a new file renamed over the old one)."""
+        if self.path is None:
+            return
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            text = json.dumps({"version": _VERSION, "drives": self._drives}, indent=1, sort_keys=True)
+            with tempfile.NamedTemporaryFile("w", dir=self.path.parent, delete=False, encoding="utf-8") as out:
+                out.write(text)
+            os.replace(out.name, self.path)
+        except OSError as exc:
+            logger.warning("%s: the drive record was not written (%s)", self.path, exc)
+
+
+#: A drive's runtime (0xB1) may differ from the host's clock by this share of the time between two readings, plus
+#: :data:`RUNTIME_SLACK_S`, for them to be taken as one power-on of one drive.
+RUNTIME_DRIFT = 0.1
+RUNTIME_SLACK_S = 5.0
+
+
+def same_power_on(runtime_then_s: float, at_then_s: float, runtime_now_s: float, now_s: float) -> bool:
+    """Whether a drive whose runtime (time since its power-on, 0xB1) read ``runtime_then_s`` at host time
+    ``at_then_s`` and reads ``runtime_now_s`` at ``now_s`` has run all along since: its runtime went on as the host's
+    clock did. False for a drive that was powered off and on since (or another drive on its id)."""
+    ran_s, passed_s = runtime_now_s - runtime_then_s, now_s - at_then_s
+    return ran_s >= 0.0 and abs(ran_s - passed_s) <= RUNTIME_DRIFT * max(passed_s, 0.0) + RUNTIME_SLACK_S
