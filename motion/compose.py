@@ -608,6 +608,12 @@ def resolve_frames(
         powered_since=[
             _powered_since(r, runtimes.get(j.motor_id), now) for j, r in zip(config.joints, found, strict=True)
         ],
+        # drives that report their output shaft (V3): the reading is the joint's (the joints about to be homed aside)
+        output_turns=[
+            _output_turn(s.drive_gear_ratio) if controller.family.output_shaft and s.name not in provisional else None
+            for s in controller.specs
+        ],
+        limits=[(j.position_min_deg, j.position_max_deg) for j in config.joints],
     )
     resolved = tuple(
         dataclasses.replace(t, power_on=None if j.motor_id not in runtimes else (runtimes[j.motor_id], now))
@@ -626,6 +632,12 @@ def resolve_frames(
                 turn_joint_deg(t),
             )
     return resolved
+
+
+def _output_turn(drive_gear_ratio: float) -> int:
+    """Motor turns per output turn of a drive with this reduction (0: not a whole number)."""
+    turns = round(drive_gear_ratio)
+    return turns if turns >= 1 and abs(drive_gear_ratio - turns) < 1e-9 else 0
 
 
 def _powered_since(record: TurnRecord | None, runtime_s: float | None, now_s: float) -> bool | None:

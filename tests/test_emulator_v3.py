@@ -554,3 +554,24 @@ def test_an_rs485_transport_talks_to_v3_drives_in_another_process(tmp_path: Path
         process.send_signal(signal.SIGTERM)
         _, stderr = process.communicate(timeout=10)
     assert "rs485: 3 requests, 3 replies, 0 protocol errors" in stderr
+
+
+def test_the_multi_turn_angle_restarts_within_one_output_turn_unless_the_drive_keeps_it() -> None:
+    # Issue 31 §3, section 2.12: 0x92 is the output shaft's multi-turn angle; function 0x20 index 4 = 1 keeps it over
+    # power-off, 0 (single-turn mode, the emulated drives' default) restarts it within 0..360 output degrees
+    emulator = _emulator()
+
+    def angle_after_reset(target_deg: float) -> tuple[float, float]:
+        _one(emulator, MultiTurnPositionSpeed(target_deg, 360.0))
+        emulator.advance(2.0)
+        before = _one(emulator, BareV3(C.READ_MULTI_TURN_ANGLE))
+        assert emulator.request(1, BareV3(C.RESET)) == []
+        after = _one(emulator, BareV3(C.READ_MULTI_TURN_ANGLE))
+        assert isinstance(before, MultiTurnAngle) and isinstance(after, MultiTurnAngle)
+        return before.angle_deg, after.angle_deg
+
+    before, after = angle_after_reset(370.0)
+    assert before == pytest.approx(370.0, abs=0.5) and after == pytest.approx(10.0, abs=0.5)
+    _one(emulator, FunctionControl(FunctionIndex.SAVE_MULTI_TURN, 1))
+    before, after = angle_after_reset(-370.0)  # (in the frame of the restart: a turn and a bit the other way)
+    assert before == pytest.approx(-370.0, abs=0.5) and after == before

@@ -26,6 +26,7 @@ from motion.emulator import Fault, InjectedFault
 from motion.errors import MotionError, MotionFault, PlanningError, TransportError
 from motion.protocol import Command, MultiTurnPositionSpeed
 from motion.protocol.table import ProtocolFamily
+from motion.protocol.v3.messages import CommandV3
 from motion.safety import ArmEvent, ArmState, InvalidTransition, Reaction, StateMachine, Supervisor
 from motion.safety.states import SAFE_STATE, TRANSITIONS
 from motion.trajectory import JointLimits, Planner, State
@@ -58,7 +59,7 @@ def _move_and_catch(
     *,
     detected_in: int | None = None,
     status_read_of: int | None = None,
-    read: Command = Command.READ_STATUS_1,
+    read: int = Command.READ_STATUS_1,
     after_s: float = 0.4,
 ) -> MotionFault:
     """Start a move, inject a fault, wait for it; assert how many cycles detection took (simulated time: exact).
@@ -141,8 +142,9 @@ def test_drive_over_temperature_flag(tmp_path: Path) -> None:
 
 def test_a_drive_that_restarts_mid_move_halts_every_axis(family: ProtocolFamily, tmp_path: Path) -> None:
     # issue 16: a brown-out of one drive: its multi-turn angle restarts from the single-turn reading, and every
-    # target in the old frame would be off by whole turns; seen in the first 0x92 read that goes to it (V3: which is
-    # the next cycle's, as every cycle reads it)
+    # target in the old frame would be off by whole turns; seen in the first 0x92 read that goes to it. A V3 drive's
+    # angle is the output's and restarts within one output turn (issue 31 §3): where the output is in its first turn
+    # it does not change, and the restart shows in the first runtime read (0xB1) that goes to it, which starts again
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         elbow = rig.emulator.drives[2]
 
@@ -153,10 +155,11 @@ def test_a_drive_that_restarts_mid_move_halts_every_axis(family: ProtocolFamily,
         if family is ProtocolFamily.V2:
             read = Command.READ_MULTI_TURN_ANGLE
             fault = _move_and_catch(rig, power_cycle, status_read_of=2, read=read, after_s=1.2)
+            assert fault.value is not None and abs(fault.value - round(fault.value)) < 0.05 and round(fault.value) != 0
         else:
-            fault = _move_and_catch(rig, power_cycle, detected_in=1, after_s=1.2)
+            fault = _move_and_catch(rig, power_cycle, status_read_of=2, read=CommandV3.READ_RUNTIME, after_s=1.2)
+            assert "runtime (0xB1) went back" in str(fault)
         assert fault.kind == "drive_restarted" and fault.joint == "elbow"
-        assert fault.value is not None and abs(fault.value - round(fault.value)) < 0.05 and round(fault.value) != 0
         _assert_halted_in_detection_cycle(rig)
         _assert_comes_to_rest(rig)
 

@@ -29,12 +29,14 @@ from motion.control.turns import (
     drive_reading,
     edge_margin_deg,
     resolve_joint,
+    resolve_output_joint,
     resolve_turns,
 )
 from motion.emulator import Emulator
 from motion.emulator.drive import RunState
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.protocol import WireProtocol
+from motion.protocol.table import ProtocolFamily
 from motion.transmission import ArmTransmission, Transmission
 from tests.motion_rig import arm_config
 
@@ -232,3 +234,85 @@ def test_records_are_kept_per_arm_and_bus_and_a_bad_file_is_left_aside(caplog: p
     path.write_text("{not json")
     assert load_turn_records(config, "can slcan:/dev/ttyACM0") == {}
     assert "recorded turn offsets ignored" in caplog.text
+
+
+# ---------------------------------------------------------------------------------------------- V3: output-shaft angles
+
+
+@pytest.mark.parametrize(
+    ("reading_output_deg", "source", "turns", "joint_deg"),
+    [
+        (50.0, Source.ABSOLUTE, 0, 50.0),  # issue 31 §3: a V3 reading of 50.00 deg (0x241#9200000088130000)
+        (-10.0, Source.ABSOLUTE, 0, -10.0),  # a drive that keeps its multi-turn value
+        (350.0, Source.OUTPUT_TURN, -9, -10.0),  # single-turn mode, powered up at -10 deg: one output turn back
+        (400.0, Source.OUTPUT_TURN, -9, 40.0),
+    ],
+)
+def test_an_output_shaft_reading_is_the_joints_angle_or_one_output_turn_from_it(
+    reading_output_deg: float, source: Source, turns: int, joint_deg: float
+) -> None:
+    joint = resolve_output_joint("shoulder", GEAR9, reading_output_deg * 9, (-90.0, 90.0), None, output_turn=9)
+    assert (joint.source, joint.turns) == (source, turns)
+    assert joint.joint_deg == pytest.approx(joint_deg)
+
+
+def test_an_output_shaft_reading_no_whole_turn_brings_inside_the_limits_is_refused() -> None:
+    with pytest.raises(
+        TurnError,
+        match=r"joint shoulder: the drive reads 200\.00 output deg, which puts the joint at "
+        r"200\.00 deg, outside its limits \[-90, 90\], and no whole output turn \(360 deg",
+    ):
+        resolve_output_joint("shoulder", GEAR9, 200.0 * 9, (-90.0, 90.0), None, output_turn=9)
+    # limits spanning more than a turn: a reading outside them cannot be told (two turns would do)
+    with pytest.raises(TurnError, match="2 whole output turns would bring it inside"):
+        resolve_output_joint("roll", GEAR9, 550.0 * 9, (-200.0, 200.0), None, output_turn=9)  # 190 or -170
+
+
+def test_an_output_shaft_drive_that_ran_since_the_record_keeps_its_turns_wherever_the_joint_went() -> None:
+    record = TurnRecord(1, turns=-9, reading_deg=300.0 * 9, source=Source.OUTPUT_TURN, power_on=(10.0, 1000.0))
+    for powered_since, expected in ((True, (Source.KEPT, -9)), (False, (Source.OUTPUT_TURN, -9))):
+        joint = resolve_output_joint(
+            "shoulder", GEAR9, 350.0 * 9, (-90.0, 90.0), record, powered_since=powered_since, output_turn=9
+        )
+        assert (joint.source, joint.turns) == expected
+
+
+@pytest.mark.parametrize(
+    ("pose", "readings", "resolved"),
+    [
+        # a reading of 50.00 deg was refused before (§3); the elbow turns the other way: -10 deg reads 10
+        ([50.0, -10.0], [50.0, 10.0], [(Source.ABSOLUTE, 0), (Source.ABSOLUTE, 0)]),
+        # single-turn mode: -10 deg reads 350, the elbow at 50 reads 310 (-50): one output turn each
+        ([-10.0, 50.0], [350.0, 310.0], [(Source.OUTPUT_TURN, -9), (Source.OUTPUT_TURN, -9)]),
+    ],
+)
+def test_v3_arm2_powered_up_away_from_zero_is_read_where_it_is_without_a_window(
+    pose: list[float], readings: list[float], resolved: list[tuple[Source, int]]
+) -> None:
+    # arm2's windows ([-5, 5]) are for the older drives: a V3 drive's reading is the output's, 0..360 deg after a
+    # power-up in single-turn mode (the emulated drives' default)
+    config = arm_config("arm2.yaml", rate_hz=200)
+    emulator, plant = arm_emulator(config, initial_deg=pose, family=ProtocolFamily.V3)
+    for drive in emulator.drives.values():
+        drive.power_cycle()
+    read = [drive.angle_deg / drive.model.gear_ratio for drive in emulator.drives.values()]
+    assert read == pytest.approx(readings, abs=0.05)
+    simulation = Simulation(emulator, WireProtocol.CAN)
+    controller = build_controller(
+        config,
+        SimulatedBus(simulation, ProtocolFamily.V3),
+        feedforward=feedforward_for(config),
+        clock=SimulatedClock(simulation),
+    )
+    turns = resolve_frames(controller, config)
+    assert [(t.source, t.turns) for t in turns] == resolved
+    np.testing.assert_allclose(controller.read_positions(), pose, atol=0.05)
+    supervisor = build_supervisor(config, controller)
+    supervisor.start()
+    try:
+        supervisor.move_to([20.0, 10.0], 0.5)
+        assert supervisor.wait(10.0)
+        controller.pause(0.5)
+        np.testing.assert_allclose(plant.joint_positions_deg(), [20.0, 10.0], atol=0.1)
+    finally:
+        supervisor.close()

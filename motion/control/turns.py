@@ -32,6 +32,15 @@ left (:class:`TurnRecord`, kept per arm by :mod:`motion.compose`):
    (``Source.ASSUMED``; connect warns once, naming the span of joint angles that assumption covers).
 
 Homing (:mod:`motion.compose`) sets the turns from a hard stop instead (``Source.HOMED``).
+
+Drives that report their **output shaft** (V3, V4.2 document section 2.12: 0x92 is the multi-turn angle of the
+output) need no power-on window (:func:`resolve_output_joint`): their reading is the joint's angle, kept over power-off
+where the drive is set to (function 0x20 index 4 = 1), else restarted within one output turn (0..360 output degrees).
+After rule 0 and a record that continues into the reading (rule 2), a V3 joint takes the reading itself where it lies
+within the joint's limits (``Source.ABSOLUTE``), else the whole output turns that bring it inside them, where one
+count does (``Source.OUTPUT_TURN``: a drive in single-turn mode powered up at a negative angle); anything else is
+refused. A joint whose limits span a whole output turn or more cannot tell single-turn readings apart: it takes the
+reading (the drive must keep its multi-turn value, 0x20 index 4).
 """
 
 from __future__ import annotations
@@ -69,6 +78,8 @@ class Source(StrEnum):
     ASSUMED = "assumed (no window)"
     HOMED = "homed"
     EMULATED = "emulated drives powered up at the zero pose"
+    ABSOLUTE = "the drive's output-shaft angle (V3)"
+    OUTPUT_TURN = "the output turn inside the joint's limits (V3)"
 
 
 @dataclass(frozen=True, slots=True)
@@ -235,6 +246,49 @@ def resolve_joint(
     return JointTurns(name, turns, Source.WINDOW, reading_deg, joint_angle(transmission, reading_deg, turns), window)
 
 
+def resolve_output_joint(
+    name: str,
+    transmission: Transmission,
+    reading_deg: float,
+    limits: tuple[float, float],
+    record: TurnRecord | None,
+    *,
+    powered_since: bool | None = None,
+    output_turn: int,
+) -> JointTurns:
+    """One joint's turn offset on a drive that reports its output shaft (the module docstring's last paragraph).
+    ``output_turn``: motor turns per output turn of the drive (its reduction; 0 where that is no whole number: the
+    reading alone counts); ``limits``: the joint's, degrees.
+
+    Raises:
+        TurnError: no whole output turn puts the joint inside its limits.
+    """
+    if record is not None and (powered_since or abs(reading_deg - record.reading_deg) <= CONTINUITY_MOTOR_DEG):
+        return _joint_turns(name, transmission, reading_deg, None, record.turns, Source.KEPT, Source.KEPT)
+    lo, hi = limits
+    q0 = joint_angle(transmission, reading_deg, 0)
+    if lo <= q0 <= hi:
+        return JointTurns(name, 0, Source.ABSOLUTE, reading_deg, q0, None)
+    step = transmission.direction * output_turn * turn_joint_deg(transmission)  # joint degrees per output turn
+    inside = []
+    if step:  # (0: a reduction that is no whole number of motor turns; the reading alone)
+        ratio = (lo - q0) / step
+        inside = [k for k in range(math.floor(ratio) - 1, math.ceil(ratio) + 2) if lo <= q0 + k * step <= hi]
+    if len(inside) != 1:
+        raise TurnError(
+            f"joint {name}: the drive reads {reading_deg / output_turn:.2f} output deg, which puts the joint at "
+            f"{q0:.2f} deg, outside its limits [{lo:g}, {hi:g}]"
+            + (
+                f", and no whole output turn ({abs(step):g} deg of this joint) brings it inside"
+                if not inside
+                else f"; {len(inside)} whole output turns would bring it inside: which one cannot be told"
+            )
+            + ": move it inside its limits by hand with the drives off, or home it (`rmd-motion home`)"
+        )
+    turns = inside[0] * output_turn
+    return JointTurns(name, turns, Source.OUTPUT_TURN, reading_deg, joint_angle(transmission, reading_deg, turns), None)
+
+
 def _joint_turns(  # noqa: PLR0917 - the resolver's own helper
     name: str,
     transmission: Transmission,
@@ -257,19 +311,35 @@ def resolve_turns(
     records: Sequence[TurnRecord | None],
     *,
     powered_since: Sequence[bool | None] | None = None,
+    output_turns: Sequence[int | None] | None = None,
+    limits: Sequence[tuple[float, float]] | None = None,
 ) -> tuple[JointTurns, ...]:
-    """Every joint's turn offset (``powered_since``: see :func:`resolve_joint`, per joint); all refusals are collected
-    into one error.
+    """Every joint's turn offset (``powered_since``: see :func:`resolve_joint`, per joint; ``output_turns``: per joint,
+    the motor turns of one output turn of a drive that reports its output shaft, None for the others, which then need
+    ``limits``: :func:`resolve_output_joint`); all refusals are collected into one error.
 
     Raises:
         TurnError: one or more joints with a window whose turns cannot be told (one line each).
     """
     resolved: list[JointTurns] = []
     problems: list[str] = []
-    since = [None] * len(names) if powered_since is None else powered_since
-    for *args, powered in zip(names, transmissions, readings_deg, windows, records, since, strict=True):
+    n = len(names)
+    since = [None] * n if powered_since is None else powered_since
+    outputs = [None] * n if output_turns is None else output_turns
+    for i, (*args, powered, output) in enumerate(
+        zip(names, transmissions, readings_deg, windows, records, since, outputs, strict=True)
+    ):
         try:
-            resolved.append(resolve_joint(*args, powered_since=powered))
+            if output is None:
+                resolved.append(resolve_joint(*args, powered_since=powered))
+            else:
+                assert limits is not None
+                name, transmission, reading, _window, record = args
+                resolved.append(
+                    resolve_output_joint(
+                        name, transmission, reading, limits[i], record, powered_since=powered, output_turn=output
+                    )
+                )
         except TurnError as exc:
             problems.append(str(exc))
     if problems:

@@ -189,10 +189,14 @@ class EmulatedDrive:
         self._apply_gains()
         self.acceleration_dps2 = self.model.acceleration_dps2
         self._offset_ram = self._offset_rom
-        counts = self._counts()
-        self._ref_counts = counts - (counts - self._offset_ram) % self._counts_per_rev
+        self._ref_counts = self._frame_at_power_up(self._counts())
         self.errors = ErrorFlags.NONE
         self._turn_off()
+
+    def _frame_at_power_up(self, counts: int) -> int:
+        """The encoder count where the drive's multi-turn angle is 0 after a power-up at ``counts``: the angle starts
+        at the single-turn reading, 0..360 motor degrees (no multi-turn battery)."""
+        return counts - (counts - self._offset_ram) % self._counts_per_rev
 
     def _gain_units(self) -> tuple[float, float, float, float, float]:
         """The loop gains in the documents' units: angle kp, angle ki, speed kp, speed ki, current kp."""

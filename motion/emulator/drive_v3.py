@@ -53,6 +53,7 @@ from motion.protocol.v3.messages import (
     CommandV3,
     CommunicationTimeout,
     FunctionControl,
+    FunctionIndex,
     MotionCommand,
     MotionState,
     MotorModel,
@@ -171,6 +172,14 @@ class EmulatedDriveV3(EmulatedDrive):
         super().power_cycle()
         self.brake = BrakeCommand.LOCK
         self._use_accelerations()
+
+    def _frame_at_power_up(self, counts: int) -> int:
+        """0x92 is the output shaft's multi-turn angle (section 2.12): kept over power-off where function 0x20 index 4
+        is 1 (the frame goes on), else it starts within the first output turn, 0..360 output degrees."""
+        if self.functions.get(FunctionIndex.SAVE_MULTI_TURN) == 1:
+            return self._ref_counts
+        output_turn = self._counts_per_rev * self.model.gear_ratio  # encoder counts per output turn
+        return counts - math.floor((counts - self._offset_ram) % output_turn)
 
     def _gain_units(self) -> tuple[float, float, float, float, float]:
         f = self.pid_floats

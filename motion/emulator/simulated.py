@@ -30,7 +30,7 @@ from typing import Final
 
 from motion.emulator.core import Emulator, Exchange, Outgoing
 from motion.emulator.framelog import FrameLog
-from motion.emulator.timing import TimingModel, can_frame_time_s
+from motion.emulator.timing import TimingModel, can_frame_bits
 from motion.errors import DecodeError
 from motion.protocol import CanFrame, WireProtocol, can_frame, rs485_frame
 from motion.protocol.rs485_frame import rs485_frame_time_s
@@ -69,6 +69,10 @@ class Arrival:
     wire: CanFrame | bytes
 
 
+#: The most CAN frames whose bit counts a simulation remembers (then it starts again).
+_FRAME_BITS_KEPT = 4096
+
+
 class Simulation:
     """Emulated drives on a modelled wire, and the one clock of the run.
 
@@ -99,6 +103,7 @@ class Simulation:
         self.emulator = emulator
         self.protocol = protocol
         self.bitrate = bitrate
+        self._frame_bits: dict[tuple[int, bytes], int] = {}  # (the frames of a run repeat: their bits, remembered)
         self.baud = baud
         self.timing = timing or TimingModel()
         self.frame_log = frame_log
@@ -130,7 +135,13 @@ class Simulation:
     def wire_time_s(self, wire: CanFrame | bytes) -> float:
         """Time a frame occupies the bus, s."""
         if isinstance(wire, CanFrame):
-            return can_frame_time_s(wire.arbitration_id, wire.data, self.bitrate)
+            key = (wire.arbitration_id, wire.data)
+            bits = self._frame_bits.get(key)
+            if bits is None:
+                if len(self._frame_bits) >= _FRAME_BITS_KEPT:
+                    self._frame_bits.clear()
+                bits = self._frame_bits[key] = can_frame_bits(*key)
+            return bits / self.bitrate
         return rs485_frame_time_s(len(wire), self.baud)
 
     def submit(self, wire: CanFrame | bytes) -> None:
@@ -180,7 +191,8 @@ class Simulation:
                 continue
             assert frame.outgoing is not None  # every reply frame carries its outgoing record
             self._arrived.append(Arrival(end, frame.outgoing.motor_id, frame.wire))
-            self._log("OUT", frame.wire, f"motor {frame.outgoing.motor_id}: {frame.outgoing.message}", end)
+            if self.frame_log is not None:  # (the text only where it is written: a message's repr is not free)
+                self._log("OUT", frame.wire, f"motor {frame.outgoing.motor_id}: {frame.outgoing.message}", end)
             if stop_at_arrival and end <= limit_s:
                 return
 
@@ -199,10 +211,11 @@ class Simulation:
             self.decode_errors += 1
             self._log("BAD", wire, f"{type(exc).__name__}: {exc}", arrival_s)
             return
-        target = f"motor {exchange.motor_id}" if exchange.motor_id is not None else "motors 1-4"
-        self._log("IN", wire, f"{target}: {exchange.request}", arrival_s)
-        for note in exchange.notes:
-            self._log("NOTE", wire, note, arrival_s)
+        if self.frame_log is not None:
+            target = f"motor {exchange.motor_id}" if exchange.motor_id is not None else "motors 1-4"
+            self._log("IN", wire, f"{target}: {exchange.request}", arrival_s)
+            for note in exchange.notes:
+                self._log("NOTE", wire, note, arrival_s)
         if not exchange.replies:
             self.unanswered += 1
         for outgoing in exchange.replies:
