@@ -189,14 +189,8 @@ def _powered_up_at(config: ArmConfig, pose_deg: list[float]) -> tuple[Emulator, 
     return emulator, plant, controller
 
 
-def test_arm2_powered_up_away_from_zero_is_read_where_it_is_and_moves_where_commanded() -> None:
-    config = _arm2_with_windows((55.0, 65.0), (-55.0, -45.0))
-    emulator, plant, controller = _powered_up_at(config, [60.0, -50.0])
-    readings = [drive.angle_deg for drive in emulator.drives.values()]
-    assert all(0.0 <= r < 360.0 for r in readings)  # the drives know the joints only modulo 40 deg
-    turns = resolve_frames(controller, config)
-    assert [(t.source, t.turns) for t in turns] == [(Source.WINDOW, 1), (Source.WINDOW, 1)]
-    np.testing.assert_allclose(controller.read_positions(), [60.0, -50.0], atol=0.01)
+def _moves_where_commanded(config: ArmConfig, controller: Controller, plant: ArmPlant) -> None:
+    """A supervised move of arm2 to (20, 10) deg lands there, as the plant and the controller see it."""
     supervisor = build_supervisor(config, controller)
     supervisor.start()
     try:
@@ -207,6 +201,17 @@ def test_arm2_powered_up_away_from_zero_is_read_where_it_is_and_moves_where_comm
         np.testing.assert_allclose(controller.snapshot.position_deg, [20.0, 10.0], atol=0.1)
     finally:
         supervisor.close()
+
+
+def test_arm2_powered_up_away_from_zero_is_read_where_it_is_and_moves_where_commanded() -> None:
+    config = _arm2_with_windows((55.0, 65.0), (-55.0, -45.0))
+    emulator, plant, controller = _powered_up_at(config, [60.0, -50.0])
+    readings = [drive.angle_deg for drive in emulator.drives.values()]
+    assert all(0.0 <= r < 360.0 for r in readings)  # the drives know the joints only modulo 40 deg
+    turns = resolve_frames(controller, config)
+    assert [(t.source, t.turns) for t in turns] == [(Source.WINDOW, 1), (Source.WINDOW, 1)]
+    np.testing.assert_allclose(controller.read_positions(), [60.0, -50.0], atol=0.01)
+    _moves_where_commanded(config, controller, plant)
 
 
 def test_a_window_that_misses_the_true_pose_is_refused_before_any_command() -> None:
@@ -307,12 +312,4 @@ def test_v3_arm2_powered_up_away_from_zero_is_read_where_it_is_without_a_window(
     turns = resolve_frames(controller, config)
     assert [(t.source, t.turns) for t in turns] == resolved
     np.testing.assert_allclose(controller.read_positions(), pose, atol=0.05)
-    supervisor = build_supervisor(config, controller)
-    supervisor.start()
-    try:
-        supervisor.move_to([20.0, 10.0], 0.5)
-        assert supervisor.wait(10.0)
-        controller.pause(0.5)
-        np.testing.assert_allclose(plant.joint_positions_deg(), [20.0, 10.0], atol=0.1)
-    finally:
-        supervisor.close()
+    _moves_where_commanded(config, controller, plant)
