@@ -533,12 +533,12 @@ class Arm:
 
         self.view = LiveView(self.config, arm_figure, stop, host=options.host, port=options.port)
         self._stack.callback(self._close_view)
-        controller.publish_tap = self.view.publish
+        controller.publisher.tap = self.view.publish
 
     def _close_view(self) -> None:
         if self.view is not None:
             if self.controller is not None:
-                self.controller.publish_tap = None
+                self.controller.publisher.tap = None
             self.view.close()
             self.view = None
 

@@ -32,6 +32,7 @@ from motion.control.drive_record import DriveRecord, same_power_on
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.family import FAMILIES
 from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
+from motion.control.startup import read_angles, read_runtimes
 from motion.control.tracking import MoveRecord, PositionLoop, PositionLoopFit, fit_position_loop
 from motion.control.turns import (
     JointTurns,
@@ -594,8 +595,8 @@ def resolve_frames(
         TurnError: a joint with a window whose turns cannot be told (nothing has moved).
         TransportError: a drive did not answer.
     """
-    readings = controller.read_angles()
-    runtimes, now = controller.read_runtimes(), time.time()
+    readings = read_angles(controller)
+    runtimes, now = read_runtimes(controller), time.time()
     base = controller.base_transmission.transmissions
     known = records or {}
     found = [known.get(j.name) for j in config.joints]

@@ -402,7 +402,7 @@ class LiveView:
 
     The page (viser, the figures, the plots) runs in a process of its own, so that none of its work shares the
     control loop's interpreter or competes with it for a CPU. The loop itself hands it the published snapshot
-    (:meth:`publish`, the controller's ``publish_tap``): at most :data:`VIEW_RATE_HZ` times a second, and at once when
+    (:meth:`publish`, its publisher's ``tap``): at most :data:`VIEW_RATE_HZ` times a second, and at once when
     the arm's state changes, one datagram of a few hundred bytes on a non-blocking socket (gathered from its parts:
     no copy of the joint rows), dropped (and counted) when the page is behind; no other thread of this process runs
     while the arm runs. A thread blocked on the page's messages takes back STOP and the number of browsers.

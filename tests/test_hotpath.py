@@ -22,6 +22,7 @@ from motion.config import load_config
 from motion.config.schema import ControlMode
 from motion.control.axes import AxisSpec, AxisStates
 from motion.control.controller import Controller
+from motion.control.setpoints import PositionSetpoints
 from motion.emulator import Emulator
 from motion.emulator.simulated import SimulatedBus, Simulation
 from motion.errors import EncodeError
@@ -87,8 +88,10 @@ def test_position_setpoints_are_the_array_formulas(position: Controller, data: s
     options, transmission = position.options, position.transmission
     angle = transmission.motor_deg(ref.position)
     speed = np.abs(transmission.motor_rate(ref.velocity)) * options.speed_headroom
-    speed += position._speed_floor_dps
-    speed = np.minimum(speed, np.minimum(65535.0, position._speed_limit_dps))  # the field, the joint's limit
+    builder = position.builder
+    assert isinstance(builder, PositionSetpoints)
+    speed += builder.speed_floor_dps
+    speed = np.minimum(speed, np.minimum(65535.0, builder.speed_limit_dps))  # the field, the joint's limit
     messages = [r.message for r in requests]
     assert all(isinstance(m, MultiTurnPositionSpeed) for m in messages)
     assert [m.angle_deg for m in messages] == angle.tolist()  # type: ignore[attr-defined]

@@ -1,10 +1,7 @@
 """The controller: one cycle = take the replies -> update state -> plan the next set-point -> build the batch ->
 one ``transact`` by the deadline.
 
-Position mode streams 0xA4 (multi-turn angle + max speed) per joint. Torque mode computes, per joint,
-``tau = feedforward(q, qd_ref, qdd_ref) + Kp (q_ref - q) + Kd (qd_ref - qd)``, converts it to torque current
-(limited per joint; the limiting is recorded) and sends it in one 0x280 frame for motor ids 1..4 (CAN) and 0xA1
-frames for the others (and for every joint on RS485).
+The set-points of each control mode are built by its builder (:mod:`motion.control.setpoints`).
 
 Motion commands (:meth:`Controller.move_to`, :meth:`Controller.follow`, :meth:`Controller.stop_motion`) may come from
 any thread: they are queued and planned in the control thread at the start of the next cycle, from the reference at
@@ -13,14 +10,10 @@ that instant, so a new target never steps the reference's velocity or accelerati
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 import math
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Final, TypeAlias
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,31 +21,34 @@ from numpy.typing import NDArray
 from motion.config.schema import ControlMode
 from motion.control.axes import AxisSpec, AxisStates
 from motion.control.clock import Clock, MonotonicClock, is_simulated
+from motion.control.commands import (
+    CommandQueue,
+    MoveCommand,
+    PathCommand,
+    Pending,
+    PlayCommand,
+    StopCommand,
+    planning_limits,
+)
 from motion.control.family import FAMILIES
 from motion.control.scheduler import CycleFn, FixedRateLoop, LoopStatistics
-from motion.control.snapshot import JOINT_ROWS, CycleSnapshot, frozen
+from motion.control.setpoints import BuilderSettings, Feedforward, Setpoints, TorqueSetpoints, setpoint_builder
+from motion.control.snapshot import CycleSnapshot, SnapshotPublisher
+from motion.control.startup import read_every_drive
 from motion.control.tracking import ExpectedTracking
-from motion.errors import MotionError, MotionFault, PlanningError, TransportError
+from motion.errors import MotionError, PlanningError, TransportError
 from motion.protocol import (
     Command,
     Message,
     MotorState,
-    MultiMotorTorque,
     MultiTurnAngle,
-    MultiTurnPositionSpeed,
-    TorqueControl,
     WireProtocol,
 )
-from motion.protocol.compiled import frozen_builder
-from motion.protocol.scales import iq_amps
-from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS
-from motion.protocol.v3.messages import CommandV3, Runtime
 from motion.trajectory import Follower, JointLimits, Path, Planner, State
 from motion.transmission import ArmTransmission, FloatArray
 from motion.transport.base import Reply, Request, Transport
 
-#: ``feedforward(q_deg, qd_dps, qdd_dps2) -> tau_nm``, arrays in joint order (gravity, optionally inertia).
-Feedforward = Callable[[FloatArray, FloatArray, FloatArray], FloatArray]
+__all__ = ["Controller", "ControllerOptions", "Feedforward", "Setpoints"]
 
 # How often a thread that waits on a running loop looks again, s.
 _POLL_S = 0.002
@@ -92,92 +88,6 @@ class ControllerOptions:
     multi_motor_frame: bool = True
 
 
-def planning_limits(limits: JointLimits, options: ControllerOptions) -> JointLimits:
-    """The limits the planner plans within: the joints' own, but for position mode's velocities, which keep
-    ``options.catch_up_share`` of each limit free (the 0xA4 cap is the limit itself)."""
-    if options.mode is not ControlMode.POSITION or not options.catch_up_share:
-        return limits
-    share = 1.0 - options.catch_up_share
-    return dataclasses.replace(limits, velocity_dps=tuple(v * share for v in limits.velocity_dps))
-
-
-#: How often a read before the loop is asked of a drive that did not answer (see ``Controller._read_every_drive``).
-_READ_ATTEMPTS: Final = 3
-
-
-@dataclass(frozen=True, slots=True)
-class MoveCommand:
-    """Queued: a coordinated move to ``target_deg`` (joint order)."""
-
-    target_deg: FloatArray
-    speed_scale: float
-
-
-@dataclass(frozen=True, slots=True)
-class PathCommand:
-    """Queued: a path through ``waypoints_deg`` (one row per waypoint)."""
-
-    waypoints_deg: FloatArray
-    speed_scale: float
-
-
-@dataclass(frozen=True, slots=True)
-class PlayCommand:
-    """Queued: a path planned elsewhere, played as it is."""
-
-    path: Path
-
-
-@dataclass(frozen=True, slots=True)
-class StopCommand:
-    """Queued: a jerk-limited stop of the current motion (not a fault)."""
-
-
-# Constructors of the messages built every cycle that set the slots directly (a frozen dataclass's own __init__ goes
-# through object.__setattr__ for each field, several times slower); same objects, same equality.
-_NEW_REQUEST: Final = frozen_builder(Request)
-_NEW_POSITION: Final = frozen_builder(MultiTurnPositionSpeed)
-_NEW_TORQUE: Final = frozen_builder(TorqueControl)
-# The snapshot from its six fields in one tuple (what the named tuple's own constructor does, minus a call).
-_SnapshotFields: TypeAlias = tuple[
-    int, float, NDArray[np.float64], bool, float, float, str, MotionFault | None, int, int, float
-]
-_new_snapshot: Final[Callable[[_SnapshotFields], CycleSnapshot]] = functools.partial(tuple.__new__, CycleSnapshot)
-_NEW_MULTI_TORQUE: Final = frozen_builder(MultiMotorTorque)
-
-
-@dataclass(slots=True)
-class Setpoints:
-    """What the latest cycle commanded, per joint in joint order (a typed record of the batch's set-points).
-
-    The builders update the arrays in place (no allocation per cycle); they are read in the loop's thread (cycle
-    hooks, telemetry). Other threads read the published snapshot instead.
-
-    Attributes:
-        commanded: the latest cycle sent set-points (False while halted: reads only).
-        motor_angle_deg: position mode: the 0xA4 targets, motor side, deg.
-        max_speed_dps: position mode: their speed caps, motor side, deg/s.
-        torque_nm: torque mode: the joint torque asked for (feed-forward + PD), before the current limit, N·m.
-        limited: torque mode: the joints whose current was limited.
-    """
-
-    commanded: bool
-    motor_angle_deg: FloatArray
-    max_speed_dps: FloatArray
-    torque_nm: FloatArray
-    limited: NDArray[np.bool_]
-
-    @classmethod
-    def zeros(cls, n_joints: int) -> Setpoints:
-        """Nothing commanded yet."""
-        nan = np.full(n_joints, np.nan)
-        return cls(False, nan.copy(), nan.copy(), np.zeros(n_joints), np.zeros(n_joints, dtype=bool))
-
-
-#: A motion command waiting for the next cycle (a tagged union: each kind is its own class).
-Pending: TypeAlias = MoveCommand | PathCommand | PlayCommand | StopCommand
-
-
 class Controller:
     """Coordinated motion of several RMD joints on one bus.
 
@@ -209,7 +119,7 @@ class Controller:
         self.turns: tuple[int, ...] = (0,) * len(self.specs)
         self.options = options
         self.bus = bus
-        self.planner = Planner(planning_limits(limits, options))
+        self.planner = Planner(planning_limits(limits, options.mode, options.catch_up_share))
         self.feedforward = feedforward
         self.clock: Clock = clock if clock is not None else MonotonicClock()
         self.loop = FixedRateLoop(options.rate_hz, self.cycle, clock=self.clock)
@@ -231,67 +141,40 @@ class Controller:
             if family.angle_every_cycle
             else []
         )
-        self._pending: Pending | None = None
-        self.rejected: PlanningError | None = None
-        self._lock = threading.Lock()
-        self._idle = threading.Event()
-        self._idle.set()
+        self.commands = CommandQueue()
         self._stop_loop = False
         #: The set-points of the latest cycle (updated in place).
         self.setpoints = Setpoints.zeros(len(self.specs))
         self._zero = np.zeros(len(self.specs))
         n = len(self.specs)
-        #: The arm after the latest cycle (replaced, never changed: any thread may read it without a lock).
-        self.snapshot = CycleSnapshot(0, math.nan, frozen([np.zeros(n)] * len(JOINT_ROWS)), False)
-        #: Called by the loop with each published snapshot, in its thread (a live view's feed: must never wait).
-        self.publish_tap: Callable[[CycleSnapshot], None] | None = None
-        # the arm's state and fault as the safety layer last set them (:meth:`set_condition`), and the lock that
-        # keeps a transition from another thread and the loop's next snapshot from overwriting each other
-        self._condition: tuple[str, MotionFault | None] = ("ready", None)
-        self._publish_lock = threading.Lock()
+        #: What the loop publishes after every cycle (:mod:`motion.control.snapshot`).
+        self.publisher = SnapshotPublisher(n)
         self.cycle_hooks: list[Callable[[Controller, float, list[Reply]], None]] = []
         #: The latest exchange's replies.
         self.last_replies: list[Reply] = []
         #: When the latest cycle's exchange went out, s: the drives sampled what they answered then (the collision
         #: observer steps between these instants, the tracking model runs from them: a late cycle is a longer step).
         self.exchanged_s = 0.0
-        #: A per-joint array the safety layer keeps up to date (its collision signal, N·m), published in every
-        #: snapshot as it stands (NaN: none).
-        self.published_signal: NDArray[np.float64] = np.full(n, np.nan)
-        self.published_limit: NDArray[np.float64] = np.full(n, np.nan)
-        # The 0x280 frame commands motors 1..4 whether they belong to the arm or not, so it is used only when all
-        # four are joints of this arm: a foreign drive on the bus is never switched into torque mode.
-        in_multi = [i for i, s in enumerate(self.specs) if s.motor_id in MULTI_TORQUE_MOTOR_IDS]
-        self._multi = (
-            in_multi
-            if options.mode is ControlMode.TORQUE
-            and options.protocol is WireProtocol.CAN
-            and options.multi_motor_frame
-            and family.multi_torque_frame
-            and len(in_multi) == len(MULTI_TORQUE_MOTOR_IDS)
-            else []
-        )
-        self._single = [i for i in range(len(self.specs)) if i not in self._multi]
-        # the joints of the 0x280 frame's four currents, in the frame's order (motors 1..4)
-        self._multi_joints = sorted(self._multi, key=lambda i: MULTI_TORQUE_MOTOR_IDS.index(self.ids[i]))
-        # Constant per cycle, looked up once: the 0xA4 speed cap's terms, per joint (motor id, motor deg per joint
-        # deg, zero offset, floor), and the builder of the mode's batch.
         velocity_limit = np.abs(transmission.motor_rate(np.array(limits.velocity_dps)))
-        self._speed_floor_dps = velocity_limit * options.speed_floor_share
-        self._speed_limit_dps = velocity_limit
-        self._drive_gear = np.array([s.drive_gear_ratio for s in self.specs], dtype=np.float64)
-        self._speed_ceiling_dps = family.speed_ceiling_dps(options.protocol)
-        self._speed_headroom = options.speed_headroom
+        #: The set-points of the mode (:mod:`motion.control.setpoints`).
+        self.builder = setpoint_builder(
+            options.mode,
+            BuilderSettings(
+                self.specs,
+                family,
+                options.protocol,
+                velocity_limit,
+                options.speed_headroom,
+                options.speed_floor_share,
+                self.kp,
+                self.kd,
+                feedforward,
+                options.multi_motor_frame,
+                self.setpoints,
+            ),
+        )
         self._set_frame(transmission)
         self._reply_budget = options.reply_budget
-        self._build: Callable[[State], list[Request]]
-        match options.mode:
-            case ControlMode.POSITION:
-                self._build = self._position_requests
-            case ControlMode.TORQUE:
-                self._build = self._torque_requests
-            case mode:  # never a default: an unknown mode is an error
-                raise ValueError(f"unknown control mode {mode!r}")
 
     # ------------------------------------------------------------------------------------------------ start-up
 
@@ -299,20 +182,7 @@ class Controller:
         """Use ``transmission`` for every angle read and every target sent (before :meth:`read_positions`)."""
         self.transmission = transmission
         self.axes = AxisStates(self.specs, transmission, self.family)
-        # Per axis: motor id, motor deg per joint deg (as ArmTransmission has them), zero offset, speed floor, the
-        # drive's degrees per motor degree (1, or 1 / its reduction where it takes output-shaft angles) and the speed
-        # cap's ceiling in motor deg/s.
-        self._position_axes = tuple(
-            zip(
-                self.ids,
-                [t.direction * t.gear_ratio for t in transmission.transmissions],
-                [t.zero_offset_deg for t in transmission.transmissions],
-                self._speed_floor_dps.tolist(),
-                [1.0 / s.drive_gear_ratio for s in self.specs],
-                np.minimum(self._speed_ceiling_dps * self._drive_gear, self._speed_limit_dps).tolist(),
-                strict=True,
-            )
-        )
+        self.builder.set_frame(transmission, self.axes)
 
     @property
     def angle_reads(self) -> list[Request]:
@@ -333,66 +203,6 @@ class Controller:
         self.turns = tuple(int(k) for k in turns)
         self._set_frame(self.base_transmission.with_turns(self.turns))
 
-    def _read_every_drive(self, reads: Sequence[Message], timeout_s: float) -> list[Reply]:
-        """``reads`` to every drive (before the loop runs), asked again of a drive that missed any of them, up to
-        :data:`_READ_ATTEMPTS` times in all (a frame lost, a host that stalled longer than ``timeout_s``: a drive
-        that answers the next time is no communication error); the replies, the latest of each drive that answered
-        every read."""
-        pending: list[int] = list(self.ids)
-        taken: dict[int, list[Reply]] = {}
-        for _ in range(_READ_ATTEMPTS):
-            requests = [Request(motor_id, message) for motor_id in pending for message in reads]
-            replies = self.bus.transact(requests, self.clock.now() + timeout_s)
-            answered: dict[int, list[Reply]] = {}
-            for reply in replies:
-                answered.setdefault(reply.motor_id, []).append(reply)
-            pending = []
-            for motor_id, group in answered.items():
-                if all(r.message is not None for r in group):
-                    taken[motor_id] = group
-                else:
-                    pending.append(motor_id)
-            if not pending:
-                break
-        return [reply for group in taken.values() for reply in group]
-
-    def read_angles(self, timeout_s: float = 0.2) -> dict[int, float]:
-        """Every drive's multi-turn reading (0x92), motor degrees in the drive's own frame, by motor id (an
-        output-shaft reading times the drive's reduction).
-
-        Raises:
-            TransportError: a drive did not answer by ``timeout_s``.
-        """
-        replies = self._read_every_drive((self.family.bare(Command.READ_MULTI_TURN_ANGLE),), timeout_s)
-        gear = {s.motor_id: s.drive_gear_ratio for s in self.specs}
-        angles = {
-            r.motor_id: r.message.angle_deg * gear[r.motor_id]
-            for r in replies
-            if isinstance(r.message, MultiTurnAngle) and r.motor_id in gear
-        }
-        missing = [s.name for s in self.specs if s.motor_id not in angles]
-        if missing:
-            raise TransportError(
-                f"no reply to the multi-turn angle read (0x92) from joint(s) {', '.join(missing)}{self.bus.junk_note()}"
-            )
-        return angles
-
-    def read_runtimes(self, timeout_s: float = 0.2) -> dict[int, float]:
-        """Every drive's runtime (time since its power-on, 0xB1), s, by motor id, where the family tells it (empty
-        where not: the older drives).
-
-        Raises:
-            TransportError: a drive did not answer by ``timeout_s``.
-        """
-        if not self.family.tells_runtime:
-            return {}
-        replies = self._read_every_drive((self.family.bare(CommandV3.READ_RUNTIME),), timeout_s)
-        runtimes = {r.motor_id: r.message.runtime_ms / 1000.0 for r in replies if isinstance(r.message, Runtime)}
-        missing = [s.name for s in self.specs if s.motor_id not in runtimes]
-        if missing:
-            raise TransportError(f"no reply to the runtime read (0xB1) from joint(s) {', '.join(missing)}")
-        return runtimes
-
     def read_positions(self, timeout_s: float = 0.2) -> FloatArray:
         """Read every axis' multi-turn angle (0x92) and encoder (0x9C) and anchor the position tracking.
 
@@ -404,7 +214,7 @@ class Controller:
         """
         family = self.family
         reads = (family.bare(Command.READ_MULTI_TURN_ANGLE), family.bare(Command.READ_STATUS_2))
-        replies = self._read_every_drive(reads, timeout_s)
+        replies = read_every_drive(self, reads, timeout_s)
         angles: dict[int, float] = {}
         states: dict[int, Message] = {}
         for reply in replies:
@@ -440,9 +250,7 @@ class Controller:
     def _queue(self, pending: Pending) -> None:
         if self.follower is None:
             raise MotionError("read_positions() must run before motion commands")
-        with self._lock:
-            self._pending = pending
-            self._idle.clear()
+        self.commands.put(pending)
 
     def move_to(self, target_deg: Sequence[float] | FloatArray, speed_scale: float = 1.0) -> None:
         """Queue a coordinated move to ``target_deg`` (re-targets a running move). Checked before it is queued.
@@ -478,61 +286,27 @@ class Controller:
     def wait_idle(self, timeout_s: float | None = None) -> bool:
         """Wait until the queued motion has ended; returns False on timeout."""
         if self.loop.stepping:
-            return self.loop.step_until(self._idle.is_set, timeout_s)
-        return self._idle.wait(timeout_s)
+            return self.loop.step_until(self.commands.idle.is_set, timeout_s)
+        return self.commands.idle.wait(timeout_s)
 
     @property
     def idle(self) -> bool:
         """True when no motion is queued or playing (never waits)."""
-        return self._idle.is_set()
+        return self.commands.idle.is_set()
 
     # ------------------------------------------------------------------------------------------------ the cycle
 
     def discard_pending(self) -> None:
         """Drop a queued motion command (a halt must not be overridden by a move queued in the same cycle)."""
-        with self._lock:
-            self._pending = None
+        self.commands.discard()
 
     def take_rejection(self) -> PlanningError | None:
         """The PlanningError of the last queued command that could not be planned from the live reference, once."""
-        with self._lock:
-            error, self.rejected = self.rejected, None
-        return error
-
-    def _apply_pending(self, t_s: float) -> None:
-        with self._lock:
-            pending, self._pending = self._pending, None
-        if pending is None or self.follower is None:
-            return
-        try:
-            self._plan_pending(pending, t_s)
-        except PlanningError as exc:
-            # Not plannable from the live reference (e.g. a re-target whose stop would overshoot a limit): the
-            # current motion goes on and the caller hears of it through take_rejection().
-            with self._lock:
-                self.rejected = exc
-            if not self.follower.moving:
-                self._idle.set()
-
-    def _plan_pending(self, pending: Pending, t_s: float) -> None:
-        follower = self.follower
-        if follower is None:
-            raise MotionError("read_positions() must run before the loop starts")
-        match pending:
-            case MoveCommand(target, speed_scale):
-                follower.move_to(t_s, target, speed_scale=speed_scale)
-            case PathCommand(waypoints, speed_scale):
-                follower.follow(t_s, waypoints, speed_scale=speed_scale)
-            case PlayCommand(path):
-                follower.play(path, t_s)
-            case StopCommand():
-                follower.stop(t_s)
-            case other:  # never a default: an unknown command is an error
-                raise TypeError(f"unknown motion command {other!r}")
+        return self.commands.take_rejection()
 
     def build_requests(self, reference: State) -> list[Request]:
         """The cycle's batch for a reference state (pure apart from recording the set-points)."""
-        return self._build(reference)
+        return self.builder.build(reference)
 
     @property
     def torque_nm(self) -> FloatArray:
@@ -543,72 +317,6 @@ class Controller:
     def limited(self) -> NDArray[np.bool_]:
         """Torque mode: the joints whose current the latest cycle limited."""
         return self.setpoints.limited
-
-    def _position_requests(self, ref: State) -> list[Request]:
-        # Python floats per joint: for a few joints a numpy call costs more than the arithmetic. The operations and
-        # their order are those of ArmTransmission.motor_deg / motor_rate, so the results are the same float64s.
-        # An output-shaft drive takes the motor-side values divided by its reduction (the factor is 1.0 otherwise:
-        # the same float64s).
-        headroom = self._speed_headroom
-        new_request, new_position = _NEW_REQUEST, _NEW_POSITION
-        angles: list[float] = []
-        caps: list[float] = []
-        requests: list[Request] = []
-        for (motor_id, motor_per_joint, offset_deg, floor_dps, to_drive, ceiling), q_deg, qd_dps in zip(
-            self._position_axes, ref.position.tolist(), ref.velocity.tolist(), strict=True
-        ):
-            angle = (q_deg - offset_deg) * motor_per_joint
-            cap = min(abs(qd_dps * motor_per_joint) * headroom + floor_dps, ceiling)
-            angles.append(angle)
-            caps.append(cap)
-            requests.append(new_request(motor_id, new_position(angle * to_drive, cap * to_drive)))
-        record = self.setpoints
-        record.motor_angle_deg[:] = angles
-        record.max_speed_dps[:] = caps
-        return requests
-
-    def _torque_requests(self, ref: State) -> list[Request]:
-        # PD plus the feed-forward, per joint, in Python floats (for a few joints a numpy call costs more than the
-        # arithmetic).
-        axes = self.axes
-        torques = self._pd_torques(ref)
-        if self.feedforward is not None:
-            feedforward_list = self.feedforward(axes.q_deg, ref.velocity, ref.acceleration).tolist()
-            torques = [tau + ff for tau, ff in zip(torques, feedforward_list, strict=True)]
-        return self.torque_frames(torques)
-
-    def _pd_torques(self, ref: State) -> list[float]:
-        axes = self.axes
-        return [
-            kp * (q_ref - q) + kd * (qd_ref - qd)
-            for kp, kd, q_ref, q, qd_ref, qd in zip(
-                self.kp.tolist(),
-                self.kd.tolist(),
-                ref.position.tolist(),
-                axes.q_deg.tolist(),
-                ref.velocity.tolist(),
-                axes.qd_dps.tolist(),
-                strict=True,
-            )
-        ]
-
-    def torque_frames(self, torques: Sequence[float]) -> list[Request]:
-        """The torque-current requests (0xA1, and 0x280 where it applies) for joint torques (N·m, joint order),
-        limited per joint; records the torque and the limiting."""
-        record = self.setpoints
-        record.torque_nm[:] = torques
-        raw, limited = self.transmission.iq_raw_limited_list(torques)
-        record.limited[:] = limited
-        return self._current_requests([iq_amps(r) for r in raw])
-
-    def _current_requests(self, currents: list[float]) -> list[Request]:
-        """0xA1 requests of the joints on their own, and the 0x280 frame of motors 1..4 where it applies."""
-        ids, new_request, new_torque = self.ids, _NEW_REQUEST, _NEW_TORQUE
-        requests = [new_request(ids[i], new_torque(currents[i])) for i in self._single]
-        if self._multi:
-            frame = _NEW_MULTI_TORQUE(*[currents[i] for i in self._multi_joints])
-            requests.append(new_request(MULTI_TORQUE_MOTOR_IDS[0], frame))
-        return requests
 
     def absorb(self, replies: Sequence[Reply]) -> None:
         """Update the axis states from a cycle's replies."""
@@ -641,20 +349,19 @@ class Controller:
         follower = self.follower
         if follower is None:
             raise MotionError("read_positions() must run before the loop starts")
-        if apply_pending and self._pending is not None:
-            self._apply_pending(start_s)
+        if apply_pending and self.commands.waiting:
+            self.commands.apply(follower, start_s)
         self.reference = ref = follower.sample(deadline_s)
         if check is not None:
             check(ref)
-        requests = self._build(ref) if command else []
+        requests = self.builder.build(ref) if command else []
         self.setpoints.commanded = command
         if extra:
             requests.extend(extra)
         if self.tracking.unread:  # the drives' loop settings, last in the first cycles' batches
             requests.extend(self.tracking.next_reads())
         replies = self._exchange(requests, start_s, deadline_s, command)
-        if not follower.moving and self._pending is None and not self._idle.is_set():
-            self._idle.set()  # (Event.set takes a lock and notifies: not again every cycle of a hold)
+        self.commands.settle(follower)
         return replies
 
     def _exchange(self, requests: list[Request], start_s: float, deadline_s: float, commanded: bool) -> list[Reply]:
@@ -679,8 +386,7 @@ class Controller:
         if not commanded:
             tracking.stop_commanding()
             return
-        caps = self.setpoints.max_speed_dps if self.options.mode is ControlMode.POSITION else None
-        tracking.command(start_s, ref.position, ref.velocity, ref.acceleration, caps)
+        tracking.command(start_s, ref.position, ref.velocity, ref.acceleration, self.builder.tracking_caps())
 
     def comply_step(
         self, start_s: float, deadline_s: float, gravity: Feedforward, *, extra: Sequence[Request] = ()
@@ -698,63 +404,37 @@ class Controller:
         Raises:
             MotionError: the controller is not in torque mode (a position stream cannot yield).
         """
-        if self.options.mode is not ControlMode.TORQUE:
+        builder = self.builder
+        if not isinstance(builder, TorqueSetpoints):
             raise MotionError("comply needs torque mode")
         axes = self.axes
         self.reference = State.at_rest(axes.q_deg.copy())
         if self.follower is not None:
             self.follower.hold_at(self.reference.position)
-        requests = self.torque_frames(gravity(axes.q_deg, self._zero, self._zero).tolist())
+        requests = builder.torque_frames(gravity(axes.q_deg, self._zero, self._zero).tolist())
         self.setpoints.commanded = True
         requests.extend(extra)
         return self._exchange(requests, start_s, deadline_s, True)
 
     def _publish(self, cycle: int, start_s: float, commanded: bool) -> None:
-        """Replace :attr:`snapshot` with this cycle's (one stacked copy: the loop never waits on a reader)."""
         axes, follower, loop = self.axes, self.follower, self.loop
         path = follower.path if follower is not None else None
         end = follower.end_time() if follower is not None and path is not None else math.nan
-        joints = frozen(
-            (
-                axes.q_deg,
-                axes.qd_dps,
-                self.reference.position,
-                axes.iq_a,
-                axes.temperature_c,
-                axes.fresh,
-                self.tracking.expected_deg,
-                self.published_signal,
-                self.published_limit,
-            )
-        )
         start = end - path.duration_s if path is not None else math.nan
-        with self._publish_lock:
-            state, fault = self._condition
-            self.snapshot = _new_snapshot(
-                (
-                    cycle,
-                    start_s,
-                    joints,
-                    commanded,
-                    start,
-                    end,
-                    state,
-                    fault,
-                    loop.overruns,
-                    loop.skipped_cycles,
-                    loop.wake_jitter_s,
-                )
-            )
-        tap = self.publish_tap
-        if tap is not None:
-            tap(self.snapshot)
+        rows = (axes.q_deg, axes.qd_dps, self.reference.position, axes.iq_a, axes.temperature_c, axes.fresh)
+        self.publisher.publish(
+            cycle,
+            start_s,
+            (*rows, self.tracking.expected_deg),
+            commanded,
+            (start, end),
+            (loop.overruns, loop.skipped_cycles, loop.wake_jitter_s),
+        )
 
-    def set_condition(self, state: str, fault: MotionFault | None) -> None:
-        """The arm's state and fault changed (the safety layer's transition, in any thread): publish them at once in
-        a copy of the latest snapshot, and in every snapshot from now on."""
-        with self._publish_lock:
-            self._condition = (state, fault)
-            self.snapshot = self.snapshot._replace(state=state, fault=fault)
+    @property
+    def snapshot(self) -> CycleSnapshot:
+        """The arm after the latest cycle (:attr:`SnapshotPublisher.snapshot`)."""
+        return self.publisher.snapshot
 
     def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
         """One unguarded control cycle (the scheduler calls it at ``start_s``); see :mod:`motion.safety` for the
@@ -775,7 +455,7 @@ class Controller:
         if follower is None:
             raise MotionError("read_positions() must run before the rate check")
         self.reference = ref = follower.sample(now_s)
-        self._build(ref)
+        self.builder.build(ref)
         self.exchanged_s = now_s
         self.absorb(replies)
         self._track(now_s, ref, True)

@@ -8,10 +8,12 @@ never waits for a reader.
 
 from __future__ import annotations
 
+import functools
 import math
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any, NamedTuple
+from typing import Any, Final, NamedTuple, TypeAlias
 
 import numpy as np
 from numpy.typing import NDArray
@@ -128,6 +130,65 @@ def frozen(rows: Sequence[NDArray[Any]]) -> NDArray[np.float64]:
     array = np.array(rows, dtype=np.float64)
     array.flags.writeable = False
     return array
+
+
+# The snapshot from its fields in one tuple (what the named tuple's own constructor does, minus a call).
+_SnapshotFields: TypeAlias = tuple[
+    int, float, NDArray[np.float64], bool, float, float, str, MotionFault | None, int, int, float
+]
+_new_snapshot: Final[Callable[[_SnapshotFields], CycleSnapshot]] = functools.partial(tuple.__new__, CycleSnapshot)
+
+
+class SnapshotPublisher:
+    """The loop's publication (the module docstring): the latest :class:`CycleSnapshot`, the arm's state and fault as
+    the safety layer last set them, and a tap called with each snapshot.
+
+    Args:
+        n_joints: joints of the arm.
+
+    Attributes:
+        snapshot: the arm after the latest cycle (replaced, never changed: any thread may read it without a lock).
+        tap: called by the loop with each published snapshot, in its thread (a live view's feed: must never wait).
+        signal: a per-joint array the safety layer keeps up to date (its collision signal, N·m), published in every
+            snapshot as it stands (NaN: none); ``limit``: the same for the threshold in force.
+    """
+
+    def __init__(self, n_joints: int) -> None:
+        self.snapshot = CycleSnapshot(0, math.nan, frozen([np.zeros(n_joints)] * len(JOINT_ROWS)), False)
+        self.tap: Callable[[CycleSnapshot], None] | None = None
+        self.signal: NDArray[np.float64] = np.full(n_joints, np.nan)
+        self.limit: NDArray[np.float64] = np.full(n_joints, np.nan)
+        # the state and fault, and the lock that keeps a transition from another thread and the loop's next snapshot
+        # from overwriting each other
+        self._condition: tuple[str, MotionFault | None] = ("ready", None)
+        self._lock = threading.Lock()
+
+    def publish(  # noqa: PLR0917 - the snapshot's fields, as the loop has them
+        self,
+        cycle: int,
+        start_s: float,
+        rows: tuple[NDArray[Any], ...],
+        commanded: bool,
+        motion: tuple[float, float],
+        loop: tuple[int, int, float],
+    ) -> None:
+        """Replace :attr:`snapshot` with a cycle's (one stacked copy: the loop never waits on a reader): its
+        ``rows`` (the first seven of :data:`JOINT_ROWS`; the collision rows are :attr:`signal` and :attr:`limit`),
+        the motion's start and end and the loop's overruns, skipped cycles and wake-up jitter."""
+        joints = frozen((*rows, self.signal, self.limit))
+        with self._lock:
+            state, fault = self._condition
+            self.snapshot = _new_snapshot((cycle, start_s, joints, commanded, *motion, state, fault, *loop))
+        tap = self.tap
+        if tap is not None:
+            tap(self.snapshot)
+
+    def set_condition(self, state: str, fault: MotionFault | None) -> None:
+        """The arm's state and fault changed (the safety layer's transition, in any thread): publish them at once in
+        a copy of the latest snapshot, and in every snapshot from now on."""
+        with self._lock:
+            self._condition = (state, fault)
+            self.snapshot = self.snapshot._replace(state=state, fault=fault)
 
 
 @dataclass(frozen=True, slots=True)

@@ -180,8 +180,8 @@ class Supervisor:
         self._end_window_s = window
         self.watchdog = Watchdog(controller, settings, observer)
         if observer is not None:  # the collision signal and the threshold in force go out in every snapshot
-            controller.published_signal = self.watchdog.collision_signal_nm
-            controller.published_limit = self.watchdog.collision_limit_nm
+            controller.publisher.signal = self.watchdog.collision_signal_nm
+            controller.publisher.limit = self.watchdog.collision_limit_nm
         self.gravity = gravity
         self._fault: MotionFault | None = None
         self.machine = StateMachine(ArmState.READY, on_change=self._publish_condition)
@@ -255,8 +255,8 @@ class Supervisor:
         self._publish_condition(self.machine.state)
 
     def _publish_condition(self, state: ArmState) -> None:
-        """State and fault into the published snapshot (:meth:`Controller.set_condition`)."""
-        self.controller.set_condition(state.value, self._fault)
+        """State and fault into the published snapshot (:meth:`SnapshotPublisher.set_condition`)."""
+        self.controller.publisher.set_condition(state.value, self._fault)
 
     def start(self) -> None:
         """Start the guarded loop (closing the bus first halts every axis and ends the loop)."""

@@ -1,0 +1,128 @@
+"""Motion commands between threads and the control loop.
+
+A command (:class:`MoveCommand`, :class:`PathCommand`, :class:`PlayCommand`, :class:`StopCommand`) may come from any
+thread: it is queued (:meth:`CommandQueue.put`) and planned in the control thread at the start of the next cycle
+(:meth:`CommandQueue.apply`), from the reference at that instant, so a new target never steps the reference's velocity
+or acceleration. One command waits at a time: a newer one replaces it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from dataclasses import dataclass
+from typing import TypeAlias
+
+from motion.config.schema import ControlMode
+from motion.errors import PlanningError
+from motion.trajectory import Follower, JointLimits, Path
+from motion.transmission import FloatArray
+
+
+@dataclass(frozen=True, slots=True)
+class MoveCommand:
+    """Queued: a coordinated move to ``target_deg`` (joint order)."""
+
+    target_deg: FloatArray
+    speed_scale: float
+
+
+@dataclass(frozen=True, slots=True)
+class PathCommand:
+    """Queued: a path through ``waypoints_deg`` (one row per waypoint)."""
+
+    waypoints_deg: FloatArray
+    speed_scale: float
+
+
+@dataclass(frozen=True, slots=True)
+class PlayCommand:
+    """Queued: a path planned elsewhere, played as it is."""
+
+    path: Path
+
+
+@dataclass(frozen=True, slots=True)
+class StopCommand:
+    """Queued: a jerk-limited stop of the current motion (not a fault)."""
+
+
+#: A motion command waiting for the next cycle (a tagged union: each kind is its own class).
+Pending: TypeAlias = MoveCommand | PathCommand | PlayCommand | StopCommand
+
+
+def planning_limits(limits: JointLimits, mode: ControlMode, catch_up_share: float) -> JointLimits:
+    """The limits the planner plans within: the joints' own, but for position mode's velocities, which keep
+    ``catch_up_share`` of each limit free (the 0xA4 speed cap is the limit itself: a drive lagging the stream still has
+    room below it to catch up)."""
+    if mode is not ControlMode.POSITION or not catch_up_share:
+        return limits
+    share = 1.0 - catch_up_share
+    return dataclasses.replace(limits, velocity_dps=tuple(v * share for v in limits.velocity_dps))
+
+
+class CommandQueue:
+    """The command waiting for the next cycle, the latest one that could not be planned, and whether the arm is idle
+    (nothing queued or playing)."""
+
+    def __init__(self) -> None:
+        self._pending: Pending | None = None
+        self._rejected: PlanningError | None = None
+        self._lock = threading.Lock()
+        #: Set while nothing is queued or playing.
+        self.idle = threading.Event()
+        self.idle.set()
+
+    @property
+    def waiting(self) -> bool:
+        """Whether a command waits for the next cycle."""
+        return self._pending is not None
+
+    def put(self, pending: Pending) -> None:
+        """Queue ``pending`` (any thread), replacing a command that still waits."""
+        with self._lock:
+            self._pending = pending
+            self.idle.clear()
+
+    def discard(self) -> None:
+        """Drop a queued command (a halt must not be overridden by a move queued in the same cycle)."""
+        with self._lock:
+            self._pending = None
+
+    def take_rejection(self) -> PlanningError | None:
+        """The PlanningError of the last queued command that could not be planned from the live reference, once."""
+        with self._lock:
+            error, self._rejected = self._rejected, None
+        return error
+
+    def apply(self, follower: Follower, t_s: float) -> None:
+        """Plan the queued command on ``follower`` at ``t_s`` (the control thread, at a cycle's start). A command that
+        cannot be planned from the live reference (a re-target whose stop would overshoot a limit) leaves the current
+        motion going; the caller hears of it through :meth:`take_rejection`."""
+        with self._lock:
+            pending, self._pending = self._pending, None
+        if pending is None:
+            return
+        try:
+            match pending:
+                case MoveCommand(target, speed_scale):
+                    follower.move_to(t_s, target, speed_scale=speed_scale)
+                case PathCommand(waypoints, speed_scale):
+                    follower.follow(t_s, waypoints, speed_scale=speed_scale)
+                case PlayCommand(path):
+                    follower.play(path, t_s)
+                case StopCommand():
+                    follower.stop(t_s)
+                case other:  # never a default: an unknown command is an error
+                    raise TypeError(f"unknown motion command {other!r}")
+        except PlanningError as exc:
+            with self._lock:
+                self._rejected = exc
+            if not follower.moving:
+                self.idle.set()
+
+    def settle(self, follower: Follower) -> None:
+        """The cycle's end: idle once nothing is queued or playing (set once, not again every cycle of a hold: an
+        Event's set takes a lock and notifies)."""
+        if not follower.moving and self._pending is None and not self.idle.is_set():
+            self.idle.set()
