@@ -82,7 +82,6 @@ import dataclasses
 import json
 import os
 import time
-import types
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, Final, NamedTuple, TextIO
@@ -90,6 +89,7 @@ from typing import IO, TYPE_CHECKING, Any, Final, NamedTuple, TextIO
 import numpy as np
 from numpy.typing import NDArray
 
+from motion.closing import Closing
 from motion.config.schema import ArmConfig, CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.transmission import FloatArray
@@ -524,7 +524,7 @@ def _output(path: str | os.PathLike[str]) -> Path:
     return target
 
 
-class TelemetrySession:
+class TelemetrySession(Closing):
     """The recording of one arm run: opens the output files at once (a bad path fails before anything moves),
     traces the bus and records every cycle, writes both files at :meth:`close`.
 
@@ -626,11 +626,3 @@ class TelemetrySession:
         for file in (self._log_file, self._trace_file):
             if file is not None:
                 file.close()
-
-    def __enter__(self) -> TelemetrySession:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: types.TracebackType | None
-    ) -> None:
-        self.close()

@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parent.parent
 # Lower layers first: a module may import only from its own layer or the layers listed before it.
 LAYERS = [
     "motion.errors",
+    "motion.closing",
     "motion.protocol",
     "motion.transmission",
     # the configuration's schema and loader: its enums (control mode, halt policy) are what control and safety use
@@ -26,6 +27,8 @@ LAYERS = [
     "motion.trajectory",
     "motion.control",
     "motion.safety",
+    # homing: its own supervised loop to a hard stop (control and safety below it; the API and CLI use it)
+    "motion.homing",
     # the one place that builds bus + controller + rate check + supervisor (+ emulated drives) from a configuration
     "motion.compose",
     "motion.telemetry",

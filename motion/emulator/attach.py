@@ -22,11 +22,11 @@ import logging
 import os
 import threading
 import time
-import types
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
-from typing import Final, Generic, Self, TypeVar
+from typing import Final, Generic, TypeVar
 
+from motion.closing import Closing
 from motion.emulator.core import Emulator, Exchange, Outgoing
 from motion.emulator.framelog import FrameLog
 from motion.emulator.pty import PseudoTerminal
@@ -95,7 +95,7 @@ def _can_text(frame: CanFrame) -> str:
     return f"{frame.arbitration_id:03X}: {frame.data.hex(' ')}"
 
 
-class Attachment(ABC, Generic[W, R]):
+class Attachment(ABC, Closing, Generic[W, R]):
     """Base of the attachments: the thread, reply scheduling, counters and logging.
 
     Args:
@@ -235,14 +235,6 @@ class Attachment(ABC, Generic[W, R]):
         self._close_io()
         if self.failure is not None:
             raise RuntimeError(f"{self.channel}: emulator attachment failed: {self.failure}") from self.failure
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: types.TracebackType | None
-    ) -> None:
-        self.close()
 
 
 class _CanAttachment(Attachment[CanFrame, CanFrame]):

@@ -15,12 +15,13 @@ from __future__ import annotations
 import os
 import threading
 import time
-import types
 from collections.abc import Callable
 from typing import TextIO
 
+from motion.closing import Closing
 
-class FrameLog:
+
+class FrameLog(Closing):
     """Thread-safe line writer for frame traffic.
 
     Args:
@@ -51,11 +52,3 @@ class FrameLog:
         """Flush and close the file; safe to call twice."""
         with self._lock:
             self._file.close()
-
-    def __enter__(self) -> FrameLog:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: types.TracebackType | None
-    ) -> None:
-        self.close()

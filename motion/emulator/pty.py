@@ -11,9 +11,9 @@ import contextlib
 import os
 import select
 import termios
-import types
 from pathlib import Path
 
+from motion.closing import Closing
 from motion.errors import TransportError
 
 #: Bytes read from the master per call.
@@ -43,7 +43,7 @@ def set_raw(fd: int) -> None:
     termios.tcsetattr(fd, termios.TCSANOW, attrs)
 
 
-class PseudoTerminal:
+class PseudoTerminal(Closing):
     """A raw-mode pty; the emulator reads and writes the master, a client opens :attr:`path`.
 
     Args:
@@ -139,11 +139,3 @@ class PseudoTerminal:
                 if os.readlink(self.link) == self.slave_path:
                     self.link.unlink()
         self._close_fds()
-
-    def __enter__(self) -> PseudoTerminal:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: types.TracebackType | None
-    ) -> None:
-        self.close()

@@ -58,7 +58,7 @@ import types
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Final, NamedTuple, Self
+from typing import Final, NamedTuple
 
 from motion.errors import PortLost, TransportError
 
@@ -66,6 +66,7 @@ try:
     import termios
 except ImportError:  # (not a POSIX system: pyserial's ports raise OSError alone there)
     termios = None  # type: ignore[assignment]
+from motion.closing import Closing
 from motion.protocol import Bare, Command, Message, MultiMotorTorque
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, ProtocolFamily
 from motion.protocol.v3.messages import BareV3, CommandV3
@@ -246,7 +247,7 @@ def probe_in_turn(
     return dict(sorted(found.items()))
 
 
-class Transport(ABC):
+class Transport(ABC, Closing):
     """A bus that exchanges one batch of requests and replies per control cycle.
 
     Not thread-safe: one control loop owns a transport. Use it as a context manager, or call :meth:`close`.
@@ -383,14 +384,6 @@ class Transport(ABC):
                     self._close()
                 except TransportError as exc:  # expected of a port that is gone
                     logger.log(logging.WARNING if self._lost is None else logging.DEBUG, "%s", exc)
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: types.TracebackType | None
-    ) -> None:
-        self.close()
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.describe()}{' closed' if self._closed else ''}>"

@@ -10,11 +10,11 @@ import io
 import os
 import select
 import time
-import types
 from typing import Any
 
 import can
 
+from motion.closing import Closing
 from motion.errors import TransportError
 from motion.protocol import CanFrame
 from motion.protocol.compiled import frozen_builder
@@ -37,7 +37,7 @@ def _open_slcan_shim(channel: str, kwargs: dict[str, Any]) -> can.BusABC | None:
 _MAX_SKIPPED_READS = 256
 
 
-class CanEndpoint:
+class CanEndpoint(Closing):
     """Send and receive classic CAN data frames on one python-can bus.
 
     Args:
@@ -155,11 +155,3 @@ class CanEndpoint:
                 self._bus.shutdown()
             except (can.CanError, OSError, ValueError) as exc:
                 raise TransportError(f"closing CAN interface {self.interface}:{self.channel} failed: {exc}") from exc
-
-    def __enter__(self) -> CanEndpoint:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: types.TracebackType | None
-    ) -> None:
-        self.close()
