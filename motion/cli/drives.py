@@ -454,11 +454,12 @@ def clear(args: argparse.Namespace, interrupts: Interrupts) -> int:
 
 
 def pid_value_arg(text: str) -> int | None:
-    """argparse type of a PI gain: 0..255, or ``-`` to keep the drive's value."""
+    """argparse type of a PI gain (0x31 / 0x32: 0..255), or ``-`` to keep the drive's value."""
     if text == "-":
         return None
-    if not text.isdigit() or int(text) > 0xFF:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a gain 0..255 (or - to keep the present one)")
+    lo, hi = (int(x) for x in field_range(Command.WRITE_PID_RAM, Direction.REQUEST, WireProtocol.CAN, "angle_kp"))
+    if not text.isdigit() or not lo <= int(text) <= hi:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a gain {lo}..{hi} (or - to keep the present one)")
     return int(text)
 
 

@@ -25,7 +25,15 @@ from motion.config import schema
 from motion.config.urdf import revolute_joints
 from motion.errors import ConfigError
 from motion.protocol import WireProtocol
-from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, RS485_BAUDRATES, ProtocolFamily
+from motion.protocol.messages import Command
+from motion.protocol.table import (
+    MOTOR_ID_MAX,
+    MOTOR_ID_MIN,
+    RS485_BAUDRATES,
+    Direction,
+    ProtocolFamily,
+    field_range,
+)
 from motion.transmission import IQ_LIMIT_A
 
 _T = TypeVar("_T")
@@ -34,6 +42,12 @@ _E = TypeVar("_E", bound=StrEnum)
 _FLOAT_MAX = sys.float_info.max
 #: Relative slack for the physical-consistency check of an inertia matrix.
 _INERTIA_TOLERANCE = 1e-9
+
+# An emulated drive's PI gains (0x30 / 0x31: uint8 units) and acceleration (0x34), as the table declares them.
+_GAIN_LO, _GAIN_HI = field_range(Command.WRITE_PID_RAM, Direction.REQUEST, WireProtocol.CAN, "angle_kp")
+_ACCELERATION_LO, _ACCELERATION_HI = field_range(
+    Command.WRITE_ACCELERATION_RAM, Direction.REQUEST, WireProtocol.CAN, "acceleration_dps2"
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -373,7 +387,7 @@ def _safety(node: _Node, control: schema.ControlConfig) -> schema.SafetyConfig:
 def _emulation(node: _Node, rotor_inertia: float, viscous: float, coulomb: float) -> schema.EmulationConfig:
     node.defaults(rotor_inertia_kgm2=rotor_inertia, viscous_friction_nm_per_dps=viscous, coulomb_friction_nm=coulomb)
     pid = node.child("pid", schema.EmulatedPidConfig)
-    gain = _Range(0, 255)
+    gain = _Range(_GAIN_LO, _GAIN_HI)
     return schema.EmulationConfig(
         rotor_inertia_kgm2=node.number("rotor_inertia_kgm2", _NON_NEGATIVE),
         viscous_friction_nm_per_dps=node.number("viscous_friction_nm_per_dps", _NON_NEGATIVE),
@@ -382,7 +396,7 @@ def _emulation(node: _Node, rotor_inertia: float, viscous: float, coulomb: float
             node.number("torque_constant_nm_per_a", _POSITIVE) if node.has("torque_constant_nm_per_a") else None
         ),
         pid=schema.EmulatedPidConfig(**{f.name: pid.integer(f.name, gain) for f in fields(schema.EmulatedPidConfig)}),
-        acceleration_dps2=node.integer("acceleration_dps2", _Range(0, 2**31 - 1)),
+        acceleration_dps2=node.integer("acceleration_dps2", _Range(_ACCELERATION_LO, _ACCELERATION_HI)),
     )
 
 
