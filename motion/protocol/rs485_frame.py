@@ -9,6 +9,7 @@ dropped.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import Enum
 from typing import Final
 
 from motion.errors import DecodeError
@@ -220,6 +221,49 @@ class StreamBuffer:
         del self._buffer[:n]
         self.dropped_bytes += n
 
+    def _next_raw(self, head: int, flush: bool) -> bytes | None:
+        """The next valid frame's bytes, or None when the buffer holds no complete one yet: the resynchronising loop
+        both parsers share. Bytes before ``head`` are dropped; each candidate is judged by :meth:`_judge`, and a bad
+        one (or, with ``flush``, an incomplete one) loses its first byte, so a frame behind it is still found."""
+        buf = self._buffer
+        while True:
+            start = buf.find(head)
+            if start < 0:
+                self._drop(len(buf))
+                return None
+            if start:
+                self._drop(start)
+            verdict = self._judge(buf)
+            if verdict is Verdict.WAIT:
+                return None
+            if verdict is Verdict.SHORT:
+                if not flush:
+                    return None
+                self.truncated += 1
+                self._drop(1)
+                continue
+            if isinstance(verdict, str):
+                setattr(self, verdict, getattr(self, verdict) + 1)
+                self._drop(1)
+                continue
+            assert isinstance(verdict, int)
+            frame = bytes(buf[:verdict])
+            del buf[:verdict]
+            self.frames += 1
+            return frame
+
+    def _judge(self, buf: bytearray) -> int | str | Verdict:
+        """A candidate at the buffer's start: its size when it is a valid frame, the counter a bad one counts in, or
+        a :class:`Verdict`."""
+        raise NotImplementedError
+
+
+class Verdict(Enum):
+    """What :meth:`StreamBuffer._judge` says of a candidate that is neither a frame nor a bad one."""
+
+    WAIT = "too short to judge"
+    SHORT = "not complete yet: wait for the rest or, flushing, give it up"
+
 
 class Rs485Parser(StreamBuffer):
     """Incremental frame parser for a byte stream; never raises on input.
@@ -244,38 +288,22 @@ class Rs485Parser(StreamBuffer):
             flush: no more bytes are coming for now (a deadline or an inter-frame gap passed): treat an
                 incomplete candidate as truncated, drop its first byte and look for a complete frame behind it.
         """
-        buf = self._buffer
-        while True:
-            start = buf.find(HEAD)
-            if start < 0:
-                self._drop(len(buf))
-                return None
-            if start:
-                self._drop(start)
-            if len(buf) < HEADER_BYTES:
-                return None
-            if buf[4] != checksum(buf[:4]):
-                self.bad_header_checksums += 1
-                self._drop(1)
-                continue
-            length, motor_id = buf[3], buf[2]
-            if length > RS485_MAX_DATA_BYTES or not MOTOR_ID_MIN <= motor_id <= MOTOR_ID_MAX:
-                self.bad_lengths += 1
-                self._drop(1)
-                continue
-            size = frame_size(length)
-            if len(buf) < size:
-                if not flush:
-                    return None
-                self.truncated += 1
-                self._drop(1)
-                continue
-            data = bytes(buf[HEADER_BYTES : HEADER_BYTES + length])
-            if length and buf[size - 1] != checksum(data):
-                self.bad_data_checksums += 1
-                self._drop(1)
-                continue
-            frame = Rs485Frame(buf[1], motor_id, data)
-            del buf[:size]
-            self.frames += 1
-            return frame
+        raw = self._next_raw(HEAD, flush)
+        if raw is None:
+            return None
+        return Rs485Frame(raw[1], raw[2], raw[HEADER_BYTES : HEADER_BYTES + raw[3]])
+
+    def _judge(self, buf: bytearray) -> int | str | Verdict:
+        if len(buf) < HEADER_BYTES:
+            return Verdict.WAIT
+        if buf[4] != checksum(buf[:4]):
+            return "bad_header_checksums"
+        length, motor_id = buf[3], buf[2]
+        if length > RS485_MAX_DATA_BYTES or not MOTOR_ID_MIN <= motor_id <= MOTOR_ID_MAX:
+            return "bad_lengths"
+        size = frame_size(length)
+        if len(buf) < size:
+            return Verdict.SHORT
+        if length and buf[size - 1] != checksum(buf[HEADER_BYTES : HEADER_BYTES + length]):
+            return "bad_data_checksums"
+        return size

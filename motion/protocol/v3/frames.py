@@ -22,7 +22,7 @@ from motion.errors import DecodeError, EncodeError
 from motion.protocol.can_frame import CanFrame
 from motion.protocol.compiled import FALLBACK_ERRORS, build_codec
 from motion.protocol.messages import Message
-from motion.protocol.rs485_frame import StreamBuffer
+from motion.protocol.rs485_frame import StreamBuffer, Verdict
 from motion.protocol.table import (
     CAN_PAYLOAD_BYTES,
     MOTOR_ID_MAX,
@@ -412,29 +412,13 @@ class Rs485ParserV3(StreamBuffer):
         Args:
             flush: no more bytes are coming for now: an incomplete candidate is truncated, its first byte dropped.
         """
-        buf = self._buffer
-        while True:
-            start = buf.find(RS485_HEAD)
-            if start < 0:
-                self._drop(len(buf))
-                return None
-            if start:
-                self._drop(start)
-            if len(buf) >= 3 and not _header_ok(buf):
-                self.bad_lengths += 1
-                self._drop(1)
-                continue
-            if len(buf) < RS485_FRAME_BYTES:
-                if not flush or not buf:
-                    return None
-                self.truncated += 1
-                self._drop(1)
-                continue
-            if not _crc_ok(buf[:RS485_FRAME_BYTES]):
-                self.bad_data_checksums += 1
-                self._drop(1)
-                continue
-            frame = bytes(buf[:RS485_FRAME_BYTES])
-            del buf[:RS485_FRAME_BYTES]
-            self.frames += 1
-            return frame
+        return self._next_raw(RS485_HEAD, flush)
+
+    def _judge(self, buf: bytearray) -> int | str | Verdict:
+        if len(buf) >= 3 and not _header_ok(buf):
+            return "bad_lengths"
+        if len(buf) < RS485_FRAME_BYTES:
+            return Verdict.SHORT
+        if not _crc_ok(buf[:RS485_FRAME_BYTES]):
+            return "bad_data_checksums"
+        return RS485_FRAME_BYTES
