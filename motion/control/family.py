@@ -36,7 +36,6 @@ from motion.protocol.v3.messages import (
     Status1V3,
     SystemErrorFlags,
 )
-from motion.protocol.v3.table import field_range as field_range_v3
 
 
 @dataclass(frozen=True, slots=True)
@@ -150,8 +149,8 @@ FAMILIES: Final[Mapping[ProtocolFamily, DriveFamily]] = {
         state_type=MotorStateV3,
         speed_step_dps=1.0,
         current_step_a=0.01,  # (the V3 table's iq: int16, 0.01 A)
-        max_speed_dps=field_range_v3(_A4_V3, Direction.REQUEST, "max_speed_dps")[1],
-        rs485_max_speed_dps=field_range_v3(_A4_V3, Direction.REQUEST, "max_speed_dps")[1],
+        max_speed_dps=field_range(_A4_V3, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps")[1],
+        rs485_max_speed_dps=field_range(_A4_V3, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps")[1],
         _bare=_v3_bare,
     ),
 }

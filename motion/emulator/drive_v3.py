@@ -40,7 +40,7 @@ from motion.protocol.messages import (
     SpeedControl,
     TorqueControl,
 )
-from motion.protocol.table import Direction, WireProtocol
+from motion.protocol.table import Direction, WireProtocol, field_range
 from motion.protocol.v3.frames import MOTION_RANGES
 from motion.protocol.v3.messages import (
     AccelerationIndex,
@@ -72,7 +72,7 @@ from motion.protocol.v3.messages import (
     SystemErrorFlags,
     VersionDate,
 )
-from motion.protocol.v3.table import COMMANDS_V3, field_range
+from motion.protocol.v3.table import COMMANDS_V3
 
 #: What an emulated V3 drive reports as its firmware date (0xB2) and model (0xB5).
 VERSION_DATE: Final = 20240528
@@ -81,7 +81,7 @@ MODEL_NAME: Final = "EMUX8V3"  # 7 ASCII characters, as the document's X8S2V10
 
 def _reply_limits(command: CommandV3, name: str) -> tuple[float, float]:
     """Smallest and largest value a field of a V3 reply carries (the table's declaration)."""
-    return field_range(command, Direction.REPLY, name)
+    return field_range(command, Direction.REPLY, WireProtocol.CAN, name)
 
 
 #: Reply values saturate at what their fields carry (a drive cannot report more), instead of failing to encode.

@@ -523,6 +523,9 @@ _SPECS: tuple[CommandSpec, ...] = (
 
 #: Every command of both documents, by command byte.
 COMMANDS: Final[Mapping[Command, CommandSpec]] = {Command(spec.code): spec for spec in _SPECS}
+#: Each family's table by the type of its command codes (the V3 family's adds itself: :mod:`motion.protocol.v3.table`),
+#: so that :func:`field_spec` and :func:`field_range` serve both.
+COMMAND_TABLES: Final[dict[type[IntEnum], Mapping[Any, CommandSpec]]] = {Command: COMMANDS}
 
 #: CAN arbitration id of single-motor frames is ``CAN_ID_BASE + motor id`` (requests and replies).
 CAN_ID_BASE: Final = 0x140
@@ -565,13 +568,14 @@ def check_motor_id(motor_id: int) -> int:
     return motor_id
 
 
-def field_spec(command: Command, direction: Direction, transport: WireProtocol, field: str) -> Field:
-    """The declaration of one field of a command's frame (the one place its type, scale and range are written).
+def field_spec(command: IntEnum, direction: Direction, transport: WireProtocol, field: str) -> Field:
+    """The declaration of one field of a command's frame (the one place its type, scale and range are written), of
+    either family (``command``: a :class:`Command` or a V3 ``CommandV3``).
 
     Raises:
         KeyError: the transport lacks the command in that direction, or its frame has no such field.
     """
-    layout = COMMANDS[command].layout(transport, direction)
+    layout = COMMAND_TABLES[type(command)][command].layout(transport, direction)
     if layout is None:
         raise KeyError(f"0x{command:02X} has no {direction.value} on {transport.value}")
     for spec in layout.fields:
@@ -580,7 +584,7 @@ def field_spec(command: Command, direction: Direction, transport: WireProtocol, 
     raise KeyError(f"the {direction.value} of 0x{command:02X} on {transport.value} has no field {field!r}")
 
 
-def field_range(command: Command, direction: Direction, transport: WireProtocol, field: str) -> tuple[float, float]:
+def field_range(command: IntEnum, direction: Direction, transport: WireProtocol, field: str) -> tuple[float, float]:
     """Smallest and largest value of a field in physical units (deg, dps, A, ...), as the table declares them.
 
     Limits that the controller, the CLI, the configuration loader and the emulator need come from here, never from a

@@ -39,9 +39,8 @@ from motion.control.controller import Controller
 from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionFault
 from motion.protocol import MultiTurnAngle, Status1
-from motion.protocol.table import Direction
+from motion.protocol.table import Direction, WireProtocol, field_range
 from motion.protocol.v3.messages import CommandV3, Runtime, Status1V3
-from motion.protocol.v3.table import field_range
 from motion.safety.collision_bound import MODEL_ERROR, CollisionBound, Window
 from motion.trajectory import State
 from motion.transmission import FloatArray
@@ -54,7 +53,7 @@ POSITION_LIMIT_TOLERANCE_DEG = 0.1
 RESTART_JUMP_MOTOR_DEG = 180.0
 #: Where a V3 drive's runtime (0xB1, ms) wraps (one past its field's largest value, as the table declares it), and
 #: the slack given to the host's clock against the drive's, ms.
-RUNTIME_WRAP_MS = field_range(CommandV3.READ_RUNTIME, Direction.REPLY, "runtime_ms")[1] + 1
+RUNTIME_WRAP_MS = field_range(CommandV3.READ_RUNTIME, Direction.REPLY, WireProtocol.CAN, "runtime_ms")[1] + 1
 RUNTIME_SLACK_MS = 1000.0
 _DEG_PER_RAD = 180.0 / math.pi
 # Window of the corrupt-frame count, s.

@@ -26,8 +26,8 @@ from motion.protocol.messages import (
     TorqueControl,
 )
 from motion.protocol.table import (
+    COMMAND_TABLES,
     CommandSpec,
-    Direction,
     Field,
     Kind,
     Layout,
@@ -313,21 +313,6 @@ _SPECS: tuple[CommandSpec, ...] = (
 
 #: Every command of the V4.2 document, by command byte.
 COMMANDS_V3: Final[Mapping[CommandV3, CommandSpec]] = {CommandV3(spec.code): spec for spec in _SPECS}
+COMMAND_TABLES[CommandV3] = COMMANDS_V3  # (field_spec / field_range serve this family too)
 #: The commands an RS485 V3 drive has (0xB6 active replies are CAN only).
 RS485_COMMANDS: Final = frozenset(COMMANDS_V3) - {CommandV3.ACTIVE_REPLY}
-
-
-def field_range(command: CommandV3, direction: Direction, name: str) -> tuple[float, float]:
-    """Smallest and largest value of a field in physical units, as this family's table declares them (both
-    transports carry the same layout).
-
-    Raises:
-        KeyError: the command has no such layout or field.
-    """
-    layout = COMMANDS_V3[command].layout(WireProtocol.CAN, direction)
-    if layout is None:
-        raise KeyError(f"{command.name} has no {direction.value} layout")
-    for spec in layout.fields:
-        if spec.name == name:
-            return spec.physical(spec.lo), spec.physical(spec.hi)
-    raise KeyError(f"{command.name} {direction.value} has no field {name!r}")
