@@ -42,16 +42,11 @@ from motion.compose import (
     emulated_frames,
     feedforward_for,
     identify_position_loops,
-    load_turn_records,
     negotiate_family,
-    offer_stored_tracking,
     open_bus,
     opening_family,
     rehearsal_watchdog,
     resolve_frames,
-    save_turn_records,
-    store_tracking,
-    turns_store,
 )
 from motion.config import ArmConfig, load_config_or_example
 from motion.config.schema import CanBusConfig, ControlMode, ProtocolSetting
@@ -66,6 +61,7 @@ from motion.emulator import Fault, FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
 from motion.homing import HomingResult, corrected_turns, finish_halt, homed_joints, homing_variant, seek_stop
+from motion.keep import load_turn_records, offer_stored_tracking, save_turn_records, store_tracking, turns_store
 from motion.protocol import WireProtocol
 from motion.protocol.table import ProtocolFamily
 from motion.safety import ArmState, Supervisor

@@ -6,7 +6,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from motion.compose import STATE_DIR_ENV
+from motion.keep import STATE_DIR_ENV
 
 
 @pytest.fixture(autouse=True, scope="session")

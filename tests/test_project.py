@@ -29,6 +29,8 @@ LAYERS = [
     "motion.safety",
     # homing: its own supervised loop to a hard stop (control and safety below it; the API and CLI use it)
     "motion.homing",
+    # what rmd-motion keeps between sessions (turn offsets, identified loops, the drives' record)
+    "motion.keep",
     # the one place that builds bus + controller + rate check + supervisor (+ emulated drives) from a configuration
     "motion.compose",
     "motion.telemetry",

@@ -21,19 +21,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from motion.compose import (
-    STATE_DIR_ENV,
-    identify_position_loops,
-    offer_stored_tracking,
-    store_tracking,
-    tracking_store,
-)
+from motion.compose import identify_position_loops
 from motion.config import ArmConfig
 from motion.config.schema import ControlMode, EmulatedPidConfig
 from motion.control.controller import Controller
 from motion.control.tracking import ANGLE_GAIN_PER_S_PER_UNIT, PositionLoop
 from motion.emulator import DEFAULT_PID, Fault, InjectedFault
 from motion.errors import MotionFault
+from motion.keep import STATE_DIR_ENV, offer_stored_tracking, store_tracking, tracking_store
 from motion.protocol import Acceleration, Command, PidGains
 from motion.transport import Reply
 from tests.motion_rig import Rig, arm_config, emulated_arm

@@ -9,15 +9,7 @@ import pytest
 
 from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
-from motion.compose import (
-    build_controller,
-    build_supervisor,
-    feedforward_for,
-    load_turn_records,
-    resolve_frames,
-    save_turn_records,
-    turns_store,
-)
+from motion.compose import build_controller, build_supervisor, feedforward_for, resolve_frames
 from motion.config import ArmConfig
 from motion.control.controller import Controller
 from motion.control.turns import (
@@ -35,6 +27,7 @@ from motion.control.turns import (
 from motion.emulator import Emulator
 from motion.emulator.drive import RunState
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
+from motion.keep import load_turn_records, save_turn_records, turns_store
 from motion.protocol import WireProtocol
 from motion.protocol.table import ProtocolFamily
 from motion.transmission import ArmTransmission, Transmission

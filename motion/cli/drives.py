@@ -27,14 +27,7 @@ from motion.cli.common import (
     print_table,
     warn,
 )
-from motion.compose import (
-    build_controller,
-    drive_record_for,
-    drive_setup,
-    load_turn_records,
-    resolve_frames,
-    save_turn_records,
-)
+from motion.compose import build_controller, drive_setup, resolve_frames
 from motion.config import CanBusConfig, JointConfig
 from motion.config.schema import ControlMode
 from motion.control.drive_record import DriveRecord
@@ -44,6 +37,7 @@ from motion.control.ratecheck import RateError
 from motion.control.tracking import PositionLoopFit
 from motion.control.turns import CONTINUITY_MOTOR_DEG, joint_angle
 from motion.errors import FaultKind, MotionFault
+from motion.keep import drive_record_for, load_turn_records, save_turn_records
 from motion.protocol import (
     Acceleration,
     Bare,
