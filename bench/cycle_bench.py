@@ -917,7 +917,7 @@ def print_ratios(codec: Sequence[CodecRow], cases: Sequence[CpuCase], results: S
     for row in codec:
         print(
             f"- codec, {row.what}: {row.codec_ns:.0f} ns = **{row.ratio:.1f}x** the bare struct "
-            f"({row.bare_ns:.0f} ns); its Python path {row.python_ns / row.bare_ns:.1f}x; the object it returns, "
+            f"({row.bare_ns:.0f} ns); the object it returns, "
             f"built alone: {row.object_ratio:.1f}x"
         )
     for c in cases:

@@ -22,8 +22,6 @@ FloatArray = NDArray[np.float64]
 #: Joint torques in N·m from joint angles (deg), speeds (deg/s) and accelerations (deg/s²).
 FeedForward = Callable[[FloatArray, FloatArray, FloatArray], FloatArray]
 
-_RAD_PER_DEG = math.pi / 180.0  # (numpy's deg2rad multiplies by this same float)
-
 
 @dataclass(frozen=True, slots=True, eq=False)
 class FramePose:
@@ -123,35 +121,23 @@ def frame_pose(arm: ArmModel, frame: str, q_deg: ArrayLike) -> FramePose:
     return FramePose(position_m=placement.translation.copy(), rotation=placement.rotation.copy())
 
 
-def _model_radians(arm: ArmModel, values: ArrayLike, name: str, buffer: FloatArray) -> FloatArray:
-    """:func:`_model_order` in radians, into ``buffer`` (no new array for a float64 array of one value per joint)."""
-    array = np.asarray(values, dtype=np.float64)
-    if array.shape != arm.to_model.shape:
-        return _model_order(arm, array, name)  # (says what is wrong)
-    np.take(array, arm.to_model, out=buffer)
-    buffer *= _RAD_PER_DEG
-    return buffer
-
-
 class _ArmFeedForward:
-    """The callable :func:`feedforward` returns for gravity and / or inertia: the arguments in model order and
-    radians go into arrays of its own (the cycle allocates only the result)."""
+    """The callable :func:`feedforward` returns for gravity and / or inertia (the arguments in model order and
+    radians: a fancy index and one multiply each, cheaper on a few joints than filling arrays of its own)."""
 
-    __slots__ = ("_a", "_arm", "_gravity", "_inertia", "_q", "_v")
+    __slots__ = ("_arm", "_gravity", "_inertia")
 
     def __init__(self, arm: ArmModel, *, gravity: bool, inertia: bool) -> None:
         self._arm, self._gravity, self._inertia = arm, gravity, inertia
-        n = len(arm.to_model)
-        self._q, self._v, self._a = np.zeros(n), np.zeros(n), np.zeros(n)
 
     def __call__(self, q_deg: FloatArray, qd_dps: FloatArray, qdd_dps2: FloatArray) -> FloatArray:
         arm = self._arm
-        q = _model_radians(arm, q_deg, "q_deg", self._q)
+        q = _model_order(arm, q_deg, "q_deg")
         if not self._inertia:
             gravity: FloatArray = pin.computeGeneralizedGravity(arm.model, arm.data, q)[arm.to_config]
             return gravity
-        v = _model_radians(arm, qd_dps, "qd_dps", self._v)
-        a = _model_radians(arm, qdd_dps2, "qdd_dps2", self._a)
+        v = _model_order(arm, qd_dps, "qd_dps")
+        a = _model_order(arm, qdd_dps2, "qdd_dps2")
         tau: FloatArray = pin.rnea(arm.model, arm.data, q, v, a)[arm.to_config]
         if not self._gravity:
             tau -= pin.computeGeneralizedGravity(arm.model, arm.data, q)[arm.to_config]
