@@ -24,7 +24,7 @@ import signal
 import sys
 import threading
 import types
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any, TypeVar
 
 from motion.emulator.attach import (
@@ -270,6 +270,20 @@ def emulator_clock(emulator: Emulator) -> Callable[[], float]:
     return lambda: emulator.time_s
 
 
+def _attachments(
+    args: argparse.Namespace, emulator: Emulator, timing: TimingModel, frame_log: FrameLog | None
+) -> Iterator[Attachment[Any, Any]]:
+    """The attachments the options ask for, made one at a time (the caller enters each before the next is made)."""
+    if args.virtual_channel:
+        yield VirtualCanAttachment(
+            emulator, args.virtual_channel, bitrate=args.bitrate, timing=timing, frame_log=frame_log
+        )
+    if args.slcan_link:
+        yield SlcanAttachment(emulator, args.slcan_link, timing=timing, frame_log=frame_log)
+    if args.rs485_link:
+        yield Rs485Attachment(emulator, args.rs485_link, baud=args.baud, timing=timing, frame_log=frame_log)
+
+
 def run_emulate(args: argparse.Namespace, factory: EmulatorFactory | None = None) -> int:
     """Run the emulator until SIGINT or SIGTERM; returns the exit code.
 
@@ -303,28 +317,7 @@ def run_emulate(args: argparse.Namespace, factory: EmulatorFactory | None = None
                 # and of the frames are then on one clock
                 clock = emulator_clock(emulator)
                 frame_log = stack.enter_context(FrameLog(args.log, clock=clock)) if args.log else None
-                if args.virtual_channel:
-                    attachments.append(
-                        stack.enter_context(
-                            VirtualCanAttachment(
-                                emulator, args.virtual_channel, bitrate=args.bitrate, timing=timing, frame_log=frame_log
-                            )
-                        )
-                    )
-                if args.slcan_link:
-                    attachments.append(
-                        stack.enter_context(
-                            SlcanAttachment(emulator, args.slcan_link, timing=timing, frame_log=frame_log)
-                        )
-                    )
-                if args.rs485_link:
-                    attachments.append(
-                        stack.enter_context(
-                            Rs485Attachment(
-                                emulator, args.rs485_link, baud=args.baud, timing=timing, frame_log=frame_log
-                            )
-                        )
-                    )
+                attachments += [stack.enter_context(a) for a in _attachments(args, emulator, timing, frame_log)]
             except (TransportError, OSError) as exc:
                 print(f"communication error: {exc}", file=sys.stderr)
                 return EXIT_COMMUNICATION

@@ -296,6 +296,30 @@ class EmulatedDriveV3(EmulatedDrive):
     def _execute_v3(self, command: CommandV3, message: Message, now_s: float) -> None:
         if command in ROM_WRITES:
             self.rom_writes += 1
+        if self._set_v3(command, message, now_s):
+            return
+        if command is CommandV3.RESET:
+            self.power_cycle()
+            self.powered_on_s = now_s
+        elif command is CommandV3.RELEASE_BRAKE:
+            self.brake = BrakeCommand.RELEASE
+        elif command is CommandV3.LOCK_BRAKE:
+            self.brake = BrakeCommand.LOCK
+            if self.has_brake:
+                self._turn_off()
+        elif command is CommandV3.MOTOR_OFF:
+            self._turn_off()
+        elif command is CommandV3.MOTOR_STOP:
+            self._stop()
+        else:
+            setpoint = self._setpoint_v3(message)
+            if setpoint is not None:
+                self._motion = None
+                self._run(setpoint)
+
+    def _set_v3(self, command: CommandV3, message: Message, now_s: float) -> bool:
+        """A request that writes a setting (gains, accelerations, zero, functions, protection, active replies):
+        taken; False for any other."""
         if isinstance(message, PidParameter) and command is not CommandV3.READ_PID:
             self.pid_floats[message.index] = message.value
             if command is CommandV3.WRITE_PID_ROM:
@@ -308,15 +332,6 @@ class EmulatedDriveV3(EmulatedDrive):
             self._offset_rom = message.encoder
         elif command is CommandV3.WRITE_CURRENT_AS_ZERO:
             self._offset_rom = self._counts()
-        elif command is CommandV3.RESET:
-            self.power_cycle()
-            self.powered_on_s = now_s
-        elif command is CommandV3.RELEASE_BRAKE:
-            self.brake = BrakeCommand.RELEASE
-        elif command is CommandV3.LOCK_BRAKE:
-            self.brake = BrakeCommand.LOCK
-            if self.has_brake:
-                self._turn_off()
         elif isinstance(message, CommunicationTimeout):
             self.communication_timeout_ms = message.timeout_ms
         elif isinstance(message, ActiveReply):
@@ -327,15 +342,9 @@ class EmulatedDriveV3(EmulatedDrive):
                 self.active_replies.pop(int(message.reply_command), None)
         elif isinstance(message, FunctionControl):
             self.functions[int(message.index)] = message.value
-        elif command is CommandV3.MOTOR_OFF:
-            self._turn_off()
-        elif command is CommandV3.MOTOR_STOP:
-            self._stop()
         else:
-            setpoint = self._setpoint_v3(message)
-            if setpoint is not None:
-                self._motion = None
-                self._run(setpoint)
+            return False
+        return True
 
     # --- replies --------------------------------------------------------------------------------------------------
 
@@ -405,6 +414,15 @@ class EmulatedDriveV3(EmulatedDrive):
             return PhaseCurrents(_amps(c.ia_a), _amps(c.ib_a), _amps(c.ic_a), temperature)
         if cls in (EncoderReading, SingleTurnAngle):
             return self._reply(command, cls, WireProtocol.CAN)  # type: ignore[arg-type]  # same byte, same meaning
+        reply = self._drive_reply_v3(command, cls, request, transport)
+        if reply is None:
+            raise AssertionError(f"no V3 reply builder for {cls.__name__}")  # a new table class needs one here
+        return reply
+
+    def _drive_reply_v3(
+        self, command: CommandV3, cls: type[Message], request: Message, transport: WireProtocol
+    ) -> Message | None:
+        """The replies about the drive itself (its mode, runtime, firmware, model, id), or None for another class."""
         if cls is RunModeReply:
             setpoint = self.setpoint if self.state is not RunState.OFF else None
             return RunModeReply(
@@ -424,7 +442,7 @@ class EmulatedDriveV3(EmulatedDrive):
             return CanIdReply(ReadWrite.READ, self.motor_id << 8)
         if cls is BareV3:
             return BareV3(command)
-        raise AssertionError(f"no V3 reply builder for {cls.__name__}")  # a new table class needs one here
+        return None
 
     def _motion_state(self) -> MotionState:
         gear = self.model.gear_ratio

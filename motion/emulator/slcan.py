@@ -149,48 +149,58 @@ class SlcanDevice:
 
     def _command(self, line: str, frames: list[SlcanFrame]) -> bytes:
         head, arg = line[:1], line[1:]
-        closed = not self.is_open
-        answer: bytes | None = None
         if not line:
-            answer = OK
-        elif head == "S" and closed and arg in BITRATES:
-            self.bitrate = BITRATES[arg]
-            answer = OK
-        elif head == "s" and closed and (bitrate := _btr_bitrate(arg)) is not None:
-            self.bitrate = bitrate
-            answer = OK
-        elif head in ("O", "L") and closed and not arg:
-            self.is_open, self.listen_only = True, head == "L"
-            answer = OK
-        elif head == "C" and not closed and not arg:
-            self.is_open = False
-            self._polled.clear()
-            answer = OK
-        elif head in ("t", "T", "r", "R") and not closed and not self.listen_only:
-            frame = _parse_frame(head, arg)
-            if frame is not None:
-                frames.append(frame)
-                answer = (b"Z" if frame.extended else b"z") + OK
-        elif head == "V" and not arg:
-            answer = self._version
-        elif head == "N" and not arg:
-            answer = self._serial
-        elif head == "F" and not closed and not arg:
-            answer = b"F00" + OK
-        elif head in ("Z", "X") and closed and arg in ("0", "1"):
-            if head == "Z":
-                self.timestamps = arg == "1"
-            else:
-                self.auto_poll = arg == "1"
-            answer = OK
-        elif _acknowledged_setting(head, arg, closed):
-            answer = OK
-        elif head in ("P", "A") and not closed and not self.auto_poll and not arg:
-            answer = self._poll(head == "A")
+            return OK
+        closed = not self.is_open
+        answer = self._closed_command(head, arg) if closed else self._open_command(head, arg, frames)
+        if answer is None:
+            if head == "V" and not arg:
+                answer = self._version
+            elif head == "N" and not arg:
+                answer = self._serial
+            elif _acknowledged_setting(head, arg, closed):
+                answer = OK
         if answer is None:
             self.errors += 1
             return BELL
         return answer
+
+    def _closed_command(self, head: str, arg: str) -> bytes | None:
+        """The commands of a closed channel (bit rate, open, time stamps, auto-poll); None for any other."""
+        if head == "S" and arg in BITRATES:
+            self.bitrate = BITRATES[arg]
+            return OK
+        if head == "s" and (bitrate := _btr_bitrate(arg)) is not None:
+            self.bitrate = bitrate
+            return OK
+        if head in ("O", "L") and not arg:
+            self.is_open, self.listen_only = True, head == "L"
+            return OK
+        if head in ("Z", "X") and arg in ("0", "1"):
+            if head == "Z":
+                self.timestamps = arg == "1"
+            else:
+                self.auto_poll = arg == "1"
+            return OK
+        return None
+
+    def _open_command(self, head: str, arg: str, frames: list[SlcanFrame]) -> bytes | None:
+        """The commands of an open channel (close, frames, status flags, polls); None for any other."""
+        if head == "C" and not arg:
+            self.is_open = False
+            self._polled.clear()
+            return OK
+        if head in ("t", "T", "r", "R") and not self.listen_only:
+            frame = _parse_frame(head, arg)
+            if frame is None:
+                return None
+            frames.append(frame)
+            return (b"Z" if frame.extended else b"z") + OK
+        if head == "F" and not arg:
+            return b"F00" + OK
+        if head in ("P", "A") and not self.auto_poll and not arg:
+            return self._poll(head == "A")
+        return None
 
     def _poll(self, all_frames: bool) -> bytes:
         if not all_frames:

@@ -214,27 +214,10 @@ class HaltGuard:
                 continue
             answered.add(motor_id)
             if isinstance(message, BARE_TYPES):
-                if message.command == codes[motor_id]:
-                    if not self._acknowledged[i]:
-                        self._acknowledged[i] = True
-                    self.unacknowledged.discard(motor_id)
-                elif message.command == CommandV3.LOCK_BRAKE:
-                    self.locked.add(motor_id)
-                    self._set_code(motor_id, self.code)  # (under 0x80: its output off now, as the policy says)
-                    self._rest_since = [math.nan] * len(self.ids)  # the lock jolted the arm: at rest again first
+                self._take_bare(i, motor_id, message.command)
             elif isinstance(message, STATE_TYPES):
                 q, qd = float(q_deg[i]), float(qd_dps[i])
-                if abs(qd) > SWING_DPS:
-                    self._fast.add(i)
-                else:
-                    self._fast.discard(i)
-                if not within(i, q):
-                    if not self._outside[i]:
-                        outside.append(i)
-                        self._owe(i)
-                        self._outside[i] = True
-                elif self._outside[i] and within(i, q - LIMIT_REARM_DEG) and within(i, q + LIMIT_REARM_DEG):
-                    self._outside[i] = False  # back inside, clear of the limit: a next excursion is one again
+                self._take_angle(i, q, qd, within, outside)
                 if not self._acknowledged[i]:
                     continue
                 if codes[motor_id] == Command.MOTOR_STOP and (self._swung(i, qd) or self._restless(i, qd)):
@@ -246,6 +229,34 @@ class HaltGuard:
             self._silent -= answered
             self._silent |= unanswered - answered
         return driving, outside, swinging
+
+    def _take_bare(self, i: int, motor_id: int, command: int) -> None:
+        """A reply without data from joint ``i``'s drive: its halt acknowledged, or its brake locked."""
+        if command == self.codes[motor_id]:
+            if not self._acknowledged[i]:
+                self._acknowledged[i] = True
+            self.unacknowledged.discard(motor_id)
+        elif command == CommandV3.LOCK_BRAKE:
+            self.locked.add(motor_id)
+            self._set_code(motor_id, self.code)  # (under 0x80: its output off now, as the policy says)
+            self._rest_since = [math.nan] * len(self.ids)  # the lock jolted the arm: at rest again first
+
+    def _take_angle(
+        self, i: int, q: float, qd: float, within: Callable[[int, float], bool], outside: list[int]
+    ) -> None:
+        """Joint ``i`` read at ``q`` moving at ``qd``: whether it moves fast, and whether it has just left its limits
+        (appended to ``outside``, its halt owed again) or come back inside clear of them."""
+        if abs(qd) > SWING_DPS:
+            self._fast.add(i)
+        else:
+            self._fast.discard(i)
+        if not within(i, q):
+            if not self._outside[i]:
+                outside.append(i)
+                self._owe(i)
+                self._outside[i] = True
+        elif self._outside[i] and within(i, q - LIMIT_REARM_DEG) and within(i, q + LIMIT_REARM_DEG):
+            self._outside[i] = False  # back inside, clear of the limit: a next excursion is one again
 
     def release(self, i: int) -> None:
         """Joint ``i``'s drive gets 0x80 from now on (until the next halt): its own hold does not hold it."""
