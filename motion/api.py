@@ -299,6 +299,21 @@ class MotionHandle:
         return MotionProgress(elapsed, duration, done=self.done)
 
 
+def _quiet_ahead(supervisor: Supervisor) -> None:
+    """Before a loop closes with another of this program to follow (homing, then the arm's): the drives' link-loss
+    protection off, so that the quiet time between the loops (the next controller built, positions read) does not stop
+    them (:meth:`~motion.control.drivesetup.DriveSetup.suspend_protection`; the next loop sets it again). A drive that
+    does not answer is logged: the close goes on."""
+    try:
+        supervisor.drives.suspend_protection(supervisor.controller.clock.now() + _SUSPEND_WINDOW_S)
+    except TransportError as exc:
+        logger.warning("the drives' link-loss protection was not turned off between loops: %s", exc)
+
+
+#: How long the drives have to acknowledge the protection's suspension, s.
+_SUSPEND_WINDOW_S = 0.5
+
+
 class Arm:
     """An arm of RMD joints, built from a configuration (see :meth:`from_config`).
 
@@ -573,6 +588,7 @@ class Arm:
             raise MotionError("homing a recording arm: home at connect instead (Arm(..., home=[...]))")
         self._begin_connecting()
         try:
+            _quiet_ahead(supervisor)
             supervisor.close()
             fault = supervisor.fault
             if fault is not None and fault.kind is not FaultKind.CLOSE:
@@ -613,6 +629,7 @@ class Arm:
         finally:
             self._running = None  # a stop from now on is latched for the arm's loop
             finish_halt(supervisor)
+            _quiet_ahead(supervisor)
             supervisor.close()
         controller.set_turns(corrected_turns(controller.turns, self._index.__getitem__, results))
         q = controller.read_positions()

@@ -13,7 +13,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import time
 from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import fields
 from typing import TYPE_CHECKING
@@ -475,7 +474,10 @@ def resolve_frames(
         TransportError: a drive did not answer.
     """
     readings = read_angles(controller)
-    runtimes, now = read_runtimes(controller), time.time()
+    runtimes, now = (
+        read_runtimes(controller),
+        drive_record_for(controller.bus)[1](),
+    )  # (the clock runtimes compare with)
     base = controller.base_transmission.transmissions
     known = records or {}
     found = [known.get(j.name) for j in config.joints]
@@ -500,7 +502,15 @@ def resolve_frames(
         for j, t in zip(config.joints, resolved, strict=True)
     )
     controller.set_turns([j.turns for j in resolved])
-    for joint, t in zip(resolved, base, strict=True):
+    for joint, t, spec, axis in zip(resolved, base, config.joints, controller.specs, strict=True):
+        output_turn_deg = 360.0 * axis.drive_gear_ratio / abs(t.gear_ratio)  # (joint degrees)
+        if joint.source is Source.ABSOLUTE and spec.position_max_deg - spec.position_min_deg >= output_turn_deg:
+            logger.warning(
+                "joint %s: its limits span a whole output turn or more, so its V3 drive's reading is taken as it is: "
+                "the drive must keep its multi-turn value (function 0x20 index 4 = 1), or the joint reads a turn off "
+                "after a power-up elsewhere than in its first output turn",
+                joint.name,
+            )
         if joint.source is Source.ASSUMED and joint.name not in provisional:
             lo, hi = assumed_span(t, joint)
             logger.warning(

@@ -21,6 +21,7 @@ import yaml
 from motion.api import Arm
 from motion.config import ArmConfig, load_config
 from motion.control.turns import TurnError
+from motion.emulator.drive_v3 import EmulatedDriveV3
 from motion.errors import FaultKind, MotionError, MotionFault
 from motion.homing import HomingError, homed_joints, homing_variant, turns_to_stop
 from motion.transmission import Transmission
@@ -236,3 +237,27 @@ def test_cli_home_interrupted_halts_every_axis_and_exits_130(
     assert len(setpoints_after(run.after, -1.0)) <= 2 * len(ARM6_IDS), run.after[-2000:]
     assert setpoints_after(run.after, min(halts.values())) == []
     assert setpoints_deg(run.moved, shoulder)[-1] > -30.0  # nowhere near the stop at -125 deg
+
+
+def test_homing_v3_drives_turns_their_link_loss_protection_off_between_the_loops_and_on_again() -> None:
+    # (review of issue 31 §4) the quiet time between the homing loop and the arm's (a controller built, positions
+    # read) is longer than the protection's time: with it left on, the drives would stop and unbraked joints fall
+    config = load_config(CONFIGS / "arm6_v3.yaml")
+    joints = list(config.joints)
+    stop = joints[SHOULDER].homing
+    assert stop is not None
+    joints[SHOULDER] = dataclasses.replace(joints[SHOULDER], homing=dataclasses.replace(stop, speed_dps=10.0))
+    config = dataclasses.replace(config, joints=tuple(joints))
+    arm = Arm(
+        config, emulate=True, emulated_protocol="v3", start_pose={"shoulder_pitch": -47.3}, home=["shoulder_pitch"]
+    )
+    with arm:
+        assert arm.simulation is not None and arm.supervisor is not None
+        drives = [d for d in arm.simulation.emulator.drives.values() if isinstance(d, EmulatedDriveV3)]
+        assert len(drives) == len(config.joints)
+        session_ms = arm.supervisor.drives.link_timeout_ms
+        assert session_ms > 0
+        assert all(d.communication_timeout_ms == session_ms for d in drives)  # on again for the arm
+        # per drive: 0x43 of both planning indexes once; 0xB3 on (homing), off (between), on (the arm's loop)
+        assert [d.rom_writes for d in drives] == [5] * len(drives)
+        assert all(d.link_losses == 0 for d in drives)

@@ -306,3 +306,11 @@ def test_v3_arm2_powered_up_away_from_zero_is_read_where_it_is_without_a_window(
     assert [(t.source, t.turns) for t in turns] == resolved
     np.testing.assert_allclose(controller.read_positions(), pose, atol=0.05)
     _moves_where_commanded(config, controller, plant)
+
+
+def test_an_output_shaft_reading_of_a_drive_without_a_whole_reduction_is_refused_saying_why() -> None:
+    # (review: it divided by the zero output turn)
+    odd = Transmission(gear_ratio=9.5, direction=1, zero_offset_deg=0.0, torque_constant_nm_per_a=0.1)
+    with pytest.raises(TurnError, match=r"reads 200\.00 output deg.*no whole number of motor turns"):
+        resolve_output_joint("j", odd, 200.0 * 9.5, (-90.0, 90.0), None, output_turn=0)
+    assert resolve_output_joint("j", odd, 50.0 * 9.5, (-90.0, 90.0), None, output_turn=0).source is Source.ABSOLUTE

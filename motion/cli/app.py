@@ -315,7 +315,13 @@ def build_parser() -> argparse.ArgumentParser:
     _json(home)
     collision.add_arguments(_command(sub, "collision-calibrate", collision.calibrate, collision.HELP))
     _command(sub, "hold", drives.hold, "make every drive hold its present position (0xA4 in the drive's loop)")
-    _command(sub, "stop", drives.stop, "stop every drive (0x81): it stops and holds")
+    _command(
+        sub,
+        "stop",
+        drives.stop,
+        "stop every drive (0x81): it stops and holds (a V3 drive with its link-loss protection on only until that "
+        "time passes without a frame)",
+    )
     _command(sub, "off", drives.off, "turn every drive off (0x80): torque released, the arm may fall")
     _command(sub, "clear", drives.clear, "clear the drives' error flags (0x9B); exit 1 while a cause persists")
     _settings_commands(sub)

@@ -118,11 +118,15 @@ class CommandQueue:
         except PlanningError as exc:
             with self._lock:
                 self._rejected = exc
-            if not follower.moving:
-                self.idle.set()
+                if not follower.moving and self._pending is None:
+                    self.idle.set()
 
     def settle(self, follower: Follower) -> None:
         """The cycle's end: idle once nothing is queued or playing (set once, not again every cycle of a hold: an
-        Event's set takes a lock and notifies)."""
-        if not follower.moving and self._pending is None and not self.idle.is_set():
-            self.idle.set()
+        Event's set takes a lock and notifies). Under the lock a ``put`` takes, so that a command queued meanwhile
+        keeps the queue busy."""
+        if follower.moving or self._pending is not None or self.idle.is_set():
+            return
+        with self._lock:
+            if self._pending is None:
+                self.idle.set()

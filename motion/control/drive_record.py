@@ -1,12 +1,12 @@
 """The host's record of the drives' ROM-backed settings: what rmd-motion last wrote where the drive cannot be asked
 (the V3 driver's 0xB3 communication-loss time has no read), what a drive held before rmd-motion first changed it (for
-``rmd-motion drives restore``), and how many ROM writes rmd-motion has made to each drive.
+``rmd-motion restore``), and how many ROM writes rmd-motion has made to each drive.
 
 A session writes a ROM-backed setting only when the drive's value (read, or for 0xB3 recorded here) differs from what
 the session needs, so a second connect with the same configuration writes nothing (flash wears with every write).
 One JSON file on the host (``drives.json`` in rmd-motion's state folder), keyed by the bus (``Transport.describe()``)
 and the motor id. A drive swapped for another,
-or changed by another tool, is not seen by the record: ``rmd-motion drives restore`` (or deleting the file) makes the
+or changed by another tool, is not seen by the record: ``rmd-motion restore`` (or deleting the file) makes the
 next session write again. Emulated drives in simulated time are new in every session: their record stays in memory.
 """
 
@@ -88,8 +88,8 @@ class DriveRecord:
 
 #: A drive's runtime (0xB1) may differ from the host's clock by this share of the time between two readings, plus
 #: :data:`RUNTIME_SLACK_S`, for them to be taken as one power-on of one drive.
-RUNTIME_DRIFT = 0.1
-RUNTIME_SLACK_S = 5.0
+RUNTIME_DRIFT = 0.01
+RUNTIME_SLACK_S = 1.0
 
 
 def same_power_on(runtime_then_s: float, at_then_s: float, runtime_now_s: float, now_s: float) -> bool:

@@ -25,6 +25,7 @@ import logging
 import math
 import time
 from collections.abc import Callable, Collection, Sequence
+from typing import Any, TypeAlias
 
 from motion.control.drive_record import DriveRecord, same_power_on
 from motion.control.family import DriveFamily
@@ -54,6 +55,8 @@ def link_timeout_ms(period_s: float, configured_s: float | None) -> int:
     return math.ceil(round(seconds * 1000.0, 6))
 
 
+#: A ROM write and the record's changes it makes once a drive acknowledged it: (key, name, value; None removes).
+_Write: TypeAlias = tuple[Request, list[tuple[str, str, Any]]]
 #: The record's names of the settings (:mod:`motion.control.drive_record`).
 LINK_TIMEOUT = "link_timeout"
 _ORIGINAL_ACCELERATION = "acceleration_before_{}"
@@ -109,7 +112,7 @@ class DriveSetup:
         Raises:
             TransportError: a drive did not answer a read or a write.
         """
-        writes: list[Request] = []
+        writes: list[_Write] = []
         if self.family.planning_accelerations:
             writes += self._acceleration_writes(deadline_s)
         if self.family.link_protection:
@@ -123,8 +126,8 @@ class DriveSetup:
     def _key(self, motor_id: int) -> str:
         return DriveRecord.key(self.bus.describe(), motor_id)
 
-    def _acceleration_writes(self, deadline_s: float) -> list[Request]:
-        """0x43 of 0 for each planning acceleration that is not 0 (what it held first is recorded)."""
+    def _acceleration_writes(self, deadline_s: float) -> list[_Write]:
+        """0x43 of 0 for each planning acceleration that is not 0 (what it held first is recorded once written)."""
         indexes = self.family.planning_accelerations
         reads = [Request(i, AccelerationRead(index)) for i in self.ids for index in indexes]
         writes = []
@@ -134,34 +137,60 @@ class DriveSetup:
             if message.acceleration_dps2 == 0:
                 continue
             key, name = self._key(reply.motor_id), _ORIGINAL_ACCELERATION.format(int(message.index))
-            if self.record.get(key, name) is None:
-                self.record.put(key, name, message.acceleration_dps2)
-            writes.append(Request(reply.motor_id, PlanningAcceleration(CommandV3.WRITE_ACCELERATION, message.index, 0)))
+            first = [(key, name, message.acceleration_dps2)] if self.record.get(key, name) is None else []
+            request = Request(reply.motor_id, PlanningAcceleration(CommandV3.WRITE_ACCELERATION, message.index, 0))
+            writes.append((request, first))
         return writes
 
-    def _link_timeout_writes(self, deadline_s: float) -> list[Request]:
-        """0xB3 to each drive the record does not show holding the session's time since its power-on."""
+    def _link_timeout_writes(self, deadline_s: float, needed_ms: int | None = None) -> list[_Write]:
+        """0xB3 to each drive the record does not show holding ``needed_ms`` (default the session's time) since its
+        power-on."""
         reads = [Request(i, BareV3(CommandV3.READ_RUNTIME)) for i in self.ids]
-        now, needed, writes = self._now(), self.link_timeout_ms, []
+        now, writes = self._now(), []
+        needed = self.link_timeout_ms if needed_ms is None else needed_ms
         for reply in self._ask(reads, deadline_s, "runtime read (0xB1)"):
             message = reply.message
             assert isinstance(message, Runtime)
             key, runtime_s = self._key(reply.motor_id), message.runtime_ms / 1000.0
-            written = self.record.get(key, LINK_TIMEOUT)
-            if not _still_holds(written, needed, runtime_s, now):
-                writes.append(Request(reply.motor_id, CommunicationTimeout(needed)))
-                self.record.put(key, LINK_TIMEOUT, {"ms": needed, "runtime_s": runtime_s, "at_s": now})
+            if not _still_holds(self.record.get(key, LINK_TIMEOUT), needed, runtime_s, now):
+                entry = {"ms": needed, "runtime_s": runtime_s, "at_s": now}
+                writes.append((Request(reply.motor_id, CommunicationTimeout(needed)), [(key, LINK_TIMEOUT, entry)]))
         return writes
 
-    def _write_rom(self, requests: list[Request], deadline_s: float, what: str) -> None:
-        """Send ROM writes; count them (the session's and, in the record, each drive's) and save the record."""
-        try:
-            self._ask(requests, deadline_s, what)
-        finally:
-            self.rom_writes += len(requests)
-            for request in requests:
-                self.record.count_rom_writes(self._key(request.motor_id), 1)
-            self.record.save()
+    def _write_rom(self, writes: list[_Write], deadline_s: float, what: str) -> None:
+        """Send ROM writes; for each one a drive acknowledged, take its changes into the record and count it (the
+        session's count and, in the record, the drive's); save the record.
+
+        Raises:
+            TransportError: a drive did not answer (what it did is not known: the record keeps what it had).
+        """
+        changes = {id(request): updates for request, updates in writes}
+        replies = self.bus.transact([request for request, _ in writes], deadline_s)
+        silent = set()
+        for reply in replies:
+            if reply.message is None:
+                silent.add(reply.motor_id)
+                continue
+            for key, name, value in changes.get(id(reply.request), ()):
+                self.record.put(key, name, value)
+            self.rom_writes += 1
+            self.record.count_rom_writes(self._key(reply.motor_id), 1)
+        self.record.save()
+        if silent:
+            raise TransportError(f"no reply to the {what} from motor(s) {', '.join(map(str, sorted(silent)))}")
+
+    def suspend_protection(self, deadline_s: float) -> None:
+        """The communication-loss protection off (0xB3 = 0) where the record does not show it off, before this session
+        closes while another loop of the same program follows (homing, then the arm's): the bus is quiet between
+        them, for longer than the protection's time. The next session sets it again.
+
+        Raises:
+            TransportError: a drive did not answer.
+        """
+        if self.family.link_protection and self.link_timeout_ms:
+            writes = self._link_timeout_writes(deadline_s, 0)
+            if writes:
+                self._write_rom(writes, deadline_s, "communication-loss protection off (0xB3)")
 
     def restore_settings(self, deadline_s: float) -> list[str]:
         """Write back what the drives held before rmd-motion first changed them: the planning accelerations the
@@ -171,26 +200,24 @@ class DriveSetup:
         Raises:
             TransportError: a drive did not answer.
         """
-        requests, done = [], []
+        writes: list[_Write] = []
+        done = []
         for motor_id in self.ids:
             key, written = self._key(motor_id), []
             for index in self.family.planning_accelerations:
                 name = _ORIGINAL_ACCELERATION.format(int(index))
                 value = self.record.get(key, name)
                 if value is not None:
-                    requests.append(
-                        Request(motor_id, PlanningAcceleration(CommandV3.WRITE_ACCELERATION, index, int(value)))
-                    )
+                    request = Request(motor_id, PlanningAcceleration(CommandV3.WRITE_ACCELERATION, index, int(value)))
+                    writes.append((request, [(key, name, None)]))
                     written.append(f"{index.name.lower()} {value} deg/s²")
-                    self.record.put(key, name, None)
             if self.family.link_protection:
-                requests.append(Request(motor_id, CommunicationTimeout(0)))
+                writes.append((Request(motor_id, CommunicationTimeout(0)), [(key, LINK_TIMEOUT, None)]))
                 written.append("communication-loss protection off")
-                self.record.put(key, LINK_TIMEOUT, None)
             if written:
                 done.append(f"motor {motor_id}: " + ", ".join(written))
-        if requests:
-            self._write_rom(requests, deadline_s, "restore")
+        if writes:
+            self._write_rom(writes, deadline_s, "restore")
         return done
 
     def brake_requests(self, code: int) -> list[Request]:
@@ -200,8 +227,8 @@ class DriveSetup:
     def release_brakes(self, deadline_s: float) -> None:
         """0x77 to every braked joint (before the loop commands them)."""
         if self.braked_ids:
+            self.brakes_locked = False  # (before: a drive that missed the reply may have released: the end locks all)
             self._ask(self.brake_requests(CommandV3.RELEASE_BRAKE), deadline_s, "brake release (0x77)")
-            self.brakes_locked = False
 
     def restore(self, deadline_s: float, *, lock: Collection[int] | None = None) -> None:
         """The session's end: lock the brakes (the settings stay: module docstring); best effort (a drive that does

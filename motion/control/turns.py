@@ -275,15 +275,17 @@ def resolve_output_joint(
         ratio = (lo - q0) / step
         inside = [k for k in range(math.floor(ratio) - 1, math.ceil(ratio) + 2) if lo <= q0 + k * step <= hi]
     if len(inside) != 1:
+        if len(inside) > 1:
+            why = f"; {len(inside)} whole output turns would bring it inside: which one cannot be told"
+        elif step:
+            why = f", and no whole output turn ({abs(step):g} deg of this joint) brings it inside"
+        else:
+            why = ", and its drive's reduction is no whole number of motor turns: no turn can be added"
+        output_deg = reading_deg / abs(transmission.gear_ratio)
         raise TurnError(
-            f"joint {name}: the drive reads {reading_deg / output_turn:.2f} output deg, which puts the joint at "
-            f"{q0:.2f} deg, outside its limits [{lo:g}, {hi:g}]"
-            + (
-                f", and no whole output turn ({abs(step):g} deg of this joint) brings it inside"
-                if not inside
-                else f"; {len(inside)} whole output turns would bring it inside: which one cannot be told"
-            )
-            + ": move it inside its limits by hand with the drives off, or home it (`rmd-motion home`)"
+            f"joint {name}: the drive reads {output_deg:.2f} output deg, which puts the joint at {q0:.2f} deg, outside "
+            f"its limits [{lo:g}, {hi:g}]{why}: move it inside its limits by hand with the drives off, or home it "
+            "(`rmd-motion home`)"
         )
     turns = inside[0] * output_turn
     return JointTurns(name, turns, Source.OUTPUT_TURN, reading_deg, joint_angle(transmission, reading_deg, turns), None)
