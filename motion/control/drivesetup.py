@@ -164,14 +164,15 @@ class DriveSetup:
         Raises:
             TransportError: a drive did not answer (what it did is not known: the record keeps what it had).
         """
-        changes = {id(request): updates for request, updates in writes}
+        # by drive and message (a reply names the request message it answers)
+        changes = {(request.motor_id, request.message): updates for request, updates in writes}
         replies = self.bus.transact([request for request, _ in writes], deadline_s)
         silent = set()
         for reply in replies:
             if reply.message is None:
                 silent.add(reply.motor_id)
                 continue
-            for key, name, value in changes.get(id(reply.request), ()):
+            for key, name, value in changes.get((reply.motor_id, reply.request), ()):
                 self.record.put(key, name, value)
             self.rom_writes += 1
             self.record.count_rom_writes(self._key(reply.motor_id), 1)
