@@ -7,14 +7,15 @@ import os
 import select
 import threading
 import tty
-import types
 from typing import Final
+
+from motion.closing import Closing
 
 #: What the flood writes: no ``\r`` (no slcan line ever ends) and no 0x3E (no RS485 frame ever starts).
 JUNK: Final = b"x" * 4096
 
 
-class JunkFlood:
+class JunkFlood(Closing):
     """A pty pair whose master a thread fills with :data:`JUNK` as fast as the slave is read (and whose input it
     reads and drops, so that the client's writes never block), until :meth:`close` or ``seconds``.
 
@@ -56,11 +57,3 @@ class JunkFlood:
         self._thread.join()
         os.close(self._master)
         os.close(self._slave)
-
-    def __enter__(self) -> JunkFlood:
-        return self
-
-    def __exit__(
-        self, exc_type: type[BaseException] | None, exc: BaseException | None, tb: types.TracebackType | None
-    ) -> None:
-        self.close()
