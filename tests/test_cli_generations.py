@@ -229,5 +229,6 @@ def test_a_second_session_writes_no_rom_and_restore_puts_back_the_settings(tmp_p
         assert cli("hold", "--config", braked, *emulated.bus_args).returncode == 0
         offset = emulated.log_size()
         again = cli(*move, "shoulder=5")
+        skip_if_rate_refused(again)
         assert again.returncode == 0, again.stderr
         assert len(_rom_writes_in(emulated.log_since(offset))) == 6  # set for tracking again
