@@ -42,12 +42,11 @@ from motion.errors import ConfigError, MotionError, TransportError
 from motion.keep import drive_record_for
 from motion.protocol import WireProtocol
 from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily
-from motion.protocol.v3.messages import BareV3, CommandV3, MotorModel, VersionDate
 from motion.safety import SafetySettings, Supervisor
 from motion.safety.watchdog import CollisionObserver, Watchdog
 from motion.trajectory import JointLimits
 from motion.transmission import FloatArray
-from motion.transport import Reply, Request, Transport, open_transport
+from motion.transport import Reply, Transport, open_transport
 
 if TYPE_CHECKING:
     from kinematics.figure import ArmFigure
@@ -174,23 +173,26 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
                 f"({describe_mixed(found)}): set bus.protocol to {detected.value} or auto"
             )
     spoken = bus if bus.family is wanted else bus.with_family(wanted)
-    if wanted is ProtocolFamily.V3 and found:
-        logger.info("V3-driver drives: %s", describe_v3_drives(spoken, sorted(found)))
+    if found:
+        described = describe_drives(spoken, sorted(found), wire_protocol(config))
+        if described:
+            logger.info("drives of the %s: %s", spoken.generation.title, described)
     return spoken
 
 
-def describe_v3_drives(bus: Transport, ids: Sequence[int]) -> str:
-    """``"motor 1 X8S2V10 firmware 20240528, ..."``: each V3 drive's model (0xB5) and firmware date (0xB2), as read
-    now (a drive that does not answer is named so).
+def describe_drives(bus: Transport, ids: Sequence[int], wire: WireProtocol) -> str:
+    """``"motor 1 X8S2V10 firmware 20240528, ..."``: what each drive tells of its model and firmware, as read now
+    (a drive that does not answer is named so); empty where the generation has no such read on ``wire``.
 
     Raises:
         TransportError: the bus failed.
     """
-    reads = (BareV3(CommandV3.READ_MODEL), BareV3(CommandV3.READ_VERSION_DATE))
-    replies = bus.transact([Request(i, m) for i in ids for m in reads], bus.clock() + GENERATION_CHECK_WINDOW_S)
-    models = {r.motor_id: r.message.model for r in replies if isinstance(r.message, MotorModel)}
-    dates = {r.motor_id: r.message.date for r in replies if isinstance(r.message, VersionDate)}
-    return ", ".join(f"motor {i} {models.get(i, '(no model)')} firmware {dates.get(i, '(no date)')}" for i in ids)
+    from motion.transport.detect import read_identities  # noqa: PLC0415 - the CAN backend only where it is used
+
+    if not bus.generation.identity_reads[wire]:
+        return ""
+    told = read_identities(bus, ids, wire, GENERATION_CHECK_WINDOW_S)
+    return ", ".join(f"motor {i} {told[i].text if i in told else '(no answer)'}" for i in ids)
 
 
 def feedforward_for(config: ArmConfig) -> Feedforward | None:
@@ -362,7 +364,7 @@ def emulator_for(
         for j in config.joints
     }
     stops = {j.motor_id: hard_stops(j) for j in config.joints if j.homing is not None}
-    braked = [j.motor_id for j in config.joints if j.brake] if family is ProtocolFamily.V3 else []
+    braked = [j.motor_id for j in config.joints if j.brake] if FAMILIES[family].brakes else []
     return Emulator(
         models.keys(), model=models, load=loads, plant=plant, faults=faults, stops=stops, family=family, brakes=braked
     )

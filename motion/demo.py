@@ -30,6 +30,7 @@ from motion.config import ArmConfig, example_config, load_config
 from motion.config.schema import ControlMode, ProtocolSetting
 from motion.errors import ConfigError, MotionError, MotionFault, TransportError
 from motion.plot import plot_log
+from motion.protocol.generation import GENERATIONS
 from motion.protocol.table import ProtocolFamily
 from motion.telemetry import TelemetryLog, TelemetryOptions
 from motion.view import ViewOptions
@@ -164,8 +165,10 @@ def _print_summary(
 ) -> None:
     table = [_HEADER, *(_summary_row(result) for result in results)]
     widths = [max(len(row[c]) for row in table) for c in range(len(_HEADER))]
-    kind = "V3-driver CAN drives (protocol v3)" if drives is ProtocolFamily.V3 else "CAN drives"
-    print(f"rmd-motion demo: the 6-DOF arm of {config} on emulated {kind} at {rate_hz:g} Hz")
+    print(
+        f"rmd-motion demo: the 6-DOF arm of {config} on emulated CAN drives of the {GENERATIONS[drives].title} "
+        f"at {rate_hz:g} Hz"
+    )
     for row in table:
         print("  " + "  ".join(cell.ljust(width) for cell, width in zip(row, widths, strict=True)).rstrip())
     print("  (limited: cycles in which a joint's current limit clipped its torque command)")

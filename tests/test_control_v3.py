@@ -68,7 +68,10 @@ def test_a_move_on_v3_drives_detected_at_connect_reaches_its_target_with_the_ses
     arm = Arm(arm2(), emulate=True, emulated_protocol="v3")
     with caplog.at_level(logging.INFO, logger="motion.config"), arm:
         # the connect names each V3 drive's model and firmware date
-        assert "V3-driver drives: motor 1 EMUX8V3 firmware 20240528, motor 2 EMUX8V3 firmware 20240528" in caplog.text
+        assert (
+            "drives of the V3-driver protocol (V4.2): motor 1 EMUX8V3 firmware 20240528, "
+            "motor 2 EMUX8V3 firmware 20240528" in caplog.text
+        )
         assert arm.bus is not None and arm.bus.family is V3  # told by the reply ids (bus.protocol: auto)
         assert arm.controller is not None and arm.controller.family.family is V3
         drives = [v3_drive(arm, i) for i in (1, 2)]

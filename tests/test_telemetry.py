@@ -303,7 +303,10 @@ def test_empty_and_invalid_logs(tmp_path: Path) -> None:
 def test_demo_runs_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str], drives: ProtocolFamily) -> None:
     assert run_demo(tmp_path / "demo", drives=drives) == 0
     out = capsys.readouterr().out
-    kind = "V3-driver CAN drives (protocol v3) at 125 Hz" if drives is ProtocolFamily.V3 else "CAN drives at 250 Hz"
+    kind = {
+        ProtocolFamily.V2: "CAN drives of the older protocol (CAN v2.3 / RS485 v1.62) at 250 Hz",
+        ProtocolFamily.V3: "CAN drives of the V3-driver protocol (V4.2) at 125 Hz",
+    }[drives]
     assert f"on emulated {kind}" in out
     for name in ("position", "torque"):
         for suffix in (".npz", ".log", ".png"):

@@ -11,7 +11,7 @@ import os
 import signal
 import sys
 import types
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from enum import IntFlag
 from typing import Any, Final
@@ -20,6 +20,7 @@ from motion.compose import negotiate_family, open_bus
 from motion.config import ArmConfig, CanBusConfig, JointConfig, load_config_or_example
 from motion.errors import MotionError, TransportError
 from motion.protocol import Message
+from motion.protocol.generation import GENERATIONS
 from motion.protocol.table import ProtocolFamily
 from motion.transport import Request, Transport
 from motion.view import DEFAULT_HOST, DEFAULT_PORT, PORTS, ViewOptions, host_warning
@@ -34,6 +35,9 @@ EXIT_INTERRUPTED: Final = 130
 REPLY_TIMEOUT_S: Final = 0.2
 #: The bus override options and the bus kind each applies to.
 _CAN_OVERRIDES: Final = ("interface", "channel")
+#: What :meth:`Session.open_bus` lets a command speak: the drives of either generation, or the older one alone.
+EVERY_GENERATION: Final = tuple(ProtocolFamily)
+OLDER_ONLY: Final = (ProtocolFamily.V2,)
 _RS485_OVERRIDES: Final = ("port",)
 #: Where pseudo-terminal devices live.
 _PTY_PREFIX: Final = "/dev/pts/"
@@ -166,10 +170,10 @@ class Session:
             overrides["sleep_after_open"] = 0
         return cls(config, overrides)
 
-    def open_bus(self, *, check: bool = True, v3: bool = False) -> Transport:
+    def open_bus(self, *, check: bool = True, speaks: Collection[ProtocolFamily] = OLDER_ONLY) -> Transport:
         """Open the configured bus with the overrides and (``check``) speak the drives' generation
         (:func:`motion.compose.negotiate_family`; the returned transport owns the port), refusing V3 drives unless
-        the command speaks their protocol (``v3``; ``scan`` reads any generation and does not ask).
+        the command ``speaks`` theirs (:data:`EVERY_GENERATION`; ``scan`` reads any generation and does not ask).
 
         Raises:
             TransportError: the bus or port could not be opened, or its drives were refused.
@@ -182,11 +186,12 @@ class Session:
         except TransportError:
             bus.close()
             raise
-        if spoken.family is not ProtocolFamily.V2 and not v3:
+        if spoken.family not in speaks:
             spoken.close()
             raise TransportError(
-                f"the drives answer in the {spoken.family.value} protocol (V3 driver): this command speaks the older "
-                "one; status, stop, off, hold, clear, pid get, accel get, check, move, run, demo and scan speak theirs"
+                f"the drives answer in the {spoken.generation.title}: this command speaks "
+                f"the {' and '.join(GENERATIONS[f].title for f in speaks)} alone; status, stop, off, hold, clear, "
+                "pid get, accel get, check, move, run, demo and scan speak theirs"
             )
         return spoken
 

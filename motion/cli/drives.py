@@ -8,13 +8,14 @@ releases the torque: an arm under gravity falls unless it has brakes).
 from __future__ import annotations
 
 import argparse
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
 from motion.cli.common import (
+    EVERY_GENERATION,
     EXIT_COMMUNICATION,
     EXIT_OK,
     EXIT_USAGE,
@@ -32,7 +33,7 @@ from motion.config import CanBusConfig, JointConfig
 from motion.config.schema import ControlMode
 from motion.control.drive_record import DriveRecord
 from motion.control.drivesetup import LINK_TIMEOUT
-from motion.control.family import FAMILIES
+from motion.control.family import FAMILIES, STATUS_TYPES
 from motion.control.ratecheck import RateError
 from motion.control.tracking import PositionLoopFit
 from motion.control.turns import CONTINUITY_MOTOR_DEG, joint_angle
@@ -47,9 +48,9 @@ from motion.protocol import (
     MultiTurnAngle,
     MultiTurnPositionSpeed,
     PidGains,
-    ProductInfo,
     Status1,
 )
+from motion.protocol.generation import GENERATIONS
 from motion.protocol.table import (
     MOTOR_ID_MAX,
     MOTOR_ID_MIN,
@@ -62,19 +63,15 @@ from motion.protocol.table import (
 from motion.protocol.v3.messages import (
     AccelerationIndex,
     AccelerationRead,
-    BareV3,
-    CommandV3,
-    MotorModel,
     PidIndex,
     PidParameter,
     PidRead,
     PlanningAcceleration,
     Status1V3,
-    VersionDate,
 )
 from motion.transport import Request, Transport
 from motion.transport.can_transport import CanTransport
-from motion.transport.detect import detect_can
+from motion.transport.detect import Identity, detect_can, read_identities
 
 if TYPE_CHECKING:
     from motion.api import Arm
@@ -134,79 +131,60 @@ def _label(joint: JointConfig) -> str:
 # ---------------------------------------------------------------------------------------------------- scan
 
 
-def _model_text(info: ProductInfo | None) -> str:
-    if info is None:
-        return "-"
-    return f"{info.driver_name} / {info.motor_name} hw {info.hardware_version:g} fw {info.firmware_version:g}"
+@dataclass(frozen=True)
+class _Scanned:
+    """A drive that answered the scan: its generation, its status, and what it told of itself (None: nothing)."""
 
-
-#: What scan reads of a V3 drive: status, firmware date, model.
-_V3_SCAN_READS: Final = (CommandV3.READ_STATUS_1, CommandV3.READ_VERSION_DATE, CommandV3.READ_MODEL)
+    family: ProtocolFamily
+    status: Status1 | Status1V3
+    identity: Identity | None
 
 
 @contextmanager
-def _speaking(bus: CanTransport, family: ProtocolFamily) -> Iterator[Transport]:
-    """``bus`` where it speaks ``family``, else a second transport on its port that does (a scan meets drives of
-    either generation on one bus)."""
+def _speaking(bus: Transport, family: ProtocolFamily) -> Iterator[Transport]:
+    """``bus`` where it speaks ``family``, else a second transport on its CAN port that does (a scan meets drives of
+    either generation on one CAN bus)."""
     if bus.family is family:
         yield bus
         return
+    assert isinstance(bus, CanTransport)
     with CanTransport.over(bus.port, clock=bus.clock, family=family, owns_port=False) as other:
         yield other
 
 
-def _scan_v3(bus: Transport, ids: Sequence[int], window_s: float) -> tuple[dict[int, Status1V3], dict[int, str]]:
-    """Status, firmware date and model of V3 drives, on a transport that speaks their generation."""
-    requests = [Request(i, BareV3(c)) for i in ids for c in _V3_SCAN_READS]
-    replies = bus.transact(requests, bus.clock() + window_s)
-    status = {r.motor_id: r.message for r in replies if isinstance(r.message, Status1V3)}
-    dates = {r.motor_id: r.message.date for r in replies if isinstance(r.message, VersionDate)}
-    models = {r.motor_id: r.message.model for r in replies if isinstance(r.message, MotorModel)}
-    return status, {i: f"{models.get(i, '?')} firmware {dates.get(i, '?')}" for i in status}
+def _scan_in(bus: Transport, ids: Sequence[int], wire: WireProtocol, stretch: float) -> dict[int, _Scanned]:
+    """The status (0x9A) and identity of ``ids`` on a transport that speaks their generation (windows ``stretch``
+    times the defaults)."""
+    generation = bus.generation
+    window_s = stretch * _window(wire, len(ids))
+    replies = bus.transact([Request(i, generation.status_read) for i in ids], bus.clock() + window_s)
+    status = {r.motor_id: r.message for r in replies if isinstance(r.message, STATUS_TYPES)}
+    answered = sorted(status)
+    reads = len(answered) * len(generation.identity_reads[wire])
+    identities = read_identities(bus, answered, wire, stretch * _window(wire, reads))
+    return {i: _Scanned(bus.family, status[i], identities.get(i)) for i in answered}
 
 
-def _scan_older(bus: Transport, ids: Sequence[int], window_s: float) -> dict[int, Status1]:
-    """The 0x9A status of drives of the older generation, on a transport that speaks it."""
-    replies = bus.transact([Request(i, Bare(Command.READ_STATUS_1)) for i in ids], bus.clock() + window_s)
-    return {r.motor_id: r.message for r in replies if isinstance(r.message, Status1)}
+def _window(wire: WireProtocol, requests: int) -> float:
+    """Scan's reply window for a batch of ``requests`` on ``wire``, s."""
+    return SCAN_CAN_S + (SCAN_CAN_PER_REQUEST_S if wire is WireProtocol.CAN else SCAN_RS485_PER_ID_S) * requests
 
 
-def _can_window(requests: int) -> float:
-    """Scan's reply window for a CAN batch of ``requests``, s."""
-    return SCAN_CAN_S + SCAN_CAN_PER_REQUEST_S * requests
-
-
-def _scan_ids(
-    bus: Transport, ids: Sequence[int], stretch: float, *, rs485: bool
-) -> tuple[dict[int, Status1], dict[int, ProductInfo], dict[int, Status1V3], dict[int, str]]:
-    """Ask ``ids`` who they are (windows ``stretch`` times the defaults): the older family's statuses and RS485
-    models, the V3 drives' statuses and models."""
-    v3_status: dict[int, Status1V3] = {}
-    v3_models: dict[int, str] = {}
-    found: dict[int, Status1] = {}
-    models: dict[int, ProductInfo] = {}
-    per_id_s = SCAN_RS485_PER_ID_S if rs485 else 0.0
-    if isinstance(bus, CanTransport):
-        # A real CAN bus: the reply ids tell the generations apart; each is asked in its own generation.
-        generations = detect_can(bus.port, ids, stretch * _can_window(len(ids)))
-        v3_ids = sorted(i for i, f in generations.items() if f is ProtocolFamily.V3)
-        if v3_ids:
-            with _speaking(bus, ProtocolFamily.V3) as v3_bus:
-                window = stretch * _can_window(len(v3_ids) * len(_V3_SCAN_READS))
-                v3_status, v3_models = _scan_v3(v3_bus, v3_ids, window)
-        older = [i for i in ids if i not in v3_status]
-        with _speaking(bus, ProtocolFamily.V2) as older_bus:
-            found = _scan_older(older_bus, older, stretch * _can_window(len(older)))
-    elif bus.family is ProtocolFamily.V3:  # an RS485 line or a simulated bus of V3 drives: they alone
-        window = stretch * (SCAN_CAN_S + per_id_s * len(ids) * len(_V3_SCAN_READS))
-        v3_status, v3_models = _scan_v3(bus, ids, window)
-    else:
-        found = _scan_older(bus, ids, stretch * (SCAN_CAN_S + per_id_s * len(ids)))
-        if rs485 and found:
-            requests = [Request(i, Bare(Command.READ_MODEL)) for i in sorted(found)]
-            replies = bus.transact(requests, bus.clock() + stretch * SCAN_RS485_PER_ID_S * len(requests))
-            models = {r.motor_id: r.message for r in replies if isinstance(r.message, ProductInfo)}
-    return found, models, v3_status, v3_models
+def _scan_ids(bus: Transport, ids: Sequence[int], wire: WireProtocol, stretch: float) -> dict[int, _Scanned]:
+    """Ask ``ids`` who they are (windows ``stretch`` times the defaults), each in its generation: on a real CAN bus
+    the reply ids tell the generations apart (an id that did not answer is asked in the bus's own); elsewhere the
+    bus's generation alone answers."""
+    if not isinstance(bus, CanTransport):
+        return _scan_in(bus, ids, wire, stretch)
+    generations = detect_can(bus.port, ids, stretch * _window(WireProtocol.CAN, len(ids)))
+    groups: dict[ProtocolFamily, list[int]] = {}
+    for motor_id in ids:
+        groups.setdefault(generations.get(motor_id, bus.family), []).append(motor_id)
+    scanned: dict[int, _Scanned] = {}
+    for family, group in groups.items():
+        with _speaking(bus, family) as speaker:
+            scanned.update(_scan_in(speaker, group, wire, stretch))
+    return scanned
 
 
 def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
@@ -216,43 +194,35 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
     ids: tuple[int, ...] = args.ids or tuple(range(MOTOR_ID_MIN, MOTOR_ID_MAX + 1))
     rs485 = not isinstance(session.config.bus, CanBusConfig)
     configured = {j.motor_id for j in session.config.joints}
+    wire = WireProtocol.RS485 if rs485 else WireProtocol.CAN
     with session.open_bus(check=False) as bus:
-        found, models, v3_status, v3_models = _scan_ids(bus, ids, 1.0, rs485=rs485)
+        answered = _scan_ids(bus, ids, wire, 1.0)
         # a configured drive that did not answer is asked once more with a longer window (a busy host or adapter can
         # hold replies back longer than the first window): it is reported missing only then
-        again = [i for i in ids if i in configured and i not in found and i not in v3_status]
+        again = [i for i in ids if i in configured and i not in answered]
         if again:
-            more_found, more_models, more_v3_status, more_v3_models = _scan_ids(
-                bus, again, SCAN_RETRY_STRETCH, rs485=rs485
-            )
-            found.update(more_found)
-            models.update(more_models)
-            v3_status.update(more_v3_status)
-            v3_models.update(more_v3_models)
+            answered.update(_scan_ids(bus, again, wire, SCAN_RETRY_STRETCH))
         where, family = bus.describe(), bus.family
     names = session.names
-    answered: dict[int, Status1 | Status1V3] = {**found, **v3_status}
     drives: list[dict[str, object]] = []
     rows: list[tuple[object, ...]] = []
-    for motor_id, status in sorted(answered.items()):
-        protocol = (ProtocolFamily.V3 if motor_id in v3_status else family).value
+    for motor_id, scanned in sorted(answered.items()):
+        status, identity = scanned.status, scanned.identity
         flags = flag_names(status.errors)
-        model = asdict(models[motor_id]) if motor_id in models else v3_models.get(motor_id)
         drives.append(
             {
                 "motor_id": motor_id,
                 "joint": names.get(motor_id),
-                "protocol": protocol,
+                "protocol": scanned.family.value,
                 "voltage_v": status.voltage_v,
                 "temperature_c": status.temperature_c,
                 "errors": flags,
-                "model": model,
+                "model": None if identity is None else identity.record,
             }
         )
-        model_text = v3_models.get(motor_id) or _model_text(models.get(motor_id))
         rows.append(
-            (motor_id, names.get(motor_id, "-"), protocol, f"{status.voltage_v:.1f} V", f"{status.temperature_c} °C",
-             ",".join(flags) or "ok", model_text)
+            (motor_id, names.get(motor_id, "-"), scanned.family.value, f"{status.voltage_v:.1f} V",
+             f"{status.temperature_c} °C", ",".join(flags) or "ok", "-" if identity is None else identity.text)
         )  # fmt: skip
     missing = [_label(j) for j in session.config.joints if j.motor_id not in answered]
     if args.json:
@@ -260,11 +230,9 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
     else:
         print(f"{where}: {len(drives)} of {len(ids)} ids answered")
         print_table(("id", "joint", "protocol", "voltage", "temp", "flags", "model"), rows)
-    other = sorted(i for i in answered if (ProtocolFamily.V3 if i in v3_status else ProtocolFamily.V2) is not family)
+    other = sorted(i for i, scanned in answered.items() if scanned.family is not family)
     if other:
-        speaks = (
-            "V3-driver protocol (V4.2)" if family is ProtocolFamily.V2 else "older protocol (CAN v2.3 / RS485 v1.62)"
-        )
+        speaks = GENERATIONS[answered[other[0]].family].title
         warn(
             f"motor(s) {', '.join(map(str, other))} speak the {speaks}, not the configuration's "
             f"(bus.protocol: {family.value}): one arm's drives speak one generation"
@@ -282,7 +250,7 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """Every joint's position, speed, current, temperature, voltage and flags, read without moving anything."""
     session = Session.from_args(args)
     config = session.config
-    with session.open_bus(v3=True) as bus:
+    with session.open_bus(speaks=EVERY_GENERATION) as bus:
         # The controller's start-up reads (0x92 + 0x9C) give the joint angles exactly as a motion command sees them;
         # its loop is never started.
         controller = build_controller(config, bus)
@@ -350,7 +318,7 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
 def _halt(args: argparse.Namespace, code: Command) -> int:
     session = Session.from_args(args)
     joints = session.config.joints
-    with session.open_bus(v3=True) as bus:  # the same byte in both generations
+    with session.open_bus(speaks=EVERY_GENERATION) as bus:  # the same byte in both generations
         message = FAMILIES[bus.family].bare(code)
         _ask(bus, session, joints, message, type(message))
     print(f"{code.name.lower().replace('_', ' ')} (0x{code:02X}) acknowledged by {', '.join(map(_label, joints))}")
@@ -372,7 +340,7 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """Every drive holds its present angle in its own position loop (0xA4), also after the command ends."""
     session = Session.from_args(args)
     joints = session.config.joints
-    with session.open_bus(v3=True) as bus:
+    with session.open_bus(speaks=EVERY_GENERATION) as bus:
         family = FAMILIES[bus.family]
         if family.link_protection:
             _refuse_hold_under_protection(bus, joints)
@@ -431,7 +399,7 @@ def clear(args: argparse.Namespace, interrupts: Interrupts) -> int:
     errors clear by themselves once the cause is gone): their error words are read and reported the same way."""
     session = Session.from_args(args)
     joints = session.config.joints
-    with session.open_bus(v3=True) as bus:
+    with session.open_bus(speaks=EVERY_GENERATION) as bus:
         family = FAMILIES[bus.family]
         request = family.bare(Command.CLEAR_ERRORS if family.clears_errors else Command.READ_STATUS_1)
         replies: dict[int, Status1 | Status1V3] = _ask(bus, session, joints, request, family.status_type)
@@ -465,17 +433,7 @@ def pid(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """``pid get [JOINT...]`` / ``pid set [--ram|--rom] JOINT ANGLE_KP ANGLE_KI SPEED_KP SPEED_KI IQ_KP IQ_KI``."""
     session = Session.from_args(args)
     if args.action == "get":
-        joints = session.joints(args.joints)
-        with session.open_bus(v3=True) as bus:
-            if bus.family is ProtocolFamily.V3:  # float32 parameters by index (0x30)
-                reads = [(i.name.lower(), PidRead(i)) for i in PidIndex]
-                return _print_v3_parameters(bus, session, joints, reads, PidParameter, as_json=args.json)
-            gains: dict[int, PidGains] = _ask(bus, session, joints, Bare(Command.READ_PID), PidGains)
-        if args.json:
-            print_json({j.name: {f: getattr(gains[j.motor_id], f) for f in PID_FIELDS} for j in joints})
-        else:
-            print_table(("joint", "motor", *PID_FIELDS), [_gains_row(j, gains[j.motor_id]) for j in joints])
-        return EXIT_OK
+        return _print_parameters(session, args, _PID_READS)
     joint = session.joint(args.joint)
     if args.rom and not args.yes:
         raise UsageError(
@@ -495,28 +453,61 @@ def pid(args: argparse.Namespace, interrupts: Interrupts) -> int:
     return EXIT_OK
 
 
-def _print_v3_parameters(
-    bus: Transport,
-    session: Session,
-    joints: Sequence[JointConfig],
-    reads: Sequence[tuple[str, Message]],
-    expect: type[PidParameter] | type[PlanningAcceleration],
-    *,
-    as_json: bool,
+#: A read of `pid get` / `accel get`: its request, the reply it expects, and the columns a reply fills for a joint.
+_Read = tuple[Message, type[Message], Callable[[Any, JointConfig], dict[str, float]]]
+
+
+def _v3_parameter_reads(
+    requests: Sequence[PidRead | AccelerationRead], expect: type[Message], field: str
+) -> tuple[_Read, ...]:
+    """The V3 drives' parameters, read one index at a time: a column per index, named after it."""
+
+    def column(name: str) -> Callable[[Any, JointConfig], dict[str, float]]:
+        return lambda reply, _: {name: getattr(reply, field)}
+
+    return tuple((request, expect, column(request.index.name.lower())) for request in requests)
+
+
+#: `pid get` per generation: the older drives' six PI gains in one reply (0x30); the V3 drives' float32 parameters
+#: by index (0x30).
+_PID_READS: Final[Mapping[ProtocolFamily, tuple[_Read, ...]]] = {
+    ProtocolFamily.V2: ((Bare(Command.READ_PID), PidGains, lambda g, _: {f: getattr(g, f) for f in PID_FIELDS}),),
+    ProtocolFamily.V3: _v3_parameter_reads([PidRead(i) for i in PidIndex], PidParameter, "value"),
+}
+#: `accel get` per generation: the older drives' one limit (0x33, motor deg/s², also shown at the joint); the V3
+#: drives' planning accelerations by index (0x42, output shaft deg/s²).
+_ACCELERATION_READS: Final[Mapping[ProtocolFamily, tuple[_Read, ...]]] = {
+    ProtocolFamily.V2: (
+        (
+            Bare(Command.READ_ACCELERATION),
+            Acceleration,
+            lambda a, j: {"motor_dps2": a.acceleration_dps2, "joint_dps2": a.acceleration_dps2 / j.gear_ratio},
+        ),
+    ),
+    ProtocolFamily.V3: _v3_parameter_reads(
+        [AccelerationRead(i) for i in AccelerationIndex], PlanningAcceleration, "acceleration_dps2"
+    ),
+}
+
+
+def _print_parameters(
+    session: Session, args: argparse.Namespace, reads: Mapping[ProtocolFamily, tuple[_Read, ...]]
 ) -> int:
-    """V3 drives' parameters read one index at a time (each ``reads`` entry: a column and its request), printed as a
-    table or JSON by joint."""
+    """The joints' parameters that ``reads`` names for the drives' generation, printed as a table or JSON."""
+    joints = session.joints(args.joints)
     values: dict[int, dict[str, float]] = {j.motor_id: {} for j in joints}
-    for column, request in reads:
-        for motor_id, reply in _ask(bus, session, joints, request, expect).items():
-            values[motor_id][column] = reply.value if isinstance(reply, PidParameter) else reply.acceleration_dps2
-    if as_json:
+    by_id = {j.motor_id: j for j in joints}
+    with session.open_bus(speaks=EVERY_GENERATION) as bus:
+        for request, expect, columns in reads[bus.family]:
+            for motor_id, reply in _ask(bus, session, joints, request, expect).items():
+                values[motor_id].update(columns(reply, by_id[motor_id]))
+    if args.json:
         print_json({j.name: values[j.motor_id] for j in joints})
     else:
-        columns = [column for column, _ in reads]
+        names = list(values[joints[0].motor_id]) if joints else []
         print_table(
-            ("joint", "motor", *columns),
-            [(j.name, j.motor_id, *(values[j.motor_id][c] for c in columns)) for j in joints],
+            ("joint", "motor", *names),
+            [(j.name, j.motor_id, *(f"{values[j.motor_id][c]:g}" for c in names)) for j in joints],
         )
     return EXIT_OK
 
@@ -532,19 +523,7 @@ def accel(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """``accel get [JOINT...]`` / ``accel set JOINT DPS2`` (motor shaft, RAM: lost at the next power cycle)."""
     session = Session.from_args(args)
     if args.action == "get":
-        joints = session.joints(args.joints)
-        with session.open_bus(v3=True) as bus:
-            if bus.family is ProtocolFamily.V3:  # planning accelerations by index (0x42), output shaft deg/s²
-                reads = [(i.name.lower(), AccelerationRead(i)) for i in AccelerationIndex]
-                return _print_v3_parameters(bus, session, joints, reads, PlanningAcceleration, as_json=args.json)
-            limits: dict[int, Acceleration] = _ask(bus, session, joints, Bare(Command.READ_ACCELERATION), Acceleration)
-        values = {j.name: limits[j.motor_id].acceleration_dps2 for j in joints}
-        if args.json:
-            print_json({n: {"motor_dps2": v, "joint_dps2": v / session.joint(n).gear_ratio} for n, v in values.items()})
-        else:
-            rows = [(j.name, j.motor_id, values[j.name], f"{values[j.name] / j.gear_ratio:g}") for j in joints]
-            print_table(("joint", "motor", "motor deg/s²", "joint deg/s²"), rows)
-        return EXIT_OK
+        return _print_parameters(session, args, _ACCELERATION_READS)
     joint = session.joint(args.joint)
     request = Acceleration(Command.WRITE_ACCELERATION_RAM, args.dps2)
     _check_echo(joint, _ask_once(session, [joint], request, Acceleration)[joint.motor_id], request)
@@ -577,7 +556,7 @@ def restore(args: argparse.Namespace, interrupts: Interrupts) -> int:
     if not args.yes:
         raise UsageError(f"restore refused without --yes: {FLASH_WARNING}")
     session = Session.from_args(args)
-    with session.open_bus(v3=True) as bus:
+    with session.open_bus(speaks=EVERY_GENERATION) as bus:
         setup = drive_setup(session.config, build_controller(session.config, bus))
         if not (setup.family.planning_accelerations or setup.family.link_protection):
             print(
@@ -607,7 +586,7 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
     if args.identify and config.control.mode is not ControlMode.POSITION:
         mode = config.control.mode.value
         raise UsageError(f"--identify: {config.source} runs in {mode} mode; identification needs position mode")
-    with session.open_bus(v3=True) as bus:
+    with session.open_bus(speaks=EVERY_GENERATION) as bus:
         checks = measure_modes(config, bus)
         where = bus.describe()
     configured = checks[config.control.mode.value]

@@ -21,11 +21,12 @@ The V3 family differs in what control needs in these ways (V4.2 document; decisi
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Final
 
 from motion.protocol import Bare, Command, ErrorFlags, Message, MotorState, Status1
+from motion.protocol.generation import GENERATIONS
 from motion.protocol.scales import IQ_SCALE
 from motion.protocol.table import Direction, ProtocolFamily, WireProtocol, field_range
 from motion.protocol.v3.messages import (
@@ -85,23 +86,14 @@ class DriveFamily:
     current_step_a: float
     max_speed_dps: float
     rs485_max_speed_dps: float
-    _bare: Callable[[int], Message]
 
     def bare(self, code: int) -> Message:
         """The family's request without data for ``code`` (0x80, 0x81, 0x92, 0x9A, 0x9C, ...)."""
-        return self._bare(code)
+        return GENERATIONS[self.family].bare(code)
 
     def speed_ceiling_dps(self, wire: WireProtocol) -> float:
         """The largest 0xA4 speed cap ``wire`` carries, in the drive's units."""
         return self.rs485_max_speed_dps if wire is WireProtocol.RS485 else self.max_speed_dps
-
-
-def _v2_bare(code: int) -> Message:
-    return Bare(Command(code))
-
-
-def _v3_bare(code: int) -> Message:
-    return BareV3(CommandV3(code))
 
 
 _A4_V2: Final = Command.MULTI_TURN_POSITION_SPEED
@@ -129,7 +121,6 @@ FAMILIES: Final[Mapping[ProtocolFamily, DriveFamily]] = {
         current_step_a=IQ_SCALE[0] / IQ_SCALE[1],
         max_speed_dps=field_range(_A4_V2, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps")[1],
         rs485_max_speed_dps=field_range(_A4_V2, Direction.REQUEST, WireProtocol.RS485, "max_speed_dps")[1],
-        _bare=_v2_bare,
     ),
     ProtocolFamily.V3: DriveFamily(
         family=ProtocolFamily.V3,
@@ -151,7 +142,6 @@ FAMILIES: Final[Mapping[ProtocolFamily, DriveFamily]] = {
         current_step_a=0.01,  # (the V3 table's iq: int16, 0.01 A)
         max_speed_dps=field_range(_A4_V3, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps")[1],
         rs485_max_speed_dps=field_range(_A4_V3, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps")[1],
-        _bare=_v3_bare,
     ),
 }
 

@@ -257,6 +257,12 @@ class StreamBuffer:
         a :class:`Verdict`."""
         raise NotImplementedError
 
+    def next_reply(self, *, flush: bool = False) -> tuple[int | None, Message | None] | None:
+        """The next valid frame of a drive's reply as ``(the drive it names, its message)``, or None when the buffer
+        holds no complete frame yet (``flush``: see the parser's ``next_frame``). The drive is None for a frame that
+        names no single drive; the message None for a frame whose checksums held but whose content did not decode."""
+        raise NotImplementedError
+
 
 class Verdict(Enum):
     """What :meth:`StreamBuffer._judge` says of a candidate that is neither a frame nor a bad one."""
@@ -292,6 +298,16 @@ class Rs485Parser(StreamBuffer):
         if raw is None:
             return None
         return Rs485Frame(raw[1], raw[2], raw[HEADER_BYTES : HEADER_BYTES + raw[3]])
+
+    def next_reply(self, *, flush: bool = False) -> tuple[int | None, Message | None] | None:
+        """See :meth:`StreamBuffer.next_reply`."""
+        frame = self.next_frame(flush=flush)
+        if frame is None:
+            return None
+        try:
+            return frame.motor_id, decode_frame(frame, Direction.REPLY)
+        except DecodeError:
+            return frame.motor_id, None
 
     def _judge(self, buf: bytearray) -> int | str | Verdict:
         if len(buf) < HEADER_BYTES:

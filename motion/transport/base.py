@@ -67,9 +67,9 @@ try:
 except ImportError:  # (not a POSIX system: pyserial's ports raise OSError alone there)
     termios = None  # type: ignore[assignment]
 from motion.closing import Closing
-from motion.protocol import Bare, Command, Message, MultiMotorTorque
+from motion.protocol import Command, Message, MultiMotorTorque
+from motion.protocol.generation import GENERATIONS
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, ProtocolFamily
-from motion.protocol.v3.messages import BareV3, CommandV3
 
 #: ``tap(time_s, received, arbitration_id, data)``: called with every frame a backend sends (``received`` False) or
 #: takes in (True), at the transport clock's time; ``arbitration_id`` is None on RS485, where ``data`` is the bytes as
@@ -217,13 +217,6 @@ class BusCounters:
     skipped_requests: int = 0
 
 
-#: The status read of each generation (the same bytes; each family's message class).
-_STATUS_READ: Final[Mapping[ProtocolFamily, Message]] = {
-    ProtocolFamily.V2: Bare(Command.READ_STATUS_1),
-    ProtocolFamily.V3: BareV3(CommandV3.READ_STATUS_1),
-}
-
-
 def probe_in_turn(
     bus: Transport, ids: Sequence[int], window_s: float, sibling: Callable[[ProtocolFamily], Transport]
 ) -> dict[int, ProtocolFamily]:
@@ -240,7 +233,7 @@ def probe_in_turn(
         if not silent:
             break
         speaker = bus if family is bus.family else sibling(family)
-        request = _STATUS_READ[family]
+        request = speaker.generation.status_read
         replies = speaker.transact([Request(i, request) for i in silent], speaker.clock() + window_s)
         found.update((r.motor_id, family) for r in replies if r.message is not None)
         silent = [i for i in silent if i not in found]
@@ -264,6 +257,8 @@ class Transport(ABC, Closing):
         self.clock = clock
         #: The protocol generation the drives on this bus speak (their frames are encoded and decoded with it).
         self.family = ProtocolFamily(family)
+        #: Its wire protocol: the codec the backends encode and decode with.
+        self.generation = GENERATIONS[self.family]
         self.bus_counters = BusCounters()
         #: Optional observer of every frame (a bus trace); see :data:`FrameTap`.
         self.frame_tap: FrameTap | None = None

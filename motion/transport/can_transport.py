@@ -13,15 +13,8 @@ from collections.abc import Callable, Sequence
 from typing import Any, Final, Protocol
 
 from motion.errors import DecodeError
-from motion.protocol import CanFrame, can_frame
-from motion.protocol.table import (
-    CAN_ID_BASE,
-    MOTOR_ID_MAX,
-    MOTOR_ID_MIN,
-    Direction,
-    ProtocolFamily,
-)
-from motion.protocol.v3 import frames as frames_v3
+from motion.protocol import CanFrame
+from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, ProtocolFamily
 from motion.transport.base import Request, Transport
 from motion.transport.can_endpoint import CanEndpoint
 
@@ -34,31 +27,16 @@ def take_in_can_frame(transport: Transport, frame: CanFrame) -> None:
     arbitration_id = frame.arbitration_id
     if transport.frame_tap is not None:
         transport.frame_tap(transport.clock(), True, arbitration_id, frame.data)
-    if transport.family is not _OLDER_FAMILY:
-        _take_in_v3(transport, frame)
-        return
-    motor_id = arbitration_id - CAN_ID_BASE
+    # (a V3 drive's 0x300 id-setting and 0x500 motion replies are not the control loop's: counted as frames of other
+    # devices, as 0x280 frames are)
+    generation = transport.generation
+    motor_id = arbitration_id - generation.can_reply_base
     if not _FIRST_MOTOR_ID <= motor_id <= _LAST_MOTOR_ID:
-        # Other devices may share the bus; their frames are not drive replies, nor are 0x280 frames.
+        # Other devices may share the bus; their frames are not drive replies.
         transport.bus_counters.unknown_id_frames += 1
         return
     try:
-        message = _decode_reply(arbitration_id, frame.data)[1]
-    except DecodeError:
-        transport.motor_counters(motor_id).bad_frames += 1
-        return
-    transport._offer(motor_id, message)
-
-
-def _take_in_v3(transport: Transport, frame: CanFrame) -> None:
-    """A V3 drive's frame: replies on 0x240 + id (0x300 id-setting and 0x500 motion replies are not the control
-    loop's: counted as frames of other devices)."""
-    motor_id = frame.arbitration_id - frames_v3.CAN_REPLY_BASE
-    if not _FIRST_MOTOR_ID <= motor_id <= _LAST_MOTOR_ID:
-        transport.bus_counters.unknown_id_frames += 1
-        return
-    try:
-        message = frames_v3.decode_payload(frame.data, Direction.REPLY)
+        message = generation.decode_can_reply(arbitration_id, frame.data)[1]
     except DecodeError:
         transport.motor_counters(motor_id).bad_frames += 1
         return
@@ -66,8 +44,6 @@ def _take_in_v3(transport: Transport, frame: CanFrame) -> None:
 
 
 # Looked up once, not for every frame.
-_decode_reply: Final = can_frame.decode_reply
-_OLDER_FAMILY: Final = ProtocolFamily.V2
 _FIRST_MOTOR_ID: Final = MOTOR_ID_MIN
 _LAST_MOTOR_ID: Final = MOTOR_ID_MAX
 
@@ -169,7 +145,7 @@ class CanTransport(Transport):
 
     def _prepare(self, requests: Sequence[Request]) -> None:
         frames = self._frames
-        encode = can_frame.encode_request if self.family is ProtocolFamily.V2 else frames_v3.encode_can_request
+        encode = self.generation.encode_can_request
         frames.clear()
         for request in requests:
             frames.append(encode(request.message, request.motor_id))

@@ -38,11 +38,9 @@ from typing import Final
 
 import serial
 
-from motion.errors import DecodeError, EncodeError, TransportError
-from motion.protocol import MultiMotorTorque, Rs485Parser, rs485_frame
-from motion.protocol.table import RS485_BAUDRATES, Direction, ProtocolFamily
-from motion.protocol.v3 import frames as frames_v3
-from motion.protocol.v3.frames import Rs485ParserV3
+from motion.errors import EncodeError, TransportError
+from motion.protocol import MultiMotorTorque, rs485_frame
+from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily
 from motion.transport.base import PORT_ERRORS, Request, Transport, port_failure, port_lost, probe_in_turn
 
 #: Baud rates RMD RS485 drives of the older generation support (v1.62: 115200 is the factory default).
@@ -78,11 +76,15 @@ class Rs485Transport(Transport):
         write_timeout_s: float = 0.1,
         family: ProtocolFamily = ProtocolFamily.V2,
     ) -> None:
-        allowed = RS485_BAUDRATES[ProtocolFamily(family)]
-        if baudrate not in allowed:
-            document = "v1.62" if family is ProtocolFamily.V2 else "V4.2"
-            raise EncodeError("baudrate", ", ".join(map(str, allowed)), baudrate, f"RMD RS485 {document} baud rates")
         super().__init__(clock=clock, family=family)
+        allowed = self.generation.rs485_baudrates
+        if baudrate not in allowed:
+            raise EncodeError(
+                "baudrate",
+                ", ".join(map(str, allowed)),
+                baudrate,
+                f"RMD RS485 {self.generation.rs485_document} baud rates",
+            )
         self.port = port
         self.baudrate = baudrate
         try:
@@ -106,9 +108,8 @@ class Rs485Transport(Transport):
     def _speak(self, *, owns_port: bool = True) -> None:
         """The framing of :attr:`family` and empty per-exchange state."""
         self._owns_port = owns_port
-        v3 = self.family is ProtocolFamily.V3
-        self._parser: Rs485Parser | Rs485ParserV3 = Rs485ParserV3() if v3 else Rs485Parser()
-        self._encode = frames_v3.encode_rs485_request if v3 else rs485_frame.encode_request
+        self._parser = self.generation.rs485_parser()
+        self._encode = self.generation.encode_rs485_request
         self._frames: list[bytes] = []
         self._motors: list[int] = []
         self._seen_candidates = 0
@@ -202,31 +203,14 @@ class Rs485Transport(Transport):
 
     def _take_frames(self, *, flush: bool) -> None:
         parser = self._parser
-        if isinstance(parser, Rs485ParserV3):
-            self._take_frames_v3(parser, flush=flush)
-            return
-        while (frame := parser.next_frame(flush=flush)) is not None:
-            try:
-                message = rs485_frame.decode_frame(frame, Direction.REPLY)
-            except DecodeError:
-                self.motor_counters(frame.motor_id).bad_frames += 1
-                continue
-            self._offer(frame.motor_id, message)
-
-    def _take_frames_v3(self, parser: Rs485ParserV3, *, flush: bool) -> None:
-        while (raw := parser.next_frame(flush=flush)) is not None:
-            try:
-                motor_id, message = frames_v3.decode_rs485_reply(raw)
-            except DecodeError:
-                if raw[1] == frames_v3.RS485_BROADCAST_ID:
-                    self.bus_counters.bad_frames += 1
-                else:
-                    self.motor_counters(raw[1]).bad_frames += 1  # the parser checked the id: 1..32 here
-                continue
-            if motor_id is None:  # a 0x79 reply on 0xCD: not the control loop's
+        while (reply := parser.next_reply(flush=flush)) is not None:
+            motor_id, message = reply
+            if message is None:
+                (self.bus_counters if motor_id is None else self.motor_counters(motor_id)).bad_frames += 1
+            elif motor_id is None:  # (a V3 0x79 reply on 0xCD: not the control loop's)
                 self.bus_counters.unknown_id_frames += 1
-                continue
-            self._offer(motor_id, message)
+            else:
+                self._offer(motor_id, message)
 
     def _corrupt_since_last_check(self) -> int:
         """Corrupt frames the parser rejected since the last call; noise without any frame candidate counts one."""

@@ -414,6 +414,16 @@ class Rs485ParserV3(StreamBuffer):
         """
         return self._next_raw(RS485_HEAD, flush)
 
+    def next_reply(self, *, flush: bool = False) -> tuple[int | None, Message | None] | None:
+        """See :meth:`motion.protocol.rs485_frame.StreamBuffer.next_reply` (a 0x79 reply on 0xCD names no drive)."""
+        raw = self.next_frame(flush=flush)
+        if raw is None:
+            return None
+        try:
+            return decode_rs485_reply(raw)
+        except DecodeError:
+            return (None if raw[1] == RS485_BROADCAST_ID else raw[1]), None  # (the parser checked the id: 1..32)
+
     def _judge(self, buf: bytearray) -> int | str | Verdict:
         if len(buf) >= 3 and not _header_ok(buf):
             return "bad_lengths"
