@@ -23,9 +23,10 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from bench.cycle_bench import CAN_BITRATE, synthetic_config  # noqa: E402
-from motion.compose import build_controller, emulator_for  # noqa: E402
+from motion.compose import build_controller  # noqa: E402
 from motion.config.schema import ControlMode  # noqa: E402
 from motion.control.ratecheck import measure_rate  # noqa: E402
+from motion.emulator.arm import emulator_for  # noqa: E402
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation  # noqa: E402
 from motion.emulator.timing import can_frame_bits  # noqa: E402
 from motion.protocol import WireProtocol  # noqa: E402

@@ -10,9 +10,9 @@ import numpy as np
 from kinematics.dynamics import FloatArray, mass_matrix
 from kinematics.model import build_arm
 from kinematics.plant import ArmPlant
-from motion.compose import emulator_for
 from motion.config import ArmConfig
 from motion.emulator import Emulator, Fault
+from motion.emulator.arm import emulator_for
 from motion.protocol.table import ProtocolFamily
 
 

@@ -1,11 +1,7 @@
 """Composition: the one place that builds the running parts of an arm from its configuration — bus, controller, rate
-check, supervisor, and matching emulated drives (in simulated time or on a wire). The API, the CLI, the tests' rig and
-the bench all assemble an arm through these functions, so they agree on every condition (which feed-forward, which
-wire protocol, which safety settings).
-
-The same :class:`~motion.config.ArmConfig` describes the real arm and its emulation: :func:`emulator_for` gives
-every configured joint an emulated drive with the joint's motor id, gear ratio, torque constant, encoder, current
-limit and rotor inertia, so a program tested on the emulator talks to the same ids with the same units.
+check, supervisor (the matching emulated drives, in simulated time or on a wire, are :mod:`motion.emulator.arm`'s).
+The API, the CLI, the tests' rig and the bench all assemble an arm through these functions, so they agree on every
+condition (which feed-forward, which wire protocol, which safety settings).
 """
 
 from __future__ import annotations
@@ -13,13 +9,12 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
-from dataclasses import fields
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, JointConfig, ProtocolSetting
+from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, ProtocolSetting
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
@@ -37,7 +32,6 @@ from motion.control.turns import (
     resolve_turns,
     turn_joint_deg,
 )
-from motion.emulator import DEFAULT_PID, DriveModel, Emulator, Fault, LoadModel, Plant
 from motion.errors import ConfigError, MotionError, TransportError
 from motion.keep import drive_record_for
 from motion.protocol import WireProtocol
@@ -52,14 +46,6 @@ if TYPE_CHECKING:
     from kinematics.figure import ArmFigure
 
 logger = logging.getLogger("motion.config")
-
-# The emulated drive's own speed cap (0xA3/0xA5/0xA7 and holding) is this many times the joint limit, motor side.
-_DRIVE_SPEED_MARGIN = 2.0
-# Emulated supply voltage, V, at least this share above the configured minimum.
-_EMULATED_SUPPLY_V = 24.0
-_SUPPLY_MARGIN = 1.2
-# Joint-side load inertia assumed for emulated independent loads when no plant is given, kg·m².
-DEFAULT_LOAD_INERTIA_KGM2 = 0.01
 
 
 def joint_limits(config: ArmConfig) -> JointLimits:
@@ -309,74 +295,6 @@ def check_rate(controller: Controller, config: ArmConfig) -> RateCheck:
     if not check.holds:
         raise RateError(config.source, check)
     return check
-
-
-def drive_model(joint: JointConfig, supply_voltage_v: float = 24.0) -> DriveModel:
-    """The emulated drive of one joint, on a supply of ``supply_voltage_v``, tuned as its ``emulation`` says."""
-    emulation = joint.emulation
-    gains = {f.name: getattr(emulation.pid, f.name) for f in fields(emulation.pid)}
-    pid = dataclasses.replace(DEFAULT_PID, **{k: v for k, v in gains.items() if v is not None})
-    factory = DriveModel()
-    return DriveModel(
-        pid=pid,
-        acceleration_dps2=factory.acceleration_dps2
-        if emulation.acceleration_dps2 is None
-        else emulation.acceleration_dps2,
-        supply_voltage_v=supply_voltage_v,
-        gear_ratio=joint.gear_ratio,
-        torque_constant_nm_per_a=joint.emulation.torque_constant_nm_per_a or joint.torque_constant_nm_per_a,
-        rotor_inertia_kgm2=joint.emulation.rotor_inertia_kgm2,
-        encoder_bits=joint.encoder_bits,
-        current_limit_a=joint.current_limit_a,
-        max_speed_dps=joint.velocity_limit_dps * joint.gear_ratio * _DRIVE_SPEED_MARGIN,
-        motor_name=f"EMU-{joint.name}"[:20],
-    )
-
-
-def emulator_for(
-    config: ArmConfig,
-    *,
-    plant: Plant | None = None,
-    load_inertia_kgm2: Mapping[str, float] | None = None,
-    faults: Iterable[Fault] = (),
-    family: ProtocolFamily = ProtocolFamily.V2,
-) -> Emulator:
-    """Emulated drives matching ``config``, speaking ``family`` (V3: the joints with ``brake`` have one).
-
-    Args:
-        config: the arm.
-        plant: the mechanics (e.g. ``kinematics.plant.ArmPlant`` for gravity-coupled joints); default independent
-            loads with the configured friction.
-        load_inertia_kgm2: joint-side load inertia per joint name, used to tune each drive's speed loop (and as the
-            independent loads' inertia); default :data:`DEFAULT_LOAD_INERTIA_KGM2`.
-        faults: faults to schedule.
-    """
-    inertia = dict(load_inertia_kgm2 or {})
-    # The emulated supply sits comfortably above the configured minimum (a 48 V arm gets 48 V, not 24 V).
-    supply = max(_EMULATED_SUPPLY_V, config.safety.min_voltage_v * _SUPPLY_MARGIN)
-    models = {j.motor_id: drive_model(j, supply) for j in config.joints}
-    loads = {
-        j.motor_id: LoadModel(
-            inertia_kgm2=inertia.get(j.name, DEFAULT_LOAD_INERTIA_KGM2),
-            viscous_friction_nm_per_dps=j.emulation.viscous_friction_nm_per_dps,
-            coulomb_friction_nm=j.emulation.coulomb_friction_nm,
-        )
-        for j in config.joints
-    }
-    stops = {j.motor_id: hard_stops(j) for j in config.joints if j.homing is not None}
-    braked = [j.motor_id for j in config.joints if j.brake] if FAMILIES[family].brakes else []
-    return Emulator(
-        models.keys(), model=models, load=loads, plant=plant, faults=faults, stops=stops, family=family, brakes=braked
-    )
-
-
-def hard_stops(joint: JointConfig) -> tuple[float, float]:
-    """The emulated plant's bounds of a joint with a hard stop (``homing.stop_deg``), in the emulator's coordinate
-    (motor angle / gear ratio, rad): the joint angle is ``direction × p + zero_offset_deg``."""
-    assert joint.homing is not None
-    p = math.radians((joint.homing.stop_deg - joint.zero_offset_deg) / joint.direction)
-    below = joint.homing.stop_deg <= joint.position_min_deg  # the stop bounds the joint angle from below
-    return (p, math.inf) if below == (joint.direction > 0) else (-math.inf, p)
 
 
 def safety_settings(config: ArmConfig) -> SafetySettings:
