@@ -21,8 +21,8 @@ from pathlib import Path
 if not os.environ.get("PYTHONPATH"):  # (PYTHONPATH: another tree's code is measured)
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from kinematics.emulation import arm_emulator
 from motion.config import load_config
+from motion.emulator.arm import arm_emulator
 from motion.emulator.timing import can_frame_bits
 from motion.protocol.table import ProtocolFamily
 

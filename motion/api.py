@@ -677,7 +677,7 @@ class Arm:
         self._keep_turns()
 
     def _start_simulation(self) -> tuple[Transport, SimulatedClock]:
-        from kinematics.emulation import arm_emulator  # noqa: PLC0415 - as above
+        from motion.emulator.arm import arm_emulator  # noqa: PLC0415 - as above
 
         initial = self._start_pose if self._start_pose is not None else self._initial
         self.emulator, self.plant = arm_emulator(

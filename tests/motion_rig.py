@@ -19,7 +19,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
 from motion.compose import (
     build_controller,
@@ -33,6 +32,7 @@ from motion.config import ArmConfig, load_config
 from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.emulator import Emulator, FrameLog, Rs485Attachment, SlcanAttachment, VirtualCanAttachment
+from motion.emulator.arm import arm_emulator
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.emulator.timing import TimingModel
 from motion.protocol import Message, MultiTurnPositionSpeed, WireProtocol, can_frame, rs485_frame

@@ -22,6 +22,9 @@ LAYERS = [
     "motion.transmission",
     # the configuration's schema and loader: its enums (control mode, halt policy) are what control and safety use
     "motion.config",
+    # the arm's Pinocchio model (a package beside motion): it reads the configuration and nothing above it; who in
+    # motion may import it is COMPOSITION_ROOTS' to say
+    "kinematics",
     "motion.transport",
     "motion.emulator",
     "motion.trajectory",
@@ -31,7 +34,7 @@ LAYERS = [
     "motion.homing",
     # what rmd-motion keeps between sessions (turn offsets, identified loops, the drives' record)
     "motion.keep",
-    # the one place that builds bus + controller + rate check + supervisor (+ emulated drives) from a configuration
+    # the one place that builds bus + controller + rate check + supervisor from a configuration
     "motion.compose",
     "motion.telemetry",
     "motion.plot",
@@ -41,8 +44,9 @@ LAYERS = [
     "motion.demo",
     "motion.cli",
 ]
-# The composition roots: the only modules of motion that may build the Pinocchio model (kinematics).
-COMPOSITION_ROOTS = ("motion.compose", "motion.api", "motion.demo", "motion.cli")
+# The composition roots: the only modules of motion that may build the Pinocchio model (kinematics), and the emulated
+# arm's drives, coupled through it.
+COMPOSITION_ROOTS = ("motion.compose", "motion.api", "motion.demo", "motion.cli", "motion.emulator.arm")
 # Third-party packages that exactly one subpackage may import.
 OWNERS = {
     "can": "motion.transport",

@@ -18,13 +18,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kinematics.emulation import arm_emulator
 from motion.api import Arm
 from motion.compose import build_controller, check_rate, feedforward_for, rehearsal_watchdog
 from motion.config import ArmConfig
 from motion.config.schema import ControlMode
 from motion.control.ratecheck import MAX_SAMPLES, MIN_SAMPLES, RateCheck, RateError, measure_rate
 from motion.emulator import Fault, FrameLog, InjectedFault, TimingModel
+from motion.emulator.arm import arm_emulator
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionFault
 from motion.transport import Reply

@@ -7,7 +7,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from kinematics.emulation import arm_emulator
 from kinematics.plant import ArmPlant
 from motion.compose import build_controller, build_supervisor, feedforward_for, resolve_frames
 from motion.config import ArmConfig
@@ -25,6 +24,7 @@ from motion.control.turns import (
     resolve_turns,
 )
 from motion.emulator import Emulator
+from motion.emulator.arm import arm_emulator
 from motion.emulator.drive import RunState
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.keep import load_turn_records, save_turn_records, turns_store

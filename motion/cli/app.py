@@ -77,7 +77,7 @@ def arm_emulator_factory(
     """
 
     def build(faults: Sequence[Fault]) -> Emulator:
-        from kinematics.emulation import arm_emulator  # noqa: PLC0415 - Pinocchio only when emulating an arm
+        from motion.emulator.arm import arm_emulator  # noqa: PLC0415 - Pinocchio only when emulating an arm
 
         pose = start_pose or {}
         start = [pose.get(j.name, min(max(0.0, j.position_min_deg), j.position_max_deg)) for j in config.joints]
