@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, ProtocolSetting
+from motion.control import identify
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
 from motion.control.controller import Controller, ControllerOptions, Feedforward
@@ -23,7 +24,7 @@ from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.family import FAMILIES
 from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
 from motion.control.startup import read_angles, read_runtimes
-from motion.control.tracking import MoveRecord, PositionLoopFit, fit_position_loop
+from motion.control.tracking import PositionLoopFit
 from motion.control.turns import (
     JointTurns,
     Source,
@@ -32,7 +33,7 @@ from motion.control.turns import (
     resolve_turns,
     turn_joint_deg,
 )
-from motion.errors import ConfigError, MotionError, TransportError
+from motion.errors import ConfigError, TransportError
 from motion.keep import drive_record_for
 from motion.protocol import WireProtocol
 from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily
@@ -40,7 +41,7 @@ from motion.safety import SafetySettings, Supervisor
 from motion.safety.watchdog import CollisionObserver, Watchdog
 from motion.trajectory import JointLimits
 from motion.transmission import FloatArray
-from motion.transport import Reply, Transport, open_transport
+from motion.transport import Transport, open_transport
 
 if TYPE_CHECKING:
     from kinematics.figure import ArmFigure
@@ -372,9 +373,6 @@ def session_link_timeout_ms(config: ArmConfig) -> int:
 
 # ------------------------------------------------------------------------------------------ turns and position loops
 
-#: An identification move goes this far from where the joint is, deg (at most a quarter of the joint's range).
-IDENTIFY_MOVE_DEG = 60.0
-
 
 def resolve_frames(
     controller: Controller,
@@ -465,44 +463,17 @@ def emulated_frames(controller: Controller, config: ArmConfig) -> tuple[JointTur
 
 
 def identify_position_loops(supervisor: Supervisor, config: ArmConfig) -> dict[str, PositionLoopFit]:
-    """Move each joint alone out and back at full speed (:data:`IDENTIFY_MOVE_DEG`, toward the side with more room)
-    and fit its position loop to what was measured (:func:`~motion.control.tracking.fit_position_loop`); the
-    controller's tracking model uses the result from then on.
+    """Identify every joint's position loop (:func:`motion.control.identify.identify_position_loops`) with the
+    supervisor's moves: each at full speed and guarded like any other, waited for to its end; the controller's
+    tracking model uses the result from then on.
 
     Raises:
         MotionError: the arm is not in position mode.
         MotionFault: a fault halted the arm during a move.
     """
-    controller = supervisor.controller
-    if config.control.mode is not ControlMode.POSITION:
-        raise MotionError("identification moves need position mode (the drive's own loop is what is identified)")
-    tracking = controller.tracking
-    ratios = tracking.gear_ratio
-    rows: list[tuple[float, FloatArray, FloatArray, FloatArray, FloatArray]] = []
 
-    def record(c: Controller, start_s: float, _replies: list[Reply]) -> None:
-        caps = c.setpoints.max_speed_dps / ratios
-        rows.append((start_s, c.reference.position.copy(), caps, c.axes.q_deg.copy(), c.axes.qd_dps.copy()))
+    def move_to(target_deg: FloatArray) -> None:
+        supervisor.move_to(target_deg, 1.0)
+        supervisor.wait()
 
-    fits: dict[str, PositionLoopFit] = {}
-    loops = list(tracking.position_loops())
-    for j, joint in enumerate(config.joints):
-        home = controller.reference.position.copy()
-        room_up, room_down = joint.position_max_deg - home[j], home[j] - joint.position_min_deg
-        step = min(IDENTIFY_MOVE_DEG, 0.25 * (joint.position_max_deg - joint.position_min_deg))
-        out = home.copy()
-        out[j] += step if room_up >= room_down else -step
-        rows.clear()
-        controller.cycle_hooks.append(record)
-        try:
-            for target in (out, home):
-                supervisor.move_to(target, 1.0)
-                supervisor.wait()
-        finally:
-            controller.cycle_hooks.remove(record)
-        t, target_deg, cap, q, qd = (np.array([row[i] for row in rows]) for i in range(5))
-        move = MoveRecord(t, target_deg[:, j], cap[:, j], q[:, j], qd[:, j])
-        fits[joint.name] = fit = fit_position_loop(move, loops[j])
-        loops[j] = fit.loop
-    tracking.set_position_loops(loops)
-    return fits
+    return identify.identify_position_loops(supervisor.controller, config, move_to)
