@@ -154,8 +154,7 @@ def test_corrupted_can_replies_do_not_decode(how: Corruption) -> None:
 @pytest.mark.parametrize("command", [Command.READ_STATUS_2, Command.MOTOR_STOP])  # with and without data
 def test_corrupted_rs485_replies_are_rejected_by_the_parser(how: Corruption, command: Command) -> None:
     emulator = Emulator([5], faults=[Fault(InjectedFault.CORRUPT, 5, 0.0, corruption=how)])
-    frame = rs485_frame.split_frame(rs485_frame.encode_request(Bare(command), 5))
-    (outgoing,) = emulator.handle_rs485(frame).replies
+    (outgoing,) = emulator.handle_rs485(rs485_frame.encode_request(Bare(command), 5)).replies
     with pytest.raises(DecodeError):
         rs485_frame.decode_reply(outgoing.wire)
     parser = Rs485Parser()

@@ -227,7 +227,7 @@ def test_a_broadcast_reaches_every_drive_and_each_answers_on_its_own_id() -> Non
 def test_an_rs485_id_read_answers_with_the_id_itself() -> None:
     # issue 31, item 2: V4.2 section 7.4 example 2 shows the id in DATA[7] of an RS485 0x79 read reply; the emulator
     # answered with the CAN reply id (0x0241) there
-    exchange = _emulator().handle_rs485_v3(bytes.fromhex("3ECD0879000100000000 00F895".replace(" ", "")))
+    exchange = _emulator().handle_rs485(bytes.fromhex("3ECD0879000100000000 00F895".replace(" ", "")))
     assert [bytes(o.wire)[:11].hex(" ").upper() for o in exchange.replies] == [
         "3E CD 08 79 00 01 00 00 00 00 01",
         "3E CD 08 79 00 01 00 00 00 00 02",

@@ -34,7 +34,6 @@ from motion.cli.protocol_demo import protocol_demo
 from motion.config import ArmConfig, load_config_or_example
 from motion.emulator import Emulator, Fault
 from motion.emulator.cli import EmulatorFactory, add_emulate_arguments, parse_ids, run_emulate
-from motion.emulator.drive_v3 import EmulatedDriveV3
 from motion.errors import (
     ConfigError,
     DecodeError,
@@ -44,7 +43,6 @@ from motion.errors import (
     PlanningError,
     TransportError,
 )
-from motion.protocol import MultiTurnPositionSpeed, WireProtocol
 from motion.protocol.table import ProtocolFamily
 
 DESCRIPTION: Final = "Multi-axis motion control of MyActuator RMD drives over CAN or RS485."
@@ -87,12 +85,7 @@ def arm_emulator_factory(
         for joint in config.joints:
             drive = emulator.drives[joint.motor_id]
             speed = joint.velocity_limit_dps * joint.gear_ratio * EMULATED_HOLD_SPEED_SHARE
-            # (straight to the drive: no link faults at power-on)
-            if not isinstance(drive, EmulatedDriveV3):
-                drive.handle(MultiTurnPositionSpeed(drive.angle_deg, speed), WireProtocol.CAN)
-            elif not joint.brake:  # a V3 drive takes output-shaft values
-                gear = drive.model.gear_ratio
-                drive.handle_v3(MultiTurnPositionSpeed(drive.angle_deg / gear, speed / gear), 0.0)
+            drive.hold_here(speed)
         return emulator
 
     return build

@@ -33,10 +33,8 @@ from motion.emulator.pty import PseudoTerminal
 from motion.emulator.slcan import SlcanDevice
 from motion.emulator.timing import BusClock, TimingModel, can_frame_time_s
 from motion.errors import DecodeError
-from motion.protocol import CanFrame, Rs485Frame, Rs485Parser
+from motion.protocol import CanFrame
 from motion.protocol.rs485_frame import rs485_frame_time_s
-from motion.protocol.table import ProtocolFamily
-from motion.protocol.v3.frames import Rs485ParserV3
 from motion.transport.can_endpoint import CanEndpoint
 
 logger = logging.getLogger("motion.emulator")
@@ -405,7 +403,7 @@ class SlcanAttachment(_OnPty, _CanAttachment):
         return self._write(line) if line else True
 
 
-class Rs485Attachment(_OnPty, Attachment[bytes, Rs485Frame | bytes]):
+class Rs485Attachment(_OnPty, Attachment[bytes, bytes]):
     """The drives on an RS485 line emulated by a pseudo-terminal (open :attr:`path` with pyserial, any baud).
 
     Args:
@@ -433,8 +431,7 @@ class Rs485Attachment(_OnPty, Attachment[bytes, Rs485Frame | bytes]):
         self._pty = PseudoTerminal(link)
         super().__init__(emulator, "rs485", timing or TimingModel(), frame_log)
         self.baud = baud
-        v3 = emulator.family is ProtocolFamily.V3
-        self.parser: Rs485Parser | Rs485ParserV3 = Rs485ParserV3() if v3 else Rs485Parser()
+        self.parser = emulator.generation.rs485_parser()
         self._gap_s = max(_RS485_MIN_GAP_S, rs485_frame_time_s(_RS485_GAP_BYTES, baud))
         self._last_rx_s = 0.0
         self._start()
@@ -443,7 +440,7 @@ class Rs485Attachment(_OnPty, Attachment[bytes, Rs485Frame | bytes]):
         p = self.parser
         return p.bad_header_checksums + p.bad_data_checksums + p.bad_lengths + p.truncated
 
-    def _receive(self, timeout_s: float) -> list[Rs485Frame | bytes]:
+    def _receive(self, timeout_s: float) -> list[bytes]:
         if self.parser.pending:
             timeout_s = min(timeout_s, self._gap_s)
         data = self._pty.read(timeout_s)
@@ -453,8 +450,8 @@ class Rs485Attachment(_OnPty, Attachment[bytes, Rs485Frame | bytes]):
             self._last_rx_s = now
         rejected, dropped = self._rejected(), self.parser.dropped_bytes
         flush = now - self._last_rx_s >= self._gap_s
-        frames: list[Rs485Frame | bytes] = []
-        while (frame := self.parser.next_frame(flush=flush)) is not None:
+        frames: list[bytes] = []
+        while (frame := self.parser.next_bytes(flush=flush)) is not None:
             frames.append(frame)
         # Each rejected candidate (bad checksum, length or id, truncated) is one protocol-breaking frame; bytes
         # dropped without any candidate are line noise, also worth one count.
@@ -468,13 +465,10 @@ class Rs485Attachment(_OnPty, Attachment[bytes, Rs485Frame | bytes]):
             )
         return frames
 
-    def _on_input(self, item: Rs485Frame | bytes, now_s: float) -> None:
+    def _on_input(self, raw: bytes, now_s: float) -> None:
         self.stats.requests += 1
-        raw = item if isinstance(item, bytes) else item.to_bytes()
         try:
-            exchange = (
-                self.emulator.handle_rs485_v3(item) if isinstance(item, bytes) else self.emulator.handle_rs485(item)
-            )
+            exchange = self.emulator.handle_rs485(raw)
         except DecodeError as exc:
             self._bad(raw.hex(" "), exc)
             return

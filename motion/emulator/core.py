@@ -29,9 +29,9 @@ from motion.emulator.faults import Corruption, Fault, InjectedFault, corrupt_can
 from motion.emulator.model import DriveModel, LoadModel
 from motion.emulator.plant import IndependentLoads, Plant
 from motion.errors import ConfigError
-from motion.protocol import CanFrame, Message, MultiMotorTorque, Rs485Frame, TorqueControl, can_frame, rs485_frame
-from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, Direction, ProtocolFamily, WireProtocol, check_motor_id
-from motion.protocol.v3 import frames as frames_v3
+from motion.protocol import CanFrame, Message
+from motion.protocol.generation import GENERATIONS
+from motion.protocol.table import ProtocolFamily, WireProtocol, check_motor_id
 
 logger = logging.getLogger("motion.emulator")
 
@@ -136,6 +136,10 @@ class Emulator:
         if self.plant.size != len(self.ids):
             raise ValueError(f"plant has {self.plant.size} joints for {len(self.ids)} drives")
         self.family = ProtocolFamily(family)
+        #: The drives' wire protocol (their side of it: requests decoded, replies encoded).
+        self.generation = GENERATIONS[self.family]
+        self._encode_can = _can_encoder(self.generation.encode_can_reply)
+        self._encode_rs485 = _rs485_encoder(self.generation.encode_rs485_reply, _CORRUPT_RS485[self.family])
         braked = set(brakes)
         if braked - set(self.ids) or (braked and self.family is not ProtocolFamily.V3):
             raise ValueError(f"brakes {sorted(braked)}: expected ids of emulated V3 drives {list(self.ids)}")
@@ -372,7 +376,7 @@ class Emulator:
         with self._lock:
             now = self.time_s if at_s is None else max(self.time_s, at_s)
             return [
-                Outgoing(drive.motor_id, _encode_can_v3(message, drive.motor_id, None), message)
+                Outgoing(drive.motor_id, self._encode_can(message, drive.motor_id, None), message)
                 for _, drive in self._v3
                 for message in drive.active_replies_due(now)
             ]
@@ -380,49 +384,24 @@ class Emulator:
     # --- requests -------------------------------------------------------------------------------------------------
 
     def handle_can(self, frame: CanFrame) -> Exchange[CanFrame]:
-        """Execute a CAN request frame.
+        """Execute a CAN request frame (a frame for several drives, 0x280 / 0x300: each takes its share).
 
         Raises:
-            DecodeError: the frame breaks the CAN protocol (id, length, command, field, reserved byte).
+            DecodeError: the frame breaks the family's CAN protocol (id, length, command, field, reserved byte).
         """
-        if self.family is ProtocolFamily.V3:
-            return self._handle_can_v3(frame)
-        request = can_frame.decode_request(frame.arbitration_id, frame.data)
-        message = request.message
-        if isinstance(message, MultiMotorTorque):
-            currents = (message.iq1_a, message.iq2_a, message.iq3_a, message.iq4_a)
-            targets: list[tuple[int, Message]] = [
-                (i, TorqueControl(iq)) for i, iq in zip(MULTI_TORQUE_MOTOR_IDS, currents, strict=True)
-            ]
-            return self._dispatch(None, message, targets, WireProtocol.CAN, _encode_can)
-        assert request.motor_id is not None  # every other CAN request addresses one drive
-        return self._dispatch(request.motor_id, message, [(request.motor_id, message)], WireProtocol.CAN, _encode_can)
+        motor_id, message = self.generation.decode_can_request(frame.arbitration_id, frame.data)
+        targets = self.generation.spread(message, self.ids) if motor_id is None else [(motor_id, message)]
+        return self._dispatch(motor_id, message, targets, WireProtocol.CAN, self._encode_can)
 
-    def _handle_can_v3(self, frame: CanFrame) -> Exchange[CanFrame]:
-        request = frames_v3.decode_can_request(frame.arbitration_id, frame.data)
-        # 0x280 and 0x300 reach every drive; each answers on its own id (0x79 on 0x300).
-        ids = self.ids if request.motor_id is None else (request.motor_id,)
-        targets = [(i, request.message) for i in ids]
-        return self._dispatch(request.motor_id, request.message, targets, WireProtocol.CAN, _encode_can_v3)
-
-    def handle_rs485_v3(self, raw: bytes) -> Exchange[bytes]:
-        """Execute a V3 RS485 frame (``3E id 08 data crc16``; id 0xCD reaches every drive).
+    def handle_rs485(self, raw: bytes) -> Exchange[bytes]:
+        """Execute an RS485 request frame (V3: id 0xCD reaches every drive).
 
         Raises:
-            DecodeError: the frame breaks the V3 RS485 protocol (length, head, CRC, id, command, field).
+            DecodeError: the frame breaks the family's RS485 protocol (length, head, checksum, id, command, field).
         """
-        motor_id, message = frames_v3.decode_rs485_request(raw)
-        ids = self.ids if motor_id is None else (motor_id,)
-        return self._dispatch(motor_id, message, [(i, message) for i in ids], WireProtocol.RS485, _encode_rs485_v3)
-
-    def handle_rs485(self, frame: Rs485Frame) -> Exchange[bytes]:
-        """Execute an RS485 request frame (checksums already verified by the parser).
-
-        Raises:
-            DecodeError: the frame breaks the RS485 protocol (command, data length, field, reserved byte).
-        """
-        message = rs485_frame.decode_frame(frame, Direction.REQUEST)
-        return self._dispatch(frame.motor_id, message, [(frame.motor_id, message)], WireProtocol.RS485, _encode_rs485)
+        motor_id, message = self.generation.decode_rs485_request(raw)
+        targets = self.generation.spread(message, self.ids) if motor_id is None else [(motor_id, message)]
+        return self._dispatch(motor_id, message, targets, WireProtocol.RS485, self._encode_rs485)
 
     def _dispatch(
         self,
@@ -447,13 +426,9 @@ class Emulator:
                     continue
                 n = self._index[target_id]
                 drive.observe(float(self._positions[n]), float(self._velocities[n]))
-                if isinstance(drive, EmulatedDriveV3):
-                    answer = drive.handle_v3(message, self.time_s, transport)
-                    if answer is None:  # 0x76, 0xB4, 0xB6 have no reply
-                        continue
-                    reply = answer
-                else:
-                    reply = drive.handle(message, transport)
+                reply = drive.respond(message, self.time_s, transport)
+                if reply is None:  # (V3: 0x76, 0xB4, 0xB6 have no reply)
+                    continue
                 replies.append(Outgoing(target_id, encode(reply, target_id, corruption), reply, delay_s, corruption))
         return Exchange(motor_id, request, tuple(replies), tuple(notes))
 
@@ -468,18 +443,12 @@ class Emulator:
             EncodeError: the request cannot be encoded.
             DecodeError: a reply was corrupted by a fault.
         """
-        if self.family is ProtocolFamily.V3:
-            if transport is WireProtocol.CAN:
-                sent = self.handle_can(frames_v3.encode_can_request(message, motor_id))
-                return [_v3_id(frames_v3.decode_can_reply(o.wire.arbitration_id, o.wire.data), o) for o in sent.replies]
-            done = self.handle_rs485_v3(frames_v3.encode_rs485_request(message, motor_id))
-            return [_v3_id(frames_v3.decode_rs485_reply(o.wire), o) for o in done.replies]
+        generation = self.generation
         if transport is WireProtocol.CAN:
-            exchange_can = self.handle_can(can_frame.encode_request(message, motor_id))
-            return [can_frame.decode_reply(o.wire.arbitration_id, o.wire.data) for o in exchange_can.replies]
-        raw = rs485_frame.encode_request(message, motor_id)
-        exchange = self.handle_rs485(rs485_frame.split_frame(raw))
-        return [rs485_frame.decode_reply(o.wire) for o in exchange.replies]
+            sent = self.handle_can(generation.encode_can_request(message, motor_id))
+            return [_with_id(generation.decode_can_reply(o.wire.arbitration_id, o.wire.data), o) for o in sent.replies]
+        done = self.handle_rs485(generation.encode_rs485_request(message, motor_id))
+        return [_with_id(generation.decode_rs485_reply(o.wire), o) for o in done.replies]
 
 
 def _pick(value: W | Mapping[int, W] | None, motor_id: int, default: Callable[[], W]) -> W:
@@ -514,12 +483,13 @@ def _rs485_encoder(
     return encode_reply
 
 
-_encode_can = _can_encoder(can_frame.encode_reply)
-_encode_can_v3 = _can_encoder(frames_v3.encode_can_reply)
-_encode_rs485 = _rs485_encoder(rs485_frame.encode_reply, corrupt_rs485)
-_encode_rs485_v3 = _rs485_encoder(frames_v3.encode_rs485_reply, corrupt_rs485_v3)
+#: How a ``corrupt`` fault damages each family's RS485 frame.
+_CORRUPT_RS485: Final[Mapping[ProtocolFamily, Callable[[bytes, Corruption], bytes]]] = {
+    ProtocolFamily.V2: corrupt_rs485,
+    ProtocolFamily.V3: corrupt_rs485_v3,
+}
 
 
-def _v3_id(decoded: tuple[int | None, Message], sent: Outgoing[W]) -> tuple[int, Message]:
-    """A decoded V3 reply with the id of the drive that sent it (0x79 replies name no drive in their id)."""
+def _with_id(decoded: tuple[int | None, Message], sent: Outgoing[W]) -> tuple[int, Message]:
+    """A decoded reply with the id of the drive that sent it (V3's 0x79 replies name no drive in their id)."""
     return (sent.motor_id if decoded[0] is None else decoded[0]), decoded[1]

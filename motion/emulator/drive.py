@@ -377,6 +377,16 @@ class EmulatedDrive:
 
     # --- requests -------------------------------------------------------------------------------------------------
 
+    def respond(self, message: Message, now_s: float, transport: WireProtocol) -> Message | None:
+        """Execute one request of the drive's family at ``now_s`` (simulation time), come over ``transport``; the
+        reply, or None where the command has none (see :meth:`handle`)."""
+        return self.handle(message, transport)
+
+    def hold_here(self, speed_dps: float) -> None:
+        """Hold the present position by its own loop (0xA4 to where it is, at up to ``speed_dps`` motor deg/s): an
+        emulated arm's start, straight to the drive (no link faults at power-on)."""
+        self.handle(MultiTurnPositionSpeed(self.angle_deg, speed_dps), WireProtocol.CAN)
+
     def handle(self, message: Message, transport: WireProtocol) -> Message:
         """Execute one request and return the reply (of the class the command table gives for ``transport``).
 

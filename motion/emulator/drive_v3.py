@@ -264,6 +264,17 @@ class EmulatedDriveV3(EmulatedDrive):
 
     # --- requests -------------------------------------------------------------------------------------------------
 
+    def respond(self, message: Message, now_s: float, transport: WireProtocol) -> Message | None:
+        """See :meth:`EmulatedDrive.respond`: :meth:`handle_v3`."""
+        return self.handle_v3(message, now_s, transport)
+
+    def hold_here(self, speed_dps: float) -> None:
+        """See :meth:`EmulatedDrive.hold_here`; a joint with a brake is held by it (its brake is locked at power-on),
+        and a V3 drive takes output-shaft values."""
+        if not self.has_brake:
+            gear = self.model.gear_ratio
+            self.handle_v3(MultiTurnPositionSpeed(self.angle_deg / gear, speed_dps / gear), 0.0)
+
     def handle_v3(self, message: Message, now_s: float, transport: WireProtocol = WireProtocol.CAN) -> Message | None:
         """Execute one V3 request at ``now_s`` (simulation time), come over ``transport``, and return the reply, or
         None (0x76, 0xB4, 0xB6).

@@ -32,10 +32,9 @@ from motion.emulator.core import Emulator, Exchange, Outgoing
 from motion.emulator.framelog import FrameLog
 from motion.emulator.timing import TimingModel, can_frame_bits
 from motion.errors import DecodeError
-from motion.protocol import CanFrame, WireProtocol, can_frame, rs485_frame
+from motion.protocol import CanFrame, WireProtocol
 from motion.protocol.rs485_frame import rs485_frame_time_s
 from motion.protocol.table import ProtocolFamily
-from motion.protocol.v3 import frames as frames_v3
 from motion.transport.base import Request, Transport, probe_in_turn
 from motion.transport.can_transport import take_in_can_frame
 from motion.transport.detect import expected_answers, generations, probe_frames
@@ -203,10 +202,8 @@ class Simulation:
         try:
             if isinstance(wire, CanFrame):
                 exchange = self.emulator.handle_can(wire)
-            elif self.emulator.family is ProtocolFamily.V3:
-                exchange = self.emulator.handle_rs485_v3(wire)
             else:
-                exchange = self.emulator.handle_rs485(rs485_frame.split_frame(wire))
+                exchange = self.emulator.handle_rs485(wire)
         except DecodeError as exc:
             self.decode_errors += 1
             self._log("BAD", wire, f"{type(exc).__name__}: {exc}", arrival_s)
@@ -238,10 +235,9 @@ class SimulatedBus(Transport):
         super().__init__(clock=simulation.now, family=simulation.emulator.family if family is None else family)
         self.simulation = simulation
         self._can = simulation.protocol is WireProtocol.CAN
-        v3 = self.family is ProtocolFamily.V3
-        self._encode_can = frames_v3.encode_can_request if v3 else can_frame.encode_request
-        self._encode_rs485 = frames_v3.encode_rs485_request if v3 else rs485_frame.encode_request
-        self._decode_rs485 = frames_v3.decode_rs485_reply if v3 else rs485_frame.decode_reply
+        self._encode_can = self.generation.encode_can_request
+        self._encode_rs485 = self.generation.encode_rs485_request
+        self._decode_rs485 = self.generation.decode_rs485_reply
         self._wires: list[CanFrame | bytes] = []
         self._motors: list[int] = []
 

@@ -257,6 +257,11 @@ class StreamBuffer:
         a :class:`Verdict`."""
         raise NotImplementedError
 
+    def next_bytes(self, *, flush: bool = False) -> bytes | None:
+        """The next valid frame's bytes, head to checksum, or None when the buffer holds no complete one yet
+        (``flush``: see the parser's ``next_frame``)."""
+        return self._next_raw(HEAD, flush)
+
     def next_reply(self, *, flush: bool = False) -> tuple[int | None, Message | None] | None:
         """The next valid frame of a drive's reply as ``(the drive it names, its message)``, or None when the buffer
         holds no complete frame yet (``flush``: see the parser's ``next_frame``). The drive is None for a frame that
