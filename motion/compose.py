@@ -81,7 +81,7 @@ def axis_specs(config: ArmConfig, family: ProtocolFamily = ProtocolFamily.V2) ->
 
 def wire_protocol(config: ArmConfig) -> WireProtocol:
     """The protocol spoken on the configured bus."""
-    return WireProtocol.CAN if isinstance(config.bus, CanBusConfig) else WireProtocol.RS485
+    return config.bus.transport
 
 
 def controller_options(config: ArmConfig) -> ControllerOptions:
@@ -108,11 +108,7 @@ def open_bus(config: ArmConfig, **overrides: object) -> Transport:
         TransportError: the bus or port could not be opened.
     """
     bus = config.bus
-    family = opening_family(config)
-    if isinstance(bus, CanBusConfig):
-        settings: dict[str, object] = {"interface": bus.interface, "channel": bus.channel, "bitrate": bus.bitrate}
-        return open_transport("can", **(settings | {"family": family} | overrides))
-    return open_transport("rs485", **({"port": bus.port, "baudrate": bus.baudrate, "family": family} | overrides))
+    return open_transport(bus.transport.value, **(bus.settings() | {"family": opening_family(config)} | overrides))
 
 
 #: Connect: the window in which the configured drives answer the generation check on a CAN bus, s.

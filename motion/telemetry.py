@@ -606,7 +606,7 @@ class TelemetrySession(Closing):
             "config": config.name,
             "config_source": config.source,
             "transport": bus.transport.value,
-            "channel": bus.channel if isinstance(bus, CanBusConfig) else bus.port,
+            "channel": bus.link,
             "emulated": self.emulated,
             "following_error_limit_deg": config.safety.following_error_deg,
             "collision_threshold_nm": list(config.collision_thresholds_nm),

@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import os
 import subprocess
 import sys
 import time
 import uuid
 from collections.abc import Iterable, Iterator
+from pathlib import Path
 from typing import Any
 
 import can.interfaces.virtual
@@ -31,6 +33,8 @@ from motion.protocol import (
 from motion.transport import CanTransport, Request, open_transport
 from motion.transport.can_endpoint import CanEndpoint
 from tests.test_transport_peers import MARGIN_S, Script, ScriptedDrives, assert_balanced, status2, tag_of
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 class CanDrives(ScriptedDrives[CanFrame]):
@@ -290,6 +294,47 @@ def test_close_releases_the_bus_also_after_an_error(channel: str) -> None:
         transport.transact([status2(1)], transport.clock() + 0.05)
     with rig(channel) as (again, _):
         assert again.transact([status2(1)], again.clock() + 0.2)[0].ok
+
+
+def test_a_transport_another_package_declares_is_found_by_its_entry_point(tmp_path: Path) -> None:
+    # an installed distribution (its dist-info on the path) declares a kind of link in the group; the registry opens it
+    # by name, and refuses an entry that is not a Transport class
+    (tmp_path / "pigeon_link.py").write_text(
+        "from motion.emulator import Emulator\n"
+        "from motion.emulator.simulated import Simulation, SimulatedBus\n"
+        "from motion.protocol import WireProtocol\n"
+        "class PigeonBus(SimulatedBus):\n"
+        "    def __init__(self, ids):\n"
+        "        super().__init__(Simulation(Emulator(ids), WireProtocol.CAN))\n"
+        "class NotATransport:\n"
+        "    pass\n"
+    )
+    info = tmp_path / "pigeon_link-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: pigeon-link\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(
+        "[rmd_motion.transports]\npigeon = pigeon_link:PigeonBus\nbroken = pigeon_link:NotATransport\n"
+    )
+    code = (
+        "import motion.transport as t\n"
+        "from motion.errors import TransportError\n"
+        "from motion.protocol import Bare, Command\n"
+        "with t.open_transport('pigeon', [3]) as bus:\n"
+        "    reply, = bus.transact([t.Request(3, Bare(Command.READ_STATUS_1))], bus.clock() + 0.01)\n"
+        "    assert reply.ok, reply\n"
+        "try:\n"
+        "    t.open_transport('broken')\n"
+        "except TransportError as e:\n"
+        "    assert 'is not a motion.transport.Transport class' in str(e), e\n"
+        "else:\n"
+        "    raise SystemExit('a class that is no Transport was opened')\n"
+        "try:\n"
+        "    t.open_transport('owl')\n"
+        "except TransportError as e:\n"
+        "    assert 'valid: broken, can, pigeon, rs485' in str(e), e\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
+    subprocess.run([sys.executable, "-c", code], check=True, env=env)
 
 
 def test_backends_are_imported_only_when_used() -> None:

@@ -17,7 +17,7 @@ from enum import IntFlag
 from typing import Any, Final
 
 from motion.compose import negotiate_family, open_bus
-from motion.config import ArmConfig, CanBusConfig, JointConfig, load_config_or_example
+from motion.config import ArmConfig, CanBusConfig, JointConfig, Rs485BusConfig, load_config_or_example
 from motion.errors import MotionError, TransportError
 from motion.protocol import Message
 from motion.protocol.generation import GENERATIONS
@@ -34,11 +34,11 @@ EXIT_INTERRUPTED: Final = 130
 #: Time the drives get to answer a one-off batch of requests (not a control cycle), s.
 REPLY_TIMEOUT_S: Final = 0.2
 #: The bus override options and the bus kind each applies to.
-_CAN_OVERRIDES: Final = ("interface", "channel")
+#: Every kind of bus's command-line overrides (each bus configuration names its own: ``overridable``).
+BUS_OVERRIDES: Final = tuple(dict.fromkeys((*CanBusConfig.overridable, *Rs485BusConfig.overridable)))
 #: What :meth:`Session.open_bus` lets a command speak: the drives of either generation, or the older one alone.
 EVERY_GENERATION: Final = tuple(ProtocolFamily)
 OLDER_ONLY: Final = (ProtocolFamily.V2,)
-_RS485_OVERRIDES: Final = ("port",)
 #: Where pseudo-terminal devices live.
 _PTY_PREFIX: Final = "/dev/pts/"
 
@@ -151,11 +151,11 @@ class Session:
             UsageError: an override for the other kind of bus.
         """
         config = load_config_or_example(args.config)
-        can = isinstance(config.bus, CanBusConfig)
-        given = {name: value for name in (*_CAN_OVERRIDES, *_RS485_OVERRIDES) if (value := getattr(args, name, None))}
-        wrong = [f"--{name}" for name in given if name not in (_CAN_OVERRIDES if can else _RS485_OVERRIDES)]
+        allowed = config.bus.overridable
+        given = {name: value for name in BUS_OVERRIDES if (value := getattr(args, name, None))}
+        wrong = [f"--{name}" for name in given if name not in allowed]
         if wrong:
-            valid = " and ".join(f"--{n}" for n in (_CAN_OVERRIDES if can else _RS485_OVERRIDES))
+            valid = " and ".join(f"--{n}" for n in allowed)
             raise UsageError(
                 f"{', '.join(wrong)}: {config.source} has a {config.bus.transport.value} bus; its overrides are {valid}"
             )

@@ -29,7 +29,7 @@ from motion.cli.common import (
     warn,
 )
 from motion.compose import build_controller, drive_setup, resolve_frames
-from motion.config import CanBusConfig, JointConfig
+from motion.config import JointConfig
 from motion.config.schema import ControlMode
 from motion.control.drive_record import DriveRecord
 from motion.control.drivesetup import LINK_TIMEOUT
@@ -192,9 +192,8 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
     0x12; V3 drives: 0xB5 and the firmware date 0xB2)."""
     session = Session.from_args(args)
     ids: tuple[int, ...] = args.ids or tuple(range(MOTOR_ID_MIN, MOTOR_ID_MAX + 1))
-    rs485 = not isinstance(session.config.bus, CanBusConfig)
     configured = {j.motor_id for j in session.config.joints}
-    wire = WireProtocol.RS485 if rs485 else WireProtocol.CAN
+    wire = session.config.bus.transport
     with session.open_bus(check=False) as bus:
         answered = _scan_ids(bus, ids, wire, 1.0)
         # a configured drive that did not answer is asked once more with a longer window (a busy host or adapter can

@@ -60,10 +60,21 @@ class CanBusConfig:
     """
 
     transport: ClassVar[WireProtocol] = WireProtocol.CAN
+    #: The settings a command line may override (``--interface``, ``--channel``).
+    overridable: ClassVar[tuple[str, ...]] = ("interface", "channel")
     interface: str
     channel: str
     bitrate: int = 1_000_000
     protocol: ProtocolSetting = ProtocolSetting.AUTO
+
+    @property
+    def link(self) -> str:
+        """What the bus is reached through (the channel)."""
+        return self.channel
+
+    def settings(self) -> dict[str, object]:
+        """The transport's arguments (its registry entry is :attr:`transport`)."""
+        return {"interface": self.interface, "channel": self.channel, "bitrate": self.bitrate}
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,9 +89,20 @@ class Rs485BusConfig:
     """
 
     transport: ClassVar[WireProtocol] = WireProtocol.RS485
+    #: The settings a command line may override (``--port``).
+    overridable: ClassVar[tuple[str, ...]] = ("port",)
     port: str
     baudrate: int = 115_200
     protocol: ProtocolSetting = ProtocolSetting.AUTO
+
+    @property
+    def link(self) -> str:
+        """What the bus is reached through (the serial port)."""
+        return self.port
+
+    def settings(self) -> dict[str, object]:
+        """The transport's arguments (its registry entry is :attr:`transport`)."""
+        return {"port": self.port, "baudrate": self.baudrate}
 
 
 BusConfig: TypeAlias = CanBusConfig | Rs485BusConfig
