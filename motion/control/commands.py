@@ -10,12 +10,16 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TypeAlias
 
+import numpy as np
+
 from motion.config.schema import ControlMode
-from motion.errors import PlanningError
-from motion.trajectory import Follower, JointLimits, Path
+from motion.control.scheduler import FixedRateLoop
+from motion.errors import MotionError, PlanningError
+from motion.trajectory import Follower, JointLimits, Path, Planner, State
 from motion.transmission import FloatArray
 
 
@@ -130,3 +134,69 @@ class CommandQueue:
         with self._lock:
             if self._pending is None:
                 self.idle.set()
+
+
+class MotionCommands:
+    """The motion commands of a :class:`~motion.control.controller.Controller`: what any thread may call. Each is
+    checked (planned once from the reference at rest) before it is queued for the control thread."""
+
+    follower: Follower | None
+    planner: Planner
+    reference: State
+    commands: CommandQueue
+    loop: FixedRateLoop
+
+    def _queue(self, pending: Pending) -> None:
+        if self.follower is None:
+            raise MotionError("read_positions() must run before motion commands")
+        self.commands.put(pending)
+
+    def move_to(self, target_deg: Sequence[float] | FloatArray, speed_scale: float = 1.0) -> None:
+        """Queue a coordinated move to ``target_deg`` (re-targets a running move). Checked before it is queued.
+
+        Raises:
+            PlanningError: the target or the scale is invalid (nothing is queued).
+        """
+        target = np.asarray(target_deg, dtype=np.float64)
+        # planned once from the reference at rest (the loop plans from the live state when it applies it): the
+        # vector, the limits, the scale and whatever Ruckig refuses (a duration beyond its limits) are refused here
+        scale = self.planner.check_scale(speed_scale)
+        self.planner.move(State.at_rest(self.reference.position), target, speed_scale=scale)
+        self._queue(MoveCommand(target, scale))
+
+    def follow(self, waypoints_deg: Sequence[Sequence[float]] | FloatArray, speed_scale: float = 1.0) -> None:
+        """Queue a waypoint path from the current reference, planned once from it at rest first (as :meth:`move_to`).
+
+        Raises:
+            PlanningError: a waypoint or the scale is invalid (nothing is queued).
+        """
+        scale = self.planner.check_scale(speed_scale)
+        self.planner.path(State.at_rest(self.reference.position), waypoints_deg, speed_scale=scale)
+        self._queue(PathCommand(np.asarray(waypoints_deg, dtype=np.float64), scale))
+
+    def play(self, path: Path) -> None:
+        """Queue a path planned elsewhere; it must start at the reference of the cycle that applies it."""
+        self._queue(PlayCommand(path))
+
+    def stop_motion(self) -> None:
+        """Queue a jerk-limited stop; the arm then holds where the stop ends."""
+        self._queue(StopCommand())
+
+    def wait_idle(self, timeout_s: float | None = None) -> bool:
+        """Wait until the queued motion has ended; returns False on timeout."""
+        if self.loop.stepping:
+            return self.loop.step_until(self.commands.idle.is_set, timeout_s)
+        return self.commands.idle.wait(timeout_s)
+
+    @property
+    def idle(self) -> bool:
+        """True when no motion is queued or playing (never waits)."""
+        return self.commands.idle.is_set()
+
+    def discard_pending(self) -> None:
+        """Drop a queued motion command (a halt must not be overridden by a move queued in the same cycle)."""
+        self.commands.discard()
+
+    def take_rejection(self) -> PlanningError | None:
+        """The PlanningError of the last queued command that could not be planned from the live reference, once."""
+        return self.commands.take_rejection()

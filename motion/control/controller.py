@@ -1,7 +1,9 @@
 """The controller: one cycle = take the replies -> update state -> plan the next set-point -> build the batch ->
 one ``transact`` by the deadline.
 
-The set-points of each control mode are built by its builder (:mod:`motion.control.setpoints`).
+The set-points of each control mode are built by its builder (:mod:`motion.control.setpoints`); the motion commands
+other threads give are :class:`~motion.control.commands.MotionCommands`, starting and waiting on the loop
+:class:`~motion.control.running.LoopRunning`.
 
 Motion commands (:meth:`Controller.move_to`, :meth:`Controller.follow`, :meth:`Controller.stop_motion`) may come from
 any thread: they are queued and planned in the control thread at the start of the next cycle, from the reference at
@@ -11,7 +13,6 @@ that instant, so a new target never steps the reference's velocity or accelerati
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -20,23 +21,16 @@ from numpy.typing import NDArray
 
 from motion.config.schema import ControlMode
 from motion.control.axes import AxisSpec, AxisStates
-from motion.control.clock import Clock, MonotonicClock, is_simulated
-from motion.control.commands import (
-    CommandQueue,
-    MoveCommand,
-    PathCommand,
-    Pending,
-    PlayCommand,
-    StopCommand,
-    planning_limits,
-)
+from motion.control.clock import Clock, MonotonicClock
+from motion.control.commands import CommandQueue, MotionCommands, planning_limits
 from motion.control.family import FAMILIES
-from motion.control.scheduler import CycleFn, FixedRateLoop, LoopStatistics
+from motion.control.running import LoopRunning
+from motion.control.scheduler import FixedRateLoop
 from motion.control.setpoints import BuilderSettings, Feedforward, Setpoints, TorqueSetpoints, setpoint_builder
 from motion.control.snapshot import CycleSnapshot, SnapshotPublisher
 from motion.control.startup import read_every_drive
 from motion.control.tracking import ExpectedTracking
-from motion.errors import MotionError, PlanningError, TransportError
+from motion.errors import MotionError, TransportError
 from motion.protocol import (
     Command,
     Message,
@@ -49,13 +43,6 @@ from motion.transmission import ArmTransmission, FloatArray
 from motion.transport.base import Reply, Request, Transport
 
 __all__ = ["Controller", "ControllerOptions", "Feedforward", "Setpoints"]
-
-# How often a thread that waits on a running loop looks again, s.
-_POLL_S = 0.002
-
-
-def _never() -> bool:
-    return False
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,7 +75,7 @@ class ControllerOptions:
     multi_motor_frame: bool = True
 
 
-class Controller:
+class Controller(MotionCommands, LoopRunning):
     """Coordinated motion of several RMD joints on one bus.
 
     Args:
@@ -118,6 +105,7 @@ class Controller:
         #: Whole motor turns per joint between this controller's frame and the drive's (:meth:`set_turns`).
         self.turns: tuple[int, ...] = (0,) * len(self.specs)
         self.options = options
+        self.rate_hz = options.rate_hz
         self.bus = bus
         self.planner = Planner(planning_limits(limits, options.mode, options.catch_up_share))
         self.feedforward = feedforward
@@ -245,64 +233,7 @@ class Controller:
         self._publish(0, now, False)  # what was read, before the first cycle
         return q
 
-    # ------------------------------------------------------------------------------------------------ commands
-
-    def _queue(self, pending: Pending) -> None:
-        if self.follower is None:
-            raise MotionError("read_positions() must run before motion commands")
-        self.commands.put(pending)
-
-    def move_to(self, target_deg: Sequence[float] | FloatArray, speed_scale: float = 1.0) -> None:
-        """Queue a coordinated move to ``target_deg`` (re-targets a running move). Checked before it is queued.
-
-        Raises:
-            PlanningError: the target or the scale is invalid (nothing is queued).
-        """
-        target = np.asarray(target_deg, dtype=np.float64)
-        # planned once from the reference at rest (the loop plans from the live state when it applies it): the
-        # vector, the limits, the scale and whatever Ruckig refuses (a duration beyond its limits) are refused here
-        scale = self.planner.check_scale(speed_scale)
-        self.planner.move(State.at_rest(self.reference.position), target, speed_scale=scale)
-        self._queue(MoveCommand(target, scale))
-
-    def follow(self, waypoints_deg: Sequence[Sequence[float]] | FloatArray, speed_scale: float = 1.0) -> None:
-        """Queue a waypoint path from the current reference, planned once from it at rest first (as :meth:`move_to`).
-
-        Raises:
-            PlanningError: a waypoint or the scale is invalid (nothing is queued).
-        """
-        scale = self.planner.check_scale(speed_scale)
-        self.planner.path(State.at_rest(self.reference.position), waypoints_deg, speed_scale=scale)
-        self._queue(PathCommand(np.asarray(waypoints_deg, dtype=np.float64), scale))
-
-    def play(self, path: Path) -> None:
-        """Queue a path planned elsewhere; it must start at the reference of the cycle that applies it."""
-        self._queue(PlayCommand(path))
-
-    def stop_motion(self) -> None:
-        """Queue a jerk-limited stop; the arm then holds where the stop ends."""
-        self._queue(StopCommand())
-
-    def wait_idle(self, timeout_s: float | None = None) -> bool:
-        """Wait until the queued motion has ended; returns False on timeout."""
-        if self.loop.stepping:
-            return self.loop.step_until(self.commands.idle.is_set, timeout_s)
-        return self.commands.idle.wait(timeout_s)
-
-    @property
-    def idle(self) -> bool:
-        """True when no motion is queued or playing (never waits)."""
-        return self.commands.idle.is_set()
-
     # ------------------------------------------------------------------------------------------------ the cycle
-
-    def discard_pending(self) -> None:
-        """Drop a queued motion command (a halt must not be overridden by a move queued in the same cycle)."""
-        self.commands.discard()
-
-    def take_rejection(self) -> PlanningError | None:
-        """The PlanningError of the last queued command that could not be planned from the live reference, once."""
-        return self.commands.take_rejection()
 
     def build_requests(self, reference: State) -> list[Request]:
         """The cycle's batch for a reference state (pure apart from recording the set-points)."""
@@ -460,65 +391,6 @@ class Controller:
         self.absorb(replies)
         self._track(now_s, ref, True)
         self._publish(self.loop.cycles, now_s, False)
-
-    # ------------------------------------------------------------------------------------------------ loop
-
-    def start(self, cycle: CycleFn | None = None) -> None:
-        """Run the loop in its own thread (after :meth:`read_positions`).
-
-        Args:
-            cycle: the cycle function to run instead of :meth:`cycle` (a safety supervisor's guarded cycle).
-        """
-        self._stop_loop = False
-        # what the rate check's rehearsals taught the model is not the loop's history
-        self.tracking.reset(self.axes.q_deg, self.axes.qd_dps, self.reference.position)
-        if cycle is not None:
-            self.loop = FixedRateLoop(self.options.rate_hz, cycle, clock=self.clock)
-        if is_simulated(self.clock):
-            self.loop.begin_stepping()
-        else:
-            self.loop.start()
-
-    def wait_for(self, done: Callable[[], bool], timeout_s: float | None = None) -> bool:
-        """Wait until ``done()`` holds or ``timeout_s`` passes; returns ``done()``.
-
-        With a simulated clock the waiting thread runs the control cycles itself (``timeout_s`` is simulated time);
-        otherwise it polls while the loop thread runs.
-        """
-        if self.loop.stepping:
-            return self.loop.step_until(done, timeout_s)
-        end = None if timeout_s is None else time.monotonic() + timeout_s
-        while not done():
-            if end is not None and time.monotonic() >= end:
-                return done()
-            time.sleep(_POLL_S)
-        return True
-
-    def pause(self, duration_s: float) -> None:
-        """Let ``duration_s`` pass with the loop running (simulated time advances; real time sleeps)."""
-        if self.loop.stepping:
-            end = self.clock.now() + duration_s
-            self.loop.step_until(_never, duration_s)
-            self.clock.sleep_until(end)  # time passes for the drives also after the loop has ended
-        else:
-            time.sleep(duration_s)
-
-    @property
-    def stopping(self) -> bool:
-        """True once :meth:`shutdown` asked the loop to end."""
-        return self._stop_loop
-
-    def shutdown(self, timeout_s: float = 2.0) -> LoopStatistics:
-        """End the loop after the current cycle and wait for it; returns the loop statistics."""
-        self._stop_loop = True
-        self.loop.stop()
-        self.loop.join(timeout_s)
-        return self.loop.statistics()
-
-    @property
-    def error(self) -> BaseException | None:
-        """The exception that ended the loop, if any."""
-        return self.loop.error
 
     def reference_path(self) -> Path | None:
         """The path being played, if any."""
