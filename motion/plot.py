@@ -48,9 +48,21 @@ def figure(log: TelemetryLog) -> Figure:
     """
     names = log.joint_names
     rows = len(names) + 1
-    fig = Figure(figsize=(16.0, 2.0 * rows + 0.9), dpi=_DPI, layout="constrained")
+    height_in = 2.0 * rows + 0.9
+    fig = Figure(figsize=(16.0, height_in), dpi=_DPI)
     FigureCanvasAgg(fig)
-    grid = fig.add_gridspec(rows, len(PANELS))
+    # fixed margins, in inches, rather than a constrained layout, which measures every panel's ticks and labels to
+    # place them (most of the drawing time of a six-joint figure: it is drawn at the end of every demo run)
+    grid = fig.add_gridspec(
+        rows,
+        len(PANELS),
+        left=0.75 / 16.0,
+        right=1.0 - 0.15 / 16.0,
+        top=1.0 - 0.75 / height_in,
+        bottom=0.55 / height_in,
+        hspace=0.35,
+        wspace=0.22,
+    )
     t = log["t_s"]
     t_ref = t + log.period_s
     error = log.following_error_deg()
@@ -94,8 +106,8 @@ def figure(log: TelemetryLog) -> Figure:
             panel.tick_params(labelsize=8, labelbottom=j == len(names) - 1)
             _mark_faults(panel, faults)
         if j == 0:
-            position.legend(fontsize=7, loc="best")
-            collision.legend(fontsize=7, loc="best")
+            position.legend(fontsize=7, loc="upper right")
+            collision.legend(fontsize=7, loc="upper right")
     timing = fig.add_subplot(grid[rows - 1, :], sharex=first)
     _draw_timing(timing, log, faults)
     fig.suptitle(_title(log), fontsize=12)
