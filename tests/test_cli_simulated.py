@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 
 from motion.cli import main
+from motion.config import read_yaml
+from motion.config.examples import example_names, resolve_program
 from motion.telemetry import load_log
 
 PROGRAM = (
@@ -45,6 +47,24 @@ def test_an_emulated_move_lands_where_commanded_and_prints_the_same_on_every_run
     planned = float(err.split("move: ")[1].split(" s planned")[0])
     assert summary["duration_s"] == pytest.approx(planned, abs=0.01)
     assert f"move: done in {summary['duration_s']:.2f} s" in err
+
+
+@pytest.mark.parametrize("arm", example_names())
+def test_the_example_program_of_each_example_arm_runs_in_simulated_time(
+    capsys: pytest.CaptureFixture[str], arm: str
+) -> None:
+    # issue 33: one program per example arm (`rmd-motion init` copies them), named as the README names it; its last
+    # step brings every joint home, where the next session finds the same turns
+    code, out, err = _run(capsys, "run", "--config", arm, "--emulate", f"configs/programs/{arm}", "--json")
+    assert code == 0, err
+    summary = json.loads(out)
+    program = read_yaml(resolve_program(f"configs/programs/{arm}"))
+    kinds = {next(iter(k for k in step if k != "speed_scale")) for step in program["steps"]}
+    assert kinds == {"move", "path", "wait"} and any("speed_scale" in step for step in program["steps"]), kinds
+    assert summary["steps"] == len(program["steps"]) and summary["status"]["fault"] is None
+    assert {j["name"]: j["position_deg"] for j in summary["status"]["joints"]} == pytest.approx(
+        {j["name"]: 0.0 for j in summary["status"]["joints"]}, abs=0.5
+    )
 
 
 def test_an_emulated_program_runs_every_step_and_records_its_cycles(

@@ -92,7 +92,7 @@ def test_a_missing_example_name_lists_the_examples(tmp_path: Path, monkeypatch: 
 
 
 def _tree(directory: Path) -> dict[str, bytes]:
-    return {p.name: p.read_bytes() for p in sorted(directory.iterdir())}
+    return {str(p.relative_to(directory)): p.read_bytes() for p in sorted(directory.rglob("*")) if p.is_file()}
 
 
 def test_init_copies_the_examples_into_configs(
@@ -109,8 +109,13 @@ def test_init_copies_the_examples_into_configs(
     assert arm6.model.urdf == tmp_path / "configs" / "arm6.urdf"
     # Again: nothing differs, nothing is rewritten.
     assert main(["init"]) == 0
-    there = "already there: arm2.yaml, arm2_rs485.yaml, arm6.urdf, arm6.yaml, arm6_v3.yaml, bench1.yaml"
-    assert there in capsys.readouterr().out
+    there = "already there: arm2.yaml, arm2_rs485.yaml, arm6.urdf, arm6.yaml, arm6_v3.yaml, bench1.yaml, programs/arm2"
+    out = capsys.readouterr().out
+    assert there in out and "programs/bench1.yaml" in out
+    # ... with a program per example arm, which runs from there as it is named in the README
+    assert sorted(p.name for p in (tmp_path / "configs" / "programs").iterdir()) == sorted(
+        p.name for p in CONFIGS.glob("*.yaml")
+    )
 
 
 def test_init_refuses_to_overwrite_an_edited_file_unless_forced(

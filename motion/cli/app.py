@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Final
 
 from motion import __version__
-from motion.cli import collision, drives, examples, moves
+from motion.cli import collision, drives, examples, moves, program
 from motion.cli.common import (
     EXIT_COMMUNICATION,
     EXIT_FAULT,
@@ -291,7 +291,9 @@ def build_parser() -> argparse.ArgumentParser:
     move.add_argument("targets", nargs="+", metavar="JOINT=DEG")
     _motion_options(move, "scale of the velocity limits, (0, 1] (default 1)")
     run = _command(sub, "run", moves.run, "run a program of move / path / wait steps (validated before moving)")
-    run.add_argument("program", metavar="PROGRAM.yaml")
+    run.formatter_class = argparse.RawDescriptionHelpFormatter
+    run.epilog = program.FORMAT
+    run.add_argument("program", metavar="PROGRAM.yaml", help="the program (its format below)")
     _motion_options(run, "multiplies every step's speed scale, (0, 1] (default 1)")
 
     home = _command(

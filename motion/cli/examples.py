@@ -30,7 +30,9 @@ def init(args: argparse.Namespace, interrupts: Interrupts) -> int:
     for path in copied.written:
         print(f"wrote {path}")
     if copied.unchanged:
-        print(f"already there: {', '.join(p.name for p in copied.unchanged)}")
+        print(f"already there: {', '.join(str(p.relative_to(args.dir)) for p in copied.unchanged)}")
     example = args.dir / "arm2.yaml"
     print(f"next: edit {example} (bus, joints), then: rmd-motion status --config {example}")
+    program = args.dir / "programs" / "arm2.yaml"
+    print(f"a program, in simulated time first: rmd-motion run --config {example} --emulate {program}")
     return EXIT_OK

@@ -1,13 +1,5 @@
-"""Motion programs for ``rmd-motion run``: a YAML list of steps, validated as a whole before anything moves.
-
-::
-
-    steps:                                     # or the list itself at the top level
-      - move: {shoulder: 20, elbow: -30}       # joint targets, degrees; the other joints keep theirs
-        speed_scale: 0.5                       # optional, (0, 1]; default 1
-      - wait: 0.5                              # seconds, holding
-      - path: [{shoulder: 0}, {shoulder: 30, elbow: 10}]   # waypoints, passed through without stopping
-        speed_scale: 0.8
+"""Motion programs for ``rmd-motion run``: a YAML list of steps, validated as a whole before anything moves (the
+format: :data:`FORMAT`, shown by ``rmd-motion run --help``; examples: ``configs/programs/``).
 
 Every error is a :class:`~motion.errors.ConfigError` naming the file, the step (``steps[2]``, counted from 0) and the
 key (``steps[2].move.shoulder``).
@@ -26,8 +18,24 @@ from motion.cli.common import target_problem
 # The CLI may not import yaml (motion.config owns it): programs are read with the configuration's YAML reader
 # (which also rejects duplicate keys).
 from motion.config import ArmConfig, read_yaml
+from motion.config.examples import resolve_program
 from motion.errors import ConfigError
 
+#: The format of a program, as ``run --help`` shows it.
+FORMAT: Final = """\
+a program is a YAML file:
+
+  name: pick and place                     # optional
+  steps:                                   # or the list of steps itself at the top level
+    - move: {shoulder: 20, elbow: -30}     # joint targets, degrees; the joints not named keep their targets
+      speed_scale: 0.5                     # optional, (0, 1] of the velocity, acceleration and jerk limits
+    - wait: 0.5                            # seconds, holding where the arm is
+    - path: [{shoulder: 0}, {shoulder: 30, elbow: 10}]   # waypoints, passed through without stopping
+      speed_scale: 0.8                     # optional, as for move
+
+every step and value is checked (joint names, limits, scales) before anything moves; an error names the file, the
+step (steps[2], counted from 0) and the key. --speed-scale multiplies every step's scale. Examples, one per example
+arm: configs/programs/ (rmd-motion init copies them); try one in simulated time first with --emulate."""
 #: The step kinds and the keys each allows besides its own.
 _KINDS: Final = {"move": ("speed_scale",), "path": ("speed_scale",), "wait": ()}
 #: Keys of the top-level mapping form.
@@ -157,9 +165,11 @@ def parse_program(data: object, source: str, config: ArmConfig) -> Program:
 
 
 def load_program(path: str | Path, config: ArmConfig) -> Program:
-    """Read and validate a program file (see the module docstring).
+    """Read and validate a program file (see the module docstring); an example program stands in for
+    ``configs/programs/NAME`` where no such file exists (:func:`~motion.config.examples.resolve_program`).
 
     Raises:
         ConfigError: the file is missing, not YAML, or not a valid program for ``config``.
     """
-    return parse_program(read_yaml(path), str(path), config)
+    file = resolve_program(path)
+    return parse_program(read_yaml(file), str(file), config)

@@ -32,6 +32,8 @@ CONFIGS_DIR: Final = "configs"
 #: What an example file is: a configuration or a URDF it names.
 CONFIG_SUFFIX: Final = ".yaml"
 EXAMPLE_SUFFIXES: Final = (CONFIG_SUFFIX, ".urdf")
+#: The subdirectory of the examples with a motion program per example arm (``programs/arm2.yaml`` for ``arm2.yaml``).
+PROGRAMS_DIR: Final = "programs"
 
 
 def examples_dir() -> Path:
@@ -58,6 +60,16 @@ def example_files() -> tuple[Path, ...]:
         ConfigError: see :func:`examples_dir`.
     """
     return tuple(sorted(p for p in examples_dir().iterdir() if p.suffix in EXAMPLE_SUFFIXES and p.is_file()))
+
+
+def example_programs() -> tuple[Path, ...]:
+    """The example motion programs (``rmd-motion run``), one per example arm, named after it; sorted.
+
+    Raises:
+        ConfigError: see :func:`examples_dir`.
+    """
+    directory = examples_dir() / PROGRAMS_DIR
+    return tuple(sorted(p for p in directory.iterdir() if p.suffix == CONFIG_SUFFIX and p.is_file()))
 
 
 def example_names() -> tuple[str, ...]:
@@ -104,6 +116,26 @@ def resolve_config(path: str | os.PathLike[str]) -> Path:
     return examples_dir() / file.name
 
 
+def resolve_program(path: str | os.PathLike[str]) -> Path:
+    """The file a program name stands for: as :func:`resolve_config`, with the example programs standing in for
+    ``programs/NAME`` and ``configs/programs/NAME`` where no such file exists.
+
+    Raises:
+        ConfigError: ``path`` does not exist, is written like an example program's name, and no example program has
+            that name (the message lists them).
+    """
+    file = Path(path)
+    by_name = not file.is_absolute() and file.parent in (Path(PROGRAMS_DIR), Path(CONFIGS_DIR) / PROGRAMS_DIR)
+    if file.exists() or not by_name:
+        return file
+    programs = {p.name: p for p in example_programs()}
+    if file.name not in programs:
+        raise ConfigError(
+            str(file), "<file>", f"file not found, and no example program has that name ({', '.join(programs)})"
+        )
+    return programs[file.name]
+
+
 def load_config_or_example(path: str | os.PathLike[str]) -> ArmConfig:
     """Load the configuration ``path`` names (:func:`resolve_config`), validated.
 
@@ -127,7 +159,8 @@ class CopiedExamples:
 
 
 def copy_examples(target: str | os.PathLike[str], *, overwrite: bool = False) -> CopiedExamples:
-    """Copy every example (configurations and URDFs) into the directory ``target``, created if needed.
+    """Copy every example (configurations and URDFs, and the programs into ``programs/``) into the directory
+    ``target``, created if needed.
 
     Args:
         target: the directory.
@@ -145,15 +178,16 @@ def copy_examples(target: str | os.PathLike[str], *, overwrite: bool = False) ->
     if directory.exists() and not directory.is_dir():
         raise NotADirectoryError(f"{directory} is not a directory")
     plan = [(source, directory / source.name) for source in example_files()]
+    plan += [(source, directory / PROGRAMS_DIR / source.name) for source in example_programs()]
     unchanged = [dest for source, dest in plan if dest.is_file() and dest.read_bytes() == source.read_bytes()]
     changed = [(source, dest) for source, dest in plan if dest not in unchanged]
-    clashes = [dest.name for _, dest in changed if dest.exists() or dest.is_symlink()]
+    clashes = [str(dest.relative_to(directory)) for _, dest in changed if dest.exists() or dest.is_symlink()]
     if clashes and not overwrite:
         raise FileExistsError(
             f"{directory}: files already there with other contents: {', '.join(clashes)}; nothing was copied"
         )
-    directory.mkdir(parents=True, exist_ok=True)
     for source, dest in changed:
+        dest.parent.mkdir(parents=True, exist_ok=True)
         dest.unlink(missing_ok=True)  # a link is replaced, not followed to a file elsewhere
         dest.write_bytes(source.read_bytes())
     return CopiedExamples(tuple(dest for _, dest in changed), tuple(unchanged))
