@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, ProtocolSetting
+from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, JointConfig, ProtocolSetting
 from motion.control import identify
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
@@ -28,6 +28,7 @@ from motion.control.tracking import PositionLoopFit
 from motion.control.turns import (
     JointTurns,
     Source,
+    TurnError,
     TurnRecord,
     assumed_span,
     resolve_turns,
@@ -427,6 +428,7 @@ def resolve_frames(
             )
         if joint.source is Source.ASSUMED and joint.name not in provisional:
             lo, hi = assumed_span(t, joint)
+            outside_limits(joint, spec, turn_joint_deg(t))
             logger.warning(
                 "joint %s has no power_on_window_deg: its turn count is assumed from the drive (right if it powered "
                 "up between %.2f and %.2f deg; elsewhere the joint reads off by a multiple of %g deg)",
@@ -436,6 +438,31 @@ def resolve_frames(
                 turn_joint_deg(t),
             )
     return resolved
+
+
+def outside_limits(joint: JointTurns, spec: JointConfig, turn_deg: float) -> None:
+    """Refuse a joint whose assumed turn count (no ``power_on_window_deg``) puts it outside its limits: the drive
+    powered up elsewhere than its first turn (a direct-drive joint at -20 deg reads 340), and the first move would
+    fault on its set-point; a window finds the turn instead.
+
+    Raises:
+        TurnError: the joint is outside its limits (the message says what to configure).
+    """
+    lo, hi = spec.position_min_deg, spec.position_max_deg
+    if lo <= joint.joint_deg <= hi:
+        return
+    if hi - lo < turn_deg:
+        window = (
+            f"power_on_window_deg: [{lo:g}, {hi:g}] (its limits: they span less than one motor turn, {turn_deg:g} deg)"
+        )
+    else:
+        window = f"a power_on_window_deg narrower than one motor turn of this joint ({turn_deg:g} deg)"
+    raise TurnError(
+        f"joint {joint.name}: the drive reads {joint.reading_deg:.2f} motor deg, which without a power_on_window_deg "
+        f"puts the joint at {joint.joint_deg:.2f} deg, outside its limits [{lo:g}, {hi:g}]: the drive powered up "
+        f"elsewhere than in its first turn. Configure {window}, so that the turn is found from the window, or home it "
+        "(`rmd-motion home`)"
+    )
 
 
 def _output_turn(drive_gear_ratio: float) -> int:

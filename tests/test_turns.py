@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -205,6 +206,31 @@ def test_arm2_powered_up_away_from_zero_is_read_where_it_is_and_moves_where_comm
     assert [(t.source, t.turns) for t in turns] == [(Source.WINDOW, 1), (Source.WINDOW, 1)]
     np.testing.assert_allclose(controller.read_positions(), [60.0, -50.0], atol=0.01)
     _moves_where_commanded(config, controller, plant)
+
+
+def test_a_direct_drive_joint_without_a_window_powered_up_below_zero_is_refused_with_the_window_to_set() -> None:
+    # issue 33 §7: a 1:1 elbow without a window powered up 20 deg off its zero reads 340 (arm2's elbow is mounted
+    # mirrored: +20 at the joint is -20 at the motor): connect took it with a warning and the first move faulted on
+    # its set-point; now it is refused (the CLI exits 2), naming the window that finds the turn
+    config = _arm2_with_windows((-5.0, 5.0), (-5.0, 5.0))
+    elbow = dataclasses.replace(config.joints[1], gear_ratio=1.0, power_on_window_deg=None)
+    config = dataclasses.replace(config, joints=(config.joints[0], elbow))
+    emulator, _, controller = _powered_up_at(config, [0.0, 20.0])
+    assert emulator.drives[elbow.motor_id].angle_deg == pytest.approx(340.0, abs=0.01)
+    with pytest.raises(TurnError) as caught:
+        resolve_frames(controller, config)
+    text = str(caught.value)
+    assert re.search(r"joint elbow: the drive reads 3(39\.9\d|40\.0\d) motor deg", text), text
+    assert re.search(r"puts the joint at -3(39\.9\d|40\.0\d) deg, outside its limits \[-135, 135\]", text), text
+    assert "power_on_window_deg: [-135, 135]" in text
+    # ... and with that window the same drive is read where the joint is
+    windowed = dataclasses.replace(
+        config, joints=(config.joints[0], dataclasses.replace(elbow, power_on_window_deg=(-135.0, 135.0)))
+    )
+    _, _, controller = _powered_up_at(windowed, [0.0, 20.0])
+    turns = resolve_frames(controller, windowed)
+    assert (turns[1].source, turns[1].turns) == (Source.WINDOW, -1)
+    np.testing.assert_allclose(controller.read_positions(), [0.0, 20.0], atol=0.05)  # (the arm sags a little)
 
 
 def test_a_window_that_misses_the_true_pose_is_refused_before_any_command() -> None:
