@@ -67,6 +67,22 @@ class PortLost(TransportError):
     nothing more can be sent on it, and the transport that saw it counts as closed."""
 
 
+class PortUnavailable(TransportError):
+    """The bus or port could not be opened (no such device, an interface that is down or unknown, a port in use)."""
+
+
+class DrivesSilent(TransportError):
+    """Drives did not answer a read every drive must answer (wrong motor id, no power, wiring, another protocol).
+
+    Attributes:
+        motor_ids: the motor ids that were asked and did not answer.
+    """
+
+    def __init__(self, message: str, motor_ids: tuple[int, ...] = ()) -> None:
+        super().__init__(message)
+        self.motor_ids = motor_ids
+
+
 class ConfigError(MotionError, ValueError):
     """A configuration file is invalid.
 

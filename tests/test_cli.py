@@ -427,10 +427,32 @@ def test_a_drive_that_does_not_answer_is_a_communication_error(tmp_path: Path) -
     with running_emulator(tmp_path, ARM2, "--slcan-link") as emulated:
         result = cli("status", "--config", config, *emulated.bus_args)
         assert result.returncode == 3, result.stderr
-        assert "communication error" in result.stderr and "elbow" in result.stderr
+        assert "communication error" in result.stderr and "from joint(s) elbow (motor 7)" in result.stderr
+        # issue 33 §8: the next step is named: which id was asked, and the command that lists the ids that answer
+        assert f"hint: motor id(s) 7 were asked: `rmd-motion scan --config {config}`" in result.stderr
         scan = cli("scan", "--config", config, *emulated.bus_args, "--ids", "1-8")
         assert scan.returncode == 3
         assert "not answering: elbow (motor 7)" in scan.stderr
+
+
+def test_a_bus_that_cannot_be_opened_names_the_adapter_setup_and_the_emulator(tmp_path: Path) -> None:
+    # issue 33 §8: socketcan's "[Errno 97] Address family not supported" (no SocketCAN here) or "No such device", and
+    # a serial port that is not there: each says where to look and how to try without hardware
+    for overrides in (
+        ("--interface", "socketcan", "--channel", "rmdnone0"),
+        ("--interface", "slcan", "--channel", str(tmp_path / "none")),
+    ):
+        result = cli("status", "--config", ARM2, *overrides)
+        assert result.returncode == 3, result.stderr
+        assert "communication error: cannot open CAN interface" in result.stderr
+        assert 'hint: check the adapter (README, "Connecting hardware"' in result.stderr
+        assert f"`rmd-motion emulate --config {ARM2} --slcan-link /tmp/rmd-slcan`" in result.stderr
+    result = cli("status", "--config", ARM2_RS485, "--port", str(tmp_path / "none"))
+    assert (
+        result.returncode == 3
+        and "cannot open RS485 port" in result.stderr
+        and "hint: check the adapter" in result.stderr
+    )
 
 
 # ---------------------------------------------------------------------------------------------------- RS485

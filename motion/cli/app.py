@@ -26,6 +26,7 @@ from motion.cli.common import (
     add_emulate_flag,
     add_turns_flag,
     add_view_arguments,
+    communication_hint,
     parse_pose,
     speed_scale_arg,
     view_options,
@@ -390,6 +391,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     except (TransportError, DecodeError) as exc:
         print(f"communication error: {exc}", file=sys.stderr)
+        hint = communication_hint(exc, getattr(args, "config", None))
+        if hint is not None:
+            print(f"hint: {hint}", file=sys.stderr)
         return EXIT_COMMUNICATION
     except OSError as exc:  # a file of ours, such as --log (the transports raise TransportError for the bus)
         print(f"error: {exc}", file=sys.stderr)

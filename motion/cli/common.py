@@ -18,7 +18,7 @@ from typing import Any, Final
 
 from motion.compose import negotiate_family, open_bus
 from motion.config import ArmConfig, CanBusConfig, JointConfig, Rs485BusConfig, load_config_or_example
-from motion.errors import MotionError, TransportError
+from motion.errors import DrivesSilent, MotionError, PortUnavailable, TransportError
 from motion.protocol import Message
 from motion.protocol.generation import GENERATIONS
 from motion.protocol.table import ProtocolFamily
@@ -443,3 +443,25 @@ def warn(message: str) -> None:
 
 #: A command: the parsed arguments and the signal handling -> exit code.
 Command = Callable[[argparse.Namespace, Interrupts], int]
+
+
+def communication_hint(exc: BaseException, config_path: object) -> str | None:
+    """What to try next after a communication error, for the errors that have a usual cause (None: no hint)."""
+    config = config_path or "FILE"
+    if isinstance(exc, PortUnavailable):
+        return (
+            'check the adapter (README, "Connecting hardware": a SocketCAN interface must be up, '
+            "`sudo ip link set can0 up type can bitrate 1000000`; a USB-CAN stick is --interface slcan "
+            "--channel /dev/ttyACM0; a serial port needs read/write permission, e.g. the dialout group). "
+            f"To try without hardware: `rmd-motion emulate --config {config} --slcan-link /tmp/rmd-slcan` in "
+            "another terminal, then this command with --interface slcan --channel /tmp/rmd-slcan "
+            "(move and run also take --emulate)"
+        )
+    if isinstance(exc, DrivesSilent):
+        ids = ", ".join(map(str, exc.motor_ids)) or "the configured ones"
+        return (
+            f"motor id(s) {ids} were asked: `rmd-motion scan --config {config}` lists the ids that answer and their "
+            "protocol generation. Check each drive's id (MyActuator's setup tool), its power, the wiring and, on CAN, "
+            'the bus bit rate and the 120 Ohm termination at both ends (README, "Connecting hardware")'
+        )
+    return None

@@ -28,9 +28,9 @@ from motion.control.running import LoopRunning
 from motion.control.scheduler import FixedRateLoop
 from motion.control.setpoints import BuilderSettings, Feedforward, Setpoints, TorqueSetpoints, setpoint_builder
 from motion.control.snapshot import CycleSnapshot, SnapshotPublisher
-from motion.control.startup import read_every_drive
+from motion.control.startup import read_every_drive, silent_drives
 from motion.control.tracking import ExpectedTracking
-from motion.errors import MotionError, TransportError
+from motion.errors import MotionError
 from motion.protocol import (
     Command,
     Message,
@@ -210,11 +210,8 @@ class Controller(MotionCommands, LoopRunning):
                 angles[reply.motor_id] = reply.message.angle_deg
             elif isinstance(reply.message, family.state_type):
                 states[reply.motor_id] = reply.message
-        missing = [s.name for s in self.specs if s.motor_id not in angles or s.motor_id not in states]
-        if missing:
-            raise TransportError(
-                f"no reply to the start-up reads from joint(s) {', '.join(missing)}{self.bus.junk_note()}"
-            )
+        if len(angles.keys() & states.keys()) < len(self.specs):
+            raise silent_drives(self, "start-up reads", angles.keys() & states.keys(), self.bus.junk_note())
         now = self.clock.now()
         for i, spec in enumerate(self.specs):
             state = states[spec.motor_id]

@@ -29,7 +29,7 @@ from typing import Any, TypeAlias
 
 from motion.control.drive_record import DriveRecord, same_power_on
 from motion.control.family import DriveFamily
-from motion.errors import ConfigError, TransportError
+from motion.errors import ConfigError, DrivesSilent, TransportError
 from motion.protocol.v3.messages import (
     AccelerationRead,
     BareV3,
@@ -178,7 +178,9 @@ class DriveSetup:
             self.record.count_rom_writes(self._key(reply.motor_id), 1)
         self.record.save()
         if silent:
-            raise TransportError(f"no reply to the {what} from motor(s) {', '.join(map(str, sorted(silent)))}")
+            raise DrivesSilent(
+                f"no reply to the {what} from motor(s) {', '.join(map(str, sorted(silent)))}", tuple(sorted(silent))
+            )
 
     def suspend_protection(self, deadline_s: float) -> None:
         """The communication-loss protection off (0xB3 = 0) where the record does not show it off, before this session
@@ -255,7 +257,7 @@ class DriveSetup:
         replies = self.bus.transact(requests, deadline_s)
         silent = sorted({r.motor_id for r in replies if r.message is None})
         if silent:
-            raise TransportError(f"no reply to the {what} from motor(s) {', '.join(map(str, silent))}")
+            raise DrivesSilent(f"no reply to the {what} from motor(s) {', '.join(map(str, silent))}", tuple(silent))
         return replies
 
 

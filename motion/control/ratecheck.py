@@ -43,7 +43,7 @@ import numpy as np
 
 from motion.control.clock import is_simulated
 from motion.control.controller import Controller
-from motion.errors import ConfigError, TransportError
+from motion.errors import ConfigError, DrivesSilent
 from motion.protocol import Command, WireProtocol
 from motion.transport.base import Reply, Request
 
@@ -271,7 +271,7 @@ def measure_rate(
             misses[motor_id] = misses[motor_id] + 1 if motor_id in missing else 0
         silent = sorted(i for i, count in misses.items() if count >= _SILENT_EXCHANGES)
         if silent:
-            raise TransportError(f"no reply to the rate check's reads from motor(s) {silent}")
+            raise DrivesSilent(f"no reply to the rate check's reads from motor(s) {silent}", tuple(silent))
         for m in range(rehearsals):
             # strictly later than the last (the models step by the time between two cycles and divide by it)
             at = max(clock.now(), at + _REHEARSAL_STEP_S)

@@ -7,10 +7,10 @@ the turn resolution at connect reads the drives' angles and runtimes through the
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import TYPE_CHECKING, Final
 
-from motion.errors import TransportError
+from motion.errors import DrivesSilent
 from motion.protocol import Command, Message, MultiTurnAngle
 from motion.protocol.v3.messages import CommandV3, Runtime
 from motion.transport.base import Reply, Request
@@ -46,6 +46,13 @@ def read_every_drive(controller: Controller, reads: Sequence[Message], timeout_s
     return [reply for group in taken.values() for reply in group]
 
 
+def silent_drives(controller: Controller, what: str, answered: Collection[int], note: str = "") -> DrivesSilent:
+    """The error for the joints whose drives did not answer ``what``, each named with its motor id."""
+    silent = [s for s in controller.specs if s.motor_id not in answered]
+    named = ", ".join(f"{s.name} (motor {s.motor_id})" for s in silent)
+    return DrivesSilent(f"no reply to the {what} from joint(s) {named}{note}", tuple(s.motor_id for s in silent))
+
+
 def read_angles(controller: Controller, timeout_s: float = 0.2) -> dict[int, float]:
     """Every drive's multi-turn reading (0x92), motor degrees in the drive's own frame, by motor id (an output-shaft
     reading times the drive's reduction).
@@ -60,12 +67,8 @@ def read_angles(controller: Controller, timeout_s: float = 0.2) -> dict[int, flo
         for r in replies
         if isinstance(r.message, MultiTurnAngle) and r.motor_id in gear
     }
-    missing = [s.name for s in controller.specs if s.motor_id not in angles]
-    if missing:
-        raise TransportError(
-            f"no reply to the multi-turn angle read (0x92) from joint(s) {', '.join(missing)}"
-            f"{controller.bus.junk_note()}"
-        )
+    if len(angles) < len(controller.specs):
+        raise silent_drives(controller, "multi-turn angle read (0x92)", angles, controller.bus.junk_note())
     return angles
 
 
@@ -80,7 +83,6 @@ def read_runtimes(controller: Controller, timeout_s: float = 0.2) -> dict[int, f
         return {}
     replies = read_every_drive(controller, (controller.family.bare(CommandV3.READ_RUNTIME),), timeout_s)
     runtimes = {r.motor_id: r.message.runtime_ms / 1000.0 for r in replies if isinstance(r.message, Runtime)}
-    missing = [s.name for s in controller.specs if s.motor_id not in runtimes]
-    if missing:
-        raise TransportError(f"no reply to the runtime read (0xB1) from joint(s) {', '.join(missing)}")
+    if len(runtimes) < len(controller.specs):
+        raise silent_drives(controller, "runtime read (0xB1)", runtimes)
     return runtimes

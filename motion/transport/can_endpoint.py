@@ -15,7 +15,7 @@ from typing import Any
 import can
 
 from motion.closing import Closing
-from motion.errors import TransportError
+from motion.errors import PortUnavailable, TransportError
 from motion.protocol import CanFrame
 from motion.protocol.compiled import frozen_builder
 from motion.transport.base import port_failure
@@ -60,7 +60,7 @@ class CanEndpoint(Closing):
                 shim if shim is not None else can.Bus(interface=interface, channel=channel, **kwargs)
             )
         except (can.CanError, OSError, ValueError, ImportError) as exc:
-            raise TransportError(f"cannot open CAN interface {interface!r} channel {channel!r}: {exc}") from exc
+            raise PortUnavailable(f"cannot open CAN interface {interface!r} channel {channel!r}: {exc}") from exc
         self.interface = interface
         self.channel = channel
         self._closed = False

@@ -38,7 +38,7 @@ from typing import Final
 
 import serial
 
-from motion.errors import EncodeError, TransportError
+from motion.errors import EncodeError, PortUnavailable, TransportError
 from motion.protocol import MultiMotorTorque, rs485_frame
 from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily
 from motion.transport.base import PORT_ERRORS, Request, Transport, port_failure, port_lost, probe_in_turn
@@ -102,7 +102,7 @@ class Rs485Transport(Transport):
             )
             self._fds: list[int] = [self._serial.fileno()]
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise TransportError(f"cannot open RS485 port {port!r} at {baudrate} baud: {exc}") from exc
+            raise PortUnavailable(f"cannot open RS485 port {port!r} at {baudrate} baud: {exc}") from exc
         self._speak()
 
     def _speak(self, *, owns_port: bool = True) -> None:
