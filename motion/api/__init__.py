@@ -24,12 +24,14 @@ from __future__ import annotations
 from motion.api.arm import Arm
 from motion.api.emulation import emulated_family, emulator_process, measure_modes, realtime_capacity
 from motion.api.status import ArmStatus, JointStatus, MotionHandle
+from motion.view import ViewOptions  # the options of Arm(view=...): `from motion import ViewOptions` comes here
 
 __all__ = [
     "Arm",
     "ArmStatus",
     "JointStatus",
     "MotionHandle",
+    "ViewOptions",
     "emulated_family",
     "emulator_process",
     "measure_modes",
