@@ -1,7 +1,8 @@
 """Arm configuration as frozen dataclasses.
 
-The field names are the YAML keys and the field defaults are the YAML defaults: :mod:`motion.config.loader`
-derives both from here, so a key without a default below is required in the file. Units are in the names.
+The field names are the YAML keys and the field defaults are the YAML defaults: the loader (its reader,
+:class:`motion.config.nodes.Node`) derives both from here, so a key without a default below is required in the
+file. Units are in the names.
 """
 
 from __future__ import annotations

@@ -1,39 +1,19 @@
-"""The Python API: one :class:`Arm` from one configuration file.
-
-::
-
-    from motion import Arm
-    with Arm.from_config("configs/arm6.yaml", emulate=True) as arm:   # connect, read state, enable
-        arm.move_to({"shoulder_pitch": 30.0, "elbow_pitch": -45.0}, speed_scale=0.5)  # degrees; blocks
-        handle = arm.follow([{"base_yaw": 20.0}, {"base_yaw": -20.0}], wait=False)
-        handle.wait()
-        print(arm.status())
-    # leaving the block halts every axis (0x81) and releases the bus
-
-This module is the composition root: it is the one place in :mod:`motion` (with the CLI) that builds the
-Pinocchio model (:mod:`kinematics`) and hands the controller its feed-forward callable and the emulator its plant.
-"""
+"""The arm: :class:`Arm`, its lifecycle (connect, homing, close) and its motion commands (see :mod:`motion.api`)."""
 
 from __future__ import annotations
 
 import dataclasses
 import logging
-import math
-import numbers
 import os
-import shutil
-import subprocess
-import sys
-import tempfile
 import types
-from collections.abc import Iterator, Mapping, Sequence
-from contextlib import ExitStack, contextmanager
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
+from motion.api.arguments import emulation_of, joint_targets, seconds, start_pose_of, waypoint_rows
+from motion.api.emulation import emulated_family, emulator_process
+from motion.api.status import ArmStatus, MotionHandle, arm_status
 from motion.compose import (
     arm_figure,
     build_controller,
@@ -45,258 +25,31 @@ from motion.compose import (
     negotiate_family,
     open_bus,
     opening_family,
-    rehearsal_watchdog,
     resolve_frames,
 )
 from motion.config import ArmConfig, load_config_or_example
-from motion.config.schema import CanBusConfig, ControlMode, ProtocolSetting
+from motion.config.schema import CanBusConfig
 from motion.control.clock import Clock
 from motion.control.controller import Controller
-from motion.control.ratecheck import RateCheck, measure_rate
-from motion.control.scheduler import LoopStatistics
-from motion.control.snapshot import MotionProgress
+from motion.control.ratecheck import RateCheck
 from motion.control.tracking import PositionLoopFit
 from motion.control.turns import JointTurns, Source
 from motion.emulator import Fault, FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
-from motion.errors import ConfigError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
+from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.homing import HomingResult, corrected_turns, finish_halt, homed_joints, homing_variant, seek_stop
 from motion.keep import load_turn_records, offer_stored_tracking, save_turn_records, store_tracking, turns_store
 from motion.protocol import WireProtocol
 from motion.protocol.table import ProtocolFamily
 from motion.safety import ArmState, Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
-from motion.transmission import FloatArray
 from motion.transport import Transport
 from motion.view import LiveView, ViewOptions
 
 logger = logging.getLogger("motion.api")
 
-_EMULATE_CHOICES: dict[bool | str, str | None] = {
-    False: None,
-    True: "simulated",
-    "simulated": "simulated",
-    "realtime": "realtime",
-}
-#: How long the emulator process gets to end after SIGTERM, s.
-_EMULATOR_EXIT_S = 5.0
 #: The fault's detail of :meth:`Arm.stop`.
 _STOP_DETAIL = "E-stop requested"
-
-
-def _end_process(process: subprocess.Popen[str]) -> None:
-    process.terminate()
-    try:
-        process.communicate(timeout=_EMULATOR_EXIT_S)
-    except subprocess.TimeoutExpired:
-        process.kill()
-        process.communicate()
-
-
-def emulated_family(config: ArmConfig, protocol: ProtocolFamily | str | None) -> ProtocolFamily:
-    """The generation emulated drives speak: ``protocol``, else the one the bus opens in
-    (:func:`motion.compose.opening_family`: the configured one; with ``auto`` the older, or V3 at a V3-only baud rate).
-
-    Raises:
-        ConfigError: an unknown generation, or one that contradicts ``bus.protocol``.
-    """
-    setting = config.bus.protocol
-    if protocol is None:
-        return opening_family(config)
-    try:
-        family = ProtocolFamily(protocol)
-    except ValueError:
-        raise ConfigError(config.source, "<emulated_protocol>", f"{protocol!r} is not one of v2, v3") from None
-    if setting is not ProtocolSetting.AUTO and setting.value != family.value:
-        raise ConfigError(
-            config.source,
-            "<emulated_protocol>",
-            f"bus.protocol is {setting.value}: the emulated drives cannot speak {family.value} (use auto)",
-        )
-    return family
-
-
-@contextmanager
-def emulator_process(
-    config: ArmConfig,
-    *,
-    log: str | os.PathLike[str] | None = None,
-    latency_ms: float | None = None,
-    faults: Sequence[Fault] = (),
-    start_pose: Mapping[str, float] | None = None,
-    protocol: ProtocolFamily = ProtocolFamily.V2,
-) -> Iterator[dict[str, object]]:
-    """The drives of ``config``'s file, emulated in real time in a process of their own (``rmd-motion emulate``) on
-    a slcan (CAN) or RS485 pseudo-terminal, speaking ``protocol``; yields the bus overrides that reach them. Ended on
-    exit.
-
-    Raises:
-        MotionError: the configuration was not read from a file.
-        TransportError: the emulator process did not start.
-    """
-    source = Path(config.source)
-    if not source.is_file():
-        raise MotionError("real-time emulation builds the drives from the configuration file; this one has none")
-    folder = Path(tempfile.mkdtemp(prefix="rmd-emulated-"))
-    link = folder / "link"
-    can = isinstance(config.bus, CanBusConfig)
-    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(source)]
-    command += ["--slcan-link" if can else "--rs485-link", str(link), "--protocol", protocol.value]
-    if log is not None:
-        command += ["--log", os.fspath(log)]
-    if latency_ms is not None:
-        command += ["--latency-ms", f"{latency_ms:g}"]
-    for fault in faults:  # the emulator's own clock: seconds since it started
-        command += ["--fault", fault.describe()]
-    for name, angle in (start_pose or {}).items():
-        command += ["--start-pose", f"{name}={angle!r}"]
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        if process.stdout is None:
-            raise TransportError("the emulator process has no output pipe")
-        lines: list[str] = []
-        while not lines or not lines[-1].startswith("emulating motors"):
-            line = process.stdout.readline()
-            if not line:
-                error = process.stderr.read() if process.stderr is not None else ""
-                raise TransportError(f"the emulator process did not start: {' '.join(lines)} {error}".strip())
-            lines.append(line.strip())
-        if can:
-            yield {"interface": "slcan", "channel": str(link), "bitrate": DEFAULT_BITRATE, "sleep_after_open": 0}
-        else:
-            yield {"port": str(link)}
-    finally:
-        _end_process(process)
-        shutil.rmtree(folder, ignore_errors=True)
-
-
-def measure_modes(config: ArmConfig, bus: Transport) -> dict[str, RateCheck]:
-    """The rate check of ``config``'s joints on ``bus`` for each control mode (reads only: nothing moves).
-
-    Raises:
-        TransportError: a drive did not answer.
-    """
-    checks: dict[str, RateCheck] = {}
-    for mode in (ControlMode.POSITION, ControlMode.TORQUE):
-        variant = dataclasses.replace(config, control=dataclasses.replace(config.control, mode=mode))
-        controller = build_controller(variant, bus, feedforward=feedforward_for(variant))
-        controller.read_positions()
-        rehearse = rehearsal_watchdog(variant, controller).rehearse
-        checks[mode.value] = measure_rate(controller, margin=config.control.rate_margin, rehearse=rehearse)
-    return checks
-
-
-def realtime_capacity(config: ArmConfig, drives: ProtocolFamily = ProtocolFamily.V2) -> dict[str, RateCheck]:
-    """What this host holds in real time for ``config``'s joints, per mode, against its drives emulated in a process
-    of their own speaking ``drives`` (the demo's honest real-time figure).
-
-    Raises:
-        MotionError: the configuration was not read from a file.
-        TransportError: the emulator process did not start or did not answer.
-    """
-    with (
-        emulator_process(config, protocol=drives) as overrides,
-        open_bus(config, **overrides) as opened,
-        negotiate_family(opened, config) as bus,
-    ):
-        return measure_modes(config, bus)
-
-
-@dataclass(frozen=True, slots=True)
-class JointStatus:
-    """One joint's measured and reference state (joint side)."""
-
-    name: str
-    motor_id: int
-    position_deg: float
-    velocity_dps: float
-    reference_deg: float
-    iq_a: float
-    temperature_c: float
-
-
-@dataclass(frozen=True, slots=True)
-class ArmStatus:
-    """The arm at one instant."""
-
-    name: str
-    state: str
-    fault: str | None
-    joints: tuple[JointStatus, ...]
-    loop: LoopStatistics
-
-    def as_dict(self) -> dict[str, Any]:
-        """Plain data for ``--json``."""
-        return {
-            "name": self.name,
-            "state": self.state,
-            "fault": self.fault,
-            "joints": [
-                {
-                    "name": j.name,
-                    "motor_id": j.motor_id,
-                    "position_deg": round(j.position_deg, 4),
-                    "velocity_dps": round(j.velocity_dps, 3),
-                    "reference_deg": round(j.reference_deg, 4),
-                    "iq_a": round(j.iq_a, 3),
-                    "temperature_c": j.temperature_c,
-                }
-                for j in self.joints
-            ],
-            "loop": {
-                "cycles": self.loop.cycles,
-                "rate_hz": round(self.loop.achieved_rate_hz, 2),
-                "jitter_p99_us": round(self.loop.jitter_p99_s * 1e6, 1),
-                "overruns": self.loop.overruns,
-            },
-        }
-
-
-def _degrees(label: str, value: object) -> float:
-    """A joint angle given to the API, as a float: a real number (not a bool, not a string), finite."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise PlanningError(f"{label}: {value!r} is not a number of degrees")
-    degrees = float(value)
-    if not math.isfinite(degrees):
-        raise PlanningError(f"{label}: {degrees!r} is not a finite number of degrees")
-    return degrees
-
-
-def _seconds(label: str, value: object) -> float:
-    """A duration given to the API, s: a finite real number >= 0."""
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (0.0 <= float(value) < math.inf):
-        raise ValueError(f"{label}: {value!r} is not a duration (a finite number of seconds >= 0)")
-    return float(value)
-
-
-class MotionHandle:
-    """A queued motion; :meth:`wait` blocks until it ends and raises the fault that halted it."""
-
-    def __init__(self, supervisor: Supervisor) -> None:
-        self._supervisor = supervisor
-
-    def wait(self, timeout_s: float | None = None) -> bool:
-        """Wait for the end of the motion; False on timeout.
-
-        Raises:
-            MotionFault: a fault halted every axis.
-            ValueError: ``timeout_s`` is neither None nor a finite number of seconds >= 0.
-        """
-        return self._supervisor.wait(None if timeout_s is None else _seconds("timeout_s", timeout_s))
-
-    @property
-    def done(self) -> bool:
-        """True when the motion ended (or was halted)."""
-        return self._supervisor.controller.wait_idle(0) or self._supervisor.state.faulted
-
-    def progress(self) -> MotionProgress:
-        """How far the arm's motion has come, from the snapshot the loop published last (never waits on the loop)."""
-        snapshot = self._supervisor.controller.snapshot
-        if not snapshot.moving:
-            return MotionProgress(0.0, 0.0, done=self.done)
-        duration = snapshot.motion_end_s - snapshot.motion_start_s
-        elapsed = min(duration, max(0.0, snapshot.time_s - snapshot.motion_start_s))
-        return MotionProgress(elapsed, duration, done=self.done)
 
 
 def _quiet_ahead(supervisor: Supervisor) -> None:
@@ -367,7 +120,7 @@ class Arm:
         self._view_options = ViewOptions() if view is True else (view or None)
         #: The live page while connected with ``view=`` (see :mod:`motion.view`; ``view.url`` says where).
         self.view: LiveView | None = None
-        self._start_pose = self._check_start_pose(config, start_pose, emulate, initial_deg)
+        self._start_pose = start_pose_of(config, start_pose, emulate, initial_deg)
         #: The emulated drives' protocol generation (the controller tells it at connect as with real drives).
         self.emulated_family = emulated_family(config, emulated_protocol)
         self._forget_turns = forget_turns
@@ -382,12 +135,8 @@ class Arm:
         self.turns: tuple[JointTurns, ...] = ()
         self._observe = observe_collisions
         self._faults = tuple(faults)
-        if emulate not in _EMULATE_CHOICES:
-            raise ConfigError(
-                config.source, "<emulate>", f"{emulate!r} is not one of False, True, 'simulated', 'realtime'"
-            )
         #: ``None`` (hardware), ``"simulated"`` or ``"realtime"``.
-        self.emulation: str | None = _EMULATE_CHOICES[emulate]
+        self.emulation: str | None = emulation_of(config, emulate)
         self.emulate = self.emulation is not None
         self._overrides = dict(bus_overrides or {})
         self._initial = initial_deg
@@ -421,32 +170,6 @@ class Arm:
         self._connecting = False
         self._stop_latch: str | None = None
         self._running: Supervisor | None = None
-
-    @staticmethod
-    def _check_start_pose(
-        config: ArmConfig,
-        pose: Mapping[str, float] | None,
-        emulate: bool | str,
-        initial_deg: Sequence[float] | None,
-    ) -> tuple[float, ...] | None:
-        """The emulated power-up pose in joint order (unnamed joints at 0), or None.
-
-        Raises:
-            ConfigError: not emulated, together with ``initial_deg``, an unknown joint or a non-finite angle.
-        """
-        if pose is None:
-            return None
-        if not emulate:
-            raise ConfigError(config.source, "<start_pose>", "applies to emulated drives only (emulate=...)")
-        if initial_deg is not None:
-            raise ConfigError(config.source, "<start_pose>", "give start_pose or initial_deg, not both")
-        names = config.joint_names
-        for name, angle in pose.items():
-            if name not in names:
-                raise ConfigError(config.source, "<start_pose>", f"unknown joint {name!r}; joints: {', '.join(names)}")
-            if not math.isfinite(angle):
-                raise ConfigError(config.source, f"<start_pose>.{name}", f"expected a finite angle; found {angle!r}")
-        return tuple(float(pose.get(name, 0.0)) for name in names)
 
     @classmethod
     def from_config(cls, path: str | os.PathLike[str], *, emulate: bool | str = False, **kwargs: Any) -> Arm:
@@ -736,32 +459,6 @@ class Arm:
             raise MotionError("the arm is not connected: use `with Arm.from_config(...) as arm` or arm.connect()")
         return self.supervisor
 
-    def _target(self, targets: Mapping[str, float], base: FloatArray, label: str = "targets") -> FloatArray:
-        if not isinstance(targets, Mapping):
-            raise PlanningError(
-                f"{label}: a mapping of joint names to degrees is expected (joints: {', '.join(self.names)}), "
-                f"got {type(targets).__name__} {targets!r}"
-            )
-        q = base.copy()
-        for name, value in targets.items():
-            if name not in self._index:
-                raise PlanningError(f"{label}: unknown joint {name!r}; joints: {', '.join(self.names)}")
-            q[self._index[name]] = _degrees(f"{label}[{name!r}]", value)
-        return q
-
-    def _row(self, point: Sequence[float], label: str) -> FloatArray:
-        """A waypoint given as a full list of angles in joint order."""
-        if (
-            isinstance(point, str | bytes)
-            or not isinstance(point, Sequence | np.ndarray)
-            or len(point) != len(self.names)
-        ):
-            raise PlanningError(
-                f"{label}: a mapping of joint names to degrees or {len(self.names)} angles in joint order "
-                f"({', '.join(self.names)}) is expected, got {point!r}"
-            )
-        return np.array([_degrees(f"{label}[{k}]", v) for k, v in enumerate(point)], dtype=np.float64)
-
     def positions(self) -> dict[str, float]:
         """Measured joint angles, degrees (of the latest cycle's published snapshot)."""
         q = self._guard().controller.snapshot.position_deg
@@ -775,7 +472,7 @@ class Arm:
             MotionFault: the arm is faulted, or a fault halted it during the move (with ``wait``).
         """
         supervisor = self._guard()
-        q = self._target(targets, supervisor.controller.reference.position)
+        q = joint_targets(targets, supervisor.controller.reference.position, self._index)
         supervisor.move_to(q, speed_scale)
         handle = MotionHandle(supervisor)
         if wait:
@@ -795,18 +492,8 @@ class Arm:
         of angles in joint order, degrees.
         """
         supervisor = self._guard()
-        previous = supervisor.controller.reference.position
-        if isinstance(waypoints, Mapping | str | bytes) or not isinstance(waypoints, Sequence | np.ndarray):
-            raise PlanningError(f"waypoints: a list of waypoints is expected, got {type(waypoints).__name__}")
-        rows = []
-        for k, point in enumerate(waypoints):
-            label = f"waypoints[{k}]"
-            row = self._target(point, previous, label) if isinstance(point, Mapping) else self._row(point, label)
-            rows.append(row)
-            previous = row
-        if not rows:
-            raise PlanningError("waypoints: at least one waypoint is required")
-        supervisor.follow(np.array(rows, dtype=np.float64), speed_scale)
+        rows = waypoint_rows(waypoints, supervisor.controller.reference.position, self._index)
+        supervisor.follow(rows, speed_scale)
         handle = MotionHandle(supervisor)
         if wait:
             handle.wait()
@@ -820,7 +507,7 @@ class Arm:
         Raises:
             ValueError: ``duration_s`` is not a finite number of seconds >= 0.
         """
-        self._guard().controller.pause(_seconds("duration_s", duration_s))
+        self._guard().controller.pause(seconds("duration_s", duration_s))
 
     def identify_tracking(self, *, store: bool = True) -> dict[str, PositionLoopFit]:
         """Identify every joint's position loop with a short full-speed move out and back, one joint at a time (see
@@ -894,20 +581,4 @@ class Arm:
 
     def status(self) -> ArmStatus:
         """Measured and reference state of every joint, the arm state and the loop statistics."""
-        supervisor = self._guard()
-        controller = supervisor.controller
-        snapshot = controller.snapshot  # published by the loop: one consistent cycle, read without a lock
-        joints = tuple(
-            JointStatus(
-                name=spec.name,
-                motor_id=spec.motor_id,
-                position_deg=float(snapshot.position_deg[i]),
-                velocity_dps=float(snapshot.velocity_dps[i]),
-                reference_deg=float(snapshot.reference_deg[i]),
-                iq_a=float(snapshot.iq_a[i]),
-                temperature_c=float(snapshot.temperature_c[i]),
-            )
-            for i, spec in enumerate(controller.specs)
-        )
-        fault = str(snapshot.fault) if snapshot.fault is not None else None
-        return ArmStatus(self.config.name, snapshot.state, fault, joints, controller.loop.statistics())
+        return arm_status(self.config.name, self._guard().controller)

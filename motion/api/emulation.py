@@ -1,0 +1,152 @@
+"""Emulated drives for the API: the protocol generation they speak, the process that runs them in real time
+(``rmd-motion emulate``), and what this host holds in real time against them (the demo's figure)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+from motion.compose import (
+    build_controller,
+    feedforward_for,
+    negotiate_family,
+    open_bus,
+    opening_family,
+    rehearsal_watchdog,
+)
+from motion.config import ArmConfig
+from motion.config.schema import CanBusConfig, ControlMode, ProtocolSetting
+from motion.control.ratecheck import RateCheck, measure_rate
+from motion.emulator import Fault
+from motion.emulator.simulated import DEFAULT_BITRATE
+from motion.errors import ConfigError, MotionError, TransportError
+from motion.protocol.table import ProtocolFamily
+from motion.transport import Transport
+
+#: How long the emulator process gets to end after SIGTERM, s.
+_EMULATOR_EXIT_S = 5.0
+
+
+def _end_process(process: subprocess.Popen[str]) -> None:
+    process.terminate()
+    try:
+        process.communicate(timeout=_EMULATOR_EXIT_S)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.communicate()
+
+
+def emulated_family(config: ArmConfig, protocol: ProtocolFamily | str | None) -> ProtocolFamily:
+    """The generation emulated drives speak: ``protocol``, else the one the bus opens in
+    (:func:`motion.compose.opening_family`: the configured one; with ``auto`` the older, or V3 at a V3-only baud rate).
+
+    Raises:
+        ConfigError: an unknown generation, or one that contradicts ``bus.protocol``.
+    """
+    setting = config.bus.protocol
+    if protocol is None:
+        return opening_family(config)
+    try:
+        family = ProtocolFamily(protocol)
+    except ValueError:
+        raise ConfigError(config.source, "<emulated_protocol>", f"{protocol!r} is not one of v2, v3") from None
+    if setting is not ProtocolSetting.AUTO and setting.value != family.value:
+        raise ConfigError(
+            config.source,
+            "<emulated_protocol>",
+            f"bus.protocol is {setting.value}: the emulated drives cannot speak {family.value} (use auto)",
+        )
+    return family
+
+
+@contextmanager
+def emulator_process(
+    config: ArmConfig,
+    *,
+    log: str | os.PathLike[str] | None = None,
+    latency_ms: float | None = None,
+    faults: Sequence[Fault] = (),
+    start_pose: Mapping[str, float] | None = None,
+    protocol: ProtocolFamily = ProtocolFamily.V2,
+) -> Iterator[dict[str, object]]:
+    """The drives of ``config``'s file, emulated in real time in a process of their own (``rmd-motion emulate``) on
+    a slcan (CAN) or RS485 pseudo-terminal, speaking ``protocol``; yields the bus overrides that reach them. Ended on
+    exit.
+
+    Raises:
+        MotionError: the configuration was not read from a file.
+        TransportError: the emulator process did not start.
+    """
+    source = Path(config.source)
+    if not source.is_file():
+        raise MotionError("real-time emulation builds the drives from the configuration file; this one has none")
+    folder = Path(tempfile.mkdtemp(prefix="rmd-emulated-"))
+    link = folder / "link"
+    can = isinstance(config.bus, CanBusConfig)
+    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(source)]
+    command += ["--slcan-link" if can else "--rs485-link", str(link), "--protocol", protocol.value]
+    if log is not None:
+        command += ["--log", os.fspath(log)]
+    if latency_ms is not None:
+        command += ["--latency-ms", f"{latency_ms:g}"]
+    for fault in faults:  # the emulator's own clock: seconds since it started
+        command += ["--fault", fault.describe()]
+    for name, angle in (start_pose or {}).items():
+        command += ["--start-pose", f"{name}={angle!r}"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        if process.stdout is None:
+            raise TransportError("the emulator process has no output pipe")
+        lines: list[str] = []
+        while not lines or not lines[-1].startswith("emulating motors"):
+            line = process.stdout.readline()
+            if not line:
+                error = process.stderr.read() if process.stderr is not None else ""
+                raise TransportError(f"the emulator process did not start: {' '.join(lines)} {error}".strip())
+            lines.append(line.strip())
+        if can:
+            yield {"interface": "slcan", "channel": str(link), "bitrate": DEFAULT_BITRATE, "sleep_after_open": 0}
+        else:
+            yield {"port": str(link)}
+    finally:
+        _end_process(process)
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def measure_modes(config: ArmConfig, bus: Transport) -> dict[str, RateCheck]:
+    """The rate check of ``config``'s joints on ``bus`` for each control mode (reads only: nothing moves).
+
+    Raises:
+        TransportError: a drive did not answer.
+    """
+    checks: dict[str, RateCheck] = {}
+    for mode in (ControlMode.POSITION, ControlMode.TORQUE):
+        variant = dataclasses.replace(config, control=dataclasses.replace(config.control, mode=mode))
+        controller = build_controller(variant, bus, feedforward=feedforward_for(variant))
+        controller.read_positions()
+        rehearse = rehearsal_watchdog(variant, controller).rehearse
+        checks[mode.value] = measure_rate(controller, margin=config.control.rate_margin, rehearse=rehearse)
+    return checks
+
+
+def realtime_capacity(config: ArmConfig, drives: ProtocolFamily = ProtocolFamily.V2) -> dict[str, RateCheck]:
+    """What this host holds in real time for ``config``'s joints, per mode, against its drives emulated in a process
+    of their own speaking ``drives`` (the demo's honest real-time figure).
+
+    Raises:
+        MotionError: the configuration was not read from a file.
+        TransportError: the emulator process did not start or did not answer.
+    """
+    with (
+        emulator_process(config, protocol=drives) as overrides,
+        open_bus(config, **overrides) as opened,
+        negotiate_family(opened, config) as bus,
+    ):
+        return measure_modes(config, bus)

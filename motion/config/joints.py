@@ -1,0 +1,156 @@
+"""The ``joints`` section of a configuration: each joint, with its emulated drive and its homing.
+
+The keys a joint needs depend on the control mode (torque mode needs the PD gains), and some checks span keys
+(the power-on window must be narrower than one motor turn; a hard stop lies outside the joint's limits).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import fields
+
+from motion.config import schema
+from motion.config.nodes import NON_NEGATIVE, POSITIVE, Invalid, Node, OneOf, Range, to_number
+from motion.protocol import WireProtocol
+from motion.protocol.messages import Command
+from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, Direction, field_range
+from motion.transmission import IQ_LIMIT_A
+
+# An emulated drive's PI gains (0x30 / 0x31: uint8 units) and acceleration (0x34), as the table declares them.
+_GAIN_LO, _GAIN_HI = field_range(Command.WRITE_PID_RAM, Direction.REQUEST, WireProtocol.CAN, "angle_kp")
+_ACCELERATION_LO, _ACCELERATION_HI = field_range(
+    Command.WRITE_ACCELERATION_RAM, Direction.REQUEST, WireProtocol.CAN, "acceleration_dps2"
+)
+
+#: The keys of a per-mode ``collision_threshold_nm``, in the order of its two numbers.
+_THRESHOLD_MODES = ("position", "torque")
+
+
+def _emulation(node: Node, rotor_inertia: float, viscous: float, coulomb: float) -> schema.EmulationConfig:
+    node.defaults(rotor_inertia_kgm2=rotor_inertia, viscous_friction_nm_per_dps=viscous, coulomb_friction_nm=coulomb)
+    pid = node.child("pid", schema.EmulatedPidConfig)
+    gain = Range(_GAIN_LO, _GAIN_HI)
+    return schema.EmulationConfig(
+        rotor_inertia_kgm2=node.number("rotor_inertia_kgm2", NON_NEGATIVE),
+        viscous_friction_nm_per_dps=node.number("viscous_friction_nm_per_dps", NON_NEGATIVE),
+        coulomb_friction_nm=node.number("coulomb_friction_nm", NON_NEGATIVE),
+        torque_constant_nm_per_a=(
+            node.number("torque_constant_nm_per_a", POSITIVE) if node.has("torque_constant_nm_per_a") else None
+        ),
+        pid=schema.EmulatedPidConfig(**{f.name: pid.integer(f.name, gain) for f in fields(schema.EmulatedPidConfig)}),
+        acceleration_dps2=node.integer("acceleration_dps2", Range(_ACCELERATION_LO, _ACCELERATION_HI)),
+    )
+
+
+def _joint(node: Node, mode: schema.ControlMode) -> schema.JointConfig:
+    torque_mode = mode is schema.ControlMode.TORQUE
+    rotor_inertia = node.number("rotor_inertia_kgm2", NON_NEGATIVE)
+    viscous = node.number("viscous_friction_nm_per_dps", NON_NEGATIVE)
+    coulomb = node.number("coulomb_friction_nm", NON_NEGATIVE)
+    thresholds = _collision_thresholds(node)
+    joint = schema.JointConfig(
+        name=node.text("name"),
+        motor_id=node.integer("motor_id", Range(MOTOR_ID_MIN, MOTOR_ID_MAX)),
+        gear_ratio=node.number("gear_ratio", POSITIVE),
+        direction=node.integer("direction", OneOf((1, -1))),
+        zero_offset_deg=node.number("zero_offset_deg"),
+        torque_constant_nm_per_a=node.number("torque_constant_nm_per_a", POSITIVE),
+        current_limit_a=node.number("current_limit_a", Range(0, IQ_LIMIT_A, lo_open=True)),
+        position_min_deg=node.number("position_min_deg"),
+        position_max_deg=node.number("position_max_deg"),
+        velocity_limit_dps=node.number("velocity_limit_dps", POSITIVE),
+        acceleration_limit_dps2=node.number("acceleration_limit_dps2", POSITIVE),
+        jerk_limit_dps3=node.number("jerk_limit_dps3", POSITIVE),
+        encoder_bits=node.integer("encoder_bits", Range(12, 18)),
+        kp_nm_per_deg=node.number("kp_nm_per_deg", NON_NEGATIVE, required=torque_mode),
+        kd_nm_per_dps=node.number("kd_nm_per_dps", NON_NEGATIVE, required=torque_mode),
+        temperature_limit_c=node.number("temperature_limit_c", Range(0, 100, lo_open=True)),
+        rotor_inertia_kgm2=rotor_inertia,
+        viscous_friction_nm_per_dps=viscous,
+        coulomb_friction_nm=coulomb,
+        collision_threshold_nm=thresholds[0],
+        collision_threshold_torque_nm=thresholds[1],
+        power_on_window_deg=node.interval("power_on_window_deg") if node.has("power_on_window_deg") else None,
+        brake=node.flag("brake"),
+        emulation=_emulation(node.child("emulation", schema.EmulationConfig), rotor_inertia, viscous, coulomb),
+    )
+    if joint.position_min_deg >= joint.position_max_deg:
+        raise node.error(
+            "position_max_deg",
+            f"must be greater than position_min_deg ({joint.position_min_deg:g}); found {joint.position_max_deg:g}",
+        )
+    window = joint.power_on_window_deg
+    turn_deg = 360.0 / joint.gear_ratio
+    if window is not None and window[1] - window[0] >= turn_deg:
+        raise node.error(
+            "power_on_window_deg",
+            f"a window {window[1] - window[0]:g} deg wide cannot tell the motor's turns apart: one motor turn is "
+            f"360 / gear_ratio = {turn_deg:g} deg of this joint, and the window must be narrower; found "
+            f"[{window[0]:g}, {window[1]:g}]",
+        )
+    if node.has("homing"):
+        joint = dataclasses.replace(joint, homing=_homing(node.child("homing", schema.HomingConfig), joint))
+    return joint
+
+
+def _to_thresholds(value: object) -> tuple[float, float]:
+    """``collision_threshold_nm``: a number (both control modes) or ``{position: N, torque: N}``."""
+    if not isinstance(value, Mapping):
+        number = to_number(value, POSITIVE)
+        return number, number
+    unknown = sorted(str(k) for k in value if k not in _THRESHOLD_MODES)
+    if unknown:
+        raise Invalid(f"unknown key {unknown[0]!r}; allowed keys: position, torque", f".{unknown[0]}")
+    numbers = []
+    for mode in _THRESHOLD_MODES:
+        if mode not in value:
+            raise Invalid("required key is missing (a number, > 0; or give one number for both modes)", f".{mode}")
+        try:
+            numbers.append(to_number(value[mode], POSITIVE))
+        except Invalid as exc:
+            raise Invalid(exc.message, f".{mode}") from None
+    return numbers[0], numbers[1]
+
+
+def _collision_thresholds(node: Node) -> tuple[float | None, float | None]:
+    """The joint's collision thresholds in position and torque mode (None: not watched)."""
+    if not node.has("collision_threshold_nm"):
+        return None, None
+    expected = "a number, > 0, or {position: N, torque: N}"
+    return node.read("collision_threshold_nm", expected, _to_thresholds, None)
+
+
+def _homing(node: Node, joint: schema.JointConfig) -> schema.HomingConfig:
+    stop = node.number("stop_deg", required=True)
+    if joint.position_min_deg < stop < joint.position_max_deg:
+        raise node.error(
+            "stop_deg",
+            f"a hard stop lies outside the joint's limits (<= position_min_deg {joint.position_min_deg:g} or >= "
+            f"position_max_deg {joint.position_max_deg:g}); found {stop:g}",
+        )
+    back_off = node.number("back_off_deg", POSITIVE)
+    far = joint.position_max_deg if stop <= joint.position_min_deg else joint.position_min_deg
+    homing = schema.HomingConfig(
+        stop_deg=stop,
+        speed_dps=node.number("speed_dps", Range(0, joint.velocity_limit_dps, lo_open=True)),
+        current_limit_a=node.number("current_limit_a", Range(0, joint.current_limit_a, lo_open=True)),
+        back_off_deg=back_off,
+        max_travel_deg=node.number("max_travel_deg", POSITIVE)
+        if node.has("max_travel_deg")
+        else abs(far - stop) + back_off,
+        timeout_s=node.number("timeout_s", POSITIVE),
+    )
+    return homing
+
+
+def joints_section(root: Node, mode: schema.ControlMode) -> tuple[schema.JointConfig, ...]:
+    """The ``joints`` list, each joint read for control mode ``mode``; no two share a name or a motor id."""
+    nodes = root.children("joints", schema.JointConfig)
+    joints = tuple(_joint(node, mode) for node in nodes)
+    for i, joint in enumerate(joints):
+        for earlier_index, earlier in enumerate(joints[:i]):
+            for key, value in (("name", joint.name), ("motor_id", joint.motor_id)):
+                if getattr(earlier, key) == value:
+                    raise nodes[i].error(key, f"{value!r} is already used by joints[{earlier_index}]")
+    return joints
