@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Final
 
 from motion import __version__
-from motion.cli import collision, drives, examples, moves, program
+from motion.cli import collision, drives, examples, moves, program, scan
 from motion.cli.common import (
     EXIT_COMMUNICATION,
     EXIT_FAULT,
@@ -267,9 +267,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=version_text())
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    scan = _command(sub, "scan", drives.scan, "list the motor ids that answer on the bus (0x9A; RS485 also 0x12)")
-    scan.add_argument("--ids", type=_ids_arg, metavar="IDS", help="ids to try: 1-6, 1,3,5 (default 1-32)")
-    _json(scan)
+    scanning = _command(sub, "scan", scan.scan, "list the motor ids that answer on the bus (0x9A; RS485 also 0x12)")
+    scanning.add_argument("--ids", type=_ids_arg, metavar="IDS", help="ids to try: 1-6, 1,3,5 (default 1-32)")
+    _json(scanning)
     status = _command(sub, "status", drives.status, "read every joint's state without moving anything")
     add_turns_flag(status)
     _json(status)

@@ -8,15 +8,13 @@ releases the torque: an arm under gravity falls unless it has brakes).
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
 from motion.cli.common import (
     EVERY_GENERATION,
-    EXIT_COMMUNICATION,
     EXIT_OK,
     EXIT_USAGE,
     Interrupts,
@@ -33,7 +31,7 @@ from motion.config import JointConfig
 from motion.config.schema import ControlMode
 from motion.control.drive_record import DriveRecord
 from motion.control.drivesetup import LINK_TIMEOUT
-from motion.control.family import FAMILIES, STATUS_TYPES
+from motion.control.family import FAMILIES
 from motion.control.ratecheck import RateError
 from motion.control.tracking import PositionLoopFit
 from motion.control.turns import CONTINUITY_MOTOR_DEG, joint_angle
@@ -50,10 +48,7 @@ from motion.protocol import (
     PidGains,
     Status1,
 )
-from motion.protocol.generation import GENERATIONS
 from motion.protocol.table import (
-    MOTOR_ID_MAX,
-    MOTOR_ID_MIN,
     Direction,
     ProtocolFamily,
     WireProtocol,
@@ -70,20 +65,10 @@ from motion.protocol.v3.messages import (
     Status1V3,
 )
 from motion.transport import Request, Transport
-from motion.transport.can_transport import CanTransport
-from motion.transport.detect import Identity, detect_can, read_identities
 
 if TYPE_CHECKING:
     from motion.api import Arm
 
-#: Scan: the reply window of a CAN batch (the drives answer in parallel), s, plus a share per request: an adapter
-#: (and an emulator in its own process on a busy host) passes the frames one after the other.
-SCAN_CAN_S: Final = 0.25
-SCAN_CAN_PER_REQUEST_S: Final = 0.01
-#: Scan: the reply window of each RS485 request (one drive after the other), s.
-SCAN_RS485_PER_ID_S: Final = 0.03
-#: Scan: a configured drive that did not answer is asked again with windows this many times longer.
-SCAN_RETRY_STRETCH: Final = 4.0
 #: ``hold``: the drive's speed cap while holding, as a share of the joint's velocity limit.
 HOLD_SPEED_SHARE: Final = 0.1
 #: The PI gains in the order ``pid set`` takes them (the frame's order).
@@ -126,120 +111,6 @@ def _check_echo(joint: JointConfig, echo: Message, sent: Message) -> None:
 
 def _label(joint: JointConfig) -> str:
     return f"{joint.name} (motor {joint.motor_id})"
-
-
-# ---------------------------------------------------------------------------------------------------- scan
-
-
-@dataclass(frozen=True)
-class _Scanned:
-    """A drive that answered the scan: its generation, its status, and what it told of itself (None: nothing)."""
-
-    family: ProtocolFamily
-    status: Status1 | Status1V3
-    identity: Identity | None
-
-
-@contextmanager
-def _speaking(bus: Transport, family: ProtocolFamily) -> Iterator[Transport]:
-    """``bus`` where it speaks ``family``, else a second transport on its CAN port that does (a scan meets drives of
-    either generation on one CAN bus)."""
-    if bus.family is family:
-        yield bus
-        return
-    assert isinstance(bus, CanTransport)
-    with CanTransport.over(bus.port, clock=bus.clock, family=family, owns_port=False) as other:
-        yield other
-
-
-def _scan_in(bus: Transport, ids: Sequence[int], wire: WireProtocol, stretch: float) -> dict[int, _Scanned]:
-    """The status (0x9A) and identity of ``ids`` on a transport that speaks their generation (windows ``stretch``
-    times the defaults)."""
-    generation = bus.generation
-    window_s = stretch * _window(wire, len(ids))
-    replies = bus.transact([Request(i, generation.status_read) for i in ids], bus.clock() + window_s)
-    status = {r.motor_id: r.message for r in replies if isinstance(r.message, STATUS_TYPES)}
-    answered = sorted(status)
-    reads = len(answered) * len(generation.identity_reads[wire])
-    identities = read_identities(bus, answered, wire, stretch * _window(wire, reads))
-    return {i: _Scanned(bus.family, status[i], identities.get(i)) for i in answered}
-
-
-def _window(wire: WireProtocol, requests: int) -> float:
-    """Scan's reply window for a batch of ``requests`` on ``wire``, s."""
-    return SCAN_CAN_S + (SCAN_CAN_PER_REQUEST_S if wire is WireProtocol.CAN else SCAN_RS485_PER_ID_S) * requests
-
-
-def _scan_ids(bus: Transport, ids: Sequence[int], wire: WireProtocol, stretch: float) -> dict[int, _Scanned]:
-    """Ask ``ids`` who they are (windows ``stretch`` times the defaults), each in its generation: on a real CAN bus
-    the reply ids tell the generations apart (an id that did not answer is asked in the bus's own); elsewhere the
-    bus's generation alone answers."""
-    if not isinstance(bus, CanTransport):
-        return _scan_in(bus, ids, wire, stretch)
-    generations = detect_can(bus.port, ids, stretch * _window(WireProtocol.CAN, len(ids)))
-    groups: dict[ProtocolFamily, list[int]] = {}
-    for motor_id in ids:
-        groups.setdefault(generations.get(motor_id, bus.family), []).append(motor_id)
-    scanned: dict[int, _Scanned] = {}
-    for family, group in groups.items():
-        with _speaking(bus, family) as speaker:
-            scanned.update(_scan_in(speaker, group, wire, stretch))
-    return scanned
-
-
-def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
-    """Which motor ids answer 0x9A, in which protocol generation (CAN: told by the reply id), and their model (RS485:
-    0x12; V3 drives: 0xB5 and the firmware date 0xB2)."""
-    session = Session.from_args(args)
-    ids: tuple[int, ...] = args.ids or tuple(range(MOTOR_ID_MIN, MOTOR_ID_MAX + 1))
-    configured = {j.motor_id for j in session.config.joints}
-    wire = session.config.bus.transport
-    with session.open_bus(check=False) as bus:
-        answered = _scan_ids(bus, ids, wire, 1.0)
-        # a configured drive that did not answer is asked once more with a longer window (a busy host or adapter can
-        # hold replies back longer than the first window): it is reported missing only then
-        again = [i for i in ids if i in configured and i not in answered]
-        if again:
-            answered.update(_scan_ids(bus, again, wire, SCAN_RETRY_STRETCH))
-        where, family = bus.describe(), bus.family
-    names = session.names
-    drives: list[dict[str, object]] = []
-    rows: list[tuple[object, ...]] = []
-    for motor_id, scanned in sorted(answered.items()):
-        status, identity = scanned.status, scanned.identity
-        flags = flag_names(status.errors)
-        drives.append(
-            {
-                "motor_id": motor_id,
-                "joint": names.get(motor_id),
-                "protocol": scanned.family.value,
-                "voltage_v": status.voltage_v,
-                "temperature_c": status.temperature_c,
-                "errors": flags,
-                "model": None if identity is None else identity.record,
-            }
-        )
-        rows.append(
-            (motor_id, names.get(motor_id, "-"), scanned.family.value, f"{status.voltage_v:.1f} V",
-             f"{status.temperature_c} °C", ",".join(flags) or "ok", "-" if identity is None else identity.text)
-        )  # fmt: skip
-    missing = [_label(j) for j in session.config.joints if j.motor_id not in answered]
-    if args.json:
-        print_json({"bus": where, "drives": drives, "missing": missing})
-    else:
-        print(f"{where}: {len(drives)} of {len(ids)} ids answered")
-        print_table(("id", "joint", "protocol", "voltage", "temp", "flags", "model"), rows)
-    other = sorted(i for i, scanned in answered.items() if scanned.family is not family)
-    if other:
-        speaks = GENERATIONS[answered[other[0]].family].title
-        warn(
-            f"motor(s) {', '.join(map(str, other))} speak the {speaks}, not the configuration's "
-            f"(bus.protocol: {family.value}): one arm's drives speak one generation"
-        )
-    if missing:
-        warn(f"communication error: configured joint(s) not answering: {', '.join(missing)}")
-        return EXIT_COMMUNICATION
-    return EXIT_OK
 
 
 # ---------------------------------------------------------------------------------------------------- status
