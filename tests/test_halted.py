@@ -28,7 +28,7 @@ from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3.messages import BrakeCommand, CommandV3, CommunicationTimeout, PlanningAcceleration
 from motion.safety import ArmState, Supervisor
 from motion.safety.halted import STILL_BAND_DEG, HaltGuard
-from motion.safety.supervisor import Records
+from motion.safety.records import Records
 from motion.transport import Reply, Request
 from tests import fault_explorer
 from tests.drive_models import DriveDraw, JointDraw

@@ -226,6 +226,10 @@ class Watchdog:
         """
         self._check_limits(reference.position, FaultKind.SETPOINT_LIMIT, "planned set-point outside the limits")
 
+    def within(self, i: int, q_deg: float) -> bool:
+        """Joint ``i`` at ``q_deg`` is inside its limits (with the measurement's tolerance)."""
+        return bool(self.lower[i] <= q_deg <= self.upper[i])
+
     def _check_limits(self, q: FloatArray, kind: FaultKind, detail: str) -> None:
         outside = (q < self.lower) | (q > self.upper)
         if outside.any():
