@@ -26,7 +26,8 @@ SETUP_WINDOW_S = 0.2
 END_EXCHANGE_S = 0.02
 #: How long a close waits for the braked joints to come to rest before it locks their brakes, s.
 BRAKE_SETTLE_S = 1.0
-#: The states whose halt has gone out: the end sends it again where it is owed (any other: the drives' own stop now).
+#: The states whose halt has gone out: the end sends it again where it is owed (any other, HALT_PENDING too, whose halt
+#: has not gone out yet: the drives' own stop now).
 _HALT_SENT = (ArmState.HALTING, ArmState.HALTED)
 
 

@@ -10,11 +10,17 @@ policy; it is not holdable, so ``hold`` means 0x81 for it): ``comply`` streams g
 E-stop) halts every axis with 0x81. Then the arm is FAULTED: motion commands raise the fault until
 :meth:`Supervisor.clear` (0x9B to every drive) finds every drive answering with clean flags and no cause left.
 
-The states (:class:`~motion.safety.states.ArmState`) are the whole story: READY and MOVING run the guarded cycle;
-HOLDING streams the stop ramp; COMPLYING streams gravity compensation; HALTING and HALTED keep the halted state every
-cycle (:mod:`motion.safety.halted`: the halt to every drive not known to be halted, a read to every drive; HALTING
-until every drive acknowledged or ``halt_retry_s`` passed); BUS_LOST ends the loop. Every change of state goes through
-the transition table, and a pair the table does not know leads to HALTING, whose cycle sends the halt if none went out.
+The states (:class:`~motion.safety.states.ArmState`) are the whole story, and each has its cycle
+(:attr:`Supervisor.state_cycles`, keyed by the state as h11 keys its readers): READY and MOVING run the guarded
+cycle; HOLDING streams the stop ramp, COMPLYING gravity compensation, HALT_PENDING sends the halt that is owed
+(:mod:`motion.safety.reaction`); HALTING and HALTED keep the halted state every cycle (:mod:`motion.safety.halted`,
+:mod:`motion.safety.halted_cycle`: the halt to every drive not known to be halted, a read to every drive; HALTING
+until every drive acknowledged or ``halt_retry_s`` passed); BUS_LOST and CLOSED have none: the loop ends. Every change
+of state goes through the transition table, and a pair the table does not know leads to the state's safe state
+(HALT_PENDING, or HALTING once a halt went out). The rest lives beside: the reaction to a fault
+(:mod:`motion.safety.reaction`), the hold's check (:mod:`motion.safety.hold`), the clear
+(:mod:`motion.safety.clearing`), the end of the session (:mod:`motion.safety.ending`) and the records
+(:mod:`motion.safety.records`).
 
 No path leaves a motor moving under our last command: exceptions in the cycle are faults; E-stop requests
 (:meth:`Supervisor.estop`, the CLI's Ctrl-C / SIGTERM) are faults; :meth:`Supervisor.close`, garbage collection and
@@ -25,15 +31,10 @@ from __future__ import annotations
 
 import atexit
 import logging
-import math
 import threading
 import weakref
-from collections.abc import Sequence
-from typing import Final
+from collections.abc import Callable, Sequence
 
-import numpy as np
-
-from motion.config.schema import HaltPolicy
 from motion.control.controller import Controller, Feedforward
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.ratecheck import status_reads_per_cycle
@@ -43,26 +44,22 @@ from motion.safety.clearing import Clearing
 from motion.safety.collision import CollisionObserver
 from motion.safety.ending import SETUP_WINDOW_S, SessionEnd, emergency_stop, end_window_s
 from motion.safety.halted import HaltGuard
-from motion.safety.hold import HoldCheck
-from motion.safety.records import REACTIONS, FaultLog, HaltRecord, Reaction, Records, exception_origin, same_cause
-from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
+from motion.safety.halted_cycle import HaltedCycle
+from motion.safety.reaction import FaultReaction
+from motion.safety.records import FaultLog, HaltRecord, Reaction, Records, exception_origin
+from motion.safety.states import HALT_STATES, TRANSITIONS, ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.watchdog import SafetySettings, Watchdog
-from motion.trajectory import State
 from motion.transmission import FloatArray
-from motion.transport import Reply, Request
+from motion.transport import Request
 
-__all__ = ["HaltRecord", "Reaction", "Records", "Supervisor"]
+__all__ = ["HaltRecord", "Reaction", "Records", "StateCycle", "Supervisor"]
 
 logger = logging.getLogger("motion.safety")
 
-# Shortest window given to the halt frames' acknowledgements in the detection cycle, s.
-_HALT_WINDOW_S = 0.002
 #: Real time allowed on top of the collision check's arming cycles before motion is let go anyway (with a warning).
 _ARMING_SLACK_S = 0.25
-# Shortest window given to the halt frames' acknowledgements in the detection cycle, s.
-HALT_WINDOW_S = 0.002
-#: A halted cycle's replies before its exchange (one that fails before it has none: its frames go out all the same).
-_NO_REPLIES: Final[list[Reply]] = []
+#: A state's cycle: called with the state it runs for, the cycle's start and its deadline (s); raises a fault.
+StateCycle = Callable[[ArmState, float, float], None]
 
 
 class Supervisor:
@@ -107,8 +104,29 @@ class Supervisor:
         self.faults, self.halts, self.lost_frames = log.faults, log.halts, log.lost_frames
         #: The halted state's bookkeeping (:mod:`motion.safety.halted`).
         self.guard = guard = HaltGuard(ids, drives.braked_ids, family.bare)
-        #: Whether a hold holds.
-        self.hold = HoldCheck(controller, watchdog)
+        reads = self._next_status_reads
+        #: The reaction to a fault, and the cycles of HOLDING, COMPLYING and HALT_PENDING.
+        self.reaction = reaction = FaultReaction(
+            controller,
+            settings=settings,
+            machine=machine,
+            guard=guard,
+            watchdog=watchdog,
+            log=log,
+            gravity=gravity,
+            reads=reads,
+        )
+        halted = HaltedCycle(
+            controller,
+            settings=settings,
+            machine=machine,
+            guard=guard,
+            watchdog=watchdog,
+            log=log,
+            reaction=reaction,
+            gravity=gravity,
+            reads=reads,
+        )
         window_s = end_window_s(controller, drives)
         #: clear(), carried out in the loop.
         self.clearing = Clearing(
@@ -125,8 +143,18 @@ class Supervisor:
         self.ending = SessionEnd(
             controller, machine=machine, guard=guard, watchdog=watchdog, drives=drives, window_s=window_s
         )
-        self._send_failing = False
-        self._halt_until_s: float | None = None  # until when the halt is re-sent; None: no halt went out yet
+        #: Each state's cycle (None: the loop has ended).
+        self.state_cycles: dict[ArmState, StateCycle | None] = {
+            ArmState.READY: self._running_cycle,
+            ArmState.MOVING: self._running_cycle,
+            ArmState.HOLDING: reaction.holding_cycle,
+            ArmState.COMPLYING: reaction.complying_cycle,
+            ArmState.HALT_PENDING: reaction.pending_cycle,
+            ArmState.HALTING: halted.run,
+            ArmState.HALTED: halted.run,
+            ArmState.BUS_LOST: None,
+            ArmState.CLOSED: None,
+        }
         # Requests from other threads, taken by the next cycle:
         self._estop_request: FaultKind | None = None
         self._estop_detail = "E-stop requested"
@@ -278,7 +306,8 @@ class Supervisor:
         return self.controller.wait_for(lambda: machine.state.faulted, timeout_s)
 
     def clear(self, timeout_s: float = 1.0) -> None:
-        """Send 0x9B to every drive; succeed only if every drive answers with clean flags and no cause remains.
+        """Send 0x9B to every drive; succeed only if every drive answers with clean flags and no cause remains
+        (carried out by the loop in a state that accepts CLEARED: :class:`~motion.safety.clearing.Clearing`).
 
         Raises:
             MotionFault: kind ``clear_failed`` naming what is still wrong (the arm stays FAULTED).
@@ -319,39 +348,62 @@ class Supervisor:
     # ------------------------------------------------------------------------------------------------ the cycle
 
     def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
-        """The guarded cycle: run by the scheduler; never raises (every failure is a fault that halts)."""
+        """The guarded cycle: run by the scheduler; never raises (every failure is a fault that halts). The other
+        threads' requests first, then the state's own cycle (:attr:`state_cycles`)."""
         controller = self.controller
         state = self.machine.state
-        if state is ArmState.BUS_LOST or state is ArmState.CLOSED:
+        state_cycle = self.state_cycles[state]
+        if state_cycle is None:
             return False
         try:
-            if state.faulted:
-                self._faulted_cycle(state, start_s, deadline_s)
-            else:
-                if self._estop_request is not None:
-                    reason, self._estop_request = self._estop_request, None
-                    raise MotionFault(reason, time_s=controller.clock.now(), detail=self._estop_detail)
-                extra = self._next_status_reads()
-                replies = controller.step(start_s, deadline_s, extra=extra, check=self.watchdog.check_setpoint)
-                self.watchdog.evaluate(replies, controller.clock.now())
-                if self.machine.state is ArmState.MOVING and controller.idle:
-                    self.machine.fire(ArmEvent.DONE)
+            if not self._take_requests(state, deadline_s):
+                state_cycle(state, start_s, deadline_s)
         except MotionFault as fault:
-            self._halt(fault, k, start_s, deadline_s)
+            self.reaction.react(fault, k, start_s, deadline_s)
         except TransportError as exc:
-            self._halt(
-                MotionFault(FaultKind.TRANSPORT, time_s=controller.clock.now(), detail=str(exc)), k, start_s, deadline_s
-            )
+            lost = MotionFault(FaultKind.TRANSPORT, time_s=controller.clock.now(), detail=str(exc))
+            self.reaction.react(lost, k, start_s, deadline_s)
         except Exception as exc:
             detail = f"{type(exc).__name__}: {exc}"
             origin = exception_origin(exc)
             # the same exception from the same place again while halted (its message may change every time: a
             # count, a time) is the same cause: recorded once, the halted cycle goes on
-            if not (origin == self.log.exception_origin and self.machine.state in (ArmState.HALTING, ArmState.HALTED)):
+            if not (origin == self.log.exception_origin and self.machine.state in HALT_STATES):
                 self.log.exception_origin = origin
                 error = MotionFault(FaultKind.EXCEPTION, time_s=controller.clock.now(), detail=detail)
-                self._halt(error, k, start_s, deadline_s)
+                self.reaction.react(error, k, start_s, deadline_s)
         return not controller.stopping and self.machine.state is not ArmState.BUS_LOST
+
+    def _take_requests(self, state: ArmState, deadline_s: float) -> bool:
+        """The other threads' requests, in ``state``: a clear where the state accepts CLEARED (True: it was this
+        cycle's work; elsewhere it waits for such a state), else an E-stop.
+
+        Raises:
+            MotionFault: the E-stop asked for (while holding: it escalates to the drives' own halt; while halted:
+                the halt is sent again).
+        """
+        if self._clear_request.is_set() and (state, ArmEvent.CLEARED) in TRANSITIONS:
+            self._clear_request.clear()
+            try:
+                self._clear_result = self.clearing.run(state, deadline_s)
+            finally:
+                self._clear_done.set()
+            return True
+        if self._estop_request is not None:
+            reason, self._estop_request = self._estop_request, None
+            detail = f"E-stop requested while {state.value}" if state.faulted else self._estop_detail
+            raise MotionFault(reason, time_s=self.controller.clock.now(), detail=detail)
+        return False
+
+    def _running_cycle(self, state: ArmState, start_s: float, deadline_s: float) -> None:
+        """READY and MOVING: this cycle's status reads with the step, its set-point checked before it is sent, every
+        monitor on the replies; MOVING ends (DONE) when the motion has."""
+        controller = self.controller
+        extra = self._next_status_reads()
+        replies = controller.step(start_s, deadline_s, extra=extra, check=self.watchdog.check_setpoint)
+        self.watchdog.evaluate(replies, controller.clock.now())
+        if self.machine.state is ArmState.MOVING and controller.idle:
+            self.machine.fire(ArmEvent.DONE)
 
     def _next_status_reads(self) -> tuple[Request, ...]:
         """0x9A or 0x92 for the next drives in turn, :attr:`status_reads_per_cycle` of them: every drive's flags and
@@ -363,317 +415,3 @@ class Supervisor:
         first = self._round_robin + 1
         self._round_robin = (self._round_robin + self.status_reads_per_cycle) % count
         return tuple(reads[(first + j) % count] for j in range(self.status_reads_per_cycle))
-
-    def _halt(self, fault: MotionFault, k: int, start_s: float, deadline_s: float) -> None:
-        """React to ``fault``: the stop ramp where the policy, the kind and the state allow it, else the halt."""
-        controller = self.controller
-        detected = controller.clock.now()
-        controller.discard_pending()  # a move queued during this cycle must not replace the halt
-        state = self.machine.state
-        repeated = state.faulted and self.log.fault is not None and same_cause(fault, self.log.fault)
-        if repeated and state in (ArmState.HALTING, ArmState.HALTED):
-            # the same cause again in every cycle (a hook, a tap, a port that keeps failing), recorded once: the
-            # halted cycle goes on sending the halt to every drive not known to be halted (its bookkeeping was done
-            # before the hooks ran); a send that failed leaves every drive owed its halt again
-            if fault.kind is FaultKind.TRANSPORT:
-                if controller.bus.closed:
-                    self._lose_bus(TransportError(fault.detail))
-                else:
-                    self.guard.begin(self.guard.code)
-            return
-        self.log.record(fault)
-        policy = self._policy(fault)
-        code = Command.MOTOR_OFF if policy is HaltPolicy.OFF else Command.MOTOR_STOP
-        running = state in (ArmState.READY, ArmState.MOVING)
-        holdable = running and policy is HaltPolicy.HOLD and fault.kind.holdable
-        comply = (
-            policy is HaltPolicy.COMPLY
-            and fault.kind is FaultKind.COLLISION
-            and (running or state is ArmState.HOLDING)
-            and self.gravity is not None
-        )
-        action = (
-            "comply"
-            if comply
-            else "stop ramp and hold"
-            if holdable
-            else ("0x80 off" if policy is HaltPolicy.OFF else "0x81 stop")
-        )
-        level = logging.INFO if fault.kind is FaultKind.CLOSE else logging.ERROR
-        logger.log(level, "halting every axis (%s): %s", action, fault)
-        sent = detected
-        try:
-            if comply:
-                try:
-                    sent = self._start_comply(start_s, deadline_s)
-                except TransportError:
-                    raise
-                except Exception as exc:  # compliance that cannot start must not leave the last command in force
-                    logger.error(
-                        "compliance could not start (%s: %s): halting every axis with 0x81 instead",
-                        type(exc).__name__,
-                        exc,
-                    )
-                    comply = False
-            if holdable:
-                try:
-                    sent = self._start_hold(fault, start_s, deadline_s)
-                except TransportError:
-                    raise
-                except Exception as exc:  # a hold that cannot start must not leave the last command in force
-                    logger.error(
-                        "the hold could not start (%s: %s): halting every axis with 0x81 instead",
-                        type(exc).__name__,
-                        exc,
-                    )
-                    holdable = False
-            if not holdable and not comply:
-                sent = self._start_halt(detected, deadline_s, code)
-        except TransportError as exc:
-            self._send_failed(exc, detected, deadline_s, code)
-        except Exception as exc:  # the state is HALTING: the next cycle sends the halt again
-            logger.error("halt could not be sent: %s: %s", type(exc).__name__, exc)
-        reaction = REACTIONS.get(self.machine.state) or Reaction(self.guard.code.name)
-        self.halts.append(HaltRecord(fault, k, detected, sent, reaction))
-
-    def _policy(self, fault: MotionFault) -> HaltPolicy:
-        """The reaction configured for ``fault``: the collision reaction for a collision, else the halt policy."""
-        settings = self.settings
-        if self.machine.state is ArmState.COMPLYING:  # compliance ends in the drives' own stop, whatever the policy
-            return HaltPolicy.STOP
-        if fault.kind is FaultKind.COLLISION and settings.collision_reaction is not None:
-            return settings.collision_reaction
-        return settings.halt_policy
-
-    def _start_comply(self, start_s: float, deadline_s: float) -> float:
-        """Enter COMPLYING: gravity compensation alone from this cycle on; returns when it was sent.
-
-        Raises:
-            Exception: whatever kept it from starting (the caller falls back to the drives' own halt).
-        """
-        controller = self.controller
-        gravity = self.gravity
-        if gravity is None:
-            raise MotionError("no gravity model to comply with")
-        self.machine.fire(ArmEvent.COMPLY)
-        sent = controller.clock.now()
-        controller.comply_step(sent, max(deadline_s, sent + HALT_WINDOW_S), gravity)
-        return sent
-
-    def _start_hold(self, fault: MotionFault, start_s: float, deadline_s: float) -> float:
-        """Enter HOLDING: replace the reference with a jerk-limited stop and send its first set-point; returns when it
-        was sent. After a following error the stop ramp starts from where the joints are, as they move (a ramp from
-        the reference would carry a blocked joint's set-point on past what blocks it).
-
-        Raises:
-            Exception: whatever kept the hold from starting (the caller falls back to the drives' own halt).
-        """
-        controller = self.controller
-        self.machine.fire(ArmEvent.HOLD)
-        self.hold.restart()
-        follower = controller.follower
-        if follower is None:
-            raise MotionError("no trajectory follower to plan the stop ramp")
-        if fault.kind is FaultKind.FOLLOWING_ERROR:
-            axes = controller.axes
-            measured = State(axes.positions(), axes.qd_dps.copy(), np.zeros(len(self.ids)))
-            follower.stop_from(start_s, measured)
-            controller.reference = measured
-            self.watchdog.restart_following()  # the expectation starts again from there too
-        else:
-            follower.stop(start_s)
-        sent = controller.clock.now()
-        controller.step(sent, max(deadline_s, sent + HALT_WINDOW_S), apply_pending=False)
-        return sent
-
-    def _start_halt(self, detected_s: float, deadline_s: float, code: Command) -> float:
-        """Enter HALTING: 0x81 (0x80 under ``halt_policy: off``) to every axis now, in one batch; returns when it was
-        sent."""
-        self.guard.begin(code)
-        self._halt_until_s = detected_s + self.settings.halt_retry_s
-        if self.machine.state is not ArmState.HALTING:
-            self.machine.fire(ArmEvent.HALT)
-        sent = self.controller.clock.now()
-        try:
-            self._send_halt(max(deadline_s, sent + HALT_WINDOW_S))
-        finally:
-            self._stop_reference()
-        return sent
-
-    def _stop_reference(self) -> None:
-        """The reference stops where the arm is: an aborted path must not go on playing (in telemetry, the snapshot
-        and progress) while the drives stand halted."""
-        controller = self.controller
-        if controller.follower is not None:
-            q = controller.axes.positions()
-            controller.follower.hold_at(q)
-            controller.reference = State.at_rest(q)
-
-    def _send_failed(self, exc: TransportError, detected_s: float, deadline_s: float, code: Command) -> None:
-        """A send failed while reacting to a fault. A closed bus is lost (nothing more can be sent); an open one (a
-        full transmit queue, a write refused once) stays HALTING, and every cycle sends the halt again."""
-        if self.controller.bus.closed:
-            self._lose_bus(exc)
-            return
-        if not self._send_failing:  # once per run of failures, not every cycle
-            logger.error("the halt could not be sent (%s): sent again every cycle", exc)
-        self._send_failing = True
-        if self.machine.state is not ArmState.HALTING:  # a hold or compliance whose first step failed
-            self.machine.fire(ArmEvent.HALT)
-        self.guard.begin(code)
-        self._halt_until_s = detected_s + self.settings.halt_retry_s
-
-    def _lose_bus(self, exc: BaseException) -> None:
-        if self.machine.state is not ArmState.BUS_LOST:
-            self.machine.fire(ArmEvent.BUS_GONE)
-            logger.critical("the bus is gone (%s): the halt could not be sent; the control loop ends", exc)
-
-    def _send_halt(self, deadline_s: float) -> None:
-        """The halt to the drives not known to be halted (in the detection cycle: every drive, one batch)."""
-        replies = self.controller.bus.transact(self.guard.halt_requests(), deadline_s)
-        self._send_failing = False
-        self.guard.take(replies, self.controller.axes, self.watchdog.within, self.controller.clock.now())
-        if not self.guard.unacknowledged and self.machine.state is ArmState.HALTING:
-            self.machine.fire(ArmEvent.ACKNOWLEDGED)
-
-    def _faulted_cycle(self, state: ArmState, start_s: float, deadline_s: float) -> None:
-        controller = self.controller
-        now = controller.clock.now()
-        if self._clear_request.is_set() and state in (ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALTED):
-            self._clear_request.clear()
-            try:
-                self._clear_result = self.clearing.run(state, deadline_s)
-                if self._clear_result is None:  # READY: no halt went out since
-                    self._halt_until_s = None
-            finally:
-                self._clear_done.set()
-            return
-        if self._estop_request is not None:  # while holding: escalates to the drives' own halt; else sent again
-            reason, self._estop_request = self._estop_request, None
-            raise MotionFault(reason, time_s=now, detail=f"E-stop requested while {state.value}")
-        if state is ArmState.COMPLYING and self.gravity is not None:
-            extra = self._next_status_reads()
-            try:
-                replies = controller.comply_step(start_s, deadline_s, self.gravity, extra=extra)
-                self.watchdog.evaluate(replies, controller.clock.now(), complying=True)
-            except MotionFault as fault:  # communication, a drive, a limit: the drives' own halt
-                self._halt(fault, -1, start_s, deadline_s)
-            return
-        if state is ArmState.HOLDING:
-            self._holding_cycle(start_s, deadline_s)
-            return
-        if state is ArmState.HALTING and self._halt_until_s is None:
-            # reached through the safe state of the table: no halt went out yet
-            unsent = MotionFault(FaultKind.STATE, time_s=now, detail="halting without a halt sent")
-            self.fault = unsent
-            self.faults.append(unsent)
-            logger.error("halting every axis: %s", unsent)
-            sent = self._start_halt(now, deadline_s, self.guard.code)
-            self.halts.append(HaltRecord(unsent, -1, now, sent, Reaction(self.guard.code.name)))
-            return
-        self._halted_cycle(state, start_s, deadline_s)
-
-    def _holding_cycle(self, start_s: float, deadline_s: float) -> None:
-        """The stop ramp, then the hold, streamed; a fault the hold is not for halts, and so does a hold that does not
-        hold (:class:`~motion.safety.hold.HoldCheck`), whatever fault the hold is for or this cycle found besides."""
-        controller = self.controller
-        extra = self._next_status_reads()
-        check = self.watchdog.check_setpoint  # the stop ramp must not pass a limit either
-        try:
-            replies = controller.step(start_s, deadline_s, extra=extra, check=check, apply_pending=False)
-            self.watchdog.evaluate(replies, controller.clock.now())
-        except MotionFault as fault:
-            if not fault.kind.holdable:
-                self._halt(fault, -1, start_s, deadline_s)  # the drives' own halt
-                return
-            # the kind of fault the hold is for (a motor that stays hot while it cools): the hold goes on, unless...
-        escalation = self.hold.escalation(controller.clock.now())
-        if escalation is not None:
-            self._halt(escalation, -1, start_s, deadline_s)
-
-    def _halted_cycle(self, state: ArmState, start_s: float, deadline_s: float) -> None:
-        """HALTING and HALTED: every drive gets a frame (its halt while it is not known to be halted, else a state
-        read; see :mod:`motion.safety.halted`), joints that leave their limits and drives that restarted are faults
-        of their own, and braked joints lock once at rest."""
-        controller = self.controller
-        requests = self.guard.requests()
-        requests.extend(self._next_status_reads())
-        controller.last_replies = _NO_REPLIES
-        try:
-            replies = controller.step(start_s, deadline_s, extra=requests, command=False, apply_pending=False)
-        except TransportError:
-            raise
-        except Exception:
-            replies = controller.last_replies  # a cycle hook failed after the exchange: its replies are taken in
-            if replies is _NO_REPLIES:  # the cycle failed before its exchange: the frames go out all the same
-                budget = controller.options.reply_budget
-                replies = controller.bus.transact(requests, start_s + budget * (deadline_s - start_s))
-                controller.absorb(replies)
-            self._take_halted(state, replies)
-            raise
-        self._take_halted(state, replies)
-
-    def _take_halted(self, state: ArmState, replies: list[Reply]) -> None:
-        """The halted cycle's replies: acknowledgements, drives driving or swinging, limits, restarts, and the end of
-        HALTING."""
-        controller, guard = self.controller, self.guard
-        self._send_failing = False
-        now = controller.clock.now()
-        axes = controller.axes
-        driving, outside, swinging = guard.take(replies, axes, self.watchdog.within, now)
-        names = self.watchdog.names
-        for i in driving:
-            logger.warning("%s reads as driving while halted: its halt is sent again", names[i])
-        for i in outside:
-            detail = "beyond its limits while halted (its halt is sent again)"
-            self.log.record_halted(
-                MotionFault(
-                    FaultKind.POSITION_LIMIT, joint=names[i], value=float(axes.q_deg[i]), time_s=now, detail=detail
-                ),
-                guard.code,
-            )
-        for i in swinging:
-            self.log.record_halted(self._swinging(i, now), guard.code)
-        for fault in self.watchdog.restarts(replies, now):
-            if fault.joint not in self.lost_frames:
-                self.lost_frames.add(str(fault.joint))
-                self.log.record_halted(fault, guard.code)
-        if state is ArmState.HALTING and self._halt_until_s is not None:
-            if guard.unacknowledged and now < self._halt_until_s:
-                return
-            if guard.unacknowledged:
-                logger.error(
-                    "drives %s did not acknowledge the halt within %g s: it is sent to them every cycle while the "
-                    "session is open",
-                    sorted(guard.unacknowledged),
-                    self.settings.halt_retry_s,
-                )
-            self.machine.fire(ArmEvent.ACKNOWLEDGED)
-
-    def _swinging(self, i: int, now_s: float) -> MotionFault:
-        """Joint ``i`` swings back and forth, or runs on, although halted (its drive's own 0x81 hold does not hold it):
-        released with 0x80 where gravity cannot move it (its gravity torque here within its Coulomb friction), else kept
-        at 0x81."""
-        controller = self.controller
-        gravity = self.gravity
-        friction = self.settings.coulomb_friction_nm
-        load_nm = math.inf
-        if gravity is not None and friction:
-            zero = np.zeros(len(self.ids))
-            load_nm = abs(float(gravity(controller.axes.q_deg, zero, zero)[i]))
-        braked = self.ids[i] in self.drives.braked_ids  # its brake locks once at rest: never released
-        released = not braked and load_nm <= (friction[i] if friction else -math.inf)
-        if released:
-            self.guard.release(i)
-        what = (
-            f"released with 0x80 (gravity there {load_nm:.3f} N·m, within its friction)"
-            if released
-            else "kept at 0x81: gravity may load it beyond its friction; check the drive's position-loop tuning"
-        )
-        return MotionFault(
-            FaultKind.HOLD_FAILED,
-            joint=self.watchdog.names[i],
-            value=float(controller.axes.q_deg[i]),
-            time_s=now_s,
-            detail=f"its drive's own hold (0x81) does not hold it (it swings, or runs on): {what}",
-        )
