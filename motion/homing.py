@@ -248,8 +248,9 @@ def finish_halt(supervisor: Supervisor) -> None:
     """Before a halted homing loop is closed: let it re-send the halt to the drives that have not acknowledged it yet
     (until they do, or ``safety.halt_retry_s`` passes), as the arm's loop would."""
     controller = supervisor.controller
-    if supervisor.state is ArmState.HALTING and controller.loop.running:
-        controller.wait_for(lambda: supervisor.state is not ArmState.HALTING, supervisor.settings.halt_retry_s)
+    halting = (ArmState.HALT_PENDING, ArmState.HALTING)  # (a halt owed goes out in the next cycle)
+    if supervisor.state in halting and controller.loop.running:
+        controller.wait_for(lambda: supervisor.state not in halting, supervisor.settings.halt_retry_s)
 
 
 def corrected_turns(turns: Sequence[int], index_of: Callable[[str], int], results: Sequence[HomingResult]) -> list[int]:

@@ -67,7 +67,7 @@ def test_a_configured_threshold_below_the_bound_is_not_the_one_in_force() -> Non
         watchdog = arm.supervisor.watchdog  # type: ignore[union-attr]
         assert watchdog.collision_armed
         limit = watchdog.collision_limit_nm
-        assert (limit > 1e-3).all() and (limit == np.maximum(1e-3, watchdog._bound.bound_nm)).all()  # type: ignore[union-attr]
+        assert (limit > 1e-3).all() and (limit == np.maximum(1e-3, watchdog.collision_bound_nm)).all()
         # ... and it is the one the snapshots publish (the live view plots it against the signal): each cycle's
         # snapshot carries the evaluation of the cycle before, as it does the signal
         seen: list[tuple[np.ndarray, np.ndarray]] = []

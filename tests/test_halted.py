@@ -26,9 +26,10 @@ from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command, MotorState
 from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3.messages import BrakeCommand, CommandV3, CommunicationTimeout, PlanningAcceleration
-from motion.safety import ArmState, Supervisor
+from motion.safety import ArmState
 from motion.safety.halted import STILL_BAND_DEG, HaltGuard
-from motion.safety.supervisor import Records
+from motion.safety.halted_cycle import HaltedCycle
+from motion.safety.records import Records
 from motion.transport import Reply, Request
 from tests import fault_explorer
 from tests.drive_models import DriveDraw, JointDraw
@@ -513,10 +514,10 @@ def test_the_explorer_sees_joints_that_move_after_the_halt(monkeypatch: pytest.M
 
 def test_the_explorer_sees_starved_drives(monkeypatch: pytest.MonkeyPatch) -> None:
     # while halting, frames only to the drives owed a halt (the behaviour before issue 29): the others starve
-    def owed_only(self: Supervisor, state: ArmState, start_s: float, deadline_s: float) -> None:
-        self._send_halt(start_s + 0.5 * (deadline_s - start_s))
+    def owed_only(self: HaltedCycle, state: ArmState, start_s: float, deadline_s: float) -> None:
+        self.reaction.send_halt(start_s + 0.5 * (deadline_s - start_s))
 
-    monkeypatch.setattr(Supervisor, "_halted_cycle", owed_only)
+    monkeypatch.setattr(HaltedCycle, "run", owed_only)
     outcome = fault_explorer.run(REGRESSIONS[1])
     assert "link" in outcome.kinds, outcome.violations
 

@@ -23,12 +23,12 @@ from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller
 from motion.control.ratecheck import FLAG_AGE_S
 from motion.emulator import Fault, InjectedFault
-from motion.errors import MotionError, MotionFault, PlanningError, TransportError
+from motion.errors import FaultKind, MotionError, MotionFault, PlanningError, TransportError
 from motion.protocol import Command, MultiTurnPositionSpeed
 from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3.messages import CommandV3
 from motion.safety import ArmEvent, ArmState, InvalidTransition, Reaction, StateMachine, Supervisor
-from motion.safety.states import SAFE_STATE, TRANSITIONS
+from motion.safety.states import SAFE_STATES, TRANSITIONS
 from motion.trajectory import JointLimits, Planner, State
 from motion.trajectory import Path as TrajectoryPath
 from motion.transmission import FloatArray
@@ -440,13 +440,24 @@ def test_every_state_and_event_pair(state: ArmState, event: ArmEvent) -> None:
     with pytest.raises(InvalidTransition, match=event.value):
         machine.fire(event)
     # an unknown pair halts every axis (again), except where nothing can be sent any more
-    assert machine.state is (state if state in (ArmState.BUS_LOST, ArmState.CLOSED) else SAFE_STATE)
+    assert machine.state is (state if state in (ArmState.BUS_LOST, ArmState.CLOSED) else SAFE_STATES[state])
 
 
 def test_the_transition_table_keeps_faults_faulted() -> None:
-    assert SAFE_STATE is ArmState.HALTING and SAFE_STATE.faulted
+    # a state that sent no halt yet goes to HALT_PENDING, one that did to HALTING (its fault stays the arm's)
+    halt_sent = {ArmState.HALTING, ArmState.HALTED}
+    assert set(SAFE_STATES) == set(ArmState) - {ArmState.BUS_LOST, ArmState.CLOSED}
+    for state, safe in SAFE_STATES.items():
+        assert safe is (ArmState.HALTING if state in halt_sent else ArmState.HALT_PENDING) and safe.faulted
     faulted = {s for s in ArmState if s.faulted}
-    assert faulted == {ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALTING, ArmState.HALTED, ArmState.BUS_LOST}
+    assert faulted == {
+        ArmState.HOLDING,
+        ArmState.COMPLYING,
+        ArmState.HALT_PENDING,
+        ArmState.HALTING,
+        ArmState.HALTED,
+        ArmState.BUS_LOST,
+    }
     for (state, event), target in TRANSITIONS.items():
         if state.faulted and target in (ArmState.READY, ArmState.MOVING):
             assert event is ArmEvent.CLEARED, (state, event)
@@ -460,8 +471,18 @@ def test_the_transition_table_keeps_faults_faulted() -> None:
             assert TRANSITIONS[state, ArmEvent.HALT] is ArmState.HALTING
 
 
+def test_every_state_has_its_cycle(tmp_path: Path) -> None:
+    # one cycle per state, keyed by the state: none only where the loop has ended
+    with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        cycles = supervisor.state_cycles
+        assert set(cycles) == set(ArmState)
+        assert {state for state, cycle in cycles.items() if cycle is None} == {ArmState.BUS_LOST, ArmState.CLOSED}
+
+
 def test_an_unknown_pair_in_the_loop_sends_the_halt(tmp_path: Path) -> None:
-    # the table's safe state is HALTING; reached without a halt having gone out, the next cycle sends it
+    # the table's safe state of a state that sent no halt is HALT_PENDING: the next cycle sends it
     with emulated_arm(_config(), "sim", tmp_path, supervised=True) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None
@@ -474,7 +495,16 @@ def test_an_unknown_pair_in_the_loop_sends_the_halt(tmp_path: Path) -> None:
         rig.sleep(0.02)
         states.append(supervisor.state)
         assert set(received(rig, Command.MOTOR_STOP)) == {1, 2}
-        assert states == [ArmState.HALTING, ArmState.HALTED]
+        assert states == [ArmState.HALT_PENDING, ArmState.HALTED]
+        assert supervisor.fault is not None and supervisor.fault.kind is FaultKind.STATE
+        # once the halt went out, an unknown pair keeps halting: no new fault, and HALTED again in the next cycle
+        recorded = len(supervisor.faults)
+        with pytest.raises(InvalidTransition):
+            supervisor.machine.fire(ArmEvent.DONE)
+        states = [supervisor.state]
+        rig.sleep(0.02)
+        states.append(supervisor.state)
+        assert states == [ArmState.HALTING, ArmState.HALTED] and len(supervisor.faults) == recorded
         _assert_comes_to_rest(rig)
 
 

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from motion.safety.collision import CollisionObserver
+from motion.safety.records import HaltRecord, Reaction
 from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
-from motion.safety.supervisor import HaltRecord, Reaction, Supervisor
-from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
+from motion.safety.supervisor import Supervisor
+from motion.safety.watchdog import SafetySettings, Watchdog
 
 __all__ = [
     "ArmEvent",

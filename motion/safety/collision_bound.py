@@ -1,5 +1,5 @@
 """The collision check's bound: how large the collision signal can grow on a drive that differs from its model while
-nothing touches the arm, from the stated bounds of what the observer cannot know (see :mod:`motion.safety.watchdog`).
+nothing touches the arm, from the stated bounds of what the observer cannot know (see :mod:`motion.safety.collision`).
 
 Per joint, over the window, in N·m:
 
@@ -51,7 +51,7 @@ from motion.transmission import FloatArray
 
 if TYPE_CHECKING:
     from motion.control.controller import Controller
-    from motion.safety.watchdog import CollisionObserver
+    from motion.safety.collision import CollisionObserver
 
 #: The model error the collision check bears without a false fault, as a fraction of the configured figure: the
 #: drive's torque constant, its rotor inertia, the joint's friction (viscous and Coulomb).

@@ -11,13 +11,16 @@ from motion.errors import MotionError
 
 
 class ArmState(Enum):
-    """Where the arm is. Five of the states are faulted (:attr:`faulted`): motion is refused in them."""
+    """Where the arm is. Six of the states are faulted (:attr:`faulted`): motion is refused in them."""
 
     READY = "ready"  #: enabled, holding the reference, accepts motion
     MOVING = "moving"  #: playing a motion
     HOLDING = "holding"  #: faulted: a jerk-limited stop of the reference is streamed, then held (policy ``hold``)
     #: faulted: a collision; gravity compensation with zero gains is streamed so that the arm yields (``comply``)
     COMPLYING = "complying"
+    #: faulted: the drives' own halt is owed to every axis and has not gone out yet (where an event the state does
+    #: not accept leads from a state that sent none, :data:`SAFE_STATES`): the next cycle sends it
+    HALT_PENDING = "halt_pending"
     HALTING = "halting"  #: faulted: 0x81 / 0x80 went to every axis; re-sent to those that have not acknowledged
     HALTED = "halted"  #: faulted: every drive acknowledged its halt (or the retry bound passed); reads only
     BUS_LOST = "bus_lost"  #: faulted: the bus failed, nothing can be sent; the loop has ended
@@ -25,14 +28,23 @@ class ArmState(Enum):
 
     @property
     def faulted(self) -> bool:
-        """True in the states that refuse motion until ``clear()`` (HOLDING, COMPLYING, HALTING, HALTED,
-        BUS_LOST)."""
+        """True in the states that refuse motion until ``clear()`` (HOLDING, COMPLYING, HALT_PENDING, HALTING,
+        HALTED, BUS_LOST)."""
         return self in _FAULTED
 
 
 _FAULTED: Final = frozenset(
-    {ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALTING, ArmState.HALTED, ArmState.BUS_LOST}
+    {
+        ArmState.HOLDING,
+        ArmState.COMPLYING,
+        ArmState.HALT_PENDING,
+        ArmState.HALTING,
+        ArmState.HALTED,
+        ArmState.BUS_LOST,
+    }
 )
+#: The states of the drives' own halt, owed or sent (a fault whose cause repeats there is recorded once).
+HALT_STATES: Final = frozenset({ArmState.HALT_PENDING, ArmState.HALTING, ArmState.HALTED})
 
 
 class ArmEvent(Enum):
@@ -49,10 +61,16 @@ class ArmEvent(Enum):
     CLOSE = "close"  #: the arm is shut down
 
 
-#: Where an event that the current state does not accept leads: every axis is halted (again).
-SAFE_STATE: Final = ArmState.HALTING
-#: States that an unknown event leaves as they are: nothing can be sent from them.
-_FINAL: Final = frozenset({ArmState.BUS_LOST, ArmState.CLOSED})
+_NO_HALT_SENT: Final = (ArmState.READY, ArmState.MOVING, ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALT_PENDING)
+#: Where an event that the current state does not accept leads, by state: every axis is halted (again). From a state
+#: that sent no halt, HALT_PENDING, whose cycle sends it; from one that did, HALTING, which goes on sending it to every
+#: drive not known to be halted (the fault it was sent for stays the arm's fault). BUS_LOST and CLOSED have none: they
+#: stay as they are, nothing can be sent from them.
+SAFE_STATES: Final[dict[ArmState, ArmState]] = {
+    **dict.fromkeys(_NO_HALT_SENT, ArmState.HALT_PENDING),
+    ArmState.HALTING: ArmState.HALTING,
+    ArmState.HALTED: ArmState.HALTING,
+}
 
 
 def _from_each(
@@ -62,14 +80,7 @@ def _from_each(
 
 
 _RUNNING: Final = (ArmState.READY, ArmState.MOVING)
-_SENDING: Final = (
-    ArmState.READY,
-    ArmState.MOVING,
-    ArmState.HOLDING,
-    ArmState.COMPLYING,
-    ArmState.HALTING,
-    ArmState.HALTED,
-)
+_SENDING: Final = (*_NO_HALT_SENT, ArmState.HALTING, ArmState.HALTED)
 
 TRANSITIONS: Final[dict[tuple[ArmState, ArmEvent], ArmState]] = {
     **_from_each(_RUNNING, ArmEvent.MOVE, ArmState.MOVING),
@@ -78,8 +89,8 @@ TRANSITIONS: Final[dict[tuple[ArmState, ArmEvent], ArmState]] = {
     # a collision while running or during a stop ramp: yield (the ramp would go on into what the arm hit)
     **_from_each((*_RUNNING, ArmState.HOLDING), ArmEvent.COMPLY, ArmState.COMPLYING),
     # a fault in any state that can still send halts every axis: also an escalation of a hold or of compliance (a
-    # fault of the bus, of a drive, a limit, an E-stop) and a new fault or E-stop while halting or halted (the halt
-    # is sent again)
+    # fault of the bus, of a drive, a limit, an E-stop), a new fault or E-stop while halting or halted (the halt
+    # is sent again), and the halt going out from HALT_PENDING
     **_from_each(_SENDING, ArmEvent.HALT, ArmState.HALTING),
     (ArmState.HALTING, ArmEvent.ACKNOWLEDGED): ArmState.HALTED,
     **_from_each(_SENDING, ArmEvent.BUS_GONE, ArmState.BUS_LOST),
@@ -91,7 +102,7 @@ TRANSITIONS: Final[dict[tuple[ArmState, ArmEvent], ArmState]] = {
 
 
 class InvalidTransition(MotionError):
-    """An event that the current state does not accept; the machine is now in the safe state."""
+    """An event that the current state does not accept; the machine is now in its safe state (:data:`SAFE_STATES`)."""
 
 
 class StateMachine:
@@ -112,15 +123,16 @@ class StateMachine:
         """Apply ``event``.
 
         Raises:
-            InvalidTransition: the pair is not in the table; the state becomes :data:`SAFE_STATE` (unless the bus is
-                lost or the arm closed: nothing can be sent from there).
+            InvalidTransition: the pair is not in the table; the state becomes the state's safe state
+                (:data:`SAFE_STATES`; none when the bus is lost or the arm closed: nothing can be sent from there).
         """
         with self._lock:
             nxt = TRANSITIONS.get((self._state, event))
             if nxt is None:
                 previous = self._state
-                if previous not in _FINAL:
-                    self._set(SAFE_STATE)
+                safe = SAFE_STATES.get(previous)
+                if safe is not None:
+                    self._set(safe)
                 raise InvalidTransition(f"event {event.value!r} is not allowed in state {previous.value!r}")
             self._set(nxt)
             return nxt

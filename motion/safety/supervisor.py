@@ -10,11 +10,17 @@ policy; it is not holdable, so ``hold`` means 0x81 for it): ``comply`` streams g
 E-stop) halts every axis with 0x81. Then the arm is FAULTED: motion commands raise the fault until
 :meth:`Supervisor.clear` (0x9B to every drive) finds every drive answering with clean flags and no cause left.
 
-The states (:class:`~motion.safety.states.ArmState`) are the whole story: READY and MOVING run the guarded cycle;
-HOLDING streams the stop ramp; COMPLYING streams gravity compensation; HALTING and HALTED keep the halted state every
-cycle (:mod:`motion.safety.halted`: the halt to every drive not known to be halted, a read to every drive; HALTING
-until every drive acknowledged or ``halt_retry_s`` passed); BUS_LOST ends the loop. Every change of state goes through
-the transition table, and a pair the table does not know leads to HALTING, whose cycle sends the halt if none went out.
+The states (:class:`~motion.safety.states.ArmState`) are the whole story, and each has its cycle
+(:attr:`Supervisor.state_cycles`, keyed by the state as h11 keys its readers): READY and MOVING run the guarded
+cycle; HOLDING streams the stop ramp, COMPLYING gravity compensation, HALT_PENDING sends the halt that is owed
+(:mod:`motion.safety.reaction`); HALTING and HALTED keep the halted state every cycle (:mod:`motion.safety.halted`,
+:mod:`motion.safety.halted_cycle`: the halt to every drive not known to be halted, a read to every drive; HALTING
+until every drive acknowledged or ``halt_retry_s`` passed); BUS_LOST and CLOSED have none: the loop ends. Every change
+of state goes through the transition table, and a pair the table does not know leads to the state's safe state
+(HALT_PENDING, or HALTING once a halt went out). The rest lives beside: the reaction to a fault
+(:mod:`motion.safety.reaction`), the hold's check (:mod:`motion.safety.hold`), the clear
+(:mod:`motion.safety.clearing`), the end of the session (:mod:`motion.safety.ending`) and the records
+(:mod:`motion.safety.records`).
 
 No path leaves a motor moving under our last command: exceptions in the cycle are faults; E-stop requests
 (:meth:`Supervisor.estop`, the CLI's Ctrl-C / SIGTERM) are faults; :meth:`Supervisor.close`, garbage collection and
@@ -24,118 +30,36 @@ process exit send 0x81 to every axis before the bus is released.
 from __future__ import annotations
 
 import atexit
-import collections
 import logging
-import math
 import threading
 import weakref
-from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
-from enum import StrEnum
-from typing import Final, TypeVar, overload
+from collections.abc import Callable, Sequence
 
-import numpy as np
-
-from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller, Feedforward
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
-from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.control.ratecheck import status_reads_per_cycle
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
-from motion.protocol import Command, Message
-from motion.protocol.v3.messages import CommandV3
+from motion.protocol import Command
+from motion.safety.clearing import Clearing
+from motion.safety.collision import CollisionObserver
+from motion.safety.ending import SETUP_WINDOW_S, SessionEnd, emergency_stop, end_window_s
 from motion.safety.halted import HaltGuard
-from motion.safety.states import ArmEvent, ArmState, InvalidTransition, StateMachine
-from motion.safety.watchdog import CollisionObserver, SafetySettings, Watchdog
-from motion.trajectory import State
+from motion.safety.halted_cycle import HaltedCycle
+from motion.safety.reaction import FaultReaction
+from motion.safety.records import FaultLog, HaltRecord, Reaction, Records, exception_origin
+from motion.safety.states import HALT_STATES, TRANSITIONS, ArmEvent, ArmState, InvalidTransition, StateMachine
+from motion.safety.watchdog import SafetySettings, Watchdog
 from motion.transmission import FloatArray
-from motion.transport import Reply, Request
+from motion.transport import Request
+
+__all__ = ["HaltRecord", "Reaction", "Records", "StateCycle", "Supervisor"]
 
 logger = logging.getLogger("motion.safety")
 
-# Shortest window given to the halt frames' acknowledgements in the detection cycle, s.
-_HALT_WINDOW_S = 0.002
 #: Real time allowed on top of the collision check's arming cycles before motion is let go anyway (with a warning).
 _ARMING_SLACK_S = 0.25
-# How long the drives' settings at start and end may take (a few exchanges), s.
-_SETUP_WINDOW_S = 0.2
-#: The longest an exchange after the loop waits for its replies, s (see ``Supervisor._end_window_s``).
-_END_EXCHANGE_S = 0.02
-#: How long a close waits for the braked joints to come to rest before it locks their brakes, s.
-_BRAKE_SETTLE_S = 1.0
-#: A following error seen in this many consecutive cycles of a hold (whose ramp starts from the measured state, so
-#: that a joint that follows has none) escalates to the drives' own halt: a blocked joint is never pushed for ever.
-HOLD_ESCALATION_CYCLES = 3
-#: ... and so does a torque current at the joint's ``current_limit_a`` for this long, s: a drive's loop saturated by
-#: the jump of its set-point to where the joint stands unwinds within a few of its time constants (tens of ms; 20 ms
-#: seen on the emulator at 200 Hz), a drive pushing against an obstacle does not. (In position mode the drive's own
-#: current limit may differ from the configured one: above it this never fires, and the persisting following error is
-#: left to escalate; below it, a hold that needs more current escalates to 0x81, the safe side.)
-HOLD_AT_LIMIT_S = 0.1
-#: A halted cycle's replies before its exchange (one that fails before it has none: its frames go out all the same).
-_NO_REPLIES: Final[list[Reply]] = []
-_T = TypeVar("_T")
-#: The most fault and halt records kept (a cause that repeats is recorded once; this bounds what a long session keeps).
-RECORDS_KEPT = 1000
-
-
-class Records(Sequence[_T]):
-    """A session's fault or halt records, bounded: the first ``kept // 2`` (the cause is among them) and the latest
-    ``kept - kept // 2``; :attr:`dropped` counts those left out between."""
-
-    def __init__(self, kept: int) -> None:
-        self._first: list[_T] = []
-        self._first_kept = kept // 2
-        self._latest: collections.deque[_T] = collections.deque(maxlen=kept - kept // 2)
-        #: Records left out between the first and the latest.
-        self.dropped = 0
-
-    def append(self, record: _T) -> None:
-        """Keep ``record`` (and leave out the oldest of the latest, once full)."""
-        if len(self._first) < self._first_kept:
-            self._first.append(record)
-            return
-        if len(self._latest) == self._latest.maxlen:
-            self.dropped += 1
-        self._latest.append(record)
-
-    def __len__(self) -> int:
-        return len(self._first) + len(self._latest)
-
-    @overload
-    def __getitem__(self, index: int) -> _T: ...
-    @overload
-    def __getitem__(self, index: slice) -> list[_T]: ...
-    def __getitem__(self, index: int | slice) -> _T | list[_T]:
-        return [*self._first, *self._latest][index]
-
-    def __iter__(self) -> Iterator[_T]:
-        yield from self._first
-        yield from self._latest
-
-
-class Reaction(StrEnum):
-    """What the supervisor did about a fault (telemetry's ``fault_action``)."""
-
-    HOLD = "hold"  #: a jerk-limited stop ramp of the reference, then held (``halt_policy: hold``)
-    COMPLY = "comply"  #: gravity compensation with zero gains (``collision_reaction: comply``)
-    MOTOR_STOP = Command.MOTOR_STOP.name  #: 0x81 to every axis: the drives stop themselves
-    MOTOR_OFF = Command.MOTOR_OFF.name  #: 0x80 to every axis: the drives release their torque (``halt_policy: off``)
-
-
-@dataclass(frozen=True, slots=True)
-class HaltRecord:
-    """When a fault was detected and when its halt went out (controller clock, seconds; cycle index), and how."""
-
-    fault: MotionFault
-    cycle: int
-    detected_s: float
-    halt_sent_s: float
-    reaction: Reaction
-
-
-#: The reactions that a state stands for (any other: the halt command that went out).
-_REACTIONS: Final = {ArmState.HOLDING: Reaction.HOLD, ArmState.COMPLYING: Reaction.COMPLY}
+#: A state's cycle: called with the state it runs for, the cycle's start and its deadline (s); raises a fault.
+StateCycle = Callable[[ArmState, float, float], None]
 
 
 class Supervisor:
@@ -163,47 +87,74 @@ class Supervisor:
     ) -> None:
         self.controller = controller
         family = controller.family
-        self.drives = drives or DriveSetup(
-            controller.bus,
-            family,
-            [s.motor_id for s in controller.specs],
-            (),
-            link_timeout_ms(controller.period_s, None),
+        self.ids = ids = tuple(s.motor_id for s in controller.specs)
+        self.drives = drives = drives or DriveSetup(
+            controller.bus, family, list(ids), (), link_timeout_ms(controller.period_s, None)
         )
         self.settings = settings
-        # An exchange after the loop (the close's halt and brake reads) waits for replies at most a control period's
-        # share for them, and half a drive's link timeout: a silent drive's wait never starves the healthy ones into
-        # their link-loss stop before the close turns the protection off.
-        window = min(_END_EXCHANGE_S, controller.period_s * controller.options.reply_budget)
-        if self.drives.link_timeout_ms:
-            window = min(window, self.drives.link_timeout_ms / 2000.0)
-        self._end_window_s = window
-        self.watchdog = Watchdog(controller, settings, observer)
+        self.watchdog = watchdog = Watchdog(controller, settings, observer)
         if observer is not None:  # the collision signal and the threshold in force go out in every snapshot
-            controller.publisher.signal = self.watchdog.collision_signal_nm
-            controller.publisher.limit = self.watchdog.collision_limit_nm
+            controller.publisher.signal = watchdog.collision_signal_nm
+            controller.publisher.limit = watchdog.collision_limit_nm
         self.gravity = gravity
-        self._fault: MotionFault | None = None
-        self.machine = StateMachine(ArmState.READY, on_change=self._publish_condition)
-        self.ids = tuple(s.motor_id for s in controller.specs)
-        self.faults: Records[MotionFault] = Records(RECORDS_KEPT)
-        self.halts: Records[HaltRecord] = Records(RECORDS_KEPT)
+        self.machine = machine = StateMachine(ArmState.READY)
+        #: The session's faults: the one the arm is faulted for, every fault and halt record.
+        self.log = log = FaultLog(machine, controller.publisher, controller.clock)
+        machine.on_change = log.publish
+        self.faults, self.halts, self.lost_frames = log.faults, log.halts, log.lost_frames
         #: The halted state's bookkeeping (:mod:`motion.safety.halted`).
-        self.guard = HaltGuard(self.ids, self.drives.braked_ids, family.bare)
-        #: Joints whose drive restarted in this session: their turn count is lost, clear() refuses until a new
-        #: session resolves it.
-        self.lost_frames: set[str] = set()
-        self._hold_strikes = 0
-        self._at_limit_since = math.nan
-        #: Each joint's current limit, A: a hold that keeps a drive at it pushes against something.
-        self._current_limit_a = np.array([t.current_limit_a for t in controller.transmission.transmissions])
-        self._iq_magnitude = np.zeros_like(self._current_limit_a)
-        self._at_limit = np.zeros(len(self._current_limit_a), dtype=bool)
-        self._torque_mode = controller.options.mode is ControlMode.TORQUE
-        self._send_failing = False
-        #: Where the exception behind the latest ``exception`` fault was raised (its type, file and line).
-        self._exception_origin: tuple[str, str, int] | None = None
-        self._halt_until_s: float | None = None  # until when the halt is re-sent; None: no halt went out yet
+        self.guard = guard = HaltGuard(ids, drives.braked_ids, family.bare)
+        reads = self._next_status_reads
+        #: The reaction to a fault, and the cycles of HOLDING, COMPLYING and HALT_PENDING.
+        self.reaction = reaction = FaultReaction(
+            controller,
+            settings=settings,
+            machine=machine,
+            guard=guard,
+            watchdog=watchdog,
+            log=log,
+            gravity=gravity,
+            reads=reads,
+        )
+        halted = HaltedCycle(
+            controller,
+            settings=settings,
+            machine=machine,
+            guard=guard,
+            watchdog=watchdog,
+            log=log,
+            reaction=reaction,
+            gravity=gravity,
+            reads=reads,
+        )
+        window_s = end_window_s(controller, drives)
+        #: clear(), carried out in the loop.
+        self.clearing = Clearing(
+            controller,
+            settings=settings,
+            machine=machine,
+            guard=guard,
+            watchdog=watchdog,
+            log=log,
+            drives=drives,
+            end_window_s=window_s,
+        )
+        #: The end of the session, once the loop has ended.
+        self.ending = SessionEnd(
+            controller, machine=machine, guard=guard, watchdog=watchdog, drives=drives, window_s=window_s
+        )
+        #: Each state's cycle (None: the loop has ended).
+        self.state_cycles: dict[ArmState, StateCycle | None] = {
+            ArmState.READY: self._running_cycle,
+            ArmState.MOVING: self._running_cycle,
+            ArmState.HOLDING: reaction.holding_cycle,
+            ArmState.COMPLYING: reaction.complying_cycle,
+            ArmState.HALT_PENDING: reaction.pending_cycle,
+            ArmState.HALTING: halted.run,
+            ArmState.HALTED: halted.run,
+            ArmState.BUS_LOST: None,
+            ArmState.CLOSED: None,
+        }
         # Requests from other threads, taken by the next cycle:
         self._estop_request: FaultKind | None = None
         self._estop_detail = "E-stop requested"
@@ -212,20 +163,12 @@ class Supervisor:
         self._clear_result: MotionFault | None = None
         # 0x9A (flags, voltage, temperature) and 0x92 (the multi-turn angle: a drive that restarted) in turn
         # (the V3 family: 0x9A and 0xB1, its runtime, which starts again when the drive restarted)
-        self._bare = bare = family.bare
-        reads = (Command.READ_STATUS_1, family.restart_read)
-        self._status_reads = [Request(i, bare(command)) for i in self.ids for command in reads]
+        reads_of = (Command.READ_STATUS_1, family.restart_read)
+        self._status_reads = [Request(i, family.bare(command)) for i in ids for command in reads_of]
         self._round_robin = 0  # a counter of its own: the cycle index k jumps over skipped cycles
         #: How many of them each cycle carries (CAN: every drive's flags at most FLAG_AGE_S old).
-        self.status_reads_per_cycle = status_reads_per_cycle(
-            len(self.ids), controller.period_s, controller.options.protocol
-        )
-        self._state_reads = [Request(i, bare(Command.READ_STATUS_2)) for i in self.ids]
-        # Clearing: 0x9B where the family has it (its reply is the status); else the drives clear level-2 errors
-        # themselves, and the status is read.
-        clear = Command.CLEAR_ERRORS if family.clears_errors else Command.READ_STATUS_1
-        self._clear_requests = [Request(i, bare(clear)) for i in self.ids]
-        self._finalizer = weakref.finalize(self, _emergency_stop, controller, self.ids, self._bare)
+        self.status_reads_per_cycle = status_reads_per_cycle(len(ids), controller.period_s, controller.options.protocol)
+        self._finalizer = weakref.finalize(self, emergency_stop, controller, ids, family.bare)
         atexit.register(self._finalizer)
 
     # ------------------------------------------------------------------------------------------------ API
@@ -241,29 +184,20 @@ class Supervisor:
         return self.guard.unacknowledged
 
     @property
-    def _halt_code(self) -> Command:
-        return self.guard.code
-
-    @property
     def fault(self) -> MotionFault | None:
         """The fault the arm is halted or holding for (None when it is not)."""
-        return self._fault
+        return self.log.fault
 
     @fault.setter
     def fault(self, fault: MotionFault | None) -> None:
-        self._fault = fault
-        self._publish_condition(self.machine.state)
-
-    def _publish_condition(self, state: ArmState) -> None:
-        """State and fault into the published snapshot (:meth:`SnapshotPublisher.set_condition`)."""
-        self.controller.publisher.set_condition(state.value, self._fault)
+        self.log.fault = fault
 
     def start(self) -> None:
         """Start the guarded loop (closing the bus first halts every axis and ends the loop)."""
         clock = self.controller.clock
         # (the hook first: a setup that fails half-way is restored when the bus closes)
         self.controller.bus.close_hooks.append(self._before_bus_close)
-        self.drives.apply(clock.now() + _SETUP_WINDOW_S)
+        self.drives.apply(clock.now() + SETUP_WINDOW_S)
         self.watchdog.start(clock.now())
         self.controller.start(self.cycle)
         self._await_collision_check()
@@ -291,58 +225,10 @@ class Supervisor:
         self._end_session()
 
     def _end_session(self) -> None:
-        """Once the loop has ended: the halt to every axis in one batch (the drives not known to be halted last, so
-        that a silent one's timeouts delay nobody's halt), the brakes of the joints found at rest locked, and only
-        then the drives' settings restored."""
-        controller, guard = self.controller, self.guard
-        bus, clock = controller.bus, controller.clock
-        state = self.machine.state
-        if bus.closed or state in (ArmState.BUS_LOST, ArmState.CLOSED):
-            return
-        if state not in (ArmState.HALTING, ArmState.HALTED):
-            guard.begin(Command.MOTOR_STOP)  # the drives' own stop now, kept as in a halted cycle (brakes included)
-        owed = guard.unacknowledged
-        order = sorted(self.ids, key=lambda i: (i in owed, i))
-        until = clock.now() + _SETUP_WINDOW_S
-        try:
-            replies = bus.transact(
-                [Request(i, self._bare(guard.codes[i])) for i in order], clock.now() + self._end_window_s
-            )
-            controller.absorb(replies)
-            guard.take(replies, controller.axes, self._within, clock.now())
-            # Late acknowledgements (a loaded host, a slow drive): halted cycles, each a short exchange that reads
-            # every drive (none starves into its link-loss stop), until every drive acknowledged or ``until``.
-            while guard.unacknowledged and clock.now() < until:
-                replies = bus.transact(guard.requests(), min(until, clock.now() + self._end_window_s))
-                controller.absorb(replies)
-                guard.take(replies, controller.axes, self._within, clock.now())
-        except Exception as exc:  # the session ends anyway: leave a trace
-            logger.error("the halt at the end of the session failed: %s: %s", type(exc).__name__, exc)
-        if self.machine.state is ArmState.HALTING and not guard.unacknowledged:
-            self.machine.fire(ArmEvent.ACKNOWLEDGED)
-        if self.drives.braked_ids and not self.drives.brakes_locked:
-            self._lock_brakes_at_rest(clock.now() + _BRAKE_SETTLE_S)
-        self.drives.restore(clock.now() + _SETUP_WINDOW_S, lock=())  # (the brakes: above, only where at rest)
-        self._finalizer.detach()  # the halt went out: nothing is left for process exit to do
-
-    def _lock_brakes_at_rest(self, deadline_s: float) -> None:
-        """After the final halt: halted cycles (:meth:`HaltGuard.requests`: every drive read, none starves into its
-        link-loss stop, the halt re-sent where owed) until every brake has locked by the guard's rule (at rest for
-        :data:`BRAKE_REST_S` with the whole arm calm, one at a time), or until ``deadline_s`` (a brake is no stopping
-        device: a joint still moving is left to its drive's hold, and logged)."""
-        controller, guard = self.controller, self.guard
-        clock = controller.clock
-        try:
-            while not guard.all_locked() and clock.now() < deadline_s:
-                replies = controller.bus.transact(guard.requests(), min(deadline_s, clock.now() + self._end_window_s))
-                controller.absorb(replies)
-                guard.take(replies, controller.axes, self._within, clock.now())
-        except Exception as exc:
-            logger.error("the braked joints could not be read at the end: %s: %s", type(exc).__name__, exc)
-        pending = [i for i in guard.braked_ids if i not in guard.locked]
-        if pending:
-            names = ", ".join(self.watchdog.names[self.watchdog.index[i]] for i in pending)
-            logger.error("brakes not locked (%s): not seen at rest after the halt; their drives hold them", names)
+        """Once the loop has ended: every axis halted, the braked joints locked at rest, the drives' settings
+        restored (:class:`~motion.safety.ending.SessionEnd`); then process exit has nothing left to do."""
+        if self.ending.run():
+            self._finalizer.detach()
 
     def _refuse_if_faulted(self) -> None:
         if self.machine.state.faulted:
@@ -420,7 +306,8 @@ class Supervisor:
         return self.controller.wait_for(lambda: machine.state.faulted, timeout_s)
 
     def clear(self, timeout_s: float = 1.0) -> None:
-        """Send 0x9B to every drive; succeed only if every drive answers with clean flags and no cause remains.
+        """Send 0x9B to every drive; succeed only if every drive answers with clean flags and no cause remains
+        (carried out by the loop in a state that accepts CLEARED: :class:`~motion.safety.clearing.Clearing`).
 
         Raises:
             MotionFault: kind ``clear_failed`` naming what is still wrong (the arm stays FAULTED).
@@ -461,39 +348,62 @@ class Supervisor:
     # ------------------------------------------------------------------------------------------------ the cycle
 
     def cycle(self, k: int, start_s: float, deadline_s: float) -> bool:
-        """The guarded cycle: run by the scheduler; never raises (every failure is a fault that halts)."""
+        """The guarded cycle: run by the scheduler; never raises (every failure is a fault that halts). The other
+        threads' requests first, then the state's own cycle (:attr:`state_cycles`)."""
         controller = self.controller
         state = self.machine.state
-        if state is ArmState.BUS_LOST or state is ArmState.CLOSED:
+        state_cycle = self.state_cycles[state]
+        if state_cycle is None:
             return False
         try:
-            if state.faulted:
-                self._faulted_cycle(state, start_s, deadline_s)
-            else:
-                if self._estop_request is not None:
-                    reason, self._estop_request = self._estop_request, None
-                    raise MotionFault(reason, time_s=controller.clock.now(), detail=self._estop_detail)
-                extra = self._next_status_reads()
-                replies = controller.step(start_s, deadline_s, extra=extra, check=self.watchdog.check_setpoint)
-                self.watchdog.evaluate(replies, controller.clock.now())
-                if self.machine.state is ArmState.MOVING and controller.idle:
-                    self.machine.fire(ArmEvent.DONE)
+            if not self._take_requests(state, deadline_s):
+                state_cycle(state, start_s, deadline_s)
         except MotionFault as fault:
-            self._halt(fault, k, start_s, deadline_s)
+            self.reaction.react(fault, k, start_s, deadline_s)
         except TransportError as exc:
-            self._halt(
-                MotionFault(FaultKind.TRANSPORT, time_s=controller.clock.now(), detail=str(exc)), k, start_s, deadline_s
-            )
+            lost = MotionFault(FaultKind.TRANSPORT, time_s=controller.clock.now(), detail=str(exc))
+            self.reaction.react(lost, k, start_s, deadline_s)
         except Exception as exc:
             detail = f"{type(exc).__name__}: {exc}"
-            origin = _origin(exc)
+            origin = exception_origin(exc)
             # the same exception from the same place again while halted (its message may change every time: a
             # count, a time) is the same cause: recorded once, the halted cycle goes on
-            if not (origin == self._exception_origin and self.machine.state in (ArmState.HALTING, ArmState.HALTED)):
-                self._exception_origin = origin
+            if not (origin == self.log.exception_origin and self.machine.state in HALT_STATES):
+                self.log.exception_origin = origin
                 error = MotionFault(FaultKind.EXCEPTION, time_s=controller.clock.now(), detail=detail)
-                self._halt(error, k, start_s, deadline_s)
+                self.reaction.react(error, k, start_s, deadline_s)
         return not controller.stopping and self.machine.state is not ArmState.BUS_LOST
+
+    def _take_requests(self, state: ArmState, deadline_s: float) -> bool:
+        """The other threads' requests, in ``state``: a clear where the state accepts CLEARED (True: it was this
+        cycle's work; elsewhere it waits for such a state), else an E-stop.
+
+        Raises:
+            MotionFault: the E-stop asked for (while holding: it escalates to the drives' own halt; while halted:
+                the halt is sent again).
+        """
+        if self._clear_request.is_set() and (state, ArmEvent.CLEARED) in TRANSITIONS:
+            self._clear_request.clear()
+            try:
+                self._clear_result = self.clearing.run(state, deadline_s)
+            finally:
+                self._clear_done.set()
+            return True
+        if self._estop_request is not None:
+            reason, self._estop_request = self._estop_request, None
+            detail = f"E-stop requested while {state.value}" if state.faulted else self._estop_detail
+            raise MotionFault(reason, time_s=self.controller.clock.now(), detail=detail)
+        return False
+
+    def _running_cycle(self, state: ArmState, start_s: float, deadline_s: float) -> None:
+        """READY and MOVING: this cycle's status reads with the step, its set-point checked before it is sent, every
+        monitor on the replies; MOVING ends (DONE) when the motion has."""
+        controller = self.controller
+        extra = self._next_status_reads()
+        replies = controller.step(start_s, deadline_s, extra=extra, check=self.watchdog.check_setpoint)
+        self.watchdog.evaluate(replies, controller.clock.now())
+        if self.machine.state is ArmState.MOVING and controller.idle:
+            self.machine.fire(ArmEvent.DONE)
 
     def _next_status_reads(self) -> tuple[Request, ...]:
         """0x9A or 0x92 for the next drives in turn, :attr:`status_reads_per_cycle` of them: every drive's flags and
@@ -505,489 +415,3 @@ class Supervisor:
         first = self._round_robin + 1
         self._round_robin = (self._round_robin + self.status_reads_per_cycle) % count
         return tuple(reads[(first + j) % count] for j in range(self.status_reads_per_cycle))
-
-    def _halt(self, fault: MotionFault, k: int, start_s: float, deadline_s: float) -> None:
-        """React to ``fault``: the stop ramp where the policy, the kind and the state allow it, else the halt."""
-        controller = self.controller
-        detected = controller.clock.now()
-        controller.discard_pending()  # a move queued during this cycle must not replace the halt
-        state = self.machine.state
-        repeated = state.faulted and self._fault is not None and _same_cause(fault, self._fault)
-        if repeated and state in (ArmState.HALTING, ArmState.HALTED):
-            # the same cause again in every cycle (a hook, a tap, a port that keeps failing), recorded once: the
-            # halted cycle goes on sending the halt to every drive not known to be halted (its bookkeeping was done
-            # before the hooks ran); a send that failed leaves every drive owed its halt again
-            if fault.kind is FaultKind.TRANSPORT:
-                if controller.bus.closed:
-                    self._lose_bus(TransportError(fault.detail))
-                else:
-                    self.guard.begin(self._halt_code)
-            return
-        self.fault = fault
-        self.faults.append(fault)
-        if fault.kind is FaultKind.DRIVE_RESTARTED and fault.joint is not None:
-            self.lost_frames.add(fault.joint)
-        policy = self._policy(fault)
-        code = Command.MOTOR_OFF if policy is HaltPolicy.OFF else Command.MOTOR_STOP
-        running = state in (ArmState.READY, ArmState.MOVING)
-        holdable = running and policy is HaltPolicy.HOLD and fault.kind.holdable
-        comply = (
-            policy is HaltPolicy.COMPLY
-            and fault.kind is FaultKind.COLLISION
-            and (running or state is ArmState.HOLDING)
-            and self.gravity is not None
-        )
-        action = (
-            "comply"
-            if comply
-            else "stop ramp and hold"
-            if holdable
-            else ("0x80 off" if policy is HaltPolicy.OFF else "0x81 stop")
-        )
-        level = logging.INFO if fault.kind is FaultKind.CLOSE else logging.ERROR
-        logger.log(level, "halting every axis (%s): %s", action, fault)
-        sent = detected
-        try:
-            if comply:
-                try:
-                    sent = self._start_comply(start_s, deadline_s)
-                except TransportError:
-                    raise
-                except Exception as exc:  # compliance that cannot start must not leave the last command in force
-                    logger.error(
-                        "compliance could not start (%s: %s): halting every axis with 0x81 instead",
-                        type(exc).__name__,
-                        exc,
-                    )
-                    comply = False
-            if holdable:
-                try:
-                    sent = self._start_hold(fault, start_s, deadline_s)
-                except TransportError:
-                    raise
-                except Exception as exc:  # a hold that cannot start must not leave the last command in force
-                    logger.error(
-                        "the hold could not start (%s: %s): halting every axis with 0x81 instead",
-                        type(exc).__name__,
-                        exc,
-                    )
-                    holdable = False
-            if not holdable and not comply:
-                sent = self._start_halt(detected, deadline_s, code)
-        except TransportError as exc:
-            self._send_failed(exc, detected, deadline_s, code)
-        except Exception as exc:  # the state is HALTING: the next cycle sends the halt again
-            logger.error("halt could not be sent: %s: %s", type(exc).__name__, exc)
-        reaction = _REACTIONS.get(self.machine.state) or Reaction(self._halt_code.name)
-        self.halts.append(HaltRecord(fault, k, detected, sent, reaction))
-
-    def _policy(self, fault: MotionFault) -> HaltPolicy:
-        """The reaction configured for ``fault``: the collision reaction for a collision, else the halt policy."""
-        settings = self.settings
-        if self.machine.state is ArmState.COMPLYING:  # compliance ends in the drives' own stop, whatever the policy
-            return HaltPolicy.STOP
-        if fault.kind is FaultKind.COLLISION and settings.collision_reaction is not None:
-            return settings.collision_reaction
-        return settings.halt_policy
-
-    def _start_comply(self, start_s: float, deadline_s: float) -> float:
-        """Enter COMPLYING: gravity compensation alone from this cycle on; returns when it was sent.
-
-        Raises:
-            Exception: whatever kept it from starting (the caller falls back to the drives' own halt).
-        """
-        controller = self.controller
-        gravity = self.gravity
-        if gravity is None:
-            raise MotionError("no gravity model to comply with")
-        self.machine.fire(ArmEvent.COMPLY)
-        sent = controller.clock.now()
-        controller.comply_step(sent, max(deadline_s, sent + _HALT_WINDOW_S), gravity)
-        return sent
-
-    def _start_hold(self, fault: MotionFault, start_s: float, deadline_s: float) -> float:
-        """Enter HOLDING: replace the reference with a jerk-limited stop and send its first set-point; returns when it
-        was sent. After a following error the stop ramp starts from where the joints are, as they move (a ramp from
-        the reference would carry a blocked joint's set-point on past what blocks it).
-
-        Raises:
-            Exception: whatever kept the hold from starting (the caller falls back to the drives' own halt).
-        """
-        controller = self.controller
-        self.machine.fire(ArmEvent.HOLD)
-        self._hold_strikes, self._at_limit_since = 0, math.nan
-        follower = controller.follower
-        if follower is None:
-            raise MotionError("no trajectory follower to plan the stop ramp")
-        if fault.kind is FaultKind.FOLLOWING_ERROR:
-            axes = controller.axes
-            measured = State(axes.positions(), axes.qd_dps.copy(), np.zeros(len(self.ids)))
-            follower.stop_from(start_s, measured)
-            controller.reference = measured
-            self.watchdog.restart_following()  # the expectation starts again from there too
-        else:
-            follower.stop(start_s)
-        sent = controller.clock.now()
-        controller.step(sent, max(deadline_s, sent + _HALT_WINDOW_S), apply_pending=False)
-        return sent
-
-    def _start_halt(self, detected_s: float, deadline_s: float, code: Command) -> float:
-        """Enter HALTING: 0x81 (0x80 under ``halt_policy: off``) to every axis now, in one batch; returns when it was
-        sent."""
-        self.guard.begin(code)
-        self._halt_until_s = detected_s + self.settings.halt_retry_s
-        if self.machine.state is not ArmState.HALTING:
-            self.machine.fire(ArmEvent.HALT)
-        sent = self.controller.clock.now()
-        try:
-            self._send_halt(max(deadline_s, sent + _HALT_WINDOW_S))
-        finally:
-            self._stop_reference()
-        return sent
-
-    def _stop_reference(self) -> None:
-        """The reference stops where the arm is: an aborted path must not go on playing (in telemetry, the snapshot
-        and progress) while the drives stand halted."""
-        controller = self.controller
-        if controller.follower is not None:
-            q = controller.axes.positions()
-            controller.follower.hold_at(q)
-            controller.reference = State.at_rest(q)
-
-    def _send_failed(self, exc: TransportError, detected_s: float, deadline_s: float, code: Command) -> None:
-        """A send failed while reacting to a fault. A closed bus is lost (nothing more can be sent); an open one (a
-        full transmit queue, a write refused once) stays HALTING, and every cycle sends the halt again."""
-        if self.controller.bus.closed:
-            self._lose_bus(exc)
-            return
-        if not self._send_failing:  # once per run of failures, not every cycle
-            logger.error("the halt could not be sent (%s): sent again every cycle", exc)
-        self._send_failing = True
-        if self.machine.state is not ArmState.HALTING:  # a hold or compliance whose first step failed
-            self.machine.fire(ArmEvent.HALT)
-        self.guard.begin(code)
-        self._halt_until_s = detected_s + self.settings.halt_retry_s
-
-    def _lose_bus(self, exc: BaseException) -> None:
-        if self.machine.state is not ArmState.BUS_LOST:
-            self.machine.fire(ArmEvent.BUS_GONE)
-            logger.critical("the bus is gone (%s): the halt could not be sent; the control loop ends", exc)
-
-    def _send_halt(self, deadline_s: float) -> None:
-        """The halt to the drives not known to be halted (in the detection cycle: every drive, one batch)."""
-        replies = self.controller.bus.transact(self.guard.halt_requests(), deadline_s)
-        self._send_failing = False
-        self.guard.take(replies, self.controller.axes, self._within, self.controller.clock.now())
-        if not self.guard.unacknowledged and self.machine.state is ArmState.HALTING:
-            self.machine.fire(ArmEvent.ACKNOWLEDGED)
-
-    def _within(self, i: int, q_deg: float) -> bool:
-        """Joint ``i`` at ``q_deg`` is inside its limits (with the measurement's tolerance)."""
-        watchdog = self.watchdog
-        return bool(watchdog.lower[i] <= q_deg <= watchdog.upper[i])
-
-    def _faulted_cycle(self, state: ArmState, start_s: float, deadline_s: float) -> None:
-        controller = self.controller
-        now = controller.clock.now()
-        if self._clear_request.is_set() and state in (ArmState.HOLDING, ArmState.COMPLYING, ArmState.HALTED):
-            self._clear_request.clear()
-            try:
-                follower = controller.follower
-                if state is ArmState.HOLDING and follower is not None and follower.moving:
-                    self._clear_result = MotionFault(
-                        FaultKind.CLEAR_FAILED, time_s=now, detail="the stop ramp is still running: clear() once ended"
-                    )
-                else:
-                    self._do_clear(start_s, deadline_s)
-            finally:
-                self._clear_done.set()
-            return
-        if self._estop_request is not None:  # while holding: escalates to the drives' own halt; else sent again
-            reason, self._estop_request = self._estop_request, None
-            raise MotionFault(reason, time_s=now, detail=f"E-stop requested while {state.value}")
-        if state is ArmState.COMPLYING and self.gravity is not None:
-            extra = self._next_status_reads()
-            try:
-                replies = controller.comply_step(start_s, deadline_s, self.gravity, extra=extra)
-                self.watchdog.evaluate(replies, controller.clock.now(), complying=True)
-            except MotionFault as fault:  # communication, a drive, a limit: the drives' own halt
-                self._halt(fault, -1, start_s, deadline_s)
-            return
-        if state is ArmState.HOLDING:
-            self._holding_cycle(start_s, deadline_s)
-            return
-        if state is ArmState.HALTING and self._halt_until_s is None:
-            # reached through the safe state of the table: no halt went out yet
-            unsent = MotionFault(FaultKind.STATE, time_s=now, detail="halting without a halt sent")
-            self.fault = unsent
-            self.faults.append(unsent)
-            logger.error("halting every axis: %s", unsent)
-            sent = self._start_halt(now, deadline_s, self._halt_code)
-            self.halts.append(HaltRecord(unsent, -1, now, sent, Reaction(self._halt_code.name)))
-            return
-        self._halted_cycle(state, start_s, deadline_s)
-
-    def _holding_cycle(self, start_s: float, deadline_s: float) -> None:
-        """The stop ramp, then the hold, streamed; a fault the hold is not for halts, and so does a hold that does not
-        hold (:meth:`_hold_escalation`), whatever fault the hold is for or this cycle found besides."""
-        controller = self.controller
-        extra = self._next_status_reads()
-        check = self.watchdog.check_setpoint  # the stop ramp must not pass a limit either
-        try:
-            replies = controller.step(start_s, deadline_s, extra=extra, check=check, apply_pending=False)
-            self.watchdog.evaluate(replies, controller.clock.now())
-        except MotionFault as fault:
-            if not fault.kind.holdable:
-                self._halt(fault, -1, start_s, deadline_s)  # the drives' own halt
-                return
-            # the kind of fault the hold is for (a motor that stays hot while it cools): the hold goes on, unless...
-        escalation = self._hold_escalation(controller.clock.now())
-        if escalation is not None:
-            self._halt(escalation, -1, start_s, deadline_s)
-
-    def _hold_escalation(self, now_s: float) -> MotionFault | None:
-        """A hold that does not hold: a joint that does not follow even the hold (whose ramp starts from the measured
-        state, so that a joint that follows has no error) for :data:`HOLD_ESCALATION_CYCLES`, or a torque current at
-        its limit for :data:`HOLD_AT_LIMIT_S` — a blocked joint, or one pushed: never pushed against for ever."""
-        controller, following = self.controller, self.watchdog.following
-        if following is None:
-            self._hold_strikes = 0
-        else:
-            self._hold_strikes += 1
-            if self._hold_strikes >= HOLD_ESCALATION_CYCLES:
-                return MotionFault(
-                    FaultKind.HOLD_FAILED,
-                    joint=following.joint,
-                    value=following.value,
-                    threshold=following.threshold,
-                    time_s=following.time_s,
-                    detail=f"{following.kind.value} persisted for {self._hold_strikes} cycles of the hold",
-                )
-        at_limit, magnitude = self._at_limit, self._iq_magnitude  # (kept between cycles: no array per cycle)
-        np.greater_equal(np.abs(controller.axes.iq_a, out=magnitude), self._current_limit_a, out=at_limit)
-        if self._torque_mode:
-            np.logical_or(at_limit, controller.limited, out=at_limit)
-        if not at_limit.any():
-            self._at_limit_since = math.nan
-        elif math.isnan(self._at_limit_since):
-            self._at_limit_since = now_s
-        elif now_s - self._at_limit_since >= HOLD_AT_LIMIT_S:
-            i = int(np.argmax(at_limit))
-            return MotionFault(
-                FaultKind.HOLD_FAILED,
-                joint=self.watchdog.names[i],
-                value=float(controller.axes.iq_a[i]),
-                threshold=float(self._current_limit_a[i]),
-                time_s=now_s,
-                detail=f"torque current at its limit for {now_s - self._at_limit_since:.3f} s of the hold (blocked?)",
-            )
-        return None
-
-    def _halted_cycle(self, state: ArmState, start_s: float, deadline_s: float) -> None:
-        """HALTING and HALTED: every drive gets a frame (its halt while it is not known to be halted, else a state
-        read; see :mod:`motion.safety.halted`), joints that leave their limits and drives that restarted are faults
-        of their own, and braked joints lock once at rest."""
-        controller = self.controller
-        requests = self.guard.requests()
-        requests.extend(self._next_status_reads())
-        controller.last_replies = _NO_REPLIES
-        try:
-            replies = controller.step(start_s, deadline_s, extra=requests, command=False, apply_pending=False)
-        except TransportError:
-            raise
-        except Exception:
-            replies = controller.last_replies  # a cycle hook failed after the exchange: its replies are taken in
-            if replies is _NO_REPLIES:  # the cycle failed before its exchange: the frames go out all the same
-                budget = controller.options.reply_budget
-                replies = controller.bus.transact(requests, start_s + budget * (deadline_s - start_s))
-                controller.absorb(replies)
-            self._take_halted(state, replies)
-            raise
-        self._take_halted(state, replies)
-
-    def _take_halted(self, state: ArmState, replies: list[Reply]) -> None:
-        """The halted cycle's replies: acknowledgements, drives driving or swinging, limits, restarts, and the end of
-        HALTING."""
-        controller, guard = self.controller, self.guard
-        self._send_failing = False
-        now = controller.clock.now()
-        axes = controller.axes
-        driving, outside, swinging = guard.take(replies, axes, self._within, now)
-        names = self.watchdog.names
-        for i in driving:
-            logger.warning("%s reads as driving while halted: its halt is sent again", names[i])
-        for i in outside:
-            detail = "beyond its limits while halted (its halt is sent again)"
-            self._record(
-                MotionFault(
-                    FaultKind.POSITION_LIMIT, joint=names[i], value=float(axes.q_deg[i]), time_s=now, detail=detail
-                )
-            )
-        for i in swinging:
-            self._record(self._swinging(i, now))
-        for fault in self.watchdog.restarts(replies, now):
-            if fault.joint not in self.lost_frames:
-                self.lost_frames.add(str(fault.joint))
-                self._record(fault)
-        if state is ArmState.HALTING and self._halt_until_s is not None:
-            if guard.unacknowledged and now < self._halt_until_s:
-                return
-            if guard.unacknowledged:
-                logger.error(
-                    "drives %s did not acknowledge the halt within %g s: it is sent to them every cycle while the "
-                    "session is open",
-                    sorted(guard.unacknowledged),
-                    self.settings.halt_retry_s,
-                )
-            self.machine.fire(ArmEvent.ACKNOWLEDGED)
-
-    def _swinging(self, i: int, now_s: float) -> MotionFault:
-        """Joint ``i`` swings back and forth, or runs on, although halted (its drive's own 0x81 hold does not hold it):
-        released with 0x80 where gravity cannot move it (its gravity torque here within its Coulomb friction), else kept
-        at 0x81."""
-        controller = self.controller
-        gravity = self.gravity
-        friction = self.settings.coulomb_friction_nm
-        load_nm = math.inf
-        if gravity is not None and friction:
-            zero = np.zeros(len(self.ids))
-            load_nm = abs(float(gravity(controller.axes.q_deg, zero, zero)[i]))
-        braked = self.ids[i] in self.drives.braked_ids  # its brake locks once at rest: never released
-        released = not braked and load_nm <= (friction[i] if friction else -math.inf)
-        if released:
-            self.guard.release(i)
-        what = (
-            f"released with 0x80 (gravity there {load_nm:.3f} N·m, within its friction)"
-            if released
-            else "kept at 0x81: gravity may load it beyond its friction; check the drive's position-loop tuning"
-        )
-        return MotionFault(
-            FaultKind.HOLD_FAILED,
-            joint=self.watchdog.names[i],
-            value=float(controller.axes.q_deg[i]),
-            time_s=now_s,
-            detail=f"its drive's own hold (0x81) does not hold it (it swings, or runs on): {what}",
-        )
-
-    def _record(self, fault: MotionFault) -> None:
-        """A fault seen while halted: recorded and logged; the halt in force stays (the drive concerned gets it
-        again)."""
-        logger.error("while %s: %s", self.machine.state.value, fault)
-        self.faults.append(fault)
-        now = self.controller.clock.now()
-        self.halts.append(HaltRecord(fault, -1, now, now, Reaction(self._halt_code.name)))
-
-    def _do_clear(self, start_s: float, deadline_s: float) -> None:
-        controller = self.controller
-        requests = self._clear_requests + self._state_reads
-        replies: list[Reply] = controller.bus.transact(requests, max(deadline_s, controller.clock.now() + 0.005))
-        controller.absorb(replies)
-        problems = self._clear_problems(replies)
-        if problems:
-            self._clear_result = MotionFault(
-                FaultKind.CLEAR_FAILED, time_s=controller.clock.now(), detail="; ".join(problems)
-            )
-            return
-        q = controller.axes.positions()
-        if controller.follower is None:
-            self._clear_result = MotionFault(
-                FaultKind.CLEAR_FAILED, time_s=controller.clock.now(), detail="no follower"
-            )
-            return
-        if self.guard.locked:
-            self._release_brakes(max(deadline_s, controller.clock.now() + 0.005))
-        controller.discard_pending()  # nothing queued while faulted may start after the clear
-        controller.follower.hold_at(q)
-        controller.reference = State.at_rest(q)
-        self.fault = None
-        self._halt_until_s = None
-        self.guard.reset()
-        self._exception_origin = None
-        self._clear_result = None
-        self.watchdog.start(controller.clock.now())
-        self.machine.fire(ArmEvent.CLEARED)
-
-    def _release_brakes(self, deadline_s: float) -> None:
-        """0x77 to the braked joints, locked since the halt with their drives off. A release that fails halfway
-        (a drive did not answer) locks every brake again at once: a released brake on a drive that is off lets its
-        joint fall (0x81 leaves an off drive off), and the joints stood at rest until now.
-
-        Raises:
-            TransportError: the release failed (the brakes were locked again, as far as the drives answered).
-        """
-        guard = self.guard
-        try:
-            self.drives.release_brakes(deadline_s)
-        except TransportError:
-            controller = self.controller
-            lock = self._bare(CommandV3.LOCK_BRAKE)
-            guard.locked.clear()  # each counts as locked again once its drive acknowledges the lock
-            try:
-                replies = controller.bus.transact(
-                    [Request(i, lock) for i in guard.braked_ids], controller.clock.now() + self._end_window_s
-                )
-                guard.take(replies, controller.axes, self._within, controller.clock.now())
-            except TransportError as exc:
-                logger.error("the brakes could not be locked again after a failed release: %s", exc)
-            raise
-
-    def _clear_problems(self, replies: list[Reply]) -> list[str]:
-        names = {s.motor_id: s.name for s in self.controller.specs}
-        settings = self.settings
-        limits = dict(zip(self.ids, settings.temperature_limit_c, strict=True))
-        problems = []
-        status = {r.motor_id: r.message for r in replies if isinstance(r.message, STATUS_TYPES)}
-        state = {r.motor_id: r.message for r in replies if isinstance(r.message, STATE_TYPES)}
-        for motor_id in self.ids:
-            s, m = status.get(motor_id), state.get(motor_id)
-            name = names[motor_id]
-            if s is None or m is None:
-                problems.append(f"{name}: no reply")
-                continue
-            if s.errors:
-                problems.append(f"{name}: error flags {s.errors!r} still set")
-            if s.voltage_v < settings.min_voltage_v:
-                problems.append(f"{name}: supply {s.voltage_v:.1f} V below {settings.min_voltage_v:g} V")
-            if max(s.temperature_c, m.temperature_c) >= limits[motor_id]:
-                problems.append(f"{name}: temperature {s.temperature_c} °C at or above {limits[motor_id]:g} °C")
-        for name in sorted(self.lost_frames):
-            problems.append(
-                f"{name}: its drive restarted (power) and the joint's position is no longer known (its turn count is "
-                "lost): close the arm and connect again, where its power-on window or homing (Arm(..., home=[...]), "
-                "rmd-motion home) establishes it"
-            )
-        q = self.controller.axes.q_deg
-        lower, upper = self.watchdog.lower, self.watchdog.upper
-        for i, spec in enumerate(self.controller.specs):
-            if not lower[i] <= q[i] <= upper[i]:
-                problems.append(
-                    f"{spec.name}: at {q[i]:.2f} deg, outside its limits {lower[i]:g}..{upper[i]:g} deg "
-                    "(move it back by hand with the drives off: rmd-motion off)"
-                )
-        return problems
-
-
-def _origin(exc: BaseException) -> tuple[str, str, int]:
-    """Where ``exc`` was raised: its type, and the file and line of its innermost frame."""
-    tb = exc.__traceback__
-    if tb is None:
-        return type(exc).__qualname__, "", 0
-    while tb.tb_next is not None:
-        tb = tb.tb_next
-    return type(exc).__qualname__, tb.tb_frame.f_code.co_filename, tb.tb_lineno
-
-
-def _same_cause(a: MotionFault, b: MotionFault) -> bool:
-    """Whether two faults report the same cause (kind, joint and detail; values and times aside)."""
-    return a.kind is b.kind and a.joint == b.joint and a.detail == b.detail
-
-
-def _emergency_stop(controller: Controller, ids: tuple[int, ...], bare: Callable[[int], Message]) -> None:
-    """Garbage collection / process exit: end the loop, then 0x81 to every axis (best effort, never raises)."""
-    try:
-        controller.shutdown(1.0)
-        if not controller.bus.closed:
-            requests = [Request(i, bare(Command.MOTOR_STOP)) for i in ids]
-            controller.bus.transact(requests, controller.clock.now() + 0.02)
-    except Exception as exc:  # at exit there is nobody to raise to; leave a trace
-        logger.error("emergency stop failed: %s: %s", type(exc).__name__, exc)

@@ -8,20 +8,9 @@ replies (consecutive misses and time since the last good reply), corrupt frames,
 limits, collisions (the momentum observer's residual per joint against its threshold), following error, and
 scheduler overrun streaks. The planned set-point is checked before it is sent.
 
-The collision observer is injected (:class:`CollisionObserver`; :func:`motion.compose.collision_observer_for` builds
-it on the arm's Pinocchio model): this package never imports the model. It is updated in every evaluated cycle in
-which every joint's state reply arrived, from the measured angles, speeds and torque currents of the cycle.
-
-What is held against a joint's threshold is the *collision signal*: the residual's change over the last
-``collision_window_s`` (with 0, the residual itself). A collision is a torque step, which the residual takes up
-within a few cycles; what the model gets wrong changes slowly along the motion and mostly cancels in the difference.
-What does not cancel is bounded (:mod:`motion.safety.collision_bound`: the model error a drive may have, the steps of
-the reply fields, the current between two samples), and the threshold in force is the joint's configured
-``collision_threshold_nm`` (``rmd-motion collision-calibrate`` proposes it) or that bound, whichever is higher: no
-calibration takes the check below what a drive within the stated bounds can show. A contact that builds up more
-slowly than the window is left to the following error. The check is armed
-:data:`COLLISION_SETTLE_TIME_CONSTANTS` of the observer plus the window after it (re)starts (loop start, ``clear()``):
-there the drives take up their whole load at once, and any model error of that load is a step of the residual.
+The collision check (the injected momentum observer, its signal and the threshold in force) is
+:mod:`motion.safety.collision`; the watchdog runs it in every evaluated cycle and gives its figures out under its own
+names (``collision_signal_nm``, ``collision_limit_nm`` ...).
 """
 
 from __future__ import annotations
@@ -29,10 +18,8 @@ from __future__ import annotations
 import collections
 import math
 from dataclasses import dataclass
-from typing import Protocol
 
 import numpy as np
-from numpy.typing import ArrayLike
 
 from motion.config.schema import ControlMode, HaltPolicy
 from motion.control.controller import Controller
@@ -41,10 +28,13 @@ from motion.errors import FaultKind, MotionFault
 from motion.protocol import MultiTurnAngle, Status1
 from motion.protocol.table import Direction, WireProtocol, field_range
 from motion.protocol.v3.messages import CommandV3, Runtime, Status1V3
-from motion.safety.collision_bound import MODEL_ERROR, CollisionBound, Window
+from motion.safety.collision import CollisionCheck, CollisionObserver
+from motion.safety.collision_bound import MODEL_ERROR
 from motion.trajectory import State
 from motion.transmission import FloatArray
 from motion.transport import Reply
+
+__all__ = ["CollisionObserver", "SafetySettings", "Watchdog"]  # (the observer's type: where it was declared before)
 
 # Measured positions may pass a joint limit by this much (encoder resolution, drive overshoot), deg.
 POSITION_LIMIT_TOLERANCE_DEG = 0.1
@@ -76,46 +66,6 @@ _MOVING_DPS = 1.0
 #: the phase of the exchange's sample and of the drive's loops against the model's (a blocked joint falls short by
 #: its whole speed, far beyond that).
 SLIP_PHASE_CYCLES = 2.0
-#: Observer time constants (1 / K_O) after a (re)start before collisions are checked, on top of the window: the
-#: residual of the drives taking up their load settles (1 - exp(-3.5) = 97 %).
-COLLISION_SETTLE_TIME_CONSTANTS = 3.5
-
-
-class CollisionObserver(Protocol):
-    """An estimate of the external joint torques (``kinematics.observer.MomentumObserver``)."""
-
-    #: The observer gain K_O, 1/s.
-    gain_per_s: float
-
-    @property
-    def error_terms(self) -> FloatArray:
-        """The filtered motor, rotor-inertial and friction torques and the sampling bound (4 × joints, N·m) of the
-        latest step."""
-        ...
-
-    @property
-    def mass_kgm2(self) -> FloatArray:
-        """M(q) at the latest step, kg·m² (joints × joints)."""
-        ...
-
-    @property
-    def coulomb_nm(self) -> FloatArray:
-        """The modelled Coulomb friction per joint, N·m."""
-        ...
-
-    @property
-    def coulomb_smoothing_dps(self) -> float:
-        """The half-width of the Coulomb model's smoothing, deg/s."""
-        ...
-
-    def reset(self, q_deg: ArrayLike, qd_dps: ArrayLike) -> None:
-        """Start (again) from this state: the residual is zero."""
-        ...
-
-    def update(self, q_deg: ArrayLike, qd_dps: ArrayLike, tau_motor_nm: ArrayLike, dt_s: float) -> FloatArray:
-        """One step with the measured state and the joint torques of the measured currents; returns the residual
-        per joint, N·m (the observer's array, overwritten by the next step)."""
-        ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -223,30 +173,22 @@ class Watchdog:
         self._change = np.zeros(n)
         self._expected_before = np.zeros(n)  # the model's and the reference's speeds at the previous check
         self._reference_before = np.zeros(n)
-        thresholds = settings.collision_threshold_nm
-        self.collision_threshold = np.array(thresholds, dtype=np.float64) if thresholds else np.full(n, np.inf)
-        if self.collision_threshold.shape != (n,):
-            raise ValueError(f"collision_threshold_nm: expected {n} values (one per joint), got {len(thresholds)}")
-        self._tau_motor = np.zeros(n)
-        self._over = np.zeros(n, dtype=bool)
         self._share = np.zeros(n)
-        self._observed_s = math.nan  # when the observer last stepped; NaN: reset it at the next step
+        #: The collision check (:mod:`motion.safety.collision`), run in every evaluated cycle.
+        self.collision = CollisionCheck(
+            controller, observer, settings.collision_threshold_nm, settings.collision_window_s
+        )
+        # (its arrays, updated in place: the published snapshot holds them)
+        #: The configured collision threshold per joint, N·m (inf: not watched).
+        self.collision_threshold = self.collision.threshold
         #: The latest residual per joint, N·m (NaN before the first observer step).
-        self.residual_nm = np.full(n, np.nan)
+        self.residual_nm = self.collision.residual_nm
         #: The latest collision signal per joint (the residual's change over the window), N·m.
-        self.collision_signal_nm = np.full(n, np.nan)
+        self.collision_signal_nm = self.collision.signal_nm
         #: The latest threshold in force per joint: the configured one, or the bound where that is higher, N·m.
-        self.collision_limit_nm = self.collision_threshold.copy()
-        self._bound = CollisionBound(controller, observer) if observer is not None else None
-        self._zero_bound = np.zeros(n)
-        self._window = Window(settings.collision_window_s, controller.period_s, n)
-        self._steps = 0  # observer steps since its (re)start
-        self._reset_s = math.nan  # when it (re)started
-        settle = COLLISION_SETTLE_TIME_CONSTANTS / observer.gain_per_s if observer is not None else 0.0
+        self.collision_limit_nm = self.collision.limit_nm
         #: How long after the observer (re)starts the collision check is armed, s.
-        self.collision_arming_s = settle + settings.collision_window_s
-        #: The loop cycle count of the cycle that computed :attr:`residual_nm` (-1: none yet).
-        self.residual_cycle = -1
+        self.collision_arming_s = self.collision.arming_s
 
     def start(self, now_s: float) -> None:
         """Reset the reply clocks (at loop start or after a clear)."""
@@ -260,7 +202,7 @@ class Watchdog:
             self._corrupt[i].clear()
         self._overruns_seen = self.controller.loop.overruns
         self._overrun_streak = 0
-        self._observed_s = math.nan
+        self.collision.restart()
         self.restart_following()
 
     def rehearse(self, replies: list[Reply], now_s: float) -> None:
@@ -283,6 +225,10 @@ class Watchdog:
             MotionFault: kind ``setpoint_limit``.
         """
         self._check_limits(reference.position, FaultKind.SETPOINT_LIMIT, "planned set-point outside the limits")
+
+    def within(self, i: int, q_deg: float) -> bool:
+        """Joint ``i`` at ``q_deg`` is inside its limits (with the measurement's tolerance)."""
+        return bool(self.lower[i] <= q_deg <= self.upper[i])
 
     def _check_limits(self, q: FloatArray, kind: FaultKind, detail: str) -> None:
         outside = (q < self.lower) | (q > self.upper)
@@ -355,8 +301,7 @@ class Watchdog:
         self._check_corrupt(now_s)
         q = self.controller.axes.q_deg
         self._check_limits(q, FaultKind.POSITION_LIMIT, "measured position beyond the limit")
-        if self.observer is not None and self._observe(now_s) and not complying and self.collision_armed:
-            self._check_collision()
+        self.collision.run(check=not complying)
         if complying:  # no reference to follow, so no expectation either until the arm follows one again
             self.restart_following()
             self.following = None
@@ -380,71 +325,27 @@ class Watchdog:
         if held is not None:
             raise held
 
-    def _observe(self, now_s: float) -> bool:
-        """Step the observer with the cycle's measurements (sampled when the cycle's exchange went out); False when a
-        joint's state reply is missing (the next complete cycle integrates over the gap)."""
-        observer, axes = self.observer, self.controller.axes
-        assert observer is not None and self._bound is not None
-        if not axes.fresh.all():
-            return False
-        sampled_s = self.controller.exchanged_s
-        residual, signal, window = self.residual_nm, self.collision_signal_nm, self._window
-        if math.isnan(self._observed_s):
-            observer.reset(axes.q_deg, axes.qd_dps)
-            self._bound.restart()
-            dt_s = 0.0
-            residual[:] = 0.0
-            window.clear()
-            self._steps = 0
-            self._reset_s = sampled_s
-        else:
-            tau = self.controller.transmission.joint_torque_nm(axes.iq_a, out=self._tau_motor)
-            dt_s = sampled_s - self._observed_s
-            residual[:] = observer.update(axes.q_deg, axes.qd_dps, tau, dt_s)
-        terms = self._bound.step(dt_s)
-        base = window.push(sampled_s, residual, terms)
-        if self.settings.collision_window_s:
-            np.subtract(residual, window.residual[base], out=signal)
-        else:
-            signal[:] = residual
-        self._bound.limit(window, base, self.collision_threshold, out=self.collision_limit_nm)
-        self._observed_s = sampled_s
-        self._steps += 1
-        self.residual_cycle = self.controller.loop.cycles
-        return True
+    @property
+    def residual_cycle(self) -> int:
+        """The loop cycle count of the cycle that computed :attr:`residual_nm` (-1: none yet)."""
+        return self.collision.residual_cycle
 
     @property
     def collision_bound_nm(self) -> FloatArray:
         """The latest bound of the collision signal per joint, N·m (:mod:`motion.safety.collision_bound`; zeros
-        without an observer): the watchdog's array."""
-        return self._bound.bound_nm if self._bound is not None else self._zero_bound
+        without an observer): the check's array."""
+        return self.collision.bound_nm
 
     @property
     def collision_guarding(self) -> bool:
         """Whether a collision check runs: an observer, and a threshold on at least one joint."""
-        return self.observer is not None and bool(np.isfinite(self.collision_threshold).any())
+        return self.collision.guarding
 
     @property
     def collision_armed(self) -> bool:
         """Whether the latest collision signal was (or would have been) held against the thresholds: the observer
         has settled since its (re)start (calibration looks only at these cycles)."""
-        return self._steps > 1 and self._observed_s - self._reset_s >= self.collision_arming_s
-
-    def _check_collision(self) -> None:
-        residual, threshold, over = self.collision_signal_nm, self.collision_limit_nm, self._over
-        np.abs(residual, out=self._share)
-        np.greater(self._share, threshold, out=over)
-        if not over.any():
-            return
-        self._share /= threshold
-        worst = int(np.argmax(self._share))
-        hit = [self.names[i] for i in np.flatnonzero(over)]
-        detail = "collision signal (residual change): " + ", ".join(
-            f"{self.names[i]} {residual[i]:+.2f} N·m (threshold {threshold[i]:.3g})" for i in np.flatnonzero(over)
-        )
-        fault = self._fault(FaultKind.COLLISION, worst, float(residual[worst]), float(threshold[worst]), detail)
-        fault.joints = tuple(hit)
-        raise fault
+        return self.collision.armed
 
     @property
     def following_error_deg(self) -> FloatArray:

@@ -41,7 +41,7 @@ _PLOT_SERIES = (
     ("signal", "threshold in force"),
 )
 _SERIES_COLORS = ("#f0a028", "#999999", "#466ebe")
-_FAULTED_STATES = frozenset({"holding", "halting", "halted", "complying", "bus_lost"})
+_FAULTED_STATES = frozenset({"holding", "halt_pending", "halting", "halted", "complying", "bus_lost"})
 
 
 @dataclass(frozen=True, slots=True)
