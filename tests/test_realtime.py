@@ -7,6 +7,7 @@ axis before the port is released, and nothing moves the drives after that.
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import time
 from pathlib import Path
@@ -15,9 +16,12 @@ import pytest
 
 from motion.api import Arm
 from motion.config import load_config
+from motion.config.schema import ControlMode
 from motion.control.ratecheck import RateError
 from motion.safety import ArmState
+from motion.transport import CanTransport
 from tests.motion_rig import CONFIGS
+from tests.test_cli import running_emulator
 
 pytestmark = pytest.mark.realtime
 
@@ -70,3 +74,31 @@ def test_closing_the_bus_under_a_running_loop_halts_every_axis_before_the_port_g
     last_stop = max(stops.values())
     assert all(t < min(stops.values()) for t, _ in setpoints), "no set-point after the first 0x81"
     assert last_stop - min(stops.values()) < controller.period_s  # one cycle's batch
+
+
+def test_an_arm_runs_on_a_transport_the_caller_made(tmp_path: Path) -> None:
+    # issue 32 §3: Arm(config, bus=...) takes a transport made elsewhere (here a python-can slcan bus on the pty of
+    # `rmd-motion emulate`) instead of opening the configured one, and closes it with the arm
+    config = load_config(CONFIGS / "arm2.yaml")
+    # (position mode: arm2's torque-mode gains are tuned for its 500 Hz, and a busy host may hold only the lowest rate)
+    control = dataclasses.replace(config.control, rate_hz=MIN_RATE_HZ, mode=ControlMode.POSITION)
+    config = dataclasses.replace(config, control=control)
+    with running_emulator(tmp_path, CONFIGS / "arm2.yaml", "--slcan-link") as emulated:
+        bus = CanTransport("slcan", emulated.bus_args[-1], sleep_after_open=0)
+        with pytest.raises(ValueError, match="takes the place of emulate= and bus_overrides="):
+            Arm(config, bus=bus, emulate=True)
+        with pytest.raises(TypeError, match="expected a motion.transport.Transport, got str"):
+            Arm(config, bus="can0")  # type: ignore[arg-type]
+        arm = Arm(config, bus=bus)
+        try:
+            arm.connect()
+        except RateError as refused:
+            pytest.skip(f"the rate check refused {MIN_RATE_HZ:g} Hz on this host just now: {refused}")
+        try:
+            assert arm.bus is bus
+            arm.move_to({"shoulder": 10.0, "elbow": -10.0}, speed_scale=0.5)
+            reached = arm.positions()
+        finally:
+            arm.close()
+        assert reached == pytest.approx({"shoulder": 10.0, "elbow": -10.0}, abs=0.5)
+        assert bus.closed

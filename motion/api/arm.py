@@ -94,6 +94,9 @@ class Arm:
             (the others at 0), so that they know each joint only modulo ``360 / gear_ratio``, as real drives do;
             connect then resolves the turns as on hardware (unlike ``initial_deg``: drives powered up at the zero
             pose, which has since moved there).
+        bus: a transport the caller made (a :class:`~motion.transport.Transport`: a kind of link rmd-motion has no
+            backend for, a python-can bus set up elsewhere) to use instead of opening the configured bus; the arm takes
+            it over and closes it when it closes (not with ``emulate`` or ``bus_overrides``).
         view: show the arm live in the browser while connected (``True``: on 127.0.0.1:8080; or a
             :class:`ViewOptions`); see :mod:`motion.view` (the ``view`` extra). In simulated emulation the
             simulation is then paced to the wall clock, so that the page shows the motion at its speed.
@@ -115,7 +118,14 @@ class Arm:
         start_pose: Mapping[str, float] | None = None,
         view: bool | ViewOptions = False,
         emulated_protocol: ProtocolFamily | str | None = None,
+        bus: Transport | None = None,
     ) -> None:
+        if bus is not None:
+            if not isinstance(bus, Transport):
+                raise TypeError(f"bus: expected a motion.transport.Transport, got {type(bus).__name__}")
+            if emulate or bus_overrides:
+                raise ValueError("bus: a transport of the caller's own takes the place of emulate= and bus_overrides=")
+        self._given_bus = bus
         self.config = config
         self._view_options = ViewOptions() if view is True else (view or None)
         #: The live page while connected with ``view=`` (see :mod:`motion.view`; ``view.url`` says where).
@@ -208,6 +218,8 @@ class Arm:
             if self.emulation == "simulated":
                 self.bus, clock = self._start_simulation()
                 self._stack.callback(self.bus.close)
+            elif self._given_bus is not None:  # the caller's transport: the arm takes it over (closed with the arm)
+                self.bus = self._stack.enter_context(self._given_bus)
             else:
                 if self.emulation == "realtime":
                     self._start_emulator_process()
