@@ -43,6 +43,7 @@ from motion.safety.watchdog import CollisionObserver, Watchdog
 from motion.trajectory import JointLimits
 from motion.transmission import FloatArray
 from motion.transport import Transport, open_transport
+from motion.transport.identity import read_identities
 
 if TYPE_CHECKING:
     from kinematics.figure import ArmFigure
@@ -166,16 +167,16 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
 
 def describe_drives(bus: Transport, ids: Sequence[int], wire: WireProtocol) -> str:
     """``"motor 1 X8S2V10 firmware 20240528, ..."``: what each drive tells of its model and firmware, as read now
-    (a drive that does not answer is named so); empty where the generation has no such read on ``wire``.
+    (a drive that does not answer is named so) and kept in ``bus.identities``; empty where the generation has no such
+    read on ``wire``.
 
     Raises:
         TransportError: the bus failed.
     """
-    from motion.transport.detect import read_identities  # noqa: PLC0415 - the CAN backend only where it is used
-
     if not bus.generation.identity_reads[wire]:
         return ""
     told = read_identities(bus, ids, wire, GENERATION_CHECK_WINDOW_S)
+    bus.identities.update(told)
     return ", ".join(f"motor {i} {told[i].text if i in told else '(no answer)'}" for i in ids)
 
 

@@ -24,9 +24,19 @@ from motion.control.ratecheck import RateError
 from motion.emulator import parse_fault
 from motion.emulator.drive_v3 import EmulatedDriveV3
 from motion.emulator.simulated import DEFAULT_BITRATE
-from motion.errors import ConfigError, FaultKind, MotionFault
+from motion.errors import ConfigError, EncodeError, FaultKind, MotionFault, PlanningError
 from motion.protocol.table import ProtocolFamily
-from motion.protocol.v3.messages import AccelerationIndex, BareV3, BrakeCommand, CommandV3, MotorStateV3, Runtime
+from motion.protocol.v3 import frames as frames_v3
+from motion.protocol.v3.messages import (
+    AccelerationIndex,
+    BareV3,
+    BrakeCommand,
+    CommandV3,
+    MotionCommand,
+    MotorStateV3,
+    Runtime,
+)
+from motion.protocol.v3.motion_frame import V42_RANGES
 from motion.safety import ArmState
 from motion.transport.base import Request
 from motion.transport.can_transport import CanTransport
@@ -60,6 +70,21 @@ def v3_drive(arm: Arm, motor_id: int) -> EmulatedDriveV3:
     drive = arm.simulation.emulator.drives[motor_id]
     assert isinstance(drive, EmulatedDriveV3)
     return drive
+
+
+def test_the_motion_frame_ranges_of_each_drive_come_from_what_it_told_at_connect() -> None:
+    # issue 31 §6: the connect keeps each V3 drive's firmware date (0xB2) and model (0xB5); the motion frame's ranges
+    # follow from them (the emulated drives: firmware 20240528, V4.2's ranges), and a command on them goes out
+    with Arm(arm2(), emulate=True, emulated_protocol="v3") as arm:
+        ranges = arm.motion_ranges("elbow")
+        assert ranges == V42_RANGES
+        assert arm.bus is not None and arm.bus.identities[2].firmware_date == 20240528
+        frame = frames_v3.encode_can_request(MotionCommand(0.1, 0.0, 5.0, 0.5, 0.0, ranges), 2)
+        assert frame.arbitration_id == 0x402
+        with pytest.raises(PlanningError, match="unknown joint 'wrist'"):
+            arm.motion_ranges("wrist")
+    with Arm(arm2(), emulate=True) as older, pytest.raises(EncodeError, match="told at connect"):
+        older.motion_ranges("elbow")  # the older family has no motion frame, nor a firmware date to read
 
 
 def test_a_move_on_v3_drives_detected_at_connect_reaches_its_target_with_the_sessions_drive_settings(

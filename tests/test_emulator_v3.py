@@ -23,6 +23,7 @@ from motion.compose import negotiate_family
 from motion.config import ArmConfig, parse_config
 from motion.config.schema import ProtocolSetting
 from motion.emulator import DriveModel, Emulator, Fault, InjectedFault, LoadModel, VirtualCanAttachment
+from motion.emulator.drive_v3 import MODEL_NAME, VERSION_DATE
 from motion.emulator.simulated import SimulatedBus, Simulation
 from motion.errors import ConfigError, TransportError
 from motion.protocol import CanFrame, MultiTurnAngle, MultiTurnPositionSpeed, SpeedControl, TorqueControl
@@ -58,6 +59,7 @@ from motion.protocol.v3.messages import (
     SystemErrorFlags,
     VersionDate,
 )
+from motion.protocol.v3.motion_frame import motion_ranges
 from motion.transport.base import Request
 from motion.transport.can_endpoint import CanEndpoint
 from motion.transport.can_transport import CanTransport
@@ -253,11 +255,12 @@ def test_parameters_live_in_ram_and_rom_and_reset_restores_rom() -> None:
 def test_the_motion_frame_runs_the_drives_own_pd() -> None:
     emulator = _emulator()
     target = math.radians(30.0)
-    reply = emulator.request(1, MotionCommand(target, 0.0, 20.0, 1.0, 0.0))
+    ranges = motion_ranges(VERSION_DATE, MODEL_NAME)  # (what the drive says of itself at 0xB2 / 0xB5)
+    reply = emulator.request(1, MotionCommand(target, 0.0, 20.0, 1.0, 0.0, ranges))
     assert isinstance(reply[0][1], MotionState) and reply[0][1].motor_id == 1
     for _ in range(100):
         emulator.advance(0.01)
-        state = emulator.request(1, MotionCommand(target, 0.0, 20.0, 1.0, 0.0))[0][1]
+        state = emulator.request(1, MotionCommand(target, 0.0, 20.0, 1.0, 0.0, ranges))[0][1]
     assert isinstance(state, MotionState) and state.position_rad == pytest.approx(target, abs=0.02)
 
 

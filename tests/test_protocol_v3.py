@@ -26,7 +26,7 @@ from motion.protocol import (
 )
 from motion.protocol.messages import Message
 from motion.protocol.table import Direction, WireProtocol, unpack_fields
-from motion.protocol.v3 import COMMANDS_V3, frames
+from motion.protocol.v3 import COMMANDS_V3, frames, motion_frame
 from motion.protocol.v3.messages import (
     AccelerationIndex,
     AccelerationRead,
@@ -196,7 +196,7 @@ def test_the_motion_frame_of_the_documents_example() -> None:
     assert (state.velocity_rad_s, state.torque_nm) == pytest.approx((1.0220, 10.004), abs=1e-3)
     assert frames.encode_can_reply(state, 1).data.hex(" ") == "01 e6 65 82 eb 55 00 00"
     with pytest.raises(EncodeError, match=r"kp.*0\.\.500"):
-        frames.encode_motion(MotionCommand(0.0, 0.0, 500.5, 0.0, 0.0))
+        motion_frame.encode_motion(MotionCommand(0.0, 0.0, 500.5, 0.0, 0.0, motion_frame.V42_RANGES))
     with pytest.raises(DecodeError, match="names drive 2"):
         frames.decode_can_reply(0x501, bytes.fromhex("02 E6 65 82 EB 55 00 00"))
 
@@ -290,7 +290,40 @@ def test_any_rs485_bytes_raise_only_decode_error(data: bytes, address: int) -> N
 @settings(max_examples=500, deadline=None)
 @given(st.binary(min_size=8, max_size=8))
 def test_the_motion_frame_round_trips_every_bit_pattern(data: bytes) -> None:
-    assert frames.encode_motion(frames.decode_motion(data)) == data
+    assert motion_frame.encode_motion(motion_frame.decode_motion(data)) == data
+    v44 = motion_frame.motion_ranges(motion_frame.V44_FIRST_FIRMWARE, "X6S2V20")
+    assert motion_frame.encode_motion(motion_frame.decode_motion(data, v44)) == data
+
+
+def test_the_motion_frame_ranges_follow_the_drives_firmware_and_model() -> None:
+    # issue 31 §6: firmware dated 2026042402 or later (0xB2) packs the motion frame onto V4.4's wider ranges: position
+    # ±12.566 rad, kd 0..50, torque ± the model's peak torque (X6 60, X8 129 N·m); kp and speed unchanged
+    v42 = motion_frame.motion_ranges(20240528, "X8S2V10")
+    assert v42 == motion_frame.V42_RANGES and v42.torque_nm == (-24.0, 24.0)
+    x6 = motion_frame.motion_ranges(2026042402, "X6S2V20")
+    x8 = motion_frame.motion_ranges(2026050101, "X8S2V10")
+    assert x6.torque_nm == (-60.0, 60.0) and x8.torque_nm == (-129.0, 129.0)
+    assert x6.position_rad == pytest.approx((-12.566, 12.566), abs=1e-3) and x6.kd == (0.0, 50.0)
+    assert (x6.kp, x6.velocity_rad_s) == (v42.kp, v42.velocity_rad_s)
+    # the dates as the drives report them (YYYYMMDD) or with a build number (YYYYMMDDNN)
+    assert motion_frame.motion_ranges(20260501, "X6S2V20") == x6
+    assert motion_frame.motion_ranges(2026042401, "X6S2V20") == v42 == motion_frame.motion_ranges(20260423, "X6")
+    with pytest.raises(EncodeError, match="that day's builds differ"):
+        motion_frame.motion_ranges(20260424, "X6S2V20")
+    # the same 10 N·m asked: on V4.2's ranges the X6 would read the bits as 25 N·m, 2.5 times as much
+    asked = MotionCommand(0.0, 0.0, 0.0, 0.0, 10.0, x6)
+    as_v42 = motion_frame.decode_motion(motion_frame.encode_motion(asked))
+    assert as_v42.torque_nm == pytest.approx(10.0 * 24.0 / 60.0, abs=0.02)
+    assert motion_frame.decode_motion(motion_frame.encode_motion(asked), x6).torque_nm == pytest.approx(10.0, abs=0.02)
+    with pytest.raises(EncodeError, match=r"torque_nm.*-60\.\.60 \(V4\.4 X6 \(60 N·m\)\)"):
+        motion_frame.encode_motion(MotionCommand(0.0, 0.0, 0.0, 0.0, 61.0, x6))
+    # unknown: refused, never guessed
+    with pytest.raises(EncodeError, match="motor series whose V4.4 torque range is known"):
+        motion_frame.motion_ranges(2026042402, "X12S2V10")
+    with pytest.raises(EncodeError, match=r"firmware date \(0xB2\)"):
+        motion_frame.motion_ranges(None, "X8S2V10")
+    with pytest.raises(EncodeError, match="the drive's motion-frame ranges"):
+        frames.encode_can_request(MotionCommand(0.0, 0.0, 0.0, 0.0, 1.0), 1)
 
 
 @given(st.floats(width=32, allow_nan=False, allow_infinity=False))

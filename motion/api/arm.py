@@ -36,11 +36,12 @@ from motion.control.tracking import PositionLoopFit
 from motion.control.turns import JointTurns, Source
 from motion.emulator import Fault, FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
-from motion.errors import FaultKind, MotionError, MotionFault, TransportError
+from motion.errors import EncodeError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
 from motion.homing import HomingResult, corrected_turns, finish_halt, homed_joints, homing_variant, seek_stop
 from motion.keep import load_turn_records, offer_stored_tracking, save_turn_records, store_tracking, turns_store
 from motion.protocol import WireProtocol
 from motion.protocol.table import ProtocolFamily
+from motion.protocol.v3.messages import MotionRanges
 from motion.safety import ArmState, Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
 from motion.transport import Transport
@@ -475,6 +476,29 @@ class Arm:
         """Measured joint angles, degrees (of the latest cycle's published snapshot)."""
         q = self._guard().controller.snapshot.position_deg
         return {name: float(q[i]) for i, name in enumerate(self.names)}
+
+    def motion_ranges(self, joint: str) -> MotionRanges:
+        """The ranges of ``joint``'s V3 drive for the motion frame (0x400: a ``MotionCommand`` needs them), from the
+        firmware date and model the drive told at connect (see :mod:`motion.protocol.v3.motion_frame`).
+
+        Raises:
+            MotionError: the arm is not connected.
+            PlanningError: no joint of that name.
+            EncodeError: the drive told no firmware date at connect (the older family has no motion frame), or its
+                firmware's ranges are not known for its model.
+        """
+        supervisor = self._guard()
+        ids = {j.name: j.motor_id for j in self.config.joints}
+        if joint not in ids:
+            raise PlanningError(f"motion_ranges: unknown joint {joint!r}; joints: {', '.join(ids)}")
+        motor_id = ids[joint]
+        identity = supervisor.controller.bus.identities.get(motor_id)
+        if identity is None:
+            raise EncodeError(
+                "firmware_date", "the drive's firmware date and model, told at connect (V3 drives)", None,
+                f"the motion frame of joint {joint} (motor {motor_id})",
+            )  # fmt: skip
+        return identity.motion_ranges()
 
     def move_to(self, targets: Mapping[str, float], *, speed_scale: float = 1.0, wait: bool = True) -> MotionHandle:
         """Move the named joints to their targets (degrees); the others keep their reference.

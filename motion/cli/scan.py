@@ -27,7 +27,8 @@ from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, ProtocolFamily, Wi
 from motion.protocol.v3.messages import Status1V3
 from motion.transport import Request, Transport
 from motion.transport.can_transport import CanTransport
-from motion.transport.detect import Identity, detect_can, read_identities
+from motion.transport.detect import detect_can
+from motion.transport.identity import Identity, read_identities
 
 #: Scan: the reply window of a CAN batch (the drives answer in parallel), s, plus a share per request: an adapter
 #: (and an emulator in its own process on a busy host) passes the frames one after the other.

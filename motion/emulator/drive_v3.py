@@ -41,7 +41,6 @@ from motion.protocol.messages import (
     TorqueControl,
 )
 from motion.protocol.table import Direction, WireProtocol, field_range
-from motion.protocol.v3.frames import MOTION_RANGES
 from motion.protocol.v3.messages import (
     AccelerationIndex,
     AccelerationRead,
@@ -72,11 +71,14 @@ from motion.protocol.v3.messages import (
     SystemErrorFlags,
     VersionDate,
 )
+from motion.protocol.v3.motion_frame import motion_ranges
 from motion.protocol.v3.table import COMMANDS_V3
 
 #: What an emulated V3 drive reports as its firmware date (0xB2) and model (0xB5).
 VERSION_DATE: Final = 20240528
 MODEL_NAME: Final = "EMUX8V3"  # 7 ASCII characters, as the document's X8S2V10
+#: The motion frame's ranges of that firmware (V4.2's).
+MOTION_RANGES: Final = motion_ranges(VERSION_DATE, MODEL_NAME)
 
 
 def _reply_limits(command: CommandV3, name: str) -> tuple[float, float]:
@@ -100,7 +102,7 @@ _RUN_MODES: Final = {
     DriveLoop.POSITION: RunMode.POSITION_LOOP,
 }
 #: The motion reply's ranges (rad, rad/s, N·m): values beyond saturate, as a drive cannot report more.
-_MOTION_LIMITS: Final = tuple(MOTION_RANGES[name][1] for name in ("position_rad", "velocity_rad_s", "torque_nm"))
+_MOTION_LIMITS: Final = (MOTION_RANGES.position_rad[1], MOTION_RANGES.velocity_rad_s[1], MOTION_RANGES.torque_nm[1])
 
 
 def _amps(current_a: float) -> float:
@@ -463,4 +465,5 @@ class EmulatedDriveV3(EmulatedDrive):
             _clamp(math.radians(self.angle_deg / gear), p_max),
             _clamp(math.radians(self._speed_dps / gear), v_max),
             _clamp(self._torque_per_a * self.iq_a, t_max),
+            ranges=MOTION_RANGES,
         )

@@ -58,7 +58,7 @@ import types
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Final, NamedTuple
+from typing import TYPE_CHECKING, Final, NamedTuple
 
 from motion.errors import PortLost, TransportError
 
@@ -70,6 +70,9 @@ from motion.closing import Closing
 from motion.protocol import Command, Message, MultiMotorTorque
 from motion.protocol.generation import GENERATIONS
 from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, ProtocolFamily
+
+if TYPE_CHECKING:
+    from motion.transport.identity import Identity
 
 #: ``tap(time_s, received, arbitration_id, data)``: called with every frame a backend sends (``received`` False) or
 #: takes in (True), at the transport clock's time; ``arbitration_id`` is None on RS485, where ``data`` is the bytes as
@@ -259,6 +262,8 @@ class Transport(ABC, Closing):
         self.family = ProtocolFamily(family)
         #: Its wire protocol: the codec the backends encode and decode with.
         self.generation = GENERATIONS[self.family]
+        #: What the drives told of themselves at connect, by motor id (:mod:`motion.transport.identity`).
+        self.identities: dict[int, Identity] = {}
         self.bus_counters = BusCounters()
         #: Optional observer of every frame (a bus trace); see :data:`FrameTap`.
         self.frame_tap: FrameTap | None = None

@@ -9,14 +9,12 @@ transport's ``port``); the transport then speaks to each drive in its generation
 from __future__ import annotations
 
 import time
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass
+from collections.abc import Iterable, Mapping
 
-from motion.protocol import Bare, CanFrame, Command, Message, ProductInfo, can_frame
-from motion.protocol.table import CAN_ID_BASE, ProtocolFamily, WireProtocol
+from motion.protocol import Bare, CanFrame, Command, can_frame
+from motion.protocol.table import CAN_ID_BASE, ProtocolFamily
 from motion.protocol.v3 import frames as frames_v3
-from motion.protocol.v3.messages import CommandV3, MotorModel, VersionDate
-from motion.transport.base import Request, Transport
+from motion.protocol.v3.messages import CommandV3
 from motion.transport.can_transport import SEND_TIMEOUT_MIN_S, CanPort
 
 
@@ -76,46 +74,6 @@ def detect_can(port: CanPort, ids: Iterable[int], window_s: float) -> dict[int, 
     for frame in probe_frames(id_list):
         port.send(frame, SEND_TIMEOUT_MIN_S)
     return generations(_collect(port, window_s, expected_answers(id_list)))
-
-
-def read_identities(bus: Transport, ids: Sequence[int], wire: WireProtocol, window_s: float) -> dict[int, Identity]:
-    """Each of ``ids`` that answered its generation's identity reads (:attr:`Generation.identity_reads` on ``wire``)
-    within ``window_s``, with what they told (none where the generation has no such read on ``wire``).
-
-    Raises:
-        TransportError: the bus failed.
-    """
-    reads = bus.generation.identity_reads[wire]
-    if not reads or not ids:
-        return {}
-    replies = bus.transact([Request(i, m) for i in ids for m in reads], bus.clock() + window_s)
-    told: dict[int, dict[type[Message], Message]] = {}
-    for reply in replies:
-        if reply.message is not None:
-            told.setdefault(reply.motor_id, {})[type(reply.message)] = reply.message
-    return {i: Identity.of(told[i]) for i in ids if i in told}
-
-
-@dataclass(frozen=True)
-class Identity:
-    """What a drive told of itself: as text (``"X8S2V10 firmware 20240528"``, ``"MC400 / RMD-L-7015 hw 1.0 fw 3.2"``)
-    and as a record for JSON (the older family's 0x12 fields; else the text)."""
-
-    text: str
-    record: object
-
-    @staticmethod
-    def of(told: Mapping[type[Message], Message]) -> Identity:
-        info = told.get(ProductInfo)
-        if isinstance(info, ProductInfo):
-            text = f"{info.driver_name} / {info.motor_name} hw {info.hardware_version:g} fw {info.firmware_version:g}"
-            return Identity(text, asdict(info))
-        model, date = told.get(MotorModel), told.get(VersionDate)
-        text = (
-            f"{model.model if isinstance(model, MotorModel) else '(no model)'} "
-            f"firmware {date.date if isinstance(date, VersionDate) else '(no date)'}"
-        )
-        return Identity(text, text)
 
 
 def describe_mixed(families: Mapping[int, ProtocolFamily]) -> str:

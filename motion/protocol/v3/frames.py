@@ -36,6 +36,7 @@ from motion.protocol.table import (
     unpack_fields,
 )
 from motion.protocol.v3.messages import CanIdCommand, CanIdReply, MotionCommand, MotionState
+from motion.protocol.v3.motion_frame import decode_motion, decode_motion_state, encode_motion, encode_motion_state
 from motion.protocol.v3.table import COMMANDS_V3, RS485_COMMANDS
 
 #: Single-motor requests go on ``CAN_REQUEST_BASE + id``.
@@ -111,88 +112,6 @@ def decode_payload(data: bytes, direction: Direction) -> Message:
         raise DecodeError(f"0x{data[0]:02X} is not a V3 {direction.value} command", data)
     spec, layout = found
     return unpack_fields(layout, data, spec.code, first=1, check_reserved=direction is Direction.REQUEST)
-
-
-# ------------------------------------------------------------------------------------------------ motion frame
-
-#: Per field of the motion frame: (lowest, highest, bits), in the document's ranges (rad, rad/s, -, -, N·m).
-MOTION_RANGES: Final = {
-    "position_rad": (-12.5, 12.5, 16),
-    "velocity_rad_s": (-45.0, 45.0, 12),
-    "kp": (0.0, 500.0, 12),
-    "kd": (0.0, 5.0, 12),
-    "torque_nm": (-24.0, 24.0, 12),
-}
-
-
-def _quantise(name: str, value: object) -> int:
-    lo, hi, bits = MOTION_RANGES[name]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not lo <= value <= hi:
-        raise EncodeError(name, f"{lo:g}..{hi:g}", value)
-    return round((value - lo) / (hi - lo) * ((1 << bits) - 1))
-
-
-def _physical(name: str, raw: int) -> float:
-    lo, hi, bits = MOTION_RANGES[name]
-    return raw * (hi - lo) / ((1 << bits) - 1) + lo
-
-
-def encode_motion(command: MotionCommand) -> bytes:
-    """The 8 bytes of a motion frame: position 16 bits, then speed, kp, kd and torque 12 bits each, big-endian bit
-    order as the document packs them.
-
-    Raises:
-        EncodeError: a value outside its range (p ±12.5 rad, v ±45 rad/s, kp 0..500, kd 0..5, t ±24 N·m).
-    """
-    p, v, kp, kd, t = (_quantise(name, getattr(command, name)) for name in MOTION_RANGES)
-    word = (p << 48) | (v << 36) | (kp << 24) | (kd << 12) | t
-    return word.to_bytes(8, "big")
-
-
-def decode_motion(data: bytes) -> MotionCommand:
-    """A motion frame's request (every bit pattern is a valid command).
-
-    Raises:
-        DecodeError: not 8 bytes.
-    """
-    if len(data) != CAN_PAYLOAD_BYTES:
-        raise DecodeError(f"a motion frame is {CAN_PAYLOAD_BYTES} bytes, got {len(data)}", bytes(data))
-    word = int.from_bytes(data, "big")
-    raws = (word >> 48, (word >> 36) & 0xFFF, (word >> 24) & 0xFFF, (word >> 12) & 0xFFF, word & 0xFFF)
-    return MotionCommand(*(_physical(name, raw) for name, raw in zip(MOTION_RANGES, raws, strict=True)))
-
-
-def encode_motion_state(state: MotionState) -> bytes:
-    """The 8 bytes of a motion frame's reply: the drive's id, position 16 bits, speed and torque 12 bits, 2 zeros.
-
-    Raises:
-        EncodeError: an id outside 1..32 or a value outside its range.
-    """
-    check_motor_id(state.motor_id)
-    p = _quantise("position_rad", state.position_rad)
-    v = _quantise("velocity_rad_s", state.velocity_rad_s)
-    t = _quantise("torque_nm", state.torque_nm)
-    return bytes((state.motor_id,)) + ((p << 24) | (v << 12) | t).to_bytes(5, "big") + bytes(2)
-
-
-def decode_motion_state(data: bytes) -> MotionState:
-    """A motion frame's reply (DATA[6..7] are reserved and ignored, as for every reply).
-
-    Raises:
-        DecodeError: not 8 bytes, or an id outside 1..32.
-    """
-    data = bytes(data)
-    if len(data) != CAN_PAYLOAD_BYTES:
-        raise DecodeError(f"a motion reply is {CAN_PAYLOAD_BYTES} bytes, got {len(data)}", data)
-    if not MOTOR_ID_MIN <= data[0] <= MOTOR_ID_MAX:
-        raise DecodeError(f"motor id {data[0]} is outside {MOTOR_ID_MIN}..{MOTOR_ID_MAX}", data)
-    word = int.from_bytes(data[1:6], "big")
-    return MotionState(
-        data[0],
-        _physical("position_rad", word >> 24),
-        _physical("velocity_rad_s", (word >> 12) & 0xFFF),
-        _physical("torque_nm", word & 0xFFF),
-    )
 
 
 # ------------------------------------------------------------------------------------------------ CAN

@@ -313,22 +313,50 @@ class CanIdReply(Message):
 
 
 @dataclass(frozen=True, slots=True)
+class MotionRanges:
+    """The ranges the motion frame (0x400 / 0x500) maps its 16- and 12-bit fields onto, (lowest, highest) each:
+    they differ by firmware (V4.4 widened position, kd and torque) and, from V4.4 on, by motor model (the torque
+    range is the model's peak torque). :func:`motion.protocol.v3.motion_frame.motion_ranges` chooses them from the
+    drive's firmware date (0xB2) and model (0xB5).
+
+    Attributes:
+        position_rad: the position range, rad.
+        velocity_rad_s: the speed range, rad/s.
+        kp: the stiffness range.
+        kd: the damping range.
+        torque_nm: the feed-forward (request) and feedback (reply) torque range, N·m.
+        source: which document and model the ranges come from (for messages).
+    """
+
+    position_rad: tuple[float, float]
+    velocity_rad_s: tuple[float, float]
+    kp: tuple[float, float]
+    kd: tuple[float, float]
+    torque_nm: tuple[float, float]
+    source: str
+
+
+@dataclass(frozen=True, slots=True)
 class MotionCommand(Message):
     """The MIT-style motion frame (CAN arbitration id 0x400 + id): the drive's own PD,
-    ``iq = (kp (p_des - p) + kd (v_des - v) + t_ff) / kt``. Quantised to 16 bits (position) and 12 bits."""
+    ``iq = (kp (p_des - p) + kd (v_des - v) + t_ff) / kt``. Quantised to 16 bits (position) and 12 bits onto
+    ``ranges``, which depend on the drive (its firmware and model): a command without them is not encoded."""
 
     position_rad: float
     velocity_rad_s: float
     kp: float
     kd: float
     torque_nm: float
+    ranges: MotionRanges | None = None
 
 
 @dataclass(frozen=True, slots=True)
 class MotionState(Message):
-    """The reply to :class:`MotionCommand` (CAN arbitration id 0x500 + id): position, speed and torque."""
+    """The reply to :class:`MotionCommand` (CAN arbitration id 0x500 + id): position, speed and torque, decoded
+    onto ``ranges`` (the drive's)."""
 
     motor_id: int
     position_rad: float
     velocity_rad_s: float
     torque_nm: float
+    ranges: MotionRanges | None = None
