@@ -20,12 +20,15 @@ from motion.compose import build_supervisor
 from motion.config import ArmConfig
 from motion.config.loader import parse_config
 from motion.config.schema import Rs485BusConfig
+from motion.control.drive_record import DriveRecord
+from motion.control.drivesetup import DriveSetup
+from motion.control.family import FAMILIES
 from motion.control.ratecheck import RateError
-from motion.emulator import parse_fault
+from motion.emulator import Emulator, Fault, InjectedFault, parse_fault
 from motion.emulator.drive_v3 import EmulatedDriveV3
-from motion.emulator.simulated import DEFAULT_BITRATE
-from motion.errors import ConfigError, EncodeError, FaultKind, MotionFault, PlanningError
-from motion.protocol.table import ProtocolFamily
+from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, Simulation
+from motion.errors import ConfigError, DrivesSilent, EncodeError, FaultKind, MotionFault, PlanningError
+from motion.protocol.table import ProtocolFamily, WireProtocol
 from motion.protocol.v3 import frames as frames_v3
 from motion.protocol.v3.messages import (
     AccelerationIndex,
@@ -362,3 +365,43 @@ def test_sigkill_of_the_controller_mid_move_stops_every_v3_drive_within_the_link
         emulator.send_signal(signal.SIGTERM)
         out, err = emulator.communicate(timeout=10)
     assert "2 communication-loss stops" in out, out + err
+
+
+def _setup_on(faults: list[Fault]) -> tuple[DriveSetup, list[tuple[float, int, int]]]:
+    """Two V3 drives with brakes in simulated time, the session's DriveSetup on them (an in-memory record), and the
+    requests it sends as (time, motor id, command byte)."""
+    emulator = Emulator([1, 2], family=V3, brakes=[1, 2], faults=faults)
+    simulation = Simulation(emulator, WireProtocol.CAN)
+    bus = SimulatedBus(simulation)
+    sent: list[tuple[float, int, int]] = []
+    bus.frame_tap = lambda t, inbound, arbitration_id, data: (
+        None if inbound or arbitration_id is None else sent.append((t, arbitration_id - 0x140, data[0]))
+    )
+    setup = DriveSetup(bus, FAMILIES[V3], [1, 2], [1, 2], 20, record=DriveRecord(None), now=simulation.now)
+    return setup, sent
+
+
+def test_an_unacknowledged_rom_write_is_not_recorded_and_a_missed_brake_release_is_locked_at_the_end() -> None:
+    # issue 31 §4 (the paths left untested): a drive silent exactly when the session's ROM writes go out. What it did
+    # is not known, so the record keeps what it had and the write is not counted; the other drive's writes are.
+    setup, sent = _setup_on([])
+    setup.apply(1.0)  # the run without a fault: when the writes go out
+    first_write = min(t for t, _, code in sent if code in (0x43, 0xB3))
+    assert setup.rom_writes == 6 and setup.record.rom_writes(setup._key(2)) == 3
+    silent_from_writes = Fault(InjectedFault.SILENT, 2, start_s=first_write - 1e-4, end_s=first_write + 0.5)
+    setup, sent = _setup_on([silent_from_writes])
+    with pytest.raises(DrivesSilent, match=r"no reply to the session settings from motor\(s\) 2") as caught:
+        setup.apply(1.0)
+    assert caught.value.motor_ids == (2,)
+    assert setup.rom_writes == 3 and setup.record.rom_writes(setup._key(1)) == 3
+    assert setup.record.rom_writes(setup._key(2)) == 0
+    assert setup.record.get(setup._key(2), "link_timeout") is None and setup.record.get(setup._key(1), "link_timeout")
+    # the brake release went out to neither (apply stopped at the silent write): the end locks nothing it did not
+    # release; now a release that one drive misses: both count as released, and the end locks both
+    assert setup.brakes_locked
+    setup, sent = _setup_on([Fault(InjectedFault.SILENT, 2, start_s=0.0, end_s=0.01)])
+    with pytest.raises(DrivesSilent, match=r"brake release \(0x77\) from motor\(s\) 2"):
+        setup.release_brakes(0.005)
+    assert not setup.brakes_locked
+    setup.restore(0.5)
+    assert sorted(motor for _, motor, code in sent if code == 0x78) == [1, 2] and setup.brakes_locked
