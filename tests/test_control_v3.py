@@ -405,3 +405,30 @@ def test_an_unacknowledged_rom_write_is_not_recorded_and_a_missed_brake_release_
     assert not setup.brakes_locked
     setup.restore(0.5)
     assert sorted(motor for _, motor, code in sent if code == 0x78) == [1, 2] and setup.brakes_locked
+
+
+def test_programs_that_share_the_drive_record_keep_each_others_changes(tmp_path: Path) -> None:
+    # issue 31 §4 (review): two programs read the record at their start and save later; each saves what it changed,
+    # merged into the file as it is then, so neither's settings or ROM counts are lost
+    path = tmp_path / "drives.json"
+    first, second = DriveRecord(path), DriveRecord(path)
+    first.put("can a #1", "link_timeout", {"ms": 20})
+    first.count_rom_writes("can a #1", 3)
+    first.save()
+    second.put("can b #1", "link_timeout", {"ms": 40})
+    second.count_rom_writes("can a #1", 1)
+    second.save()
+    merged = DriveRecord(path)
+    assert merged.get("can a #1", "link_timeout") == {"ms": 20} and merged.get("can b #1", "link_timeout") == {"ms": 40}
+    assert merged.rom_writes("can a #1") == 4 and second.rom_writes("can a #1") == 4
+    # ... and under the lock when they save at the same time: 4 processes x 25 saves of one ROM write each
+    code = (
+        "import sys\nfrom pathlib import Path\nfrom motion.control.drive_record import DriveRecord\n"
+        "for _ in range(25):\n"
+        "    record = DriveRecord(Path(sys.argv[1]))\n"
+        "    record.count_rom_writes('can c #2', 1)\n"
+        "    record.save()\n"
+    )
+    workers = [subprocess.Popen([sys.executable, "-c", code, str(path)]) for _ in range(4)]
+    assert [w.wait(timeout=60) for w in workers] == [0, 0, 0, 0]
+    assert DriveRecord(path).rom_writes("can c #2") == 100
