@@ -162,7 +162,11 @@ class MotionFault(MotionError):
         joints: every joint the fault concerns (a collision may be isolated to more than one); ``(joint,)`` by
             default.
         detail: what was seen, in words.
+        cause: the likely physical cause, where the run's evidence shows one (set by the arm that saw the fault:
+            :mod:`motion.api.summary`), else None.
     """
+
+    cause: str | None = None
 
     def __init__(
         self,

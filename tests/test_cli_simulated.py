@@ -14,6 +14,7 @@ from motion.cli import main
 from motion.config import read_yaml
 from motion.config.examples import example_names, resolve_program
 from motion.telemetry import load_log
+from tests.motion_rig import CONFIGS
 
 PROGRAM = (
     "steps:\n"
@@ -91,3 +92,30 @@ def test_an_emulated_program_runs_every_step_and_records_its_cycles(
 def test_emulate_refuses_bus_overrides(capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = _run(capsys, "move", "--config", "arm2.yaml", "--emulate", "--interface", "slcan", "shoulder=5")
     assert code == 2 and "--emulate opens no port: drop --interface" in err
+
+
+@pytest.mark.parametrize("mode", ["torque", "position"])
+def test_a_fault_of_a_joint_starved_of_current_names_its_physical_cause(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path, mode: str
+) -> None:
+    # issue 33 §5: arm2's elbow with a current limit too low for its load and speed (0.2 A: a few steps of the
+    # reply's current field): the following error that halts the arm is explained by what the run saw (the current
+    # at its limit for the cycles before), and a run that completes prints its summary (cycles, timing, the largest
+    # following error, the current-limited cycles)
+    source = (CONFIGS / "arm2.yaml").read_text()
+    config = tmp_path / "arm2.yaml"
+    config.write_text(
+        source.replace("current_limit_a: 10.0", "current_limit_a: 0.2").replace("mode: torque", f"mode: {mode}")
+    )
+    code, out, err = _run(capsys, "move", "--config", config, "--emulate", "elbow=-80", "shoulder=40")
+    assert code == 1, err
+    assert "motion fault, every axis halted: following_error joint=elbow" in err
+    assert "likely cause: elbow at its 0.2 A current limit for " in err
+    assert "torque_constant_nm_per_a and current_limit_a" in err
+    code, out, err = _run(capsys, "move", "--config", "arm2.yaml", "--emulate", "elbow=-20", "--json")
+    assert code == 0, err
+    run = json.loads(out)["run"]
+    assert run["cycles"] > 100 and run["overruns"] == 0 and set(run["joints"]) == {"shoulder", "elbow"}
+    assert 0.0 < run["max_following_error"]["deg"] < 1.0 and run["joints"]["elbow"]["current_limited_cycles"] == 0
+    code, out, err = _run(capsys, "move", "--config", "arm2.yaml", "--emulate", "elbow=-20")
+    assert "run: " in out and "current-limited cycles: none" in out

@@ -14,6 +14,7 @@ from typing import Any
 from motion.api.arguments import emulation_of, joint_targets, seconds, start_pose_of, waypoint_rows
 from motion.api.emulation import emulated_family, emulator_process
 from motion.api.status import ArmStatus, MotionHandle, arm_status
+from motion.api.summary import RunSummary
 from motion.compose import (
     arm_figure,
     build_controller,
@@ -164,6 +165,9 @@ class Arm:
         self.bus: Transport | None = None
         self.controller: Controller | None = None
         self.supervisor: Supervisor | None = None
+        #: What the run did so far (following errors, current limits, timing) and a fault's likely cause
+        #: (:mod:`motion.api.summary`); set at :meth:`connect`.
+        self.summary: RunSummary | None = None
         self.emulator: Any = None
         self.plant: Any = None
         self.frame_log: FrameLog | None = None
@@ -296,6 +300,8 @@ class Arm:
     def _start_supervisor(self) -> None:
         assert self.controller is not None
         self.supervisor = supervisor = build_supervisor(self.config, self.controller, observe=self._observe)
+        self.summary = RunSummary(self.config, supervisor)
+        self.controller.cycle_hooks.append(self.summary)
         if self.telemetry is not None:
             self.telemetry.attach(self.controller, supervisor)
         self._register_loop(supervisor)
@@ -451,6 +457,9 @@ class Arm:
         """Halt every axis (0x81), end the loop, release the bus and write the telemetry; safe to call twice."""
         try:
             if self.supervisor is not None:
+                fault, summary = self.supervisor.fault, self.summary
+                if fault is not None and fault.cause is None and summary is not None:
+                    fault.cause = summary.cause(fault)  # (the raised fault is this one: its handler reads the cause)
                 self.supervisor.close()
                 self._remember_turns()
         finally:

@@ -385,6 +385,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_OK
     except MotionFault as exc:
         print(f"motion fault, every axis halted: {exc}", file=sys.stderr)
+        if exc.cause is not None:
+            print(f"likely cause: {exc.cause}", file=sys.stderr)
         return EXIT_FAULT
     except (UsageError, ConfigError, PlanningError, EncodeError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -257,12 +257,22 @@ def keep_view_open(arm: Arm) -> int:
 
 
 def _summary(command: str, arm: Arm, wall_s: float, extra: Mapping[str, object]) -> dict[str, object]:
-    return {"command": command, **extra, "duration_s": round(wall_s, 3), "status": arm.status().as_dict()}
+    assert arm.summary is not None and arm.controller is not None  # (connected)
+    summary = arm.summary.as_dict(arm.controller)
+    return {
+        "command": command,
+        **extra,
+        "duration_s": round(wall_s, 3),
+        "status": arm.status().as_dict(),
+        "run": summary,
+    }
 
 
 def _print_positions(arm: Arm, wall_s: float) -> None:
     reached = " ".join(f"{name}={deg:.2f}" for name, deg in arm.positions().items())
     print(f"at {reached} deg after {wall_s:.2f} s")
+    if arm.summary is not None and arm.controller is not None:
+        print(f"run: {arm.summary.text(arm.controller)}")
 
 
 def move(args: argparse.Namespace, interrupts: Interrupts) -> int:
