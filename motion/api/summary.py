@@ -56,6 +56,7 @@ class RunSummary:
         self.limited_cycles = np.zeros(n, dtype=np.int64)
         self.limited_streak = np.zeros(n, dtype=np.int64)
         self._at = np.zeros(n, dtype=bool)
+        self._abs_a = np.zeros(n)
         self._explained: MotionFault | None = None
 
     def __call__(self, controller: Any, start_s: float, replies: Sequence[Any]) -> None:
@@ -71,10 +72,11 @@ class RunSummary:
         if self._torque:
             np.copyto(at, controller.setpoints.limited)
         else:
-            np.greater_equal(np.abs(controller.axes.iq_a), self._at_limit_a, out=at)
+            np.greater_equal(np.abs(controller.axes.iq_a, out=self._abs_a), self._at_limit_a, out=at)
         self.limited_cycles += at
-        self.limited_streak += at
-        self.limited_streak[~at] = 0
+        streak = self.limited_streak
+        np.add(streak, at, out=streak)
+        np.multiply(streak, at, out=streak)  # (no allocation per cycle: this runs in the control loop)
 
     def cause(self, fault: MotionFault) -> str | None:
         """The likely physical cause of ``fault``, where the evidence is there (a joint of the fault at its current
