@@ -119,3 +119,36 @@ def test_a_fault_of_a_joint_starved_of_current_names_its_physical_cause(
     assert 0.0 < run["max_following_error"]["deg"] < 1.0 and run["joints"]["elbow"]["current_limited_cycles"] == 0
     code, out, err = _run(capsys, "move", "--config", "arm2.yaml", "--emulate", "elbow=-20")
     assert "run: " in out and "current-limited cycles: none" in out
+
+
+def test_a_configuration_is_checked_offline_against_what_its_drives_give(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # issue 33 §3: no bus: per joint the gravity torque at the worst pose in its limits and the torque to move at the
+    # configured accelerations, against current limit x torque constant x gear; a program is validated as well
+    code, out, err = _run(
+        capsys, "check", "--config", "arm6.yaml", "--offline", "--program", "configs/programs/arm6.yaml", "--json"
+    )
+    assert code == 0, err
+    report = json.loads(out)
+    shoulder = report["joints"]["shoulder_pitch"]
+    assert shoulder["available_nm"] == pytest.approx(36.0)  # its current limit x torque constant x 36 (1:36)
+    assert 0.0 < shoulder["hold_nm"] < shoulder["move_nm"] < shoulder["available_nm"]
+    assert report["joints"]["base_yaw"]["hold_nm"] == pytest.approx(0.0, abs=1e-6)  # a vertical axis carries no gravity
+    assert report["program"]["steps"] == 6 and report["errors"] == [] and report["warnings"] == []
+    # the trial's elbow: 0.74 N·m of the 0.8 it gives
+    source = (CONFIGS / "arm2.yaml").read_text()
+    weak = tmp_path / "arm2.yaml"
+    weak.write_text(source.replace("current_limit_a: 10.0", "current_limit_a: 1.5"))
+    code, out, err = _run(capsys, "check", "--config", weak, "--offline")
+    assert code == 0, err
+    assert "elbow holds the arm with 91% of what it gives (1.23 of 1.35 N·m" in err and "little is left" in err
+    weak.write_text(source.replace("current_limit_a: 10.0", "current_limit_a: 1.0"))
+    code, out, err = _run(capsys, "check", "--config", weak, "--offline")
+    assert code == 2 and "error: elbow cannot hold the arm up: gravity takes 1.23 N·m" in err
+    code, out, err = _run(capsys, "check", "--config", "arm2.yaml", "--program", "configs/programs/arm6.yaml")
+    assert code == 2 and "--program checks a program offline: give --offline as well" in err
+    code, out, err = _run(
+        capsys, "check", "--config", "arm2.yaml", "--offline", "--program", "configs/programs/arm6.yaml"
+    )
+    assert code == 2 and "unknown joint" in err

@@ -286,6 +286,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="then MOVE each joint alone out and back at full speed (position mode) to identify its position loop "
         "for the following-error check, and store it",
     )
+    check.add_argument(
+        "--offline",
+        action="store_true",
+        help="no bus: per joint, the gravity torque at the worst pose in its limits and the torque to move at the "
+        "configured accelerations, against what its drive gives; exit 2 when a joint cannot hold the arm up",
+    )
+    check.add_argument("--program", metavar="PROGRAM.yaml", help="with --offline: validate this program as well")
     _json(check)
 
     move = _command(sub, "move", moves.move, "move joints to targets (degrees); the others keep their position")

@@ -8,11 +8,13 @@ releases the torque: an arm under gravity falls unless it has brakes).
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
+from motion.cli import offline
 from motion.cli.common import (
     EVERY_GENERATION,
     EXIT_OK,
@@ -26,6 +28,7 @@ from motion.cli.common import (
     print_table,
     warn,
 )
+from motion.cli.program import load_program
 from motion.compose import build_controller, drive_setup, resolve_frames
 from motion.config import JointConfig
 from motion.config.schema import ControlMode
@@ -453,6 +456,8 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
 
     session = Session.from_args(args)
     config = session.config
+    if args.offline or args.program:
+        return _check_offline(args, session)
     if args.identify and config.control.mode is not ControlMode.POSITION:
         mode = config.control.mode.value
         raise UsageError(f"--identify: {config.source} runs in {mode} mode; identification needs position mode")
@@ -547,6 +552,53 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
     if args.identify:
         warn("--identify: nothing moved (the configured rate does not hold)")
     return EXIT_USAGE
+
+
+def _check_offline(args: argparse.Namespace, session: Session) -> int:
+    """``check --offline [--program FILE]``: :mod:`motion.cli.offline`; exit 2 when a joint cannot hold the arm up
+    (or the program is invalid), else 0 (warnings on stderr)."""
+    if not args.offline:
+        raise UsageError("--program checks a program offline: give --offline as well")
+    if args.identify:
+        raise UsageError("--identify moves the joints: it cannot run --offline")
+    config = session.config
+    steps = len(load_program(args.program, config).steps) if args.program else None  # (a bad one: exit 2 here)
+    found = offline.budgets(config)
+    errors, warnings = offline.problems(found)
+    if args.json:
+        print_json(
+            {
+                "config": config.source,
+                "program": {"file": args.program, "steps": steps} if args.program else None,
+                "joints": {
+                    b.name: {
+                        "available_nm": round(b.available_nm, 4),
+                        "hold_nm": round(b.hold_nm, 4),
+                        "hold_pose_deg": [round(q, 2) for q in b.hold_pose_deg],
+                        "move_nm": round(b.move_nm, 4),
+                        "move_pose_deg": [round(q, 2) for q in b.move_pose_deg],
+                    }
+                    for b in found
+                },
+                "errors": errors,
+                "warnings": warnings,
+            }
+        )
+    else:
+        print(f"{config.source}: offline (no bus); torques at the joints, the worst of the poses sampled in the limits")
+        rows = [
+            (b.name, f"{b.hold_nm:.2f}", f"{b.move_nm:.2f}", f"{b.available_nm:.2f}", f"{b.hold_share:.0%}",
+             f"{b.move_share:.0%}")
+            for b in found
+        ]  # fmt: skip
+        print_table(("joint", "hold N·m", "move N·m", "available N·m", "hold", "move"), rows)
+        if args.program:
+            print(f"program {args.program}: {steps} steps, valid for this arm")
+    for text in warnings:
+        warn(text)
+    for text in errors:
+        print(f"error: {text}", file=sys.stderr)
+    return EXIT_USAGE if errors else EXIT_OK
 
 
 def _fit_dict(fit: PositionLoopFit) -> dict[str, float]:

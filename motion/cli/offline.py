@@ -1,0 +1,127 @@
+"""``rmd-motion check --offline``: a configuration checked without hardware (issue 33 §3).
+
+It loads the configuration and its model (URDF or chain) and, per joint, sets what the model asks against what the
+drive can give:
+
+- **hold**: the largest gravity torque the joint carries anywhere in the limits of every joint (sampled: every
+  combination of each joint's lower limit, middle and upper limit, and :data:`RANDOM_POSES` poses drawn in the
+  limits), against the torque the drive gives at its current limit (``current_limit_a × torque_constant_nm_per_a ×
+  gear_ratio``, at the joint);
+- **move**: that gravity torque plus the torque to accelerate every joint at its configured acceleration limit at
+  once, each in the direction that adds to the joint's load (``Σ_k |M_jk(q)| a_k`` with the rotors' inertia on the
+  diagonal), at the worst sampled pose.
+
+A joint that cannot hold itself up (hold above the torque available) is an error (exit 2); one whose hold takes more
+than :data:`HOLD_WARNING_SHARE` of it, or that cannot move as configured, is a warning. With a program, the program is
+validated against the configuration too.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+from typing import Final
+
+import numpy as np
+
+from motion.config import ArmConfig
+
+#: Random poses sampled besides the grid.
+RANDOM_POSES: Final = 2000
+#: A grid of every joint's lower limit, middle and upper limit is sampled up to this many joints (3^n poses).
+GRID_JOINTS: Final = 7
+#: A hold that takes more than this share of the torque available leaves too little for moving and for model error.
+HOLD_WARNING_SHARE: Final = 0.8
+#: The seed of the sampled poses (the same figures on every run).
+SEED: Final = 33
+
+
+@dataclass(frozen=True)
+class JointBudget:
+    """One joint's torques, N·m at the joint, and the pose (degrees, every joint) where each is largest."""
+
+    name: str
+    available_nm: float
+    hold_nm: float
+    hold_pose_deg: tuple[float, ...]
+    move_nm: float
+    move_pose_deg: tuple[float, ...]
+
+    @property
+    def hold_share(self) -> float:
+        return self.hold_nm / self.available_nm
+
+    @property
+    def move_share(self) -> float:
+        return self.move_nm / self.available_nm
+
+
+def poses(config: ArmConfig) -> np.ndarray:
+    """The sampled poses, degrees: one row per pose, one column per joint."""
+    lo = np.array([j.position_min_deg for j in config.joints])
+    hi = np.array([j.position_max_deg for j in config.joints])
+    rows = [np.random.default_rng(SEED).uniform(lo, hi, size=(RANDOM_POSES, len(lo)))]
+    if len(lo) <= GRID_JOINTS:
+        levels = np.stack([lo, (lo + hi) / 2.0, hi])  # (3, n)
+        rows.append(
+            np.array([levels[list(pick), range(len(lo))] for pick in itertools.product(range(3), repeat=len(lo))])
+        )
+    return np.vstack(rows)
+
+
+def budgets(config: ArmConfig) -> list[JointBudget]:
+    """Every joint's :class:`JointBudget` (the module docstring).
+
+    Raises:
+        ConfigError: the model cannot be built (a URDF that Pinocchio cannot read or that does not match the joints).
+    """
+    from kinematics import build_arm  # noqa: PLC0415 - Pinocchio only where a check needs it
+    from kinematics.dynamics import gravity_torque, mass_matrix  # noqa: PLC0415
+
+    arm = build_arm(config)
+    joints = config.joints
+    gear = np.array([j.gear_ratio for j in joints])
+    available = np.array([j.current_limit_a * j.torque_constant_nm_per_a * j.gear_ratio for j in joints])
+    # the rotors' inertia at the joint: the joint's rotor_inertia_kgm2, else its emulation's (the same drive)
+    rotor = np.array([j.rotor_inertia_kgm2 or j.emulation.rotor_inertia_kgm2 for j in joints]) * gear**2
+    acceleration = np.radians([j.acceleration_limit_dps2 for j in joints])
+    hold = np.zeros(len(joints))
+    move = np.zeros(len(joints))
+    hold_at = np.zeros((len(joints), len(joints)))
+    move_at = np.zeros((len(joints), len(joints)))
+    for q in poses(config):
+        g = np.abs(gravity_torque(arm, q))
+        inertia = np.abs(mass_matrix(arm, q)) + np.diag(rotor)
+        total = g + inertia @ acceleration
+        for better, best, at, value in ((g > hold, hold, hold_at, g), (total > move, move, move_at, total)):
+            best[better] = value[better]
+            at[better] = q
+    return [
+        JointBudget(j.name, float(available[i]), float(hold[i]), tuple(hold_at[i]), float(move[i]), tuple(move_at[i]))
+        for i, j in enumerate(joints)
+    ]
+
+
+def problems(found: list[JointBudget]) -> tuple[list[str], list[str]]:
+    """(errors, warnings) in words, naming the joint, the figures and what to change."""
+    errors, warnings = [], []
+    for b in found:
+        pose = ", ".join(f"{q:.0f}" for q in b.hold_pose_deg)
+        if b.hold_share > 1.0:
+            errors.append(
+                f"{b.name} cannot hold the arm up: gravity takes {b.hold_nm:.2f} N·m at the pose ({pose}) deg, the "
+                f"drive gives {b.available_nm:.2f} N·m at its current limit (current_limit_a × "
+                "torque_constant_nm_per_a × gear_ratio): check those keys and the model's masses"
+            )
+        elif b.hold_share > HOLD_WARNING_SHARE:
+            warnings.append(
+                f"{b.name} holds the arm with {b.hold_share:.0%} of what it gives ({b.hold_nm:.2f} of "
+                f"{b.available_nm:.2f} N·m at ({pose}) deg): little is left for moving and for model error"
+            )
+        if b.hold_share <= 1.0 and b.move_share > 1.0:
+            warnings.append(
+                f"{b.name} cannot move the arm as configured: gravity and every joint at its acceleration limit take "
+                f"{b.move_nm:.2f} N·m, the drive gives {b.available_nm:.2f} N·m: lower acceleration_limit_dps2 "
+                "(of it or its neighbours) or move slower (speed_scale)"
+            )
+    return errors, warnings
