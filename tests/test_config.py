@@ -553,6 +553,20 @@ CASES: list[tuple[str, dict[str, Any], Mutation, str, list[str]]] = [
         ["out of range"],
     ),
     (
+        "a negative goal tolerance",
+        ARM2,
+        _set("control", "goal_tolerance_deg", value=-0.1),
+        "control.goal_tolerance_deg",
+        ["out of range", "found -0.1"],
+    ),
+    (
+        "a goal time of a minute and more",
+        ARM2,
+        _set("control", "goal_time_s", value=61.0),
+        "control.goal_time_s",
+        ["out of range", "found 61"],
+    ),
+    (
         "urdf joint not configured",
         ARM6,
         lambda d: d["joints"].pop(),

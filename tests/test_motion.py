@@ -8,14 +8,18 @@ The emulated drives turn the arm's own Pinocchio model (forward dynamics with gr
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from motion.api import Arm
+from motion.config import load_config
 from motion.config.schema import ControlMode
 from motion.protocol.table import ProtocolFamily
-from tests.motion_rig import Rig, arm_config, commanded_positions, emulated_arm
+from tests.motion_rig import CONFIGS, Rig, arm_config, commanded_positions, emulated_arm
 
 SETTLE_S = 0.6
 V2, V3 = ProtocolFamily.V2, ProtocolFamily.V3
@@ -173,3 +177,33 @@ def test_waypoints_retarget_and_stop_in_position_mode(family: ProtocolFamily, tm
         assert (np.abs(rest - [-60.0, -60.0]) > 5.0).all()  # stopped short of the target
         tail = commanded_positions(rig)[second:]
         _finite_difference_bounds(tail, rig, 4)
+
+
+def test_a_move_ends_when_its_joints_arrive_or_reports_the_miss_at_the_goal_time(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # issue 33 §6: in torque mode the reference ends with arm2's shoulder short and still moving; the move ends when
+    # every joint is within control.goal_tolerance_deg for goal_settle_s, else at goal_time_s with the miss reported
+    # (a warning and MotionHandle.arrival: no fault); a tolerance of 0 ends it with the reference, as before
+    base = load_config(CONFIGS / "arm2.yaml")
+
+    def arm_with(*, goal_tolerance_deg: float = 0.1, goal_time_s: float = 2.0) -> Arm:
+        control = dataclasses.replace(base.control, goal_tolerance_deg=goal_tolerance_deg, goal_time_s=goal_time_s)
+        return Arm(dataclasses.replace(base, control=control), emulate=True)
+
+    with arm_with() as arm:
+        handle = arm.move_to({"shoulder": 40.0, "elbow": -30.0})
+        assert handle.arrival is not None and handle.arrival.arrived and handle.arrival.after_s >= 0.1
+        snapshot = arm.controller.snapshot  # type: ignore[union-attr]
+        assert np.abs(snapshot.position_deg - snapshot.reference_deg).max() <= 0.1
+    with arm_with(goal_tolerance_deg=0.001, goal_time_s=0.3) as arm, caplog.at_level(logging.WARNING, "motion.api"):
+        handle = arm.move_to({"shoulder": 40.0, "elbow": -30.0})
+        assert handle.arrival is not None and not handle.arrival.arrived
+        assert handle.arrival.after_s == pytest.approx(0.3 + base.control.goal_settle_s, abs=0.01)
+        assert "not arrived 0.40 s after the reference ended (goal_tolerance_deg 0.001): shoulder" in caplog.text
+        assert arm.supervisor is not None and arm.supervisor.fault is None
+    with arm_with(goal_tolerance_deg=0.0) as arm:
+        handle = arm.move_to({"shoulder": 40.0, "elbow": -30.0})
+        assert handle.arrival is None
+        snapshot = arm.controller.snapshot  # type: ignore[union-attr]
+        assert np.abs(snapshot.position_deg - snapshot.reference_deg).max() > 0.1  # short and moving at the end

@@ -519,7 +519,7 @@ class Arm:
         supervisor = self._guard()
         q = joint_targets(targets, supervisor.controller.reference.position, self._index)
         supervisor.move_to(q, speed_scale)
-        handle = MotionHandle(supervisor)
+        handle = MotionHandle(supervisor, self.config.control)
         if wait:
             handle.wait()
         return handle
@@ -539,7 +539,7 @@ class Arm:
         supervisor = self._guard()
         rows = waypoint_rows(waypoints, supervisor.controller.reference.position, self._index)
         supervisor.follow(rows, speed_scale)
-        handle = MotionHandle(supervisor)
+        handle = MotionHandle(supervisor, self.config.control)
         if wait:
             handle.wait()
         return handle

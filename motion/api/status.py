@@ -3,14 +3,20 @@ the latter two from the snapshot the loop published last (read without waiting o
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from motion.api.arguments import seconds
+from motion.config.schema import ControlConfig
 from motion.control.controller import Controller
 from motion.control.scheduler import LoopStatistics
 from motion.control.snapshot import MotionProgress
 from motion.safety import Supervisor
+
+logger = logging.getLogger("motion.api")
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,20 +88,87 @@ def arm_status(name: str, controller: Controller) -> ArmStatus:
     return ArmStatus(name, snapshot.state, fault, joints, controller.loop.statistics())
 
 
-class MotionHandle:
-    """A queued motion; :meth:`wait` blocks until it ends and raises the fault that halted it."""
+@dataclass(frozen=True)
+class Arrival:
+    """How a motion's joints arrived at its end (``control.goal_tolerance_deg`` and friends).
 
-    def __init__(self, supervisor: Supervisor) -> None:
+    Attributes:
+        arrived: every joint came within the goal tolerance of its target and stayed there for the settle time,
+            within the goal time after the reference ended.
+        after_s: from the end of the reference to that (or to the goal time, when they did not), s (the arm's clock).
+        error_deg: each joint's distance from its target then, degrees.
+    """
+
+    arrived: bool
+    after_s: float
+    error_deg: dict[str, float]
+
+    def text(self, tolerance_deg: float) -> str:
+        """In words: where the joints arrived, or which did not and by how much."""
+        if self.arrived:
+            return f"arrived within {tolerance_deg:g} deg {self.after_s:.2f} s after the reference ended"
+        missed = {n: e for n, e in self.error_deg.items() if e > tolerance_deg}
+        far = ", ".join(f"{n} {e:.3f} deg" for n, e in missed.items()) or "every joint within it, but not settled"
+        return (
+            f"not arrived {self.after_s:.2f} s after the reference ended (goal_tolerance_deg {tolerance_deg:g}): {far} "
+            "from the target"
+        )
+
+
+class MotionHandle:
+    """A queued motion; :meth:`wait` blocks until it ends (its reference ended and, with a goal tolerance, the joints
+    arrived or the goal time passed: :attr:`arrival`) and raises the fault that halted it."""
+
+    def __init__(self, supervisor: Supervisor, goal: ControlConfig | None = None) -> None:
         self._supervisor = supervisor
+        self._goal = goal if goal is not None and goal.goal_tolerance_deg > 0.0 else None
+        #: How the joints arrived (None: no goal tolerance, the motion not ended yet, or another one took over).
+        self.arrival: Arrival | None = None
 
     def wait(self, timeout_s: float | None = None) -> bool:
-        """Wait for the end of the motion; False on timeout.
+        """Wait for the end of the motion, and then for the joints to arrive (see :class:`Arrival`; a joint that
+        does not arrive within the goal time is logged, not a fault); False on timeout.
 
         Raises:
             MotionFault: a fault halted every axis.
             ValueError: ``timeout_s`` is neither None nor a finite number of seconds >= 0.
         """
-        return self._supervisor.wait(None if timeout_s is None else seconds("timeout_s", timeout_s))
+        ended = self._supervisor.wait(None if timeout_s is None else seconds("timeout_s", timeout_s))
+        if ended and self._goal is not None and self.arrival is None:
+            self.arrival = self._arrive(self._goal)
+            self._supervisor.wait(0.0)  # (a fault while arriving is raised as during the motion)
+        return ended
+
+    def _arrive(self, goal: ControlConfig) -> Arrival | None:
+        controller, supervisor = self._supervisor.controller, self._supervisor
+        names = [s.name for s in controller.specs]
+        error = np.zeros(len(names))
+        start_s = controller.snapshot.time_s
+        within_since: list[float] = []  # (empty: not within the tolerance)
+
+        def arrived() -> bool:
+            if supervisor.state.faulted or not controller.idle:
+                return True  # a fault, or another motion took over
+            snapshot = controller.snapshot
+            np.abs(np.subtract(snapshot.position_deg, snapshot.reference_deg, out=error), out=error)
+            if error.max() > goal.goal_tolerance_deg:
+                within_since.clear()
+                return False
+            if not within_since:
+                within_since.append(snapshot.time_s)
+            return snapshot.time_s - within_since[0] >= goal.goal_settle_s
+
+        settled = controller.wait_for(arrived, goal.goal_time_s + goal.goal_settle_s)
+        if supervisor.state.faulted or not controller.idle:
+            return None
+        arrival = Arrival(
+            settled and bool(within_since),
+            controller.snapshot.time_s - start_s,
+            {n: round(float(e), 4) for n, e in zip(names, error, strict=True)},
+        )
+        if not arrival.arrived:
+            logger.warning("%s", arrival.text(goal.goal_tolerance_deg))
+        return arrival
 
     @property
     def done(self) -> bool:

@@ -9,6 +9,7 @@ command exits with 130.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 from collections.abc import Callable, Mapping
@@ -94,6 +95,8 @@ def wait_with_progress(arm: Arm, handle: MotionHandle, label: str) -> float:
             if now.duration_s > 0:
                 progress.update(now.elapsed_s, now.duration_s)
         outcome = f"done in {now_s() - start:.2f} s"
+        if handle.arrival is not None:
+            outcome += f" ({handle.arrival.text(arm.config.control.goal_tolerance_deg)})"
     except KeyboardInterrupt:
         outcome = "interrupted"
         raise
@@ -284,7 +287,9 @@ def move(args: argparse.Namespace, interrupts: Interrupts) -> int:
         handle = arm.move_to(targets, speed_scale=args.speed_scale, wait=False)
         wall = wait_with_progress(arm, handle, "move")
         if args.json:
-            print_json(_summary("move", arm, wall, {"targets": targets, "speed_scale": args.speed_scale}))
+            arrival = None if handle.arrival is None else dataclasses.asdict(handle.arrival)
+            extra = {"targets": targets, "speed_scale": args.speed_scale, "arrival": arrival}
+            print_json(_summary("move", arm, wall, extra))
         else:
             _print_positions(arm, wall)
         return EXIT_OK

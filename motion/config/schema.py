@@ -121,6 +121,11 @@ class ControlConfig:
         inertia_feedforward: add the inertial and Coriolis torques of the planned motion (RNEA).
         rate_margin: the margin the rate check at connect requires (1..10, default 1.5): the measured bus round trip
             and host work times this must fit the period. Below the default a warning says the margin is thin.
+        goal_tolerance_deg: a move (or path) ends when every joint is within this of its target, degrees (0: when its
+            reference ends, not waiting for the arm).
+        goal_settle_s: ... and has stayed within it for this long, s.
+        goal_time_s: how long after the reference ends the joints have to arrive, s; a joint that has not is
+            reported (``MotionHandle.arrival``, a warning), not a fault.
     """
 
     halt_policy: HaltPolicy
@@ -129,6 +134,9 @@ class ControlConfig:
     gravity_feedforward: bool = False
     inertia_feedforward: bool = False
     rate_margin: float = 1.5
+    goal_tolerance_deg: float = 0.1
+    goal_settle_s: float = 0.1
+    goal_time_s: float = 2.0
 
     @property
     def period_s(self) -> float:

@@ -67,6 +67,9 @@ def control_section(node: Node) -> schema.ControlConfig:
         gravity_feedforward=node.flag("gravity_feedforward"),
         inertia_feedforward=node.flag("inertia_feedforward"),
         rate_margin=node.number("rate_margin", Range(1, 10)),
+        goal_tolerance_deg=node.number("goal_tolerance_deg", Range(0, 10)),
+        goal_settle_s=node.number("goal_settle_s", Range(0, 10)),
+        goal_time_s=node.number("goal_time_s", Range(0, 60)),
     )
 
 
