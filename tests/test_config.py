@@ -633,3 +633,35 @@ def test_parse_config_resolves_relative_urdf_against_base_dir() -> None:
     data = copy.deepcopy(ARM6)
     data["model"]["urdf"] = "arm6.urdf"
     assert parse_config(data, base_dir=CONFIGS).model.urdf == CONFIGS / "arm6.urdf"
+
+
+def test_a_joints_actuator_model_fills_its_published_figures(tmp_path: Path) -> None:
+    # issue 33 §9: `actuator:` fills gear_ratio, torque_constant_nm_per_a (motor side: rated torque / rated current /
+    # reduction) and current_limit_a (the published peak, where the torque command carries it); each stays
+    # overridable; where the peak is not published or is beyond 32 A the current limit must be given
+    def joint0(**keys: Any) -> dict[str, Any]:
+        data = copy.deepcopy(ARM2)
+        for key in ("gear_ratio", "torque_constant_nm_per_a", "current_limit_a"):
+            data["joints"][0].pop(key)
+        data["joints"][0].update(keys)
+        return data
+
+    joint = parse_config(joint0(actuator="X4-10"), source="mem", base_dir=CONFIGS).joints[0]
+    assert (joint.actuator, joint.gear_ratio, joint.current_limit_a) == ("X4-10", 12.6, 19.5)
+    assert joint.torque_constant_nm_per_a == pytest.approx(4.0 / 7.8 / 12.6)
+    joint = parse_config(
+        joint0(actuator="X8-90", current_limit_a=12.0, gear_ratio=9.0), source="mem", base_dir=CONFIGS
+    ).joints[0]
+    assert (joint.gear_ratio, joint.current_limit_a) == (9.0, 12.0)  # the file's keys win
+    assert joint.torque_constant_nm_per_a == pytest.approx(25.0 / 10.0 / 18.0)
+    for model, why in (
+        ("X8-90", "its peak current is not in the table"),
+        ("X12-320", "its peak 100 A exceeds the 32 A"),
+    ):
+        with pytest.raises(ConfigError, match=rf"joints\[0\]\.current_limit_a: .*{model} \(required: {why}") as info:
+            parse_config(joint0(actuator=model), source="mem", base_dir=CONFIGS)
+        assert info.value.key_path == "joints[0].current_limit_a"
+    with pytest.raises(
+        ConfigError, match=r"joints\[0\]\.actuator: one of the models of the table \(X4-V2, .*found 'X9'"
+    ):
+        parse_config(joint0(actuator="X9"), source="mem", base_dir=CONFIGS)

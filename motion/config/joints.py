@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from dataclasses import fields
 
 from motion.config import schema
+from motion.config.actuators import ACTUATORS
 from motion.config.nodes import NON_NEGATIVE, POSITIVE, Invalid, Node, OneOf, Range, to_number
 from motion.protocol import WireProtocol
 from motion.protocol.messages import Command
@@ -43,8 +44,34 @@ def _emulation(node: Node, rotor_inertia: float, viscous: float, coulomb: float)
     )
 
 
+def _actuator(node: Node) -> str | None:
+    """The joint's ``actuator:`` model, whose published figures become the defaults of ``gear_ratio``,
+    ``torque_constant_nm_per_a`` and ``current_limit_a`` (:mod:`motion.config.actuators`); None without the key."""
+    if not node.has("actuator"):
+        return None
+    model = node.text("actuator")
+    actuator = ACTUATORS.get(model)
+    if actuator is None:
+        raise node.error("actuator", f"one of the models of the table ({', '.join(ACTUATORS)}); found {model!r}")
+    node.defaults(gear_ratio=actuator.gear_ratio, torque_constant_nm_per_a=actuator.torque_constant_nm_per_a)
+    peak = actuator.peak_current_a
+    if peak is not None and peak <= IQ_LIMIT_A:
+        node.defaults(current_limit_a=peak)
+    elif not node.has("current_limit_a"):
+        why = (
+            "its peak current is not in the table"
+            if peak is None
+            else f"its peak {peak:g} A exceeds the {IQ_LIMIT_A:g} A the torque command carries"
+        )
+        raise node.error(
+            "current_limit_a", f"a current limit for the {model} (required: {why}), 0 < x <= {IQ_LIMIT_A:g} A"
+        )
+    return model
+
+
 def _joint(node: Node, mode: schema.ControlMode) -> schema.JointConfig:
     torque_mode = mode is schema.ControlMode.TORQUE
+    actuator = _actuator(node)
     rotor_inertia = node.number("rotor_inertia_kgm2", NON_NEGATIVE)
     viscous = node.number("viscous_friction_nm_per_dps", NON_NEGATIVE)
     coulomb = node.number("coulomb_friction_nm", NON_NEGATIVE)
@@ -73,6 +100,7 @@ def _joint(node: Node, mode: schema.ControlMode) -> schema.JointConfig:
         collision_threshold_torque_nm=thresholds[1],
         power_on_window_deg=node.interval("power_on_window_deg") if node.has("power_on_window_deg") else None,
         brake=node.flag("brake"),
+        actuator=actuator,
         emulation=_emulation(node.child("emulation", schema.EmulationConfig), rotor_inertia, viscous, coulomb),
     )
     if joint.position_min_deg >= joint.position_max_deg:

@@ -320,6 +320,8 @@ class JointConfig:
         homing: the joint's hard stop and how to home against it (None: the joint cannot be homed).
         brake: the joint has a holding brake its drive controls (V3-driver drives, 0x77 / 0x78): released when the
             loop starts, locked when the arm has halted and at the end.
+        actuator: the model of :mod:`motion.config.actuators` whose published figures are the defaults of
+            ``gear_ratio``, ``torque_constant_nm_per_a`` and ``current_limit_a`` (None: each given).
         emulation: emulator plant parameters.
     """
 
@@ -347,6 +349,7 @@ class JointConfig:
     power_on_window_deg: tuple[float, float] | None = None
     homing: HomingConfig | None = None
     brake: bool = False
+    actuator: str | None = None
     emulation: EmulationConfig = field(default_factory=EmulationConfig)
 
     def collision_threshold_in(self, mode: ControlMode) -> float | None:
