@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from motion.cli import main
-from motion.config import read_yaml
+from motion.cli.moves import _jog_verdict
+from motion.config import load_config, read_yaml
 from motion.config.examples import example_names, resolve_program
 from motion.telemetry import load_log
 from tests.motion_rig import CONFIGS
@@ -157,3 +159,30 @@ def test_a_configuration_is_checked_offline_against_what_its_drives_give(
         capsys, "check", "--config", "arm2.yaml", "--offline", "--program", "configs/programs/arm6.yaml"
     )
     assert code == 2 and "unknown joint" in err
+
+
+def test_jog_moves_one_joint_and_back_and_says_which_drive_turned(capsys: pytest.CaptureFixture[str]) -> None:
+    # issue 33 §2: a joint gravity does not load is commissioned by moving it: which drive turned, which way, how far
+    code, out, err = _run(capsys, "jog", "--config", "arm2.yaml", "--emulate", "elbow", "--deg", "4", "--json")
+    assert code == 0, err
+    report = json.loads(out)
+    assert report["expected_motor_deg"] == pytest.approx(-36.0)  # arm2's elbow: 1:9, mounted mirrored
+    assert report["turned_motor_deg"]["elbow"] == pytest.approx(-36.0, abs=0.9)  # (arrived within 0.1 joint deg)
+    assert abs(report["turned_motor_deg"]["shoulder"]) < 1.0
+    assert report["verdict"].startswith("elbow (motor 2) turned -35.") and "motor deg as commanded" in report["verdict"]
+    code, _, err = _run(capsys, "jog", "--config", "arm2.yaml", "--emulate", "elbow", "--deg", "200")
+    assert code == 2 and "takes it outside its limits [-135, 135]: jog the other way (--deg -200)" in err
+    code, _, err = _run(capsys, "jog", "--config", "arm2.yaml", "--emulate", "elbow", "--deg", "0")
+    assert code == 2 and "--deg: a non-zero number of joint degrees" in err
+
+
+def test_the_jog_verdict_names_a_swapped_id_a_reversed_direction_and_a_wrong_gear() -> None:
+    config = load_config(CONFIGS / "arm2.yaml")
+    shoulder, elbow = config.joints
+    specs = {j.motor_id: SimpleNamespace(name=j.name, motor_id=j.motor_id) for j in config.joints}
+    swapped = _jog_verdict(shoulder, 45.0, [(specs[2], 45.0)])
+    assert "shoulder (motor 1) was commanded +45.0 motor deg and motor 2 (elbow) turned: check the motor ids" in swapped
+    assert "no drive turned" in _jog_verdict(shoulder, 45.0, [])
+    assert "the other way than commanded: check its direction" in _jog_verdict(shoulder, 45.0, [(specs[1], -45.0)])
+    assert "check its gear_ratio" in _jog_verdict(shoulder, 45.0, [(specs[1], 30.0)])
+    assert "as commanded" in _jog_verdict(elbow, -36.0, [(specs[2], -35.5)])

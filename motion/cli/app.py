@@ -304,6 +304,20 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("program", metavar="PROGRAM.yaml", help="the program (its format below)")
     _motion_options(run, "multiplies every step's speed scale, (0, 1] (default 1)")
 
+    jog = _command(
+        sub,
+        "jog",
+        moves.jog,
+        "MOVE one joint slowly by a few degrees and back; report which drive turned and which way (commissioning)",
+    )
+    jog.add_argument("joint", metavar="JOINT")
+    jog.add_argument("--deg", type=float, default=moves.JOG_DEG, help=f"joint degrees out (default {moves.JOG_DEG:g})")
+    add_emulate_flag(jog)
+    add_turns_flag(jog)
+    jog.add_argument("--log", metavar="FILE.npz", help="record every control cycle (see `rmd-motion plot`)")
+    jog.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
+    _json(jog)
+
     home = _command(
         sub,
         "home",

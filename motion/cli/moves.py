@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 import time
 from collections.abc import Callable, Mapping
@@ -25,12 +26,13 @@ from motion.cli.common import (
     parse_pose,
     parse_targets,
     print_json,
+    print_table,
     view_options,
     warn,
 )
 from motion.cli.program import MoveStep, PathStep, Program, WaitStep, load_program
 from motion.compose import session_link_timeout_ms
-from motion.config import ArmConfig
+from motion.config import ArmConfig, JointConfig
 from motion.control.family import FAMILIES
 from motion.errors import MotionError, MotionFault, PortLost
 from motion.homing import homed_joints
@@ -295,6 +297,81 @@ def move(args: argparse.Namespace, interrupts: Interrupts) -> int:
         return EXIT_OK
 
     return with_arm(args, session, interrupts, body, emulate=args.emulate)
+
+
+#: ``jog``: the default excursion, joint degrees, and the speed scale of the jog.
+JOG_DEG = 5.0
+JOG_SPEED_SCALE = 0.1
+#: A drive whose angle changed by less than this share of the commanded excursion (motor side) did not move.
+JOG_MOVED_SHARE = 0.5
+
+
+def jog(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``jog JOINT [--deg D]``: move one joint slowly by D degrees and back, and report which drive's angle changed
+    and in which direction (commissioning: a swapped motor id, a wrong ``direction`` or ``gear_ratio`` show here)."""
+    session = Session.from_args(args)
+    joint = session.joint(args.joint)
+    if args.deg == 0.0 or not math.isfinite(args.deg):
+        raise UsageError(f"--deg: a non-zero number of joint degrees, found {args.deg:g}")
+
+    def body(arm: Arm) -> int:
+        assert arm.controller is not None
+        controller = arm.controller
+        start = arm.positions()
+        target = start[joint.name] + args.deg
+        if not joint.position_min_deg <= target <= joint.position_max_deg:
+            raise UsageError(
+                f"{joint.name} at {start[joint.name]:.2f} deg: {args.deg:+g} deg takes it outside its limits "
+                f"[{joint.position_min_deg:g}, {joint.position_max_deg:g}]: jog the other way (--deg {-args.deg:g})"
+            )
+        before = controller.axes.motor_deg.copy()
+        wait_with_progress(arm, arm.move_to({joint.name: target}, speed_scale=JOG_SPEED_SCALE, wait=False), "jog")
+        turned = controller.axes.motor_deg - before
+        wait_with_progress(
+            arm, arm.move_to({joint.name: start[joint.name]}, speed_scale=JOG_SPEED_SCALE, wait=False), "back"
+        )
+        expected = args.deg * joint.direction * joint.gear_ratio  # motor degrees
+        rows, moved = [], []
+        for spec, delta in zip(controller.specs, turned, strict=True):
+            if abs(delta) >= JOG_MOVED_SHARE * abs(expected):
+                moved.append((spec, float(delta)))
+            rows.append((spec.name, spec.motor_id, f"{delta:+.2f}"))
+        report = _jog_verdict(joint, expected, moved)
+        if args.json:
+            turned_by = {spec.name: round(float(d), 3) for spec, d in zip(controller.specs, turned, strict=True)}
+            print_json(
+                {"joint": joint.name, "deg": args.deg, "expected_motor_deg": expected, "turned_motor_deg": turned_by,
+                 "verdict": report}
+            )  # fmt: skip
+        else:
+            print_table(("joint", "motor", "motor deg turned"), rows)
+            print(report)
+        return EXIT_OK
+
+    return with_arm(args, session, interrupts, body, emulate=args.emulate)
+
+
+def _jog_verdict(joint: JointConfig, expected_motor_deg: float, moved: list[tuple[Any, float]]) -> str:
+    """In words: whether the joint's own drive turned as much and as far as commanded, or which did instead."""
+    label = f"{joint.name} (motor {joint.motor_id})"
+    ids = [spec.motor_id for spec, _ in moved]
+    if ids != [joint.motor_id]:
+        turned = ", ".join(f"motor {spec.motor_id} ({spec.name})" for spec, _ in moved) or "no drive"
+        return (
+            f"{label} was commanded {expected_motor_deg:+.1f} motor deg and {turned} turned: check the motor ids "
+            "(each joint's motor_id against the drive's id) and that the joint is free to move"
+        )
+    delta = moved[0][1]
+    if (delta > 0) != (expected_motor_deg > 0):
+        return f"{label} turned {delta:+.1f} motor deg, the other way than commanded: check its direction"
+    if not 0.8 <= delta / expected_motor_deg <= 1.25:
+        return (
+            f"{label} turned {delta:+.1f} motor deg for {expected_motor_deg:+.1f} commanded: check its gear_ratio "
+            "(motor degrees per joint degree)"
+        )
+    return (
+        f"{label} turned {delta:+.1f} motor deg as commanded; watch that it was {joint.name} that moved, the right way"
+    )
 
 
 def run_program(arm: Arm, program: Program, speed_scale: float) -> None:
