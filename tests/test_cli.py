@@ -421,6 +421,38 @@ def test_run_validates_the_whole_program_first(can_arm: Emulated, tmp_path: Path
     assert can_arm.log_size() == before
 
 
+def test_check_holding_finds_a_torque_constant_and_swapped_motor_ids_before_anything_moves(
+    can_arm: Emulated, tmp_path: Path
+) -> None:
+    # issue 33 §2: the drives (emulated from arm2.yaml) hold the arm; a configuration whose shoulder torque constant is
+    # twice the drive's, or whose motor ids are swapped, reads holding torques that do not match the model's gravity
+    fit = rate_that_holds(ARM2, can_arm, tmp_path, 100.0)
+    right = cli("check", "--holding", "--config", fit, *can_arm.bus_args)
+    skip_if_rate_refused(right)
+    assert right.returncode == 0, right.stderr
+    assert "shoulder (motor 1) holds with" in right.stdout and right.stdout.count(": as configured") == 2
+    source = fit.read_text()
+    doubled = tmp_path / "doubled" / "arm2.yaml"
+    doubled.parent.mkdir()
+    doubled.write_text(source.replace("torque_constant_nm_per_a: 0.1", "torque_constant_nm_per_a: 0.2", 1))
+    result = cli("check", "--holding", "--config", doubled, *can_arm.bus_args)
+    skip_if_rate_refused(result)
+    assert result.returncode == 2, result.stderr
+    assert "2.00 times the model's: its gear_ratio or torque_constant_nm_per_a" in result.stdout
+    assert "holding torque does not match the model for shoulder" in result.stderr
+    swapped = tmp_path / "swapped" / "arm2.yaml"
+    swapped.parent.mkdir()
+    swapped.write_text(
+        source.replace("motor_id: 1", "motor_id: 9")
+        .replace("motor_id: 2", "motor_id: 1")
+        .replace("motor_id: 9", "motor_id: 2")
+    )
+    result = cli("check", "--holding", "--config", swapped, *can_arm.bus_args, "--forget-turns")
+    skip_if_rate_refused(result)
+    assert result.returncode == 2, result.stderr
+    assert "holding torque does not match the model for shoulder" in result.stderr
+
+
 def test_a_drive_that_does_not_answer_is_a_communication_error(tmp_path: Path) -> None:
     config = tmp_path / "arm2_missing.yaml"
     config.write_text(ARM2.read_text().replace("motor_id: 2", "motor_id: 7"))

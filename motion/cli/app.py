@@ -293,6 +293,14 @@ def build_parser() -> argparse.ArgumentParser:
         "configured accelerations, against what its drive gives; exit 2 when a joint cannot hold the arm up",
     )
     check.add_argument("--program", metavar="PROGRAM.yaml", help="with --offline: validate this program as well")
+    check.add_argument(
+        "--holding",
+        action="store_true",
+        help="connect and hold still: each joint's holding torque against the model's gravity torque (a swapped motor "
+        "id, a wrong gear_ratio, direction or torque constant); exit 2 on a mismatch; nothing moves",
+    )
+    add_emulate_flag(check)
+    add_turns_flag(check)
     _json(check)
 
     move = _command(sub, "move", moves.move, "move joints to targets (degrees); the others keep their position")

@@ -458,6 +458,12 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
     config = session.config
     if args.offline or args.program:
         return _check_offline(args, session)
+    if args.holding:
+        from motion.cli.moves import holding  # noqa: PLC0415 - (moves builds arms; drives talks to drives)
+
+        return holding(args, interrupts)
+    if args.emulate:
+        raise UsageError("--emulate: the rate check measures this host and bus; --holding and --offline run emulated")
     if args.identify and config.control.mode is not ControlMode.POSITION:
         mode = config.control.mode.value
         raise UsageError(f"--identify: {config.source} runs in {mode} mode; identification needs position mode")

@@ -181,7 +181,8 @@ def with_arm(
         PortLost: the bus was lost under the running loop (in place of whatever else was raised): the halt could not
             be delivered; its message says what stops the drives then.
     """
-    telemetry = TelemetryOptions(args.log, args.trace) if args.log or args.trace else None
+    log, trace = getattr(args, "log", None), getattr(args, "trace", None)
+    telemetry = TelemetryOptions(log, trace) if log or trace else None
     overrides = session.overrides
     if options.get("emulate"):
         if overrides:
@@ -349,6 +350,32 @@ def jog(args: argparse.Namespace, interrupts: Interrupts) -> int:
         return EXIT_OK
 
     return with_arm(args, session, interrupts, body, emulate=args.emulate)
+
+
+def holding(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``check --holding``: connect, hold still, and set each joint's holding torque against the model's gravity
+    torque (:mod:`motion.api.commissioning`); exit 2 when a joint's differs beyond its bound (naming what may be
+    wrong)."""
+    from motion.api.commissioning import check_holding  # noqa: PLC0415 - Pinocchio only where a check needs it
+
+    session = Session.from_args(args)
+
+    def body(arm: Arm) -> int:
+        verdicts = check_holding(arm)
+        if args.json:
+            print_json({"joints": [dataclasses.asdict(v) | {"matches": v.matches} for v in verdicts]})
+        else:
+            for verdict in verdicts:
+                print(verdict.text())
+        wrong = [v for v in verdicts if not v.matches]
+        if wrong:
+            names = ", ".join(v.name for v in wrong)
+            raise UsageError(
+                f"holding torque does not match the model for {names}: check the configuration before moving"
+            )
+        return EXIT_OK
+
+    return with_arm(args, session, interrupts, body, emulate=getattr(args, "emulate", False))
 
 
 def _jog_verdict(joint: JointConfig, expected_motor_deg: float, moved: list[tuple[Any, float]]) -> str:
