@@ -18,6 +18,7 @@ from motion.control.turns import (
     Source,
     TurnError,
     TurnRecord,
+    ambiguous_after,
     drive_reading,
     edge_margin_deg,
     resolve_joint,
@@ -340,3 +341,30 @@ def test_an_output_shaft_reading_of_a_drive_without_a_whole_reduction_is_refused
     with pytest.raises(TurnError, match=r"reads 200\.00 output deg.*no whole number of motor turns"):
         resolve_output_joint("j", odd, 200.0 * 9.5, (-90.0, 90.0), None, output_turn=0)
     assert resolve_output_joint("j", odd, 50.0 * 9.5, (-90.0, 90.0), None, output_turn=0).source is Source.ABSOLUTE
+
+
+def test_a_joint_left_a_whole_turn_from_its_window_is_continued_with_keep_turns_and_never_put_elsewhere() -> None:
+    # issue 33 §1: arm2's shoulder (1:9) left at 40 deg reads 360 motor deg, as a drive powered up there would: the
+    # next session cannot tell. It is refused with both answers and the condition of each (never --forget-turns
+    # alone, which put the joint at 0 while it stood at 40), and --keep-turns (the drives stayed powered) continues
+    config = arm_config("arm2.yaml", rate_hz=200)
+    emulator, _ = arm_emulator(config, initial_deg=[40.0, 0.0])  # (drives not power-cycled: they count on)
+    simulation = Simulation(emulator, WireProtocol.CAN)
+    controller = build_controller(config, SimulatedBus(simulation), clock=SimulatedClock(simulation))
+    shoulder = controller.base_transmission.transmissions[0]
+    window = config.joints[0].power_on_window_deg
+    assert window is not None and ambiguous_after(shoulder, 40.0, 0, window) == -1  # the session's end warns
+    assert ambiguous_after(shoulder, 35.0, 0, window) is None  # 315 motor deg: no window count lands there
+    records = {
+        "shoulder": TurnRecord(1, turns=0, reading_deg=360.0, source=Source.WINDOW),
+        "elbow": TurnRecord(2, turns=0, reading_deg=0.0, source=Source.WINDOW),
+    }
+    with pytest.raises(TurnError) as caught:
+        resolve_frames(controller, config, records=records)
+    text = str(caught.value)
+    assert "if the drives stayed powered since, the joint is at 40.00 deg (run again with --keep-turns" in text
+    assert "if they were powered up with the joint inside its power_on_window_deg [-5, 5], it is at" in text
+    assert "--forget-turns" in text and "if neither, home it" in text
+    turns = resolve_frames(controller, config, records=records, stayed_powered=True)
+    assert [(t.source, t.turns) for t in turns] == [(Source.KEPT, 0), (Source.KEPT, 0)]
+    np.testing.assert_allclose(controller.read_positions(), [40.0, 0.0], atol=0.05)

@@ -34,7 +34,7 @@ from motion.control.clock import Clock
 from motion.control.controller import Controller
 from motion.control.ratecheck import RateCheck
 from motion.control.tracking import PositionLoopFit
-from motion.control.turns import JointTurns, Source
+from motion.control.turns import JointTurns, Source, ambiguous_after
 from motion.emulator import Fault, FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
 from motion.errors import EncodeError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
@@ -90,6 +90,8 @@ class Arm:
             external torque on a joint).
         forget_turns: the drives have been powered up since the last session: leave its recorded turn offsets
             aside, and resolve every joint from its ``power_on_window_deg`` (see :mod:`motion.control.turns`).
+        keep_turns: the drives have stayed powered since the last session: its recorded turn offsets hold, where a
+            reading alone cannot tell (a joint left a whole motor turn from its window).
         home: joints to home against their hard stops at :meth:`connect`, before the arm is handed over (their
             power-on windows are not consulted; see :mod:`motion.homing`).
         start_pose: emulation only: the emulated drives power up with the named joints at these angles, degrees
@@ -116,6 +118,7 @@ class Arm:
         observe_collisions: bool = False,
         faults: Sequence[Fault] = (),
         forget_turns: bool = False,
+        keep_turns: bool = False,
         home: Sequence[str] = (),
         start_pose: Mapping[str, float] | None = None,
         view: bool | ViewOptions = False,
@@ -135,7 +138,10 @@ class Arm:
         self._start_pose = start_pose_of(config, start_pose, emulate, initial_deg)
         #: The emulated drives' protocol generation (the controller tells it at connect as with real drives).
         self.emulated_family = emulated_family(config, emulated_protocol)
+        if forget_turns and keep_turns:
+            raise ValueError("forget_turns and keep_turns: the drives either were powered up since or stayed powered")
         self._forget_turns = forget_turns
+        self._keep_turns_given = keep_turns
         self._home = tuple(home)
         if self._home:
             homed_joints(config, self._home)  # an unknown or unhomeable joint is refused before anything opens
@@ -397,6 +403,29 @@ class Arm:
         except OSError as exc:
             logger.warning("turn offsets not kept for the next session: %s", exc)
 
+    def _warn_ambiguous_pose(self) -> None:
+        """Warn of a joint left where the next session cannot tell its turns from its reading (a whole motor turn
+        from its power-on window): it will ask whether the drives stayed powered (``--keep-turns``)."""
+        controller = self.controller
+        assert controller is not None
+        q = controller.snapshot.position_deg
+        for i, (joint, spec) in enumerate(zip(self.config.joints, self.turns, strict=True)):
+            window = joint.power_on_window_deg
+            if window is None or controller.family.output_shaft:
+                continue
+            transmission = controller.base_transmission.transmissions[i]
+            counted = ambiguous_after(transmission, float(q[i]), spec.turns, window)
+            if counted is not None:
+                logger.warning(
+                    "joint %s is left at %.2f deg, a whole number of motor turns from its power_on_window_deg "
+                    "[%g, %g]: the next session cannot tell from its reading whether the drives were powered up "
+                    "meanwhile and will ask (--keep-turns if they stayed powered); move it elsewhere, or home it after "
+                    "a power cycle",
+                    joint.name,
+                    float(q[i]),
+                    *window,
+                )
+
     @property
     def _remembers(self) -> bool:
         """Whether the turn offsets are kept between sessions: on hardware (emulated drives are new every run)."""
@@ -408,7 +437,9 @@ class Arm:
         records = None
         if self._remembers and not self._forget_turns:
             records = load_turn_records(self.config, controller.bus.describe())
-        return resolve_frames(controller, self.config, records=records, provisional=self._home)
+        return resolve_frames(
+            controller, self.config, records=records, provisional=self._home, stayed_powered=self._keep_turns_given
+        )
 
     def _remember_turns(self) -> None:
         """At close: keep the turn offsets for the next session (where the drives ended), unless a drive restarted:
@@ -417,6 +448,8 @@ class Arm:
             turns_store(self.config).unlink(missing_ok=True)
             return
         self._keep_turns()
+        if self._remembers and self.controller is not None and self.turns:
+            self._warn_ambiguous_pose()
 
     def _start_simulation(self) -> tuple[Transport, SimulatedClock]:
         from motion.emulator.arm import arm_emulator  # noqa: PLC0415 - as above

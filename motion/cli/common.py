@@ -302,12 +302,20 @@ def view_options(args: argparse.Namespace, *, wanted: bool | None = None) -> Vie
 
 
 def add_turns_flag(parser: argparse.ArgumentParser) -> None:
-    """``--forget-turns``: the drives were powered up since the last session (see :mod:`motion.control.turns`)."""
-    parser.add_argument(
+    """``--forget-turns`` / ``--keep-turns``: the drives were powered up since the last session, or stayed powered
+    (see :mod:`motion.control.turns`)."""
+    turns = parser.add_mutually_exclusive_group()
+    turns.add_argument(
         "--forget-turns",
         action="store_true",
-        help="the drives have been powered up since the last session: leave its recorded turn offsets aside and "
-        "resolve every joint from its power_on_window_deg",
+        help="the drives have been powered up since the last session, with every joint inside its "
+        "power_on_window_deg: leave the recorded turn offsets aside and resolve every joint from its window",
+    )
+    turns.add_argument(
+        "--keep-turns",
+        action="store_true",
+        help="the drives have stayed powered since the last session: its recorded turn offsets hold (where a "
+        "reading alone cannot tell)",
     )
 
 

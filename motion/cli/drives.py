@@ -128,7 +128,7 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
         # its loop is never started.
         controller = build_controller(config, bus)
         records = None if args.forget_turns else load_turn_records(config, bus.describe())
-        turns = resolve_frames(controller, config, records=records)
+        turns = resolve_frames(controller, config, records=records, stayed_powered=args.keep_turns)
         controller.read_positions()
         save_turn_records(config, bus.describe(), controller, (j.source for j in turns), [j.power_on for j in turns])
         family = controller.family

@@ -190,6 +190,7 @@ def with_arm(
             raise UsageError(f"--emulate opens no port: drop {given}")
         overrides = {}
     options.setdefault("forget_turns", getattr(args, "forget_turns", False))
+    options.setdefault("keep_turns", getattr(args, "keep_turns", False))
     options.setdefault("view", view_options(args) or False)
     if getattr(args, "start_pose", None):
         if not options.get("emulate"):

@@ -164,6 +164,23 @@ def in_first_turn(reading_deg: float) -> bool:
     return -POWER_UP_SAG_MOTOR_DEG <= reading_deg < TURN_DEG + POWER_UP_SAG_MOTOR_DEG
 
 
+def ambiguous_after(
+    transmission: Transmission, joint_deg: float, turns: int, window: tuple[float, float]
+) -> int | None:
+    """Whether a session that ends with the joint at ``joint_deg`` (its drive ``turns`` from the controller's frame)
+    leaves the next session a reading it cannot tell from a power-up: one in the drive's first turn whose window
+    count differs from ``turns``. Returns that count (the next session asks: ``--keep-turns`` or ``--forget-turns``),
+    else None."""
+    reading = drive_reading(transmission, joint_deg, turns)
+    if not in_first_turn(reading):
+        return None
+    try:
+        counted = window_turns("", transmission, reading, window)
+    except TurnError:
+        return None
+    return counted if counted != turns else None
+
+
 def window_turns(name: str, transmission: Transmission, reading_deg: float, window: tuple[float, float]) -> int:
     """The unique turn count that puts the joint inside its window, clear of the edges.
 
@@ -208,8 +225,8 @@ def resolve_joint(
     powered_since: bool | None = None,
 ) -> JointTurns:
     """One joint's turn offset (the rules of the module docstring). ``powered_since``: whether the drive has run
-    since the record's session, as its runtime tells (None: it does not tell); a drive that has keeps its count
-    wherever the joint went meanwhile (``Source.KEPT``).
+    since the record's session, as its runtime tells (None: it does not tell; True also where the user says so:
+    ``--keep-turns``); a drive that has keeps its count wherever the joint went meanwhile (``Source.KEPT``).
 
     Raises:
         TurnError: a joint with a window whose turns cannot be told.
@@ -236,12 +253,14 @@ def resolve_joint(
             raise
         return _joint_turns(name, transmission, reading_deg, window, kept, Source.KEPT, Source.KEPT)
     if kept is not None and kept != turns:
+        lo, hi = window
         raise TurnError(
-            f"joint {name}: the drive reads {reading_deg:.2f} motor deg: either it was powered up since the last "
-            f"session (then its power-on window says {turns:+d} turns, the joint at "
-            f"{joint_angle(transmission, reading_deg, turns):.2f} deg) or it was not (then {kept:+d} turns, the joint "
-            f"at {joint_angle(transmission, reading_deg, kept):.2f} deg); if it was, run again with --forget-turns "
-            "(API: forget_turns=True), else home it (`rmd-motion home`)"
+            f"joint {name}: the drive reads {reading_deg:.2f} motor deg, which does not tell whether it was powered up "
+            f"since the last session: if the drives stayed powered since, the joint is at "
+            f"{joint_angle(transmission, reading_deg, kept):.2f} deg (run again with --keep-turns; API: "
+            "keep_turns=True); if they were powered up with the joint inside its power_on_window_deg "
+            f"[{lo:g}, {hi:g}], it is at {joint_angle(transmission, reading_deg, turns):.2f} deg (--forget-turns; "
+            "API: forget_turns=True); if neither, home it (`rmd-motion home`)"
         )
     return JointTurns(name, turns, Source.WINDOW, reading_deg, joint_angle(transmission, reading_deg, turns), window)
 
