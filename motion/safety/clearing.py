@@ -12,16 +12,13 @@ from __future__ import annotations
 
 import logging
 
-from motion.control.controller import Controller
 from motion.control.drivesetup import DriveSetup
 from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionFault, TransportError
 from motion.protocol import Command
 from motion.protocol.v3.messages import CommandV3
-from motion.safety.halted import HaltGuard
-from motion.safety.records import FaultLog
-from motion.safety.states import ArmEvent, ArmState, StateMachine
-from motion.safety.watchdog import SafetySettings, Watchdog
+from motion.safety.context import SafetyContext, SafetyPart
+from motion.safety.states import ArmEvent, ArmState
 from motion.trajectory import State
 from motion.transport import Reply, Request
 
@@ -31,42 +28,29 @@ logger = logging.getLogger("motion.safety")
 _CLEAR_WINDOW_S = 0.005
 
 
-class Clearing:
+class Clearing(SafetyPart):
     """Carries out a clear request in a faulted state that accepts CLEARED (control thread only).
 
     Args:
-        controller: the controller.
-        settings: the limits a drive must be within (temperature, supply).
-        machine: the arm's state machine.
-        guard: the halted state's bookkeeping (the brakes locked since the halt).
-        watchdog: the watchdog (the joints' limits; started afresh).
-        log: the session's faults (the fault cleared, the joints whose frame is lost).
+        context: the supervisor's pieces (its settings: the limits a drive must be within; its guard: the brakes
+            locked since the halt; its watchdog, started afresh; its log: the fault cleared, the joints whose frame is
+            lost).
         drives: the drives' settings of the session (the brakes' release).
         end_window_s: the longest wait for the replies of the brakes' lock after a failed release, s.
     """
 
     def __init__(
         self,
-        controller: Controller,
+        context: SafetyContext,
         *,
-        settings: SafetySettings,
-        machine: StateMachine,
-        guard: HaltGuard,
-        watchdog: Watchdog,
-        log: FaultLog,
         drives: DriveSetup,
         end_window_s: float,
     ) -> None:
-        self.controller = controller
-        self.settings = settings
-        self.machine = machine
-        self.guard = guard
-        self.watchdog = watchdog
-        self.log = log
+        super().__init__(context)
         self.drives = drives
         self._end_window_s = end_window_s
-        family = controller.family
-        ids = guard.ids
+        family = context.controller.family
+        ids = context.guard.ids
         self._state_reads = [Request(i, family.bare(Command.READ_STATUS_2)) for i in ids]
         clear = Command.CLEAR_ERRORS if family.clears_errors else Command.READ_STATUS_1
         self._clear_requests = [Request(i, family.bare(clear)) for i in ids]

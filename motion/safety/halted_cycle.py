@@ -16,13 +16,11 @@ from typing import Final
 
 import numpy as np
 
-from motion.control.controller import Controller, Feedforward
+from motion.control.controller import Feedforward
 from motion.errors import FaultKind, MotionFault, TransportError
-from motion.safety.halted import HaltGuard
+from motion.safety.context import SafetyContext, SafetyPart
 from motion.safety.reaction import FaultReaction
-from motion.safety.records import FaultLog
-from motion.safety.states import ArmEvent, ArmState, StateMachine
-from motion.safety.watchdog import SafetySettings, Watchdog
+from motion.safety.states import ArmEvent, ArmState
 from motion.transport import Reply, Request
 
 logger = logging.getLogger("motion.safety")
@@ -31,16 +29,12 @@ logger = logging.getLogger("motion.safety")
 _NO_REPLIES: Final[list[Reply]] = []
 
 
-class HaltedCycle:
+class HaltedCycle(SafetyPart):
     """Runs HALTING's and HALTED's cycle (control thread only).
 
     Args:
-        controller: the controller.
-        settings: ``halt_retry_s`` and the joints' Coulomb friction (a release with 0x80).
-        machine: the arm's state machine.
-        guard: the halted state's bookkeeping.
-        watchdog: the watchdog (limits, restarts, the joints' names).
-        log: the session's faults.
+        context: the supervisor's pieces (its settings: ``halt_retry_s`` and the joints' Coulomb friction, for a
+            release with 0x80; its watchdog: limits, restarts, the joints' names).
         reaction: the fault reaction (when HALTING ends; whether a send is failing).
         gravity: gravity compensation (None: a joint whose hold does not hold is never released).
         reads: the next cycle's status reads (the supervisor's round robin).
@@ -48,23 +42,13 @@ class HaltedCycle:
 
     def __init__(
         self,
-        controller: Controller,
+        context: SafetyContext,
         *,
-        settings: SafetySettings,
-        machine: StateMachine,
-        guard: HaltGuard,
-        watchdog: Watchdog,
-        log: FaultLog,
         reaction: FaultReaction,
         gravity: Feedforward | None,
         reads: Callable[[], tuple[Request, ...]],
     ) -> None:
-        self.controller = controller
-        self.settings = settings
-        self.machine = machine
-        self.guard = guard
-        self.watchdog = watchdog
-        self.log = log
+        super().__init__(context)
         self.reaction = reaction
         self.gravity = gravity
         self._reads = reads

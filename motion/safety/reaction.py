@@ -23,14 +23,13 @@ from typing import Final
 import numpy as np
 
 from motion.config.schema import HaltPolicy
-from motion.control.controller import Controller, Feedforward
+from motion.control.controller import Feedforward
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command
-from motion.safety.halted import HaltGuard
+from motion.safety.context import SafetyContext, SafetyPart
 from motion.safety.hold import HoldCheck
-from motion.safety.records import REACTIONS, FaultLog, HaltRecord, Reaction, same_cause
-from motion.safety.states import HALT_STATES, TRANSITIONS, ArmEvent, ArmState, StateMachine
-from motion.safety.watchdog import SafetySettings, Watchdog
+from motion.safety.records import REACTIONS, HaltRecord, Reaction, same_cause
+from motion.safety.states import HALT_STATES, TRANSITIONS, ArmEvent, ArmState
 from motion.trajectory import State
 from motion.transport import Request
 
@@ -49,41 +48,27 @@ _ACTIONS: Final = {
 _STREAMED: Final = {Reaction.COMPLY: "compliance", Reaction.HOLD: "the hold"}
 
 
-class FaultReaction:
+class FaultReaction(SafetyPart):
     """Reacts to faults and runs the cycles of HOLDING, COMPLYING and HALT_PENDING (control thread only).
 
     Args:
-        controller: the controller.
-        settings: the halt policy, the collision reaction and ``halt_retry_s``.
-        machine: the arm's state machine.
-        guard: the halted state's bookkeeping.
-        watchdog: the watchdog (evaluated in the streamed reactions' cycles).
-        log: the session's faults.
+        context: the supervisor's pieces (its settings: the halt policy, the collision reaction, ``halt_retry_s``;
+            its watchdog is evaluated in the streamed reactions' cycles).
         gravity: gravity compensation for ``comply`` (None: a collision halts with 0x81).
         reads: the next cycle's status reads (the supervisor's round robin).
     """
 
     def __init__(
         self,
-        controller: Controller,
+        context: SafetyContext,
         *,
-        settings: SafetySettings,
-        machine: StateMachine,
-        guard: HaltGuard,
-        watchdog: Watchdog,
-        log: FaultLog,
         gravity: Feedforward | None,
         reads: Callable[[], tuple[Request, ...]],
     ) -> None:
-        self.controller = controller
-        self.settings = settings
-        self.machine = machine
-        self.guard = guard
-        self.watchdog = watchdog
-        self.log = log
+        super().__init__(context)
         self.gravity = gravity
         self._reads = reads
-        self.hold = HoldCheck(controller, watchdog)
+        self.hold = HoldCheck(context.controller, context.watchdog)
         #: Until when HALTING waits for every drive's acknowledgement (set whenever HALTING is entered).
         self.halt_until_s = -math.inf
         #: A send of the halt failed, and none has gone through since (logged once per run of failures).

@@ -42,6 +42,7 @@ from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command
 from motion.safety.clearing import Clearing
 from motion.safety.collision import CollisionObserver
+from motion.safety.context import SafetyContext
 from motion.safety.ending import SETUP_WINDOW_S, SessionEnd, emergency_stop, end_window_s
 from motion.safety.halted import HaltGuard
 from motion.safety.halted_cycle import HaltedCycle
@@ -105,40 +106,13 @@ class Supervisor:
         #: The halted state's bookkeeping (:mod:`motion.safety.halted`).
         self.guard = guard = HaltGuard(ids, drives.braked_ids, family.bare)
         reads = self._next_status_reads
+        context = SafetyContext(controller, settings, machine, guard, watchdog, log)
         #: The reaction to a fault, and the cycles of HOLDING, COMPLYING and HALT_PENDING.
-        self.reaction = reaction = FaultReaction(
-            controller,
-            settings=settings,
-            machine=machine,
-            guard=guard,
-            watchdog=watchdog,
-            log=log,
-            gravity=gravity,
-            reads=reads,
-        )
-        halted = HaltedCycle(
-            controller,
-            settings=settings,
-            machine=machine,
-            guard=guard,
-            watchdog=watchdog,
-            log=log,
-            reaction=reaction,
-            gravity=gravity,
-            reads=reads,
-        )
+        self.reaction = reaction = FaultReaction(context, gravity=gravity, reads=reads)
+        halted = HaltedCycle(context, reaction=reaction, gravity=gravity, reads=reads)
         window_s = end_window_s(controller, drives)
         #: clear(), carried out in the loop.
-        self.clearing = Clearing(
-            controller,
-            settings=settings,
-            machine=machine,
-            guard=guard,
-            watchdog=watchdog,
-            log=log,
-            drives=drives,
-            end_window_s=window_s,
-        )
+        self.clearing = Clearing(context, drives=drives, end_window_s=window_s)
         #: The end of the session, once the loop has ended.
         self.ending = SessionEnd(
             controller, machine=machine, guard=guard, watchdog=watchdog, drives=drives, window_s=window_s
