@@ -383,9 +383,9 @@ def resolve_frames(
     """Read every drive's multi-turn angle and resolve each joint's turn offset (:mod:`motion.control.turns`) from
     its power-on window and ``records`` (what the last session left, :func:`load_turn_records`); the controller
     uses them from then on (call ``read_positions()`` next). ``stayed_powered``: the user says the drives have stayed
-    powered since the records were made (``--keep-turns``): each record's turns hold, as a drive's runtime would
-    show. A joint without a window warns once that its turns are assumed. The ``provisional`` joints (about to be
-    homed) take the record's turns or the drive's count, window aside and without a warning.
+    powered since the records were made (``--keep-turns``): where a reading cannot tell, the record's turns hold. A
+    joint without a window warns once that its turns are assumed. The ``provisional`` joints (about to be homed) take
+    the record's turns or the drive's count, window aside and without a warning.
 
     Raises:
         TurnError: a joint with a window whose turns cannot be told (nothing has moved).
@@ -406,9 +406,9 @@ def resolve_frames(
         [None if j.name in provisional else j.power_on_window_deg for j in config.joints],
         found,
         powered_since=[
-            (True if stayed_powered and r is not None else _powered_since(r, runtimes.get(j.motor_id), now))
-            for j, r in zip(config.joints, found, strict=True)
+            _powered_since(r, runtimes.get(j.motor_id), now) for j, r in zip(config.joints, found, strict=True)
         ],
+        stayed_powered=stayed_powered,
         # drives that report their output shaft (V3): the reading is the joint's (the joints about to be homed aside)
         output_turns=[
             _output_turn(s.drive_gear_ratio) if controller.family.output_shaft and s.name not in provisional else None

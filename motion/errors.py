@@ -68,7 +68,15 @@ class PortLost(TransportError):
 
 
 class PortUnavailable(TransportError):
-    """The bus or port could not be opened (no such device, an interface that is down or unknown, a port in use)."""
+    """The bus or port could not be opened (no such device, an interface that is down or unknown, a port in use).
+
+    Attributes:
+        link: the kind of link (``"can"``, ``"rs485"``: a transport's registry name).
+    """
+
+    def __init__(self, message: str, link: str = "can") -> None:
+        super().__init__(message)
+        self.link = link
 
 
 class DrivesSilent(TransportError):

@@ -155,6 +155,8 @@ def test_a_configuration_is_checked_offline_against_what_its_drives_give(
     assert code == 2 and "error: elbow cannot hold the arm up: gravity takes 1.23 N·m" in err
     code, out, err = _run(capsys, "check", "--config", "arm2.yaml", "--program", "configs/programs/arm6.yaml")
     assert code == 2 and "--program checks a program offline: give --offline as well" in err
+    code, out, err = _run(capsys, "check", "--config", "arm2.yaml", "--offline", "--holding")
+    assert code == 2 and "--offline and --holding: one check at a time" in err
     code, out, err = _run(
         capsys, "check", "--config", "arm2.yaml", "--offline", "--program", "configs/programs/arm6.yaml"
     )
@@ -169,20 +171,27 @@ def test_jog_moves_one_joint_and_back_and_says_which_drive_turned(capsys: pytest
     assert report["expected_motor_deg"] == pytest.approx(-36.0)  # arm2's elbow: 1:9, mounted mirrored
     assert report["turned_motor_deg"]["elbow"] == pytest.approx(-36.0, abs=0.9)  # (arrived within 0.1 joint deg)
     assert abs(report["turned_motor_deg"]["shoulder"]) < 1.0
-    assert report["verdict"].startswith("elbow (motor 2) turned -35.") and "motor deg as commanded" in report["verdict"]
+    assert (
+        report["verdict"].startswith("elbow (motor 2) turned -35.") and "motor deg, as commanded" in report["verdict"]
+    )
     code, _, err = _run(capsys, "jog", "--config", "arm2.yaml", "--emulate", "elbow", "--deg", "200")
     assert code == 2 and "takes it outside its limits [-135, 135]: jog the other way (--deg -200)" in err
     code, _, err = _run(capsys, "jog", "--config", "arm2.yaml", "--emulate", "elbow", "--deg", "0")
     assert code == 2 and "--deg: a non-zero number of joint degrees" in err
 
 
-def test_the_jog_verdict_names_a_swapped_id_a_reversed_direction_and_a_wrong_gear() -> None:
+def test_the_jog_verdict_says_which_drives_turned_and_what_to_watch() -> None:
+    # the drive is commanded and read through the joint's configured id, direction and gear, so its reading always
+    # agrees with them: the verdict says so and what the user must watch; it names a drive that did not follow, none
+    # that turned, and others that turned too
     config = load_config(CONFIGS / "arm2.yaml")
     shoulder, elbow = config.joints
     specs = {j.motor_id: SimpleNamespace(name=j.name, motor_id=j.motor_id) for j in config.joints}
-    swapped = _jog_verdict(shoulder, 45.0, [(specs[2], 45.0)])
-    assert "shoulder (motor 1) was commanded +45.0 motor deg and motor 2 (elbow) turned: check the motor ids" in swapped
-    assert "no drive turned" in _jog_verdict(shoulder, 45.0, [])
-    assert "the other way than commanded: check its direction" in _jog_verdict(shoulder, 45.0, [(specs[1], -45.0)])
-    assert "check its gear_ratio" in _jog_verdict(shoulder, 45.0, [(specs[1], 30.0)])
-    assert "as commanded" in _jog_verdict(elbow, -36.0, [(specs[2], -35.5)])
+    ok = _jog_verdict(elbow, -36.0, [(specs[2], -35.5)], 4.0)
+    assert "elbow (motor 2) turned -35.5 motor deg, as commanded. Its reading follows the configuration" in ok
+    assert "elbow should have moved +4 deg and back" in ok and "flip its direction" in ok and "9 times too far" in ok
+    assert "no drive turned" in _jog_verdict(shoulder, 45.0, [], 5.0)
+    assert "turned: motor 1 (shoulder) +45.0 motor deg, motor 2 (elbow) +20.0 motor deg" in _jog_verdict(
+        shoulder, 45.0, [(specs[1], 45.0), (specs[2], 20.0)], 5.0
+    )
+    assert "the drive did not follow" in _jog_verdict(shoulder, 45.0, [(specs[1], 20.0)], 5.0)

@@ -194,6 +194,13 @@ def test_a_move_ends_when_its_joints_arrive_or_reports_the_miss_at_the_goal_time
     with arm_with() as arm:
         handle = arm.move_to({"shoulder": 40.0, "elbow": -30.0})
         assert handle.arrival is not None and handle.arrival.arrived and handle.arrival.after_s >= 0.1
+        # a caller's timeout holds through the arrival too: polled, the wait says False until the joints arrived
+        polled = arm.move_to({"shoulder": 0.0}, wait=False)
+        polls = 0
+        while not polled.wait(0.02):
+            polls += 1
+            assert polls < 500
+        assert polled.arrival is not None and polled.arrival.arrived and polls > 10
         snapshot = arm.controller.snapshot  # type: ignore[union-attr]
         assert np.abs(snapshot.position_deg - snapshot.reference_deg).max() <= 0.1
     with arm_with(goal_tolerance_deg=0.001, goal_time_s=0.3) as arm, caplog.at_level(logging.WARNING, "motion.api"):

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Final
 
 import numpy as np
 
+from motion.errors import MotionError
 from motion.safety.collision_bound import MODEL_ERROR
 
 if TYPE_CHECKING:
@@ -25,6 +26,8 @@ if TYPE_CHECKING:
 #: How long the arm holds before the currents are averaged, and over how long they are, s.
 SETTLE_S: Final = 0.3
 AVERAGE_S: Final = 0.2
+#: The published snapshots read over that time.
+SAMPLES: Final = 10
 #: The share of ``|g|`` the model's masses may be off by.
 MASS_ERROR: Final = 0.2
 #: Steps of the current field in the bound.
@@ -73,32 +76,37 @@ class HoldingVerdict:
         return f"{label} {figures} (bound {self.bound_nm:.2f}): {why}"
 
 
+def _hold(arm: Arm, duration_s: float) -> None:
+    """Let ``duration_s`` pass with the arm holding; a fault meanwhile is raised (the arm halted)."""
+    arm.sleep(duration_s)
+    fault = arm.supervisor.fault if arm.supervisor is not None else None
+    if fault is not None:
+        raise fault
+
+
 def check_holding(arm: Arm) -> list[HoldingVerdict]:
     """Hold the connected arm still for :data:`SETTLE_S`, average each joint's torque over :data:`AVERAGE_S` and set
     it against g(q) (the module docstring). Nothing moves: the arm holds where it is.
 
     Raises:
-        MotionError: the arm is not connected.
+        MotionError: the arm is not connected, or not ready (faulted, moving).
         MotionFault: a fault halted the arm meanwhile.
     """
     from kinematics import build_arm  # noqa: PLC0415 - Pinocchio only where a check needs it
     from kinematics.dynamics import gravity_torque  # noqa: PLC0415
 
-    arm.sleep(SETTLE_S)
+    state = arm.status().state
+    if state != "ready":
+        raise MotionError(f"the holding check needs the arm at rest and ready; it is {state}")
     controller = arm.controller
     assert controller is not None
+    _hold(arm, SETTLE_S)
     transmission = controller.transmission
-    samples: list[np.ndarray] = []
-
-    def sample(*_: object) -> None:
-        samples.append(transmission.joint_torque_nm(controller.axes.iq_a))
-
-    controller.cycle_hooks.append(sample)
-    try:
-        arm.sleep(AVERAGE_S)
-    finally:
-        controller.cycle_hooks.remove(sample)
-    measured = np.mean(samples, axis=0) if samples else np.zeros(len(arm.names))
+    total = np.zeros(len(arm.names))
+    for _ in range(SAMPLES):  # (the published snapshots: nothing is added to the control loop)
+        _hold(arm, AVERAGE_S / SAMPLES)
+        total += transmission.joint_torque_nm(controller.snapshot.iq_a)
+    measured = total / SAMPLES
     model = gravity_torque(build_arm(arm.config), controller.snapshot.position_deg)
     step_nm = np.abs(transmission.joint_torque_nm(np.full(len(arm.names), controller.family.current_step_a)))
     joints = arm.config.joints

@@ -124,27 +124,43 @@ class MotionHandle:
         self._goal = goal if goal is not None and goal.goal_tolerance_deg > 0.0 else None
         #: How the joints arrived (None: no goal tolerance, the motion not ended yet, or another one took over).
         self.arrival: Arrival | None = None
+        # the arrival under way: when it began (the arm's clock), its deadline, since when the joints are within
+        self._arriving: tuple[float, float] | None = None
+        self._within_since: list[float] = []
+        self._settled = self._goal is None
 
     def wait(self, timeout_s: float | None = None) -> bool:
         """Wait for the end of the motion, and then for the joints to arrive (see :class:`Arrival`; a joint that
-        does not arrive within the goal time is logged, not a fault); False on timeout.
+        does not arrive within the goal time is logged, not a fault); False on timeout (the arrival, if under way,
+        goes on at the next call).
 
         Raises:
             MotionFault: a fault halted every axis.
             ValueError: ``timeout_s`` is neither None nor a finite number of seconds >= 0.
         """
-        ended = self._supervisor.wait(None if timeout_s is None else seconds("timeout_s", timeout_s))
-        if ended and self._goal is not None and self.arrival is None:
-            self.arrival = self._arrive(self._goal)
-            self._supervisor.wait(0.0)  # (a fault while arriving is raised as during the motion)
-        return ended
+        timeout = None if timeout_s is None else seconds("timeout_s", timeout_s)
+        clock = self._supervisor.controller.clock
+        begun = clock.now()
+        if not self._supervisor.wait(timeout):
+            return False
+        if self._settled or self._goal is None:
+            return True
+        left = None if timeout is None else max(0.0, timeout - (clock.now() - begun))
+        if not self._arrive(self._goal, left):
+            return False
+        self._supervisor.wait(0.0)  # (a fault while arriving is raised as during the motion)
+        return True
 
-    def _arrive(self, goal: ControlConfig) -> Arrival | None:
+    def _arrive(self, goal: ControlConfig, left_s: float | None) -> bool:
+        """Wait (at most ``left_s``) for the joints to arrive; True once that is settled (:attr:`arrival` set, or
+        None where a fault or another motion ended it)."""
         controller, supervisor = self._supervisor.controller, self._supervisor
-        names = [s.name for s in controller.specs]
-        error = np.zeros(len(names))
-        start_s = controller.snapshot.time_s
-        within_since: list[float] = []  # (empty: not within the tolerance)
+        error = np.zeros(len(controller.specs))
+        within_since = self._within_since
+        if self._arriving is None:
+            start_s = controller.snapshot.time_s
+            self._arriving = (start_s, start_s + goal.goal_time_s + goal.goal_settle_s)
+        start_s, deadline_s = self._arriving
 
         def arrived() -> bool:
             if supervisor.state.faulted or not controller.idle:
@@ -158,17 +174,24 @@ class MotionHandle:
                 within_since.append(snapshot.time_s)
             return snapshot.time_s - within_since[0] >= goal.goal_settle_s
 
-        settled = controller.wait_for(arrived, goal.goal_time_s + goal.goal_settle_s)
+        budget = max(0.0, deadline_s - controller.snapshot.time_s)
+        if left_s is not None and left_s < budget:
+            if not controller.wait_for(arrived, left_s):
+                return False  # (the caller's timeout: the arrival goes on at the next wait)
+        else:
+            controller.wait_for(arrived, budget)
+        self._settled = True
         if supervisor.state.faulted or not controller.idle:
-            return None
-        arrival = Arrival(
-            settled and bool(within_since),
+            return True
+        names = [s.name for s in controller.specs]
+        self.arrival = Arrival(
+            bool(within_since) and controller.snapshot.time_s - within_since[0] >= goal.goal_settle_s,
             controller.snapshot.time_s - start_s,
             {n: round(float(e), 4) for n, e in zip(names, error, strict=True)},
         )
-        if not arrival.arrived:
-            logger.warning("%s", arrival.text(goal.goal_tolerance_deg))
-        return arrival
+        if not self.arrival.arrived:
+            logger.warning("%s", self.arrival.text(goal.goal_tolerance_deg))
+        return True
 
     @property
     def done(self) -> bool:

@@ -69,8 +69,8 @@ class RunSummary:
         self.cycles += 1
         np.fmax(self.max_error_deg, self._supervisor.watchdog.following_error_deg, out=self.max_error_deg)
         at = self._at
-        if self._torque:
-            np.copyto(at, controller.setpoints.limited)
+        if self._torque:  # (the set-points' flags of a cycle that sent none are the last sent cycle's)
+            np.logical_and(controller.setpoints.limited, controller.setpoints.commanded, out=at)
         else:
             np.greater_equal(np.abs(controller.axes.iq_a, out=self._abs_a), self._at_limit_a, out=at)
         self.limited_cycles += at

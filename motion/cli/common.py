@@ -457,13 +457,21 @@ def communication_hint(exc: BaseException, config_path: object) -> str | None:
     """What to try next after a communication error, for the errors that have a usual cause (None: no hint)."""
     config = config_path or "FILE"
     if isinstance(exc, PortUnavailable):
+        rs485 = exc.link == "rs485"
+        adapter, link, override = (
+            ("a USB-RS485 adapter is --port /dev/ttyUSB0", "--rs485-link /tmp/rmd-rs485", "--port /tmp/rmd-rs485")
+            if rs485
+            else (
+                "a SocketCAN interface must be up, `sudo ip link set can0 up type can bitrate 1000000`; a USB-CAN "
+                "stick is --interface slcan --channel /dev/ttyACM0",
+                "--slcan-link /tmp/rmd-slcan",
+                "--interface slcan --channel /tmp/rmd-slcan",
+            )
+        )
         return (
-            'check the adapter (README, "Connecting hardware": a SocketCAN interface must be up, '
-            "`sudo ip link set can0 up type can bitrate 1000000`; a USB-CAN stick is --interface slcan "
-            "--channel /dev/ttyACM0; a serial port needs read/write permission, e.g. the dialout group). "
-            f"To try without hardware: `rmd-motion emulate --config {config} --slcan-link /tmp/rmd-slcan` in "
-            "another terminal, then this command with --interface slcan --channel /tmp/rmd-slcan "
-            "(move and run also take --emulate)"
+            f'check the adapter (README, "Connecting hardware": {adapter}; a serial port needs read/write '
+            f"permission, e.g. the dialout group). To try without hardware: `rmd-motion emulate --config {config} "
+            f"{link}` in another terminal, then this command with {override} (move and run also take --emulate)"
         )
     if isinstance(exc, DrivesSilent):
         ids = ", ".join(map(str, exc.motor_ids)) or "the configured ones"

@@ -456,6 +456,9 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
 
     session = Session.from_args(args)
     config = session.config
+    chosen = [flag for flag in ("offline", "holding", "identify") if getattr(args, flag)]
+    if len(chosen) > 1:
+        raise UsageError(f"{' and '.join('--' + f for f in chosen)}: one check at a time")
     if args.offline or args.program:
         return _check_offline(args, session)
     if args.holding:
@@ -565,8 +568,6 @@ def _check_offline(args: argparse.Namespace, session: Session) -> int:
     (or the program is invalid), else 0 (warnings on stderr)."""
     if not args.offline:
         raise UsageError("--program checks a program offline: give --offline as well")
-    if args.identify:
-        raise UsageError("--identify moves the joints: it cannot run --offline")
     config = session.config
     steps = len(load_program(args.program, config).steps) if args.program else None  # (a bad one: exit 2 here)
     found = offline.budgets(config)

@@ -310,7 +310,7 @@ JOG_MOVED_SHARE = 0.5
 
 def jog(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """``jog JOINT [--deg D]``: move one joint slowly by D degrees and back, and report which drive's angle changed
-    and in which direction (commissioning: a swapped motor id, a wrong ``direction`` or ``gear_ratio`` show here)."""
+    and by how much (commissioning: the user watches that the configured joint moved, the configured way, as far)."""
     session = Session.from_args(args)
     joint = session.joint(args.joint)
     if args.deg == 0.0 or not math.isfinite(args.deg):
@@ -338,7 +338,7 @@ def jog(args: argparse.Namespace, interrupts: Interrupts) -> int:
             if abs(delta) >= JOG_MOVED_SHARE * abs(expected):
                 moved.append((spec, float(delta)))
             rows.append((spec.name, spec.motor_id, f"{delta:+.2f}"))
-        report = _jog_verdict(joint, expected, moved)
+        report = _jog_verdict(joint, expected, moved, args.deg)
         if args.json:
             turned_by = {spec.name: round(float(d), 3) for spec, d in zip(controller.specs, turned, strict=True)}
             print_json(
@@ -379,26 +379,30 @@ def holding(args: argparse.Namespace, interrupts: Interrupts) -> int:
     return with_arm(args, session, interrupts, body, emulate=getattr(args, "emulate", False))
 
 
-def _jog_verdict(joint: JointConfig, expected_motor_deg: float, moved: list[tuple[Any, float]]) -> str:
-    """In words: whether the joint's own drive turned as much and as far as commanded, or which did instead."""
+def _jog_verdict(joint: JointConfig, expected_motor_deg: float, moved: list[tuple[Any, float]], deg: float) -> str:
+    """In words: which drives turned against what was commanded, and what the user must watch. The readings follow
+    the configuration (the drive is commanded and read through the same ``motor_id``, ``direction`` and
+    ``gear_ratio``), so only the arm itself shows a swapped id, a reversed direction or a wrong gear."""
     label = f"{joint.name} (motor {joint.motor_id})"
     ids = [spec.motor_id for spec, _ in moved]
-    if ids != [joint.motor_id]:
-        turned = ", ".join(f"motor {spec.motor_id} ({spec.name})" for spec, _ in moved) or "no drive"
+    if not moved:
         return (
-            f"{label} was commanded {expected_motor_deg:+.1f} motor deg and {turned} turned: check the motor ids "
-            "(each joint's motor_id against the drive's id) and that the joint is free to move"
+            f"{label} was commanded {expected_motor_deg:+.1f} motor deg and no drive turned: check that the joint is "
+            "free to move and its drive runs (`rmd-motion status`)"
         )
+    if ids != [joint.motor_id]:
+        turned = ", ".join(f"motor {spec.motor_id} ({spec.name}) {delta:+.1f} motor deg" for spec, delta in moved)
+        return f"{label} was commanded {expected_motor_deg:+.1f} motor deg; turned: {turned}: the joints are coupled?"
     delta = moved[0][1]
-    if (delta > 0) != (expected_motor_deg > 0):
-        return f"{label} turned {delta:+.1f} motor deg, the other way than commanded: check its direction"
     if not 0.8 <= delta / expected_motor_deg <= 1.25:
         return (
-            f"{label} turned {delta:+.1f} motor deg for {expected_motor_deg:+.1f} commanded: check its gear_ratio "
-            "(motor degrees per joint degree)"
+            f"{label} turned {delta:+.1f} motor deg for {expected_motor_deg:+.1f} commanded: the drive did not follow"
         )
     return (
-        f"{label} turned {delta:+.1f} motor deg as commanded; watch that it was {joint.name} that moved, the right way"
+        f"{label} turned {delta:+.1f} motor deg, as commanded. Its reading follows the configuration, so watch the "
+        f"arm: {joint.name} should have moved {deg:+g} deg and back. If another joint moved, its motor_id is "
+        f"another's; if it moved the other way, flip its direction; if it moved {joint.gear_ratio:g} times too far "
+        "or too little, fix its gear_ratio"
     )
 
 

@@ -223,10 +223,13 @@ def resolve_joint(
     record: TurnRecord | None,
     *,
     powered_since: bool | None = None,
+    stayed_powered: bool = False,
 ) -> JointTurns:
     """One joint's turn offset (the rules of the module docstring). ``powered_since``: whether the drive has run
-    since the record's session, as its runtime tells (None: it does not tell; True also where the user says so:
-    ``--keep-turns``); a drive that has keeps its count wherever the joint went meanwhile (``Source.KEPT``).
+    since the record's session, as its runtime tells (None: it does not tell); a drive that has keeps its count
+    wherever the joint went meanwhile (``Source.KEPT``). ``stayed_powered``: the user says the drives stayed powered
+    (``--keep-turns``): where the reading cannot tell (the record continues into it, and the window counts otherwise),
+    the record's count holds; a reading that can tell is taken as it is.
 
     Raises:
         TurnError: a joint with a window whose turns cannot be told.
@@ -253,6 +256,8 @@ def resolve_joint(
             raise
         return _joint_turns(name, transmission, reading_deg, window, kept, Source.KEPT, Source.KEPT)
     if kept is not None and kept != turns:
+        if stayed_powered:
+            return _joint_turns(name, transmission, reading_deg, window, kept, Source.KEPT, Source.KEPT)
         lo, hi = window
         raise TurnError(
             f"joint {name}: the drive reads {reading_deg:.2f} motor deg, which does not tell whether it was powered up "
@@ -332,6 +337,7 @@ def resolve_turns(
     records: Sequence[TurnRecord | None],
     *,
     powered_since: Sequence[bool | None] | None = None,
+    stayed_powered: bool = False,
     output_turns: Sequence[int | None] | None = None,
     limits: Sequence[tuple[float, float]] | None = None,
 ) -> tuple[JointTurns, ...]:
@@ -352,7 +358,7 @@ def resolve_turns(
     ):
         try:
             if output is None:
-                resolved.append(resolve_joint(*args, powered_since=powered))
+                resolved.append(resolve_joint(*args, powered_since=powered, stayed_powered=stayed_powered))
             else:
                 assert limits is not None
                 name, transmission, reading, _window, record = args

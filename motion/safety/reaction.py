@@ -312,7 +312,10 @@ class FaultReaction(SafetyPart):
         now = self.controller.clock.now()
         code = self.guard.code
         unsent = MotionFault(FaultKind.STATE, time_s=now, detail="halting without a halt sent")
-        self.log.record(unsent)
+        if self.log.fault is None:
+            self.log.record(unsent)
+        else:  # (the arm keeps the fault it is faulted for: a hold that a move raced into here)
+            self.log.faults.append(unsent)
         logger.error("halting every axis: %s", unsent)
         sent = self.start_halt(now, deadline_s, code)
         self.log.halts.append(HaltRecord(unsent, -1, now, sent, Reaction(code.name)))

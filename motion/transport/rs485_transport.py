@@ -102,7 +102,7 @@ class Rs485Transport(Transport):
             )
             self._fds: list[int] = [self._serial.fileno()]
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise PortUnavailable(f"cannot open RS485 port {port!r} at {baudrate} baud: {exc}") from exc
+            raise PortUnavailable(f"cannot open RS485 port {port!r} at {baudrate} baud: {exc}", "rs485") from exc
         self._speak()
 
     def _speak(self, *, owns_port: bool = True) -> None:

@@ -12,7 +12,6 @@ ranges is not encoded. Decisions and sources: ``docs/protocol.md`` ("V3 motion f
 from __future__ import annotations
 
 import math
-import re
 from collections.abc import Mapping
 from typing import Final
 
@@ -39,7 +38,6 @@ V44_POSITION_RAD: Final = 4.0 * math.pi
 V44_KD_MAX: Final = 50.0
 #: Bits per field: position 16, the others 12.
 BITS: Final = {"position_rad": 16, "velocity_rad_s": 12, "kp": 12, "kd": 12, "torque_nm": 12}
-_SERIES = re.compile(r"^([A-Z]+\d+)")
 
 
 def motion_ranges(firmware_date: int | None, model: str | None) -> MotionRanges:
@@ -53,8 +51,7 @@ def motion_ranges(firmware_date: int | None, model: str | None) -> MotionRanges:
         raise EncodeError("firmware_date", "the drive's firmware date (0xB2)", None, "V3 motion frame ranges")
     if not _is_v44(firmware_date):
         return V42_RANGES
-    match = _SERIES.match(model or "")
-    series = match[1] if match else ""
+    series = _series(model or "")
     if series not in V44_PEAK_TORQUE_NM:
         raise EncodeError(
             "model",
@@ -71,6 +68,13 @@ def motion_ranges(firmware_date: int | None, model: str | None) -> MotionRanges:
         torque_nm=(-peak, peak),
         source=f"V4.4 {series} ({peak:g} N·m)",
     )
+
+
+def _series(model: str) -> str:
+    """A model's series: its leading letters and the digits after them (``X8S2V10`` -> ``X8``)."""
+    letters = len(model) - len(model.lstrip("ABCDEFGHIJKLMNOPQRSTUVWXYZ"))
+    digits = len(model[letters:]) - len(model[letters:].lstrip("0123456789"))
+    return model[: letters + digits] if letters and digits else ""
 
 
 def _is_v44(firmware_date: int) -> bool:
@@ -167,7 +171,8 @@ def encode_motion_state(state: MotionState) -> bytes:
 
 def decode_motion_state(data: bytes, ranges: MotionRanges = V42_RANGES) -> MotionState:
     """A motion frame's reply on ``ranges`` (the sending drive's; DATA[6..7] are reserved and ignored, as for every
-    reply).
+    reply). The default is V4.2's, which the generic decoders (``decode_can_reply``) assume: the reply's ``ranges``
+    say which were used, and a V4.4 drive's reply is decoded right only with its own.
 
     Raises:
         DecodeError: not 8 bytes, or an id outside 1..32.
