@@ -7,8 +7,12 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import pytest
+
 from tests.motion_rig import skip_if_rate_refused
 from tests.test_cli import ROOT, cli, config_at, running_emulator
+
+pytestmark = pytest.mark.realtime
 
 README = (ROOT / "README.md").read_text()
 
