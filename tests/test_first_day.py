@@ -19,7 +19,7 @@ README = (ROOT / "README.md").read_text()
 
 def _walk() -> list[list[str]]:
     """The walk's commands as the README writes them (its `rmd-motion ...` lines, comments and $EDITOR left out)."""
-    section = README.split("## A new arm, step by step", 1)[1].split("```sh", 1)[1].split("```", 1)[0]
+    section = README.split("## A new arm, step by step", 1)[1].split("```text", 1)[1].split("```", 1)[0]
     return [re.sub(r"\s+#.*$", "", line).split()[1:] for line in section.splitlines() if line.startswith("rmd-motion")]
 
 
