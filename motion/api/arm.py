@@ -552,10 +552,7 @@ class Arm:
         supervisor = self._guard()
         q = joint_targets(targets, supervisor.controller.reference.position, self._index)
         supervisor.move_to(q, speed_scale)
-        handle = MotionHandle(supervisor, self.config.control)
-        if wait:
-            handle.wait()
-        return handle
+        return self._handle(supervisor, wait)
 
     def follow(
         self,
@@ -572,6 +569,10 @@ class Arm:
         supervisor = self._guard()
         rows = waypoint_rows(waypoints, supervisor.controller.reference.position, self._index)
         supervisor.follow(rows, speed_scale)
+        return self._handle(supervisor, wait)
+
+    def _handle(self, supervisor: Supervisor, wait: bool) -> MotionHandle:
+        """The handle of the motion just queued (with the configured goal tolerance), waited for with ``wait``."""
         handle = MotionHandle(supervisor, self.config.control)
         if wait:
             handle.wait()
