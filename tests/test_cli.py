@@ -451,6 +451,19 @@ def test_check_holding_finds_a_torque_constant_and_swapped_motor_ids_before_anyt
     skip_if_rate_refused(result)
     assert result.returncode == 2, result.stderr
     assert "holding torque does not match the model for shoulder" in result.stderr
+    # the same check runs before `move` and `run` on a real bus: exit 2 before anything moves
+    before = json.loads(cli("status", "--config", fit, *can_arm.bus_args, "--json").stdout)["joints"]
+    result = cli("move", "--config", doubled, *can_arm.bus_args, "shoulder=5", "--speed-scale", "0.5")
+    skip_if_rate_refused(result)
+    assert result.returncode == 2, result.stderr
+    assert "holding torque does not match the model: shoulder (motor 1) holds with" in result.stderr
+    assert "--no-holding-check skips this check" in result.stderr
+    after = json.loads(cli("status", "--config", fit, *can_arm.bus_args, "--json").stdout)["joints"]
+    assert [j["position_deg"] for j in after] == pytest.approx([j["position_deg"] for j in before], abs=0.05)
+    result = cli("move", "--config", doubled, *can_arm.bus_args, "shoulder=5", "--no-holding-check", "--json")
+    skip_if_rate_refused(result)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(result.stdout)["holding"] is None
 
 
 def test_a_drive_that_does_not_answer_is_a_communication_error(tmp_path: Path) -> None:

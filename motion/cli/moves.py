@@ -14,7 +14,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Mapping
-from typing import Any, Final, TextIO
+from typing import TYPE_CHECKING, Any, Final, TextIO
 
 from motion.api import Arm, MotionHandle
 from motion.cli.common import (
@@ -37,6 +37,9 @@ from motion.control.family import FAMILIES
 from motion.errors import MotionError, MotionFault, PortLost
 from motion.homing import homed_joints
 from motion.telemetry import TelemetryOptions
+
+if TYPE_CHECKING:
+    from motion.api.commissioning import HoldingVerdict
 
 #: How often the progress display is refreshed (and the wait for a motion polled), s.
 POLL_S: Final = 0.1
@@ -288,11 +291,13 @@ def move(args: argparse.Namespace, interrupts: Interrupts) -> int:
     targets = parse_targets(session.config, args.targets)
 
     def body(arm: Arm) -> int:
+        verdicts = _holding_first(arm, args)
         handle = arm.move_to(targets, speed_scale=args.speed_scale, wait=False)
         wall = wait_with_progress(arm, handle, "move")
         if args.json:
             arrival = None if handle.arrival is None else dataclasses.asdict(handle.arrival)
             extra = {"targets": targets, "speed_scale": args.speed_scale, "arrival": arrival}
+            extra["holding"] = None if verdicts is None else [_verdict_dict(v) for v in verdicts]
             print_json(_summary("move", arm, wall, extra))
         else:
             _print_positions(arm, wall)
@@ -353,6 +358,38 @@ def jog(args: argparse.Namespace, interrupts: Interrupts) -> int:
     return with_arm(args, session, interrupts, body, emulate=args.emulate)
 
 
+def _verdict_dict(verdict: HoldingVerdict) -> dict[str, Any]:
+    return dataclasses.asdict(verdict) | {"matches": verdict.matches}
+
+
+def _holding_verdicts(arm: Arm) -> list[HoldingVerdict]:
+    """The holding check (:mod:`motion.api.commissioning`).
+
+    Raises:
+        UsageError: a joint's holding torque differs from the model's beyond its bound (each such joint named with
+            what may be wrong): nothing has moved.
+    """
+    from motion.api.commissioning import check_holding  # noqa: PLC0415 - Pinocchio only where a check needs it
+
+    verdicts = check_holding(arm)
+    wrong = [v for v in verdicts if not v.matches]
+    if wrong:
+        said = "; ".join(v.text() for v in wrong)
+        raise UsageError(
+            f"holding torque does not match the model: {said}. Check the configuration before moving "
+            "(`rmd-motion check --holding` shows every joint; --no-holding-check skips this check)"
+        )
+    return verdicts
+
+
+def _holding_first(arm: Arm, args: argparse.Namespace) -> list[HoldingVerdict] | None:
+    """``move`` / ``run``: the holding check before the first motion, on real buses (emulated drives are built from
+    the configuration itself: they always match it) unless ``--no-holding-check``."""
+    if args.no_holding_check or args.emulate:
+        return None
+    return _holding_verdicts(arm)
+
+
 def holding(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """``check --holding``: connect, hold still, and set each joint's holding torque against the model's gravity
     torque (:mod:`motion.api.commissioning`); exit 2 when a joint's differs beyond its bound (naming what may be
@@ -364,7 +401,7 @@ def holding(args: argparse.Namespace, interrupts: Interrupts) -> int:
     def body(arm: Arm) -> int:
         verdicts = check_holding(arm)
         if args.json:
-            print_json({"joints": [dataclasses.asdict(v) | {"matches": v.matches} for v in verdicts]})
+            print_json({"joints": [_verdict_dict(v) for v in verdicts]})
         else:
             for verdict in verdicts:
                 print(verdict.text())
@@ -431,12 +468,16 @@ def run(args: argparse.Namespace, interrupts: Interrupts) -> int:
     program = load_program(args.program, session.config)
 
     def body(arm: Arm) -> int:
+        verdicts = _holding_first(arm, args)
         now_s = _arm_clock(arm)
         start = now_s()
         run_program(arm, program, args.speed_scale)
         wall = now_s() - start
         if args.json:
-            print_json(_summary("run", arm, wall, {"program": program.source, "steps": len(program.steps)}))
+            held = None if verdicts is None else [_verdict_dict(v) for v in verdicts]
+            print_json(
+                _summary("run", arm, wall, {"program": program.source, "steps": len(program.steps), "holding": held})
+            )
         else:
             _print_positions(arm, wall)
         return EXIT_OK
