@@ -304,7 +304,7 @@ def measure(args: argparse.Namespace, browser_cpu: int | None, cpus: list[int]) 
     arm_cpus = cpus[:-1] if browser_cpu is not None else cpus
     for r in range(args.rounds):
         for setup in setups:
-            log = folder / f"{setup}-{r}.npz"
+            log = folder / f"{setup}-{r}.mcap"
             measured, rates, *run_faults = run(
                 config, setup, args.seconds, log, browser_cpu=browser_cpu, arm_cpus=arm_cpus
             )

@@ -101,7 +101,7 @@ def _run_phase(
     view_wait_s: float = 0.0,
     drives: ProtocolFamily = ProtocolFamily.V2,
 ) -> PhaseResult:
-    log_path, trace_path, png_path = (out_dir / f"{name}{suffix}" for suffix in (".npz", ".log", ".png"))
+    log_path, trace_path, png_path = (out_dir / f"{name}{suffix}" for suffix in (".mcap", ".log", ".png"))
     telemetry = TelemetryOptions(log_path, trace_path)
     arm = Arm(
         config, emulate=True, initial_deg=initial_deg, telemetry=telemetry, view=view or False, emulated_protocol=drives

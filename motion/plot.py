@@ -163,7 +163,8 @@ def plot_log(log: str | os.PathLike[str] | TelemetryLog, out_png: str | os.PathL
     """Draw a telemetry log into a PNG file.
 
     Args:
-        log: a log file (``.npz`` written by :class:`~motion.telemetry.TelemetrySession`) or a loaded log.
+        log: a recording (``.mcap`` written by :class:`~motion.telemetry.TelemetrySession`, or an exported ``.npz``)
+            or a loaded log.
         out_png: the image to write (PNG whatever the suffix).
 
     Raises:

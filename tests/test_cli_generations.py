@@ -92,7 +92,7 @@ def test_status_json(any_arm: Emulated) -> None:
 
 def test_move_then_status_shows_the_joints_there(any_arm: Emulated, any_arm_200hz: Path, tmp_path: Path) -> None:
     can_arm, arm2_200hz = any_arm, any_arm_200hz
-    log, trace, png = tmp_path / "move.npz", tmp_path / "move.candump", tmp_path / "move.png"
+    log, trace, png = tmp_path / "move.mcap", tmp_path / "move.candump", tmp_path / "move.png"
     result = cli(
         "move", "--config", arm2_200hz, *can_arm.bus_args, "shoulder=20", "elbow=-30", "--json",
         "--log", log, "--trace", trace,

@@ -80,7 +80,7 @@ def test_an_emulated_program_runs_every_step_and_records_its_cycles(
 ) -> None:
     program = tmp_path / "program.yaml"
     program.write_text(PROGRAM)
-    log = tmp_path / "run.npz"
+    log = tmp_path / "run.mcap"
     code, out, err = _run(capsys, "run", "--config", "arm2.yaml", "--emulate", program, "--json", "--log", log)
     assert code == 0, err
     for label in ("step 1/3 move: done", "step 2/3 wait: 0.2 s", "step 3/3 path (2 waypoints): done"):

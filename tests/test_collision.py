@@ -314,7 +314,7 @@ def test_comply_yields_to_the_push_and_clears(tmp_path: Path) -> None:
     config = torque_variant(_arm6())
     safety = dataclasses.replace(config.safety, collision_reaction=HaltPolicy.COMPLY)
     config = dataclasses.replace(config, safety=safety)
-    log = tmp_path / "comply.npz"
+    log = tmp_path / "comply.mcap"
     start = [10.0, 30.0, -45.0, 0.0, 20.0, 0.0]
     elbow = config.joints[2]
     arm = Arm(config, emulate=True, initial_deg=start, telemetry=TelemetryOptions(log=log))

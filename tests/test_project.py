@@ -56,6 +56,8 @@ OWNERS = {
     "pinocchio": "kinematics",
     "matplotlib": "motion.plot",
     "viser": "motion.view",
+    "mcap": "motion.telemetry",
+    "mcap_ros2": "motion.telemetry",
 }
 
 

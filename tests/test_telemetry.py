@@ -12,6 +12,7 @@ import can
 import numpy as np
 import pytest
 from matplotlib.image import imread
+from mcap.reader import make_reader
 
 from motion import demo
 from motion.api import Arm
@@ -62,7 +63,7 @@ def position_run(tmp_path_factory: pytest.TempPathFactory) -> PositionRun:
     def watch(controller: Controller, start_s: float, replies: list[Reply]) -> None:
         seen.append((start_s, controller.axes.q_deg.copy(), controller.reference.position.copy()))
 
-    options = TelemetryOptions(log=out / "run.npz", trace=out / "run.log")
+    options = TelemetryOptions(log=out / "run.mcap", trace=out / "run.log")
     with Arm.from_config(CONFIGS / "arm6.yaml", emulate=True, telemetry=options) as arm:
         assert arm.controller is not None and arm.telemetry is not None and arm.telemetry.recorder is not None
         small = Recorder(arm.controller, arm.supervisor, chunk_rows=7)
@@ -193,10 +194,10 @@ def test_candump_trace_is_read_by_python_can_and_holds_the_0xa4_stream(position_
 
 
 def test_rs485_hex_trace_and_torque_columns(tmp_path: Path) -> None:
-    options = TelemetryOptions(log=tmp_path / "rs485.npz", trace=tmp_path / "rs485.txt")
+    options = TelemetryOptions(log=tmp_path / "rs485.mcap", trace=tmp_path / "rs485.txt")
     with Arm.from_config(CONFIGS / "arm2_rs485.yaml", emulate=True, telemetry=options) as arm:
         arm.sleep(0.3)
-    log = load_log(tmp_path / "rs485.npz")
+    log = load_log(tmp_path / "rs485.mcap")
     assert log.meta["mode"] == "torque" and log.meta["transport"] == "rs485" and log.cycles > 10
     active = log.active_rows()
     assert np.isfinite(log["cmd_torque_nm"][active]).all() and np.isnan(log["cmd_angle_deg"]).all()
@@ -260,7 +261,7 @@ def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:
     assert np.array_equal(timing.lines[0].get_ydata(), log["jitter_s"] * 1e6)
 
     png = tmp_path / "run.png"
-    plot_log(position_run.trace.with_suffix(".npz"), png)
+    plot_log(position_run.trace.with_suffix(".mcap"), png)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 50_000
     image = imread(png)
     width, height = fig.get_size_inches() * fig.dpi
@@ -273,20 +274,21 @@ def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:
 
 def test_a_version_3_log_loads_without_expected_positions(position_run: PositionRun, tmp_path: Path) -> None:
     log = position_run.log
-    columns = {name: array for name, array in log.columns.items() if name not in ("q_exp_deg", "collision_limit_nm")}
-    TelemetryLog(columns, {**log.meta, "version": 3}).save(tmp_path / "v3.npz")
+    dropped = ("q_exp_deg", "collision_limit_nm", "state")
+    columns = {name: array for name, array in log.columns.items() if name not in dropped}
+    TelemetryLog(columns, {**log.meta, "version": 3}).export_npz(tmp_path / "v3.npz")
     old = load_log(tmp_path / "v3.npz")
     assert np.isnan(old["q_exp_deg"]).all() and old["q_exp_deg"].shape == log["q_deg"].shape
     assert np.array_equal(old.following_error_deg(), log.lag_deg())  # what version 3 called the following error
-    assert np.isnan(old["collision_limit_nm"]).all()
+    assert np.isnan(old["collision_limit_nm"]).all() and not old["state"].any()
     plot_log(old, tmp_path / "v3.png")
 
 
 def test_empty_and_invalid_logs(tmp_path: Path) -> None:
     config = load_config(CONFIGS / "arm2.yaml")
-    with TelemetrySession(TelemetryOptions(log=tmp_path / "sub" / "empty.npz"), config):
+    with TelemetrySession(TelemetryOptions(log=tmp_path / "sub" / "empty.mcap"), config):
         pass  # the arm never connected
-    log = load_log(tmp_path / "sub" / "empty.npz")
+    log = load_log(tmp_path / "sub" / "empty.mcap")
     assert log.cycles == 0 and log["q_deg"].shape == (0, 2) and log.joint_names == ["shoulder", "elbow"]
     plot_log(log, tmp_path / "empty.png")
     assert (tmp_path / "empty.png").stat().st_size > 0
@@ -309,30 +311,33 @@ def test_demo_runs_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     }[drives]
     assert f"on emulated {kind}" in out
     for name in ("position", "torque"):
-        for suffix in (".npz", ".log", ".png"):
+        for suffix in (".mcap", ".log", ".png"):
             path = tmp_path / "demo" / f"{name}{suffix}"
             assert path.stat().st_size > 1000, path
             assert str(path) in out
-        log = load_log(tmp_path / "demo" / f"{name}.npz")
+        log = load_log(tmp_path / "demo" / f"{name}.mcap")
         assert log.meta["mode"] == name and list(log["fault_kind"]) == ["close"]
         assert log.meta["protocol"] == drives.value
         assert np.abs(log.following_error_deg()[log.active_rows()]).max() < log.meta["following_error_limit_deg"]
     assert "max following error" in out and "jitter p50/p99/max" in out
-    # simulated time: a second run writes the same arrays, bit for bit (host-time fields aside: named wall/busy/...)
+    # simulated time: a second run writes the same messages, bit for bit; the metadata differs in the wall-clock start
     assert run_demo(tmp_path / "again", quiet=True, drives=drives) == 0
     for name in ("position", "torque"):
-        first, second = (np.load(tmp_path / run / f"{name}.npz") for run in ("demo", "again"))
-        assert first.files == second.files
-        for key in first.files:
-            if key == "meta":
-                meta = [json.loads(str(archive[key])) for archive in (first, second)]
-                host = {k for k in meta[0] if any(word in k for word in HOST_TIME_WORDS)}
-                assert host == {"t0_wall_unix_s"}
-                assert {k: v for k, v in meta[0].items() if k not in host} == {
-                    k: v for k, v in meta[1].items() if k not in host
-                }
-            elif not any(word in key for word in HOST_TIME_WORDS):
-                assert first[key].tobytes() == second[key].tobytes(), (name, key)
+        first, second = (_messages_and_meta(tmp_path / run / f"{name}.mcap") for run in ("demo", "again"))
+        assert first[0] == second[0] and len(first[0]) > 1000
+        host = {k for k in first[1] if any(word in k for word in HOST_TIME_WORDS)}
+        assert host == {"t0_wall_unix_s"}
+        assert {k: v for k, v in first[1].items() if k not in host} == {
+            k: v for k, v in second[1].items() if k not in host
+        }
+
+
+def _messages_and_meta(path: Path) -> tuple[list[tuple[str, int, bytes]], dict[str, object]]:
+    with path.open("rb") as stream:
+        reader = make_reader(stream)
+        messages = [(channel.topic, m.log_time, bytes(m.data)) for _, channel, m in reader.iter_messages()]
+        (meta,) = [json.loads(r.metadata["meta"]) for r in reader.iter_metadata()]
+    return messages, meta
 
 
 def test_demo_reports_a_motion_fault_and_still_writes_its_run(
@@ -347,5 +352,5 @@ def test_demo_reports_a_motion_fault_and_still_writes_its_run(
     assert run_demo(tmp_path, quiet=True) == 1
     captured = capsys.readouterr()
     assert captured.out == "" and "motion fault in the position run: stop" in captured.err
-    assert (tmp_path / "position.png").stat().st_size > 1000 and not (tmp_path / "torque.npz").exists()
-    assert list(load_log(tmp_path / "position.npz")["fault_kind"]) == ["stop"]
+    assert (tmp_path / "position.png").stat().st_size > 1000 and not (tmp_path / "torque.mcap").exists()
+    assert list(load_log(tmp_path / "position.mcap")["fault_kind"]) == ["stop"]

@@ -195,7 +195,7 @@ def demo_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
     out = tmp_path_factory.mktemp("demo")
     assert run_demo(out, quiet=True) == 0
-    return out / "position.npz"
+    return out / "position.mcap"
 
 
 def test_replay_of_a_demo_log_shows_the_final_pose_at_the_end_of_the_slider(page: Page, demo_log: Path) -> None:
@@ -274,7 +274,7 @@ def test_a_paced_simulation_runs_at_the_wall_clocks_speed_with_the_same_result(t
     results, walls = [], []
     views: tuple[bool | ViewOptions, ...] = (False, ViewOptions(port=0))
     for k, view in enumerate(views):
-        telemetry = TelemetryOptions(tmp_path / f"run{k}.npz")
+        telemetry = TelemetryOptions(tmp_path / f"run{k}.mcap")
         with Arm(load_config(ARM6), emulate=True, view=view, telemetry=telemetry) as arm:
             start = time.monotonic()
             handle = arm.move_to({"shoulder_pitch": 20.0}, speed_scale=1.0, wait=False)

@@ -222,8 +222,13 @@ class Arm:
         try:
             if self._telemetry_options is not None:
                 # Entered first, so closed last: the files are written once the loop and the bus have ended.
+                robot = None
+                if self._telemetry_options.log is not None:
+                    from kinematics.frames import LinkFrames  # noqa: PLC0415 - (Pinocchio: only for a recording)
+
+                    robot = LinkFrames(self.config)
                 self.telemetry = self._stack.enter_context(
-                    TelemetrySession(self._telemetry_options, self.config, emulated=self.emulate)
+                    TelemetrySession(self._telemetry_options, self.config, emulated=self.emulate, robot=robot)
                 )
             clock = None
             if self.emulation == "simulated":

@@ -120,11 +120,11 @@ def demo(args: argparse.Namespace, interrupts: Interrupts) -> int:
 
 
 def view(args: argparse.Namespace, interrupts: Interrupts) -> int:
-    """``view RUN.npz``: replay a recorded run; ``view --config FILE``: the arm live (holding) until Ctrl-C."""
+    """``view RUN.mcap``: replay a recorded run; ``view --config FILE``: the arm live (holding) until Ctrl-C."""
     if args.run_log is not None:
         return _replay(args)
     if args.config is None:
-        raise UsageError("give a recorded run (RUN.npz) to replay, or --config FILE to see the arm live")
+        raise UsageError("give a recorded run (RUN.mcap) to replay, or --config FILE to see the arm live")
     options = view_options(args, wanted=True)
     return moves.with_arm(
         args, Session.from_args(args), interrupts, lambda arm: EXIT_OK, emulate=args.emulate, view=options
@@ -173,6 +173,22 @@ def plot(args: argparse.Namespace, interrupts: Interrupts) -> int:
     return EXIT_OK
 
 
+def export(args: argparse.Namespace, interrupts: Interrupts) -> int:
+    """``export RUN.mcap OUT.npz``: the recording's columns and metadata for numpy (:mod:`motion.telemetry`)."""
+    from motion.telemetry import load_log  # noqa: PLC0415 - as plot
+
+    try:
+        log = load_log(args.log)
+    except (OSError, ValueError) as exc:
+        raise UsageError(f"cannot read {args.log}: {exc}") from exc
+    try:
+        log.export_npz(args.output)
+    except OSError as exc:
+        raise UsageError(f"cannot write {args.output}: {exc}") from exc
+    print(f"wrote {args.output}: {log.cycles} cycles of {', '.join(log.joint_names)}")
+    return EXIT_OK
+
+
 # ---------------------------------------------------------------------------------------------------- parser
 
 
@@ -202,7 +218,9 @@ def _motion_options(parser: argparse.ArgumentParser, speed_scale: str) -> None:
     add_emulate_flag(parser)
     add_turns_flag(parser)
     add_view_arguments(parser)
-    parser.add_argument("--log", metavar="FILE.npz", help="record every control cycle (see `rmd-motion plot`)")
+    parser.add_argument(
+        "--log", metavar="FILE.mcap", help="record every control cycle as MCAP (Foxglove, rosbags; `rmd-motion plot`)"
+    )
     parser.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
     parser.add_argument(
         "--no-holding-check",
@@ -328,7 +346,9 @@ def build_parser() -> argparse.ArgumentParser:
     jog.add_argument("--deg", type=float, default=moves.JOG_DEG, help=f"joint degrees out (default {moves.JOG_DEG:g})")
     add_emulate_flag(jog)
     add_turns_flag(jog)
-    jog.add_argument("--log", metavar="FILE.npz", help="record every control cycle (see `rmd-motion plot`)")
+    jog.add_argument(
+        "--log", metavar="FILE.mcap", help="record every control cycle as MCAP (Foxglove, rosbags; `rmd-motion plot`)"
+    )
     jog.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
     _json(jog)
 
@@ -341,7 +361,9 @@ def build_parser() -> argparse.ArgumentParser:
     home.add_argument("joints", nargs="+", metavar="JOINT")
     add_emulate_flag(home)
     add_turns_flag(home)
-    home.add_argument("--log", metavar="FILE.npz", help="record every control cycle (see `rmd-motion plot`)")
+    home.add_argument(
+        "--log", metavar="FILE.mcap", help="record every control cycle as MCAP (Foxglove, rosbags; `rmd-motion plot`)"
+    )
     home.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
     _json(home)
     collision.add_arguments(_command(sub, "collision-calibrate", collision.calibrate, collision.HELP))
@@ -385,18 +407,23 @@ def build_parser() -> argparse.ArgumentParser:
         "view",
         view,
         "see the arm in the browser: live (--config FILE; holding until Ctrl-C, STOP halts it) or a recorded run "
-        "replayed (RUN.npz; --config when its configuration file has moved)",
+        "replayed (RUN.mcap; --config when its configuration file has moved)",
         bus=False,
     )
-    view_parser.add_argument("run_log", nargs="?", metavar="RUN.npz", help="a telemetry log to replay")
+    view_parser.add_argument("run_log", nargs="?", metavar="RUN.mcap", help="a recorded run to replay")
     add_bus_arguments(view_parser, required=False)
     add_emulate_flag(view_parser)
     add_turns_flag(view_parser)
     add_view_arguments(view_parser, flag=False)
     view_parser.set_defaults(log=None, trace=None)
-    plot_parser = _command(sub, "plot", plot, "plot a telemetry log (.npz of a motion) into a PNG", bus=False)
-    plot_parser.add_argument("log", metavar="LOG")
+    plot_parser = _command(sub, "plot", plot, "plot a recorded run (.mcap, or an exported .npz) into a PNG", bus=False)
+    plot_parser.add_argument("log", metavar="RUN.mcap")
     plot_parser.add_argument("-o", "--output", required=True, metavar="OUT.png")
+    export_parser = _command(
+        sub, "export", export, "write a recorded run's columns as a numpy .npz archive (numpy.load reads it)", bus=False
+    )
+    export_parser.add_argument("log", metavar="RUN.mcap")
+    export_parser.add_argument("output", metavar="OUT.npz")
     return parser
 
 

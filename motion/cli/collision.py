@@ -81,7 +81,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--write", metavar="OUT.yaml", help="write a copy of the configuration with the thresholds")
     add_emulate_flag(parser)
-    parser.add_argument("--log", metavar="FILE.npz", help="record every control cycle (see `rmd-motion plot`)")
+    parser.add_argument(
+        "--log", metavar="FILE.mcap", help="record every control cycle as MCAP (Foxglove, rosbags; `rmd-motion plot`)"
+    )
     parser.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout (for scripts)")
 

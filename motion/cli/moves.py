@@ -185,7 +185,10 @@ def with_arm(
             be delivered; its message says what stops the drives then.
     """
     log, trace = getattr(args, "log", None), getattr(args, "trace", None)
-    telemetry = TelemetryOptions(log, trace) if log or trace else None
+    try:
+        telemetry = TelemetryOptions(log, trace) if log or trace else None
+    except ValueError as exc:
+        raise UsageError(f"--log {exc}") from None
     overrides = session.overrides
     if options.get("emulate"):
         if overrides:

@@ -7,7 +7,7 @@ list) rolling plots of position against reference and expected position, followi
 collision signal against its threshold. Its one control is STOP, which E-stops the arm as Ctrl-C does (every axis
 halted); the page sends no motion command.
 
-:class:`Replay` shows a recorded telemetry log (``rmd-motion view RUN.npz``) with the same panels, a time slider and
+:class:`Replay` shows a recorded telemetry log (``rmd-motion view RUN.mcap``) with the same panels, a time slider and
 play/pause.
 
 The view never slows the control loop: the page (viser's server, the figures, the plots, the view's own Pinocchio

@@ -82,7 +82,7 @@ import dataclasses
 import json
 import os
 import time
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, Final, NamedTuple, TextIO
 
@@ -91,20 +91,25 @@ from numpy.typing import NDArray
 
 from motion.closing import Closing
 from motion.config.schema import ArmConfig, CanBusConfig, ControlMode
+from motion.control.clock import MonotonicClock
 from motion.control.controller import Controller
+from motion.safety.states import ArmState
 from motion.transmission import FloatArray
 from motion.transport.base import Reply, Transport
 
 if TYPE_CHECKING:
     from motion.safety import Supervisor
     from motion.safety.supervisor import HaltRecord
+    from motion.telemetry.mcap import Robot
 
 SCHEMA: Final = "rmd-motion-telemetry"
-VERSION: Final = 5
-#: Columns added by versions 3, 4 and 5 (NaN in older logs).
+VERSION: Final = 6
+#: Columns added by versions 3, 4 and 5 (NaN in older logs); version 6 added ``state`` (0, unknown, in older logs).
 _V3_COLUMNS: Final = ("residual_nm", "collision_signal_nm")
 _V4_COLUMNS: Final = ("q_exp_deg",)
 _V5_COLUMNS: Final = ("collision_limit_nm",)
+#: The arm states a log's ``state`` column indexes (``meta["states"]``; 0: unknown).
+STATES: Final = ("", *(state.value for state in ArmState))
 #: Rows per chunk of the per-cycle log (16 s at 250 Hz).
 CHUNK_ROWS: Final = 4096
 #: Frames per chunk of the bus trace.
@@ -117,6 +122,7 @@ CYCLE_COLUMNS: Final[Mapping[str, tuple[bool, type[np.generic], str]]] = {
     "jitter_s": (False, np.float64, "s"),
     "busy_s": (False, np.float64, "s"),
     "latency_s": (False, np.float64, "s"),
+    "state": (False, np.int8, "1"),
     "q_ref_deg": (True, np.float64, "deg"),
     "qd_ref_dps": (True, np.float64, "deg/s"),
     "qdd_ref_dps2": (True, np.float64, "deg/s^2"),
@@ -157,6 +163,7 @@ def _schema_meta(mode: str, rate_hz: float, joints: list[dict[str, Any]]) -> dic
         "period_s": 1.0 / rate_hz,
         "joints": joints,
         "units": units,
+        "states": list(STATES),
     }
 
 
@@ -240,8 +247,27 @@ class TelemetryLog:
             error[:, j] = np.interp(t, t + self.period_s, q_ref[:, j]) - q[:, j]
         return error
 
-    def save(self, file: str | os.PathLike[str] | IO[bytes]) -> None:
-        """Write the log (a path gets no suffix added, unlike :func:`numpy.savez`)."""
+    def save(
+        self,
+        file: str | os.PathLike[str] | IO[bytes],
+        *,
+        robot: Robot | None = None,
+        frames: Iterable[TracedFrame] = (),
+        frames_base_s: float = 0.0,
+    ) -> None:
+        """Write the recording as MCAP (:mod:`motion.telemetry.mcap`): ``robot`` adds the arm's URDF and link
+        transforms, ``frames`` the bus trace (their times plus ``frames_base_s`` on the log's time base)."""
+        from motion.telemetry.mcap import write_mcap  # noqa: PLC0415 - (mcap's writer only where one is written)
+
+        if isinstance(file, (str, os.PathLike)):
+            with open(file, "wb") as stream:
+                write_mcap(self, stream, robot=robot, frames=frames, frames_base_s=frames_base_s)
+        else:
+            write_mcap(self, file, robot=robot, frames=frames, frames_base_s=frames_base_s)
+
+    def export_npz(self, file: str | os.PathLike[str] | IO[bytes]) -> None:
+        """Write the columns and the metadata as a numpy ``.npz`` archive (the module docstring; a path gets no
+        suffix added, unlike :func:`numpy.savez`): :func:`load_log` reads it back."""
         arrays: dict[str, Any] = dict(self.columns)
         arrays["meta"] = np.array(json.dumps(self.meta, allow_nan=False))
         if isinstance(file, (str, os.PathLike)):
@@ -252,36 +278,53 @@ class TelemetryLog:
 
 
 def load_log(path: str | os.PathLike[str]) -> TelemetryLog:
-    """Read a per-cycle log written by :class:`TelemetrySession`.
+    """Read a run's recording (``.mcap``, :mod:`motion.telemetry.mcap`) or a log exported as ``.npz`` (and the
+    ``.npz`` logs of earlier versions).
 
     Raises:
         OSError: the file cannot be read.
-        ValueError: the file is not an rmd-motion telemetry log (or of a newer version).
+        ValueError: the file is not an rmd-motion recording (or of a newer version).
     """
-    try:
-        archive = np.load(path, allow_pickle=False)
-    except (ValueError, EOFError) as exc:  # numpy: neither .npz nor .npy, or truncated
-        raise ValueError(f"{os.fspath(path)}: not a telemetry log ({exc})") from exc
-    if not isinstance(archive, np.lib.npyio.NpzFile):
-        raise ValueError(f"{os.fspath(path)}: not a telemetry log (a single array)")
-    with archive:
-        arrays = {name: archive[name] for name in archive.files}
-    if "meta" not in arrays:
-        raise ValueError(f"{os.fspath(path)}: not a telemetry log (no meta)")
-    meta = json.loads(str(arrays.pop("meta")))
+    from motion.telemetry.mcap import is_mcap, read_mcap  # noqa: PLC0415 - (mcap's reader only where one is read)
+
+    name = os.fspath(path)
+    if is_mcap(path):
+        try:
+            with open(path, "rb") as stream:
+                arrays, meta = read_mcap(stream)
+        except ValueError as exc:
+            raise ValueError(f"{name}: {exc}") from exc
+    else:
+        arrays, meta = _read_npz(name)
     if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
-        raise ValueError(f"{os.fspath(path)}: not a telemetry log (schema {meta.get('schema')!r})")
+        raise ValueError(f"{name}: not a telemetry log (schema {meta.get('schema')!r})")
     if int(meta.get("version", 0)) > VERSION:
-        raise ValueError(f"{os.fspath(path)}: telemetry log version {meta['version']} is newer than {VERSION}")
+        raise ValueError(f"{name}: telemetry log version {meta['version']} is newer than {VERSION}")
     version = int(meta.get("version", 0))
     if version < VERSION and "q_deg" in arrays:
-        older = (*(_V3_COLUMNS if version < 3 else ()), *(_V4_COLUMNS if version < 4 else ()), *_V5_COLUMNS)
-        for name in older:
-            arrays.setdefault(name, np.full(arrays["q_deg"].shape, np.nan))
-    missing = [name for name in (*CYCLE_COLUMNS, *FAULT_COLUMNS) if name not in arrays]
+        older = (*(_V3_COLUMNS if version < 3 else ()), *(_V4_COLUMNS if version < 4 else ()))
+        for column in (*older, *(_V5_COLUMNS if version < 5 else ())):
+            arrays.setdefault(column, np.full(arrays["q_deg"].shape, np.nan))
+        arrays.setdefault("state", np.zeros(len(arrays["q_deg"]), dtype=np.int8))
+        meta.setdefault("states", list(STATES))
+    missing = [column for column in (*CYCLE_COLUMNS, *FAULT_COLUMNS) if column not in arrays]
     if missing:
-        raise ValueError(f"{os.fspath(path)}: telemetry log without column(s) {', '.join(missing)}")
+        raise ValueError(f"{name}: telemetry log without column(s) {', '.join(missing)}")
     return TelemetryLog(arrays, meta)
+
+
+def _read_npz(name: str) -> tuple[dict[str, NDArray[Any]], Any]:
+    try:
+        archive = np.load(name, allow_pickle=False)
+    except (ValueError, EOFError) as exc:  # numpy: neither .npz nor .npy, or truncated
+        raise ValueError(f"{name}: not a telemetry log ({exc})") from exc
+    if not isinstance(archive, np.lib.npyio.NpzFile):
+        raise ValueError(f"{name}: not a telemetry log (a single array)")
+    with archive:
+        arrays = {column: archive[column] for column in archive.files}
+    if "meta" not in arrays:
+        raise ValueError(f"{name}: not a telemetry log (no meta)")
+    return arrays, json.loads(str(arrays.pop("meta")))
 
 
 class Recorder:
@@ -300,6 +343,7 @@ class Recorder:
         self.supervisor = supervisor
         self._joints = len(controller.specs)
         self._position_mode = controller.options.mode is ControlMode.POSITION
+        self._state_code = {state: STATES.index(state.value) for state in ArmState}
         self._chunk_rows = chunk_rows
         self._chunks: list[Chunk] = [_allocate(chunk_rows, self._joints)]
         self._chunk = self._chunks[0]
@@ -339,6 +383,8 @@ class Recorder:
         chunk["cycle"][row] = cycle
         chunk["jitter_s"][row] = loop.wake_jitter_s
         chunk["latency_s"][row] = controller.clock.now() - start_s
+        if self.supervisor is not None:
+            chunk["state"][row] = self._state_code[self.supervisor.state]
         previous = self._prev_chunk
         if previous is not None and previous["cycle"][self._prev_row] == cycle - 1:
             previous["busy_s"][self._prev_row] = loop.last_busy_s  # known once that cycle has ended
@@ -392,8 +438,13 @@ class Recorder:
     def meta(self) -> dict[str, Any]:
         """The metadata the recorder knows (joints, mode, rate, time base, units, loop statistics, counters)."""
         controller = self.controller
-        joints = [{"name": s.name, "motor_id": s.motor_id} for s in controller.specs]
+        per_amp = controller.transmission.joint_torque_nm(np.ones(len(controller.specs)))
+        joints = [
+            {"name": s.name, "motor_id": s.motor_id, "torque_nm_per_a": float(k)}
+            for s, k in zip(controller.specs, per_amp, strict=True)
+        ]
         return _schema_meta(controller.options.mode.value, controller.options.rate_hz, joints) | {
+            "simulated": not isinstance(controller.clock, MonotonicClock),
             "t0_s": self.t0_s,
             "t0_wall_unix_s": self.t0_wall_unix_s,
             "protocol": controller.family.family.value,
@@ -510,12 +561,23 @@ class TelemetryOptions:
     """What to record of a run (``Arm(..., telemetry=TelemetryOptions(log=..., trace=...))``).
 
     Attributes:
-        log: the per-cycle log file (``.npz``; no suffix is added), or None.
-        trace: the bus trace file (CAN: candump ``.log``; RS485: hex lines), or None.
+        log: the run's recording (``.mcap``: :mod:`motion.telemetry.mcap`), or None.
+        trace: the bus trace file (CAN: candump ``.log``; RS485: hex lines), or None; with a ``log``, the recording
+            holds the frames too.
+
+    Raises:
+        ValueError: a ``log`` whose name does not end in ``.mcap`` (``.npz`` is an export: ``rmd-motion export``).
     """
 
     log: str | os.PathLike[str] | None = None
     trace: str | os.PathLike[str] | None = None
+
+    def __post_init__(self) -> None:
+        if self.log is not None and Path(self.log).suffix != ".mcap":
+            raise ValueError(
+                f"{os.fspath(self.log)}: a run is recorded as MCAP: name it FILE.mcap (an .npz for numpy is exported "
+                "from it: rmd-motion export FILE.mcap FILE.npz)"
+            )
 
 
 def _output(path: str | os.PathLike[str]) -> Path:
@@ -532,15 +594,19 @@ class TelemetrySession(Closing):
         options: the files to write.
         config: the arm's configuration (name, transport, channel and following-error limit go into the metadata).
         emulated: the run is on emulated drives.
+        robot: the arm's URDF and link transforms for the recording (:class:`kinematics.frames.LinkFrames`).
 
     Raises:
         OSError: an output file cannot be created.
     """
 
-    def __init__(self, options: TelemetryOptions, config: ArmConfig, *, emulated: bool = False) -> None:
+    def __init__(
+        self, options: TelemetryOptions, config: ArmConfig, *, emulated: bool = False, robot: Robot | None = None
+    ) -> None:
         self.options = options
         self.config = config
         self.emulated = emulated
+        self.robot = robot
         self.recorder: Recorder | None = None
         self.trace: BusTrace | None = None
         #: The log written by :meth:`close`.
@@ -593,8 +659,10 @@ class TelemetrySession(Closing):
                 else:
                     self.trace.write_hex(self._trace_file)
             if self._log_file is not None:
-                self.result = self._log()
-                self.result.save(self._log_file)
+                self.result = log = self._log()
+                trace = self.trace
+                frames_base_s = 0.0 if log.meta.get("simulated") or trace is None else trace.unix_offset_s
+                log.save(self._log_file, robot=self.robot, frames=trace or (), frames_base_s=frames_base_s)
         finally:
             self._close_files()
         return self.result

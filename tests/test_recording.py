@@ -1,0 +1,189 @@
+"""Recordings as MCAP with ROS 2 message types (issue 34), read back with a reader we did not write: ``rosbags``."""
+
+from __future__ import annotations
+
+import io
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from mcap_ros2.writer import Writer
+from rosbags.highlevel import AnyReader
+
+from motion.api import Arm
+from motion.cli import main
+from motion.config import load_config
+from motion.telemetry import TelemetryLog, TelemetryOptions, load_log
+from tests.test_telemetry import CONFIGS
+
+ARM6 = CONFIGS / "arm6.yaml"
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, TelemetryLog, int]:
+    """arm6 in simulated time: a move, then an E-stop; recorded with its bus trace."""
+    out = tmp_path_factory.mktemp("recording")
+    options = TelemetryOptions(log=out / "run.mcap", trace=out / "run.log")
+    with Arm.from_config(ARM6, emulate=True, telemetry=options) as arm:
+        arm.move_to({"shoulder_pitch": 20.0, "elbow_pitch": -30.0, "wrist_roll": 15.0})
+        arm.stop()
+        arm.sleep(0.05)
+    assert arm.telemetry is not None and arm.telemetry.result is not None and arm.telemetry.trace is not None
+    return out / "run.mcap", arm.telemetry.result, len(arm.telemetry.trace)
+
+
+def _read(path: Path) -> dict[str, list[Any]]:
+    """Every message of the file, decoded by rosbags, per topic (and each topic's type)."""
+    topics: dict[str, list[Any]] = {}
+    with AnyReader([path]) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+        assert types == {
+            "/joint_states": "sensor_msgs/msg/JointState",
+            "/joint_states/reference": "sensor_msgs/msg/JointState",
+            "/joint_states/expected": "sensor_msgs/msg/JointState",
+            "/rmd_motion/cycle": "rmd_motion/msg/Cycle",
+            "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
+            "/bus/frames": "rmd_motion/msg/BusFrame",
+            "/robot_description": "std_msgs/msg/String",
+            "/tf": "tf2_msgs/msg/TFMessage",
+        }
+        for connection, _, raw in reader.messages():
+            topics.setdefault(connection.topic, []).append(reader.deserialize(raw, connection.msgtype))
+    return topics
+
+
+def _seconds(stamp: Any) -> float:
+    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
+
+
+def test_rosbags_reads_every_topic_and_the_values_the_run_measured(recorded: tuple[Path, TelemetryLog, int]) -> None:
+    path, log, frames = recorded
+    topics = _read(path)
+    n, names = log.cycles, log.joint_names
+    measured = topics["/joint_states"]
+    assert len(measured) == n > 100  # one message per cycle
+    per_amp = np.array([j["torque_nm_per_a"] for j in log.meta["joints"]])
+    assert all(np.isfinite(per_amp)) and per_amp[1] != 0
+    for k in (0, n // 2, n - 1):
+        state = measured[k]
+        assert list(state.name) == names
+        assert np.array_equal(state.position, np.radians(log["q_deg"][k]))
+        assert np.array_equal(state.velocity, np.radians(log["qd_dps"][k]))
+        assert np.array_equal(state.effort, log["iq_a"][k] * per_amp)
+        # simulated time: the stamp is the cycle's time on the controller's clock
+        assert _seconds(state.header.stamp) == pytest.approx(log.meta["t0_s"] + log["t_s"][k], abs=1e-9)
+        reference = topics["/joint_states/reference"][k]
+        assert np.array_equal(reference.position, np.radians(log["q_ref_deg"][k]))
+        assert _seconds(reference.header.stamp) == pytest.approx(_seconds(state.header.stamp) + log.period_s, abs=2e-9)
+        assert np.array_equal(topics["/joint_states/expected"][k].position, np.radians(log["q_exp_deg"][k]))
+        cycle = topics["/rmd_motion/cycle"][k]
+        assert cycle.cycle == log["cycle"][k] and cycle.t_s == log["t_s"][k]
+        assert np.array_equal(cycle.iq_a, log["iq_a"][k])
+        assert np.array_equal(cycle.following_error_deg, log.following_error_deg()[k], equal_nan=True)
+        assert np.array_equal(cycle.collision_signal_nm, log["collision_signal_nm"][k], equal_nan=True)
+    states = [c.state for c in topics["/rmd_motion/cycle"]]
+    assert "moving" in states and states[-1] == "halted"
+    statuses = [s for array in topics["/diagnostics"] for s in array.status]
+    faults = [s for s in statuses if s.name == "rmd_motion/fault"]
+    assert [dict((v.key, v.value) for v in s.values)["kind"] for s in faults] == list(log["fault_kind"]) == ["stop"]
+    assert faults[0].level == 2 and faults[0].message == log["fault_text"][0]
+    changes = [s.message for s in statuses if s.name == "rmd_motion/state"]
+    assert changes[:3] == ["ready", "moving", "ready"] and "halted" in changes
+    bus = topics["/bus/frames"]
+    assert len(bus) == frames and {f.received for f in bus} == {True, False}
+    assert any(f.arbitration_id == 0x141 and bytes(f.data)[0] == 0xA4 and not f.received for f in bus)
+    (description,) = topics["/robot_description"]
+    assert description.data == (CONFIGS / "arm6.urdf").read_text()
+
+
+def test_the_link_transforms_place_the_arm_as_its_model_does(recorded: tuple[Path, TelemetryLog, int]) -> None:
+    import pinocchio as pin
+
+    path, log, _ = recorded
+    tf = _read(path)["/tf"]
+    assert len(tf) == log.cycles
+    last = {t.child_frame_id: t for t in tf[-1].transforms}
+    assert set(last) == {
+        "shoulder_link", "upper_arm_link", "forearm_link", "wrist_1_link", "wrist_2_link", "flange_link", "tool0"
+    }  # fmt: skip
+    # chain the transforms from the root to the tool and compare with Pinocchio's forward kinematics
+    pose, frame = pin.SE3.Identity(), "tool0"
+    while frame in last:
+        t = last[frame].transform
+        rotation = pin.Quaternion(t.rotation.w, t.rotation.x, t.rotation.y, t.rotation.z).matrix()
+        pose = pin.SE3(rotation, np.array([t.translation.x, t.translation.y, t.translation.z])) * pose
+        frame = last[frame].header.frame_id
+    assert frame == "base_link"
+    model = pin.buildModelFromUrdf(str(CONFIGS / "arm6.urdf"))
+    data = model.createData()
+    q = np.radians(log["q_deg"][-1])  # (arm6's model order is its configuration order)
+    pin.framesForwardKinematics(model, data, q)
+    expected = data.oMf[model.getFrameId("tool0")]
+    assert np.allclose(pose.translation, expected.translation, atol=1e-9)
+    assert np.allclose(pose.rotation, expected.rotation, atol=1e-9)
+
+
+def test_load_log_rebuilds_the_run_from_the_recording(recorded: tuple[Path, TelemetryLog, int]) -> None:
+    path, log, _ = recorded
+    again = load_log(path)
+    assert set(again.columns) == set(log.columns)
+    for name, column in log.columns.items():
+        assert again[name].dtype == column.dtype, name
+        assert np.array_equal(again[name], column, equal_nan=column.dtype.kind == "f"), name
+    assert again.meta == dict(log.meta)
+
+
+def test_export_writes_the_columns_for_numpy(recorded: tuple[Path, TelemetryLog, int], tmp_path: Path) -> None:
+    path, log, _ = recorded
+    out = tmp_path / "run.npz"
+    assert main(["export", str(path), str(out)]) == 0
+    with np.load(out) as archive:
+        assert np.array_equal(archive["q_deg"], log["q_deg"]) and str(archive["fault_kind"][0]) == "stop"
+    assert np.array_equal(load_log(out)["iq_a"], log["iq_a"])
+    assert main(["export", str(tmp_path / "missing.mcap"), str(out)]) == 2
+
+
+def test_a_log_not_named_mcap_is_refused_before_anything_moves(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(ValueError, match=r"run\.npz: a run is recorded as MCAP: name it FILE\.mcap"):
+        TelemetryOptions(log=tmp_path / "run.npz")
+    code = main(["move", "--config", str(ARM6), "--emulate", "base_yaw=5", "--log", str(tmp_path / "run.npz")])
+    assert code == 2
+    assert "--log" in capsys.readouterr().err and not (tmp_path / "run.npz").exists()
+
+
+def test_an_mcap_file_of_another_program_is_not_a_run(tmp_path: Path) -> None:
+    stream = io.BytesIO()
+    writer = Writer(stream)
+    schema = writer.register_msgdef("std_msgs/msg/String", "string data\n")
+    writer.write_message("/chatter", schema, {"data": "hello"}, log_time=1, publish_time=1)
+    writer.finish()
+    (tmp_path / "other.mcap").write_bytes(stream.getvalue())
+    with pytest.raises(ValueError, match="other.mcap: an MCAP file without the 'rmd_motion' metadata record"):
+        load_log(tmp_path / "other.mcap")
+    (tmp_path / "cut.mcap").write_bytes(stream.getvalue()[:40])
+    with pytest.raises(ValueError, match="cut.mcap: not a readable MCAP recording"):
+        load_log(tmp_path / "cut.mcap")
+
+
+def test_a_chain_model_hangs_its_links_from_the_world_and_has_no_urdf(tmp_path: Path) -> None:
+    config = load_config(CONFIGS / "arm2.yaml")
+    options = TelemetryOptions(log=tmp_path / "arm2.mcap")
+    with Arm(config, emulate=True, telemetry=options) as arm:
+        arm.move_to({"shoulder": 10.0})
+    with AnyReader([tmp_path / "arm2.mcap"]) as reader:
+        topics = {c.topic for c in reader.connections}
+        assert "/robot_description" not in topics and "/tf" in topics
+        (tf,) = [c for c in reader.connections if c.topic == "/tf"]
+        for _, _, raw in reader.messages(connections=[tf]):
+            message: Any = reader.deserialize(raw, tf.msgtype)
+    parents = {t.child_frame_id: t.header.frame_id for t in message.transforms}
+    assert parents == {"upper_arm": "universe", "forearm": "upper_arm"}
+    shoulder = load_log(tmp_path / "arm2.mcap")["q_deg"][-1][0]
+    rotation = message.transforms[0].transform.rotation
+    assert 2 * math.degrees(math.atan2(math.hypot(rotation.x, rotation.y, rotation.z), rotation.w)) == pytest.approx(
+        abs(shoulder), abs=1e-6
+    )
