@@ -7,15 +7,19 @@ is formatted, logged or written until :meth:`TelemetrySession.close`. Memory gro
 per cycle for the log (arm6 at 250 Hz: 135 kB/s) and 30 bytes per CAN frame for the trace (arm6: 13 frames per
 cycle, 100 kB/s), so record runs of minutes, not days.
 
-The per-cycle log (``.npz``, schema ``rmd-motion-telemetry`` version 4)
-------------------------------------------------------------------------
-A :func:`numpy.savez_compressed` archive: one array per column, plus ``meta``, a JSON document in a 0-d string
-array. ``numpy.load(path)`` reads it without pickles; :func:`load_log` returns a :class:`TelemetryLog`. ``N`` is
+The per-cycle log (schema ``rmd-motion-telemetry`` version 6)
+--------------------------------------------------------------
+A run is recorded as MCAP with ROS 2 message types (:mod:`motion.telemetry.mcap`: the columns below are its
+``/rmd_motion/cycle`` messages, the faults its ``/diagnostics``, ``meta`` its metadata record);
+:meth:`TelemetryLog.export_npz` writes the same as a :func:`numpy.savez_compressed` archive: one array per column,
+plus ``meta``, a JSON document in a 0-d string array, which ``numpy.load(path)`` reads without pickles.
+:func:`load_log` reads either and returns a :class:`TelemetryLog`. ``N`` is
 the number of recorded cycles, ``J`` the number of joints (configuration order, named in ``meta["joints"]``), ``F``
 the number of faults. Times are seconds since ``meta["t0_s"]`` (controller clock: simulated time in a simulated run,
 where every array is reproducible to the bit; ``meta["t0_wall_unix_s"]`` is the host's wall-clock Unix time at that
 instant, the time base of the bus trace). Version 2 renamed version 1's ``t0_unix_s``; version 3 added the collision
-observer's columns, version 4 ``q_exp_deg`` (:func:`load_log` gives older logs NaN ones).
+observer's columns, version 4 ``q_exp_deg``, version 5 ``collision_limit_nm`` (:func:`load_log` gives older logs NaN
+ones), version 6 ``state`` (0 in older logs).
 
 =================  =====  =======  ==============================================================================
 column             shape  dtype    meaning (unit)
@@ -25,6 +29,7 @@ column             shape  dtype    meaning (unit)
 ``jitter_s``       N      float64  wake-up minus scheduled start (s)
 ``busy_s``         N      float64  wake-up to the end of the cycle (s); NaN where unknown (the last cycle)
 ``latency_s``      N      float64  scheduled start to the cycle's replies taken in (s)
+``state``          N      int8     the arm's state at the cycle, an index into ``meta["states"]`` (0: unknown)
 ``q_ref_deg``      N×J    float64  reference position for the set-point instant ``t_s + period_s`` (deg)
 ``qd_ref_dps``     N×J    float64  reference velocity (deg/s)
 ``qdd_ref_dps2``   N×J    float64  reference acceleration (deg/s²)
@@ -56,8 +61,10 @@ column             shape  dtype    meaning (unit)
 =================  =====  =======  ==============================================================================
 
 Command columns are NaN in the cycles that sent no set-point (while halted). ``meta`` holds ``schema``,
-``version``, ``config`` (name), ``config_source``, ``mode``, ``transport``, ``channel``, ``emulated``, ``rate_hz``,
-``period_s``, ``joints`` (``name``, ``motor_id``), ``units`` (column -> unit), ``t0_s``, ``t0_wall_unix_s``,
+``version``, ``config`` (name), ``config_source``, ``mode``, ``transport``, ``channel``, ``emulated``, ``simulated``
+(the controller's clock is simulated time), ``rate_hz``, ``period_s``, ``joints`` (``name``, ``motor_id``,
+``torque_nm_per_a``: joint N·m per ampere of torque current), ``units`` (column -> unit), ``states``, ``t0_s``,
+``t0_wall_unix_s``,
 ``following_error_limit_deg``, ``collision_threshold_nm`` (per joint, null where not watched),
 ``loop`` (the :class:`~motion.control.scheduler.LoopStatistics` of the run),
 ``counters`` (per motor id: sent, replied, timeouts, bad and stale frames) and ``trace`` (file name or null).
