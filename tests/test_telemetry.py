@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 from mcap.reader import make_reader
+from rosbags.highlevel import AnyReader
 
 from motion import demo
 from motion.api import Arm
@@ -316,6 +317,11 @@ def test_demo_runs_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]
             assert path.stat().st_size > 1000, path
             assert str(path) in out
         log = load_log(tmp_path / "demo" / f"{name}.mcap")
+        with AnyReader([tmp_path / "demo" / f"{name}.mcap"]) as reader:  # (a reader we did not write: issue 34)
+            (states,) = [c for c in reader.connections if c.topic == "/joint_states"]
+            assert states.msgtype == "sensor_msgs/msg/JointState" and states.msgcount == log.cycles > 100
+            _, _, raw = next(iter(reader.messages(connections=[states])))
+            assert list(reader.deserialize(raw, states.msgtype).name) == log.joint_names  # type: ignore[attr-defined]
         assert log.meta["mode"] == name and list(log["fault_kind"]) == ["close"]
         assert log.meta["protocol"] == drives.value
         assert np.abs(log.following_error_deg()[log.active_rows()]).max() < log.meta["following_error_limit_deg"]
