@@ -9,13 +9,24 @@ from typing import Any
 
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 from mcap_ros2.writer import Writer
 from rosbags.highlevel import AnyReader
 
+from kinematics.frames import LinkTransform
 from motion.api import Arm
 from motion.cli import main
 from motion.config import load_config
 from motion.telemetry import TelemetryLog, TelemetryOptions, load_log
+from motion.telemetry.mcap import (
+    CYCLE_ARRAYS,
+    SCHEMAS,
+    bus_frame,
+    cycle_message,
+    diagnostic_array,
+    joint_state,
+    tf_message,
+)
 from tests.test_telemetry import CONFIGS
 
 ARM6 = CONFIGS / "arm6.yaml"
@@ -187,3 +198,45 @@ def test_a_chain_model_hangs_its_links_from_the_world_and_has_no_urdf(tmp_path: 
     assert 2 * math.degrees(math.atan2(math.hypot(rotation.x, rotation.y, rotation.z), rotation.w)) == pytest.approx(
         abs(shoulder), abs=1e-6
     )
+
+
+def _their_encoding(kind: str, message: dict[str, Any]) -> bytes:
+    """``mcap-ros2-support``'s encoding of ``message`` (written with its writer, read back raw)."""
+    stream = io.BytesIO()
+    writer = Writer(stream)
+    writer.write_message("/t", writer.register_msgdef(kind, SCHEMAS[kind]), message, log_time=0, publish_time=0)
+    writer.finish()
+    stream.seek(0)
+    ((_, _, raw),) = make_reader(stream).iter_messages()
+    return bytes(raw.data)
+
+
+def test_the_cdr_shim_encodes_as_the_reference_encoder_does() -> None:
+    stamp = {"sec": 1_700_000_000, "nanosec": 123_456_789}
+    ns = 1_700_000_000_123_456_789
+    names = ["base_yaw", "shoulder", "e"]
+    ours = joint_state(ns, names, [0.1, -2.5, 3.0], [1.0, 2.0, 3.0], [])
+    theirs = {"header": {"stamp": stamp, "frame_id": ""}, "name": names, "position": [0.1, -2.5, 3.0]}
+    assert ours == _their_encoding("sensor_msgs/msg/JointState", theirs | {"velocity": [1.0, 2.0, 3.0], "effort": []})
+    values = {"kind": "stop", "joint": ""}
+    ours = diagnostic_array(ns, 2, "rmd_motion/fault", "stop: E-stop", hardware_id="elbow", values=values)
+    status = {"level": 2, "name": "rmd_motion/fault", "message": "stop: E-stop", "hardware_id": "elbow"}
+    status["values"] = [{"key": k, "value": v} for k, v in values.items()]
+    diagnostics = {"header": {"stamp": stamp, "frame_id": ""}, "status": [status]}
+    assert ours == _their_encoding("diagnostic_msgs/msg/DiagnosticArray", diagnostics)
+    for received, ident, data in ((True, 0x141, b"\xa4\x00\x01\x02\x03\x04\x05\x06"), (False, -1, b"\x3e\xa4\x01")):
+        frame = {"stamp": stamp, "received": received, "arbitration_id": ident, "data": data}
+        assert bus_frame(ns, received, ident, data) == _their_encoding("rmd_motion/msg/BusFrame", frame)
+    link = LinkTransform("base_link", "shoulder_link", (0.0, 0.1, 0.12), (0.0, 0.0, 0.38268343, 0.92387953))
+    transform = {"translation": {"x": 0.0, "y": 0.1, "z": 0.12}}
+    transform["rotation"] = {"x": 0.0, "y": 0.0, "z": 0.38268343, "w": 0.92387953}
+    tf = {"header": {"stamp": stamp, "frame_id": "base_link"}, "child_frame_id": "shoulder_link"}
+    assert tf_message(ns, [link, link]) == _their_encoding(
+        "tf2_msgs/msg/TFMessage", {"transforms": [tf | {"transform": transform}] * 2}
+    )
+    cycle = {"stamp": stamp, "t_s": 0.25, "cycle": 2**40, "jitter_s": 1e-5, "busy_s": math.nan, "latency_s": 0.001}
+    cycle |= {"state": "moving", "following_error_deg": [0.5, -0.5], "fresh": [True, False], "limited": [False, True]}
+    cycle |= {name: [float(i), -1.5] for i, name in enumerate(CYCLE_ARRAYS)}
+    columns = {name: np.array([value]) for name, value in cycle.items() if name not in ("stamp", "state")}
+    ours = cycle_message(ns, columns, 0, "moving", columns["following_error_deg"])
+    assert ours == _their_encoding("rmd_motion/msg/Cycle", cycle)

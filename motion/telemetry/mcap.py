@@ -30,8 +30,8 @@ The metadata record ``rmd_motion`` holds ``meta``: the log's metadata as JSON (s
 :func:`read_mcap` rebuilds the :class:`~motion.telemetry.TelemetryLog` from ``/rmd_motion/cycle``, the faults of
 ``/diagnostics`` and that record.
 
-Writing happens after the run (the control loop only fills preallocated rows); ``mcap`` and ``mcap-ros2-support``
-serialise the messages.
+Writing happens after the run (the control loop only fills preallocated rows): ``mcap`` writes the file, the
+messages are encoded by :mod:`motion.telemetry.cdr`; ``mcap-ros2-support`` decodes them in :func:`read_mcap`.
 """
 
 from __future__ import annotations
@@ -43,8 +43,11 @@ from typing import IO, TYPE_CHECKING, Any, Final, Protocol
 
 import numpy as np
 from mcap.reader import make_reader
+from mcap.writer import Writer as McapWriter
 from mcap_ros2.decoder import DecoderFactory
-from mcap_ros2.writer import Writer
+
+from motion import __version__
+from motion.telemetry.cdr import CdrWriter
 
 if TYPE_CHECKING:
     from motion.telemetry import TelemetryLog, TracedFrame
@@ -171,51 +174,81 @@ def _ns(t_s: float) -> int:
     return max(0, round(t_s * 1e9))
 
 
-def _stamp(ns: int) -> dict[str, int]:
-    return {"sec": ns // 1_000_000_000, "nanosec": ns % 1_000_000_000}
+def _time(writer: CdrWriter, ns: int) -> CdrWriter:
+    return writer.time(ns // 1_000_000_000, ns % 1_000_000_000)
 
 
-def _values(row: Any) -> list[float]:
-    return [float(v) for v in row]
+def _header(ns: int, frame_id: str = "") -> CdrWriter:
+    """A new message that begins with a ``std_msgs/Header``."""
+    return _time(CdrWriter(), ns).string(frame_id)
+
+
+def joint_state(ns: int, names: Sequence[str], position: Any, velocity: Any = (), effort: Any = ()) -> bytes:
+    """A ``sensor_msgs/msg/JointState``."""
+    return _header(ns).strings(names).float64s(position).float64s(velocity).float64s(effort).data()
+
+
+def diagnostic_array(
+    ns: int, level: int, name: str, message: str, *, hardware_id: str, values: dict[str, str]
+) -> bytes:
+    """A ``diagnostic_msgs/msg/DiagnosticArray`` of one status."""
+    out = _header(ns).uint32(1).octet(level).string(name).string(message).string(hardware_id).uint32(len(values))
+    for key, value in values.items():
+        out.string(key).string(value)
+    return out.data()
+
+
+def bus_frame(ns: int, received: bool, arbitration_id: int, data: bytes) -> bytes:
+    """An ``rmd_motion/msg/BusFrame``."""
+    return _time(CdrWriter(), ns).octet(received).int32(arbitration_id).octets(data).data()
+
+
+def tf_message(ns: int, links: Sequence[LinkPose]) -> bytes:
+    """A ``tf2_msgs/msg/TFMessage``."""
+    out = CdrWriter().uint32(len(links))
+    for link in links:
+        _time(out, ns).string(link.parent).string(link.child)
+        for value in (*link.translation_m, *link.rotation_xyzw):
+            out.float64(value)
+    return out.data()
 
 
 class _Channels:
-    """The writer and one registered schema per message type."""
+    """The MCAP writer (ROS 2 profile) and one channel per topic, its schema registered once per type."""
 
     def __init__(self, stream: IO[bytes]) -> None:
-        self.writer = Writer(stream)
-        self._schemas: dict[str, Any] = {}
+        self.writer = McapWriter(stream)
+        self.writer.start(profile="ros2", library=f"rmd-motion {__version__}")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
 
-    def write(self, topic: str, kind: str, message: dict[str, Any], log_ns: int) -> None:
-        schema = self._schemas.get(kind)
-        if schema is None:
-            schema = self._schemas[kind] = self.writer.register_msgdef(kind, SCHEMAS[kind])
-        self.writer.write_message(topic, schema, message, log_time=log_ns, publish_time=log_ns)
-
-
-def _joint_state(ns: int, names: list[str], position: Any, velocity: Any = (), effort: Any = ()) -> dict[str, Any]:
-    return {
-        "header": {"stamp": _stamp(ns), "frame_id": ""},
-        "name": names,
-        "position": _values(position),
-        "velocity": _values(velocity),
-        "effort": _values(effort),
-    }
-
-
-def _status(level: int, name: str, message: str, hardware_id: str, values: dict[str, str]) -> dict[str, Any]:
-    return {
-        "level": level,
-        "name": name,
-        "message": message,
-        "hardware_id": hardware_id,
-        "values": [{"key": k, "value": v} for k, v in values.items()],
-    }
+    def write(self, topic: str, kind: str, message: bytes, log_ns: int) -> None:
+        channel = self._channels.get(topic)
+        if channel is None:
+            schema = self._schemas.get(kind)
+            if schema is None:
+                schema = self._schemas[kind] = self.writer.register_schema(kind, "ros2msg", SCHEMAS[kind].encode())
+            channel = self._channels[topic] = self.writer.register_channel(topic, "cdr", schema)
+        self.writer.add_message(channel, log_ns, message, log_ns)
 
 
 def time_base_s(meta: dict[str, Any] | Any) -> float:
     """The stamp of a log's ``t_s = 0``: the controller's clock in a simulated run, else Unix time."""
     return float(meta["t0_s"]) if meta.get("simulated") else float(meta["t0_wall_unix_s"])
+
+
+def cycle_message(ns: int, columns: Any, k: int, state: str, following: Any) -> bytes:
+    """An ``rmd_motion/msg/Cycle``: row ``k`` of the log."""
+    out = _time(CdrWriter(), ns).float64(float(columns["t_s"][k])).int64(int(columns["cycle"][k]))
+    for name in CYCLE_SCALARS:
+        out.float64(float(columns[name][k]))
+    out.string(state)
+    for name in CYCLE_ARRAYS:
+        out.float64s(columns[name][k])
+    out.float64s(following[k])
+    for name in CYCLE_FLAGS:
+        out.bools(columns[name][k])
+    return out.data()
 
 
 def write_mcap(
@@ -236,52 +269,33 @@ def write_mcap(
     per_amp = np.array([float(j.get("torque_nm_per_a", math.nan)) for j in meta["joints"]])
     states = list(meta.get("states", ()))
     t, q, qd, iq = columns["t_s"], columns["q_deg"], columns["qd_dps"], columns["iq_a"]
-    torque_mode = meta.get("mode") == "torque"
+    q_ref, qd_ref, q_exp = np.radians(columns["q_ref_deg"]), np.radians(columns["qd_ref_dps"]), columns["q_exp_deg"]
+    torques = columns["cmd_torque_nm"] if meta.get("mode") == "torque" else np.empty((len(t), 0))
+    q_rad, qd_rad, q_exp_rad, effort = np.radians(q), np.radians(qd), np.radians(q_exp), iq * per_amp
     following = log.following_error_deg()
     previous_state = ""
     if robot is not None and robot.urdf is not None:
         first = _ns(base_s + (float(t[0]) if len(t) else 0.0))
-        out.write("/robot_description", "std_msgs/msg/String", {"data": robot.urdf}, first)
+        out.write("/robot_description", "std_msgs/msg/String", CdrWriter().string(robot.urdf).data(), first)
     for k in range(len(t)):
         ns = _ns(base_s + float(t[k]))
-        stamp = _stamp(ns)
         out.write(
-            "/joint_states",
-            "sensor_msgs/msg/JointState",
-            _joint_state(ns, names, np.radians(q[k]), np.radians(qd[k]), iq[k] * per_amp),
-            ns,
+            "/joint_states", "sensor_msgs/msg/JointState", joint_state(ns, names, q_rad[k], qd_rad[k], effort[k]), ns
         )
         ahead = _ns(base_s + float(t[k]) + period_s)
-        effort = columns["cmd_torque_nm"][k] if torque_mode else ()
-        reference = _joint_state(
-            ahead, names, np.radians(columns["q_ref_deg"][k]), np.radians(columns["qd_ref_dps"][k])
-        )
-        reference["effort"] = _values(effort)
+        reference = joint_state(ahead, names, q_ref[k], qd_ref[k], torques[k])
         out.write("/joint_states/reference", "sensor_msgs/msg/JointState", reference, ns)
-        out.write(
-            "/joint_states/expected",
-            "sensor_msgs/msg/JointState",
-            _joint_state(ns, names, np.radians(columns["q_exp_deg"][k])),
-            ns,
-        )
+        out.write("/joint_states/expected", "sensor_msgs/msg/JointState", joint_state(ns, names, q_exp_rad[k]), ns)
         code = int(columns["state"][k])
         state = states[code] if 0 <= code < len(states) else ""
-        cycle: dict[str, Any] = {"stamp": stamp, "t_s": float(t[k]), "cycle": int(columns["cycle"][k]), "state": state}
-        for name in CYCLE_SCALARS:
-            cycle[name] = float(columns[name][k])
-        for name in CYCLE_ARRAYS:
-            cycle[name] = _values(columns[name][k])
-        cycle["following_error_deg"] = _values(following[k])
-        for name in CYCLE_FLAGS:
-            cycle[name] = [bool(v) for v in columns[name][k]]
-        out.write(CYCLE_TOPIC, "rmd_motion/msg/Cycle", cycle, ns)
+        out.write(CYCLE_TOPIC, "rmd_motion/msg/Cycle", cycle_message(ns, columns, k, state, following), ns)
         if state != previous_state and state:
-            status = _status(0, STATE_NAME, state, "", {"t_s": repr(float(t[k])), "from": previous_state})
-            diagnostics = {"header": {"stamp": stamp, "frame_id": ""}, "status": [status]}
-            out.write(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", diagnostics, ns)
+            said = {"t_s": repr(float(t[k])), "from": previous_state}
+            change = diagnostic_array(ns, 0, STATE_NAME, state, hardware_id="", values=said)
+            out.write(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", change, ns)
             previous_state = state
         if robot is not None:
-            out.write("/tf", "tf2_msgs/msg/TFMessage", _tf(robot, stamp, q[k]), ns)
+            out.write("/tf", "tf2_msgs/msg/TFMessage", tf_message(ns, robot.transforms(q[k])), ns)
     for f in range(len(columns["fault_t_s"])):
         detected = float(columns["fault_t_s"][f])
         ns = _ns(base_s + detected)
@@ -293,38 +307,15 @@ def write_mcap(
             "joint": str(columns["fault_joint"][f]),
             "action": str(columns["fault_action"][f]),
         }
-        status = _status(2, FAULT_NAME, str(columns["fault_text"][f]), values["joint"], values)
-        diagnostics = {"header": {"stamp": _stamp(ns), "frame_id": ""}, "status": [status]}
-        out.write(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", diagnostics, ns)
+        text = str(columns["fault_text"][f])
+        fault = diagnostic_array(ns, 2, FAULT_NAME, text, hardware_id=values["joint"], values=values)
+        out.write(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", fault, ns)
     for frame in frames:
         ns = _ns(frames_base_s + frame.time_s)
-        message = {
-            "stamp": _stamp(ns),
-            "received": frame.received,
-            "arbitration_id": -1 if frame.arbitration_id is None else frame.arbitration_id,
-            "data": frame.data,
-        }
-        out.write("/bus/frames", "rmd_motion/msg/BusFrame", message, ns)
+        ident = -1 if frame.arbitration_id is None else frame.arbitration_id
+        out.write("/bus/frames", "rmd_motion/msg/BusFrame", bus_frame(ns, frame.received, ident, frame.data), ns)
     out.writer.add_metadata(METADATA, {"meta": json.dumps(meta, allow_nan=False)})
     out.writer.finish()  # type: ignore[no-untyped-call]
-
-
-def _tf(robot: Robot, stamp: dict[str, int], q_deg: Any) -> dict[str, Any]:
-    transforms = []
-    for link in robot.transforms(q_deg):
-        x, y, z = link.translation_m
-        qx, qy, qz, qw = link.rotation_xyzw
-        transforms.append(
-            {
-                "header": {"stamp": stamp, "frame_id": link.parent},
-                "child_frame_id": link.child,
-                "transform": {
-                    "translation": {"x": x, "y": y, "z": z},
-                    "rotation": {"x": qx, "y": qy, "z": qz, "w": qw},
-                },
-            }
-        )
-    return {"transforms": transforms}
 
 
 def is_mcap(path: Any) -> bool:
