@@ -43,6 +43,7 @@ from motion.protocol.v3.motion_frame import V42_RANGES
 from motion.safety import ArmState
 from motion.transport.base import Request
 from motion.transport.can_transport import CanTransport
+from motion.transport.identity import Identity
 
 ROOT = Path(__file__).resolve().parent.parent
 V3 = ProtocolFamily.V3
@@ -405,6 +406,29 @@ def test_an_unacknowledged_rom_write_is_not_recorded_and_a_missed_brake_release_
     assert not setup.brakes_locked
     setup.restore(0.5)
     assert sorted(motor for _, motor, code in sent if code == 0x78) == [1, 2] and setup.brakes_locked
+
+
+def test_a_drive_of_another_model_at_an_id_starts_its_record_anew(caplog: pytest.LogCaptureFixture) -> None:
+    # issue 31: the record is kept per bus and id; a drive swapped for another model at that id must not inherit the
+    # record (a restore would write the replaced drive's settings back to it; its ROM writes would be miscounted)
+    setup, _ = _setup_on([])
+    setup.bus.identities.update({i: Identity("X8 1:9", "X8 1:9", "X8-1:9", 20240528) for i in (1, 2)})
+    setup.apply(1.0)
+    record = setup.record
+    assert record.rom_writes(setup._key(1)) == 3 and record.get(setup._key(1), "model") == "X8-1:9"
+    again, _ = _setup_on([])
+    again.record = record
+    again.bus.identities.update({1: Identity("X6 1:8", "X6 1:8", "X6-1:8", 20240528)})
+    again.bus.identities.update({2: Identity("X8 1:9", "X8 1:9", "X8-1:9", 20240528)})
+    with caplog.at_level(logging.WARNING, logger="motion.control.drivesetup"):
+        again.apply(1.0)
+    assert "motor 1 on" in caplog.text and "is a X6-1:8, its record was made with a X8-1:9" in caplog.text
+    assert "motor 2 on" not in caplog.text
+    assert record.get(again._key(1), "model") == "X6-1:8" and record.get(again._key(2), "model") == "X8-1:9"
+    # the new drive: its own three writes (its communication-loss time too: the record of the replaced drive's is
+    # gone); the same drive: both sessions' writes, the second without 0xB3 (its record shows the time still set)
+    assert record.rom_writes(again._key(1)) == 3 and record.get(again._key(1), "link_timeout")["at_s"] > 0
+    assert record.rom_writes(again._key(2)) == 3 + 2
 
 
 def test_programs_that_share_the_drive_record_keep_each_others_changes(tmp_path: Path) -> None:

@@ -85,6 +85,12 @@ class DriveRecord:
         _count(self._drives, key, writes)
         self._counted[key] = self._counted.get(key, 0) + writes
 
+    def forget(self, key: str) -> None:
+        """Remove everything recorded of drive ``key`` (its settings and its ROM-write count)."""
+        for name in list(self._drives.get(key, {})):
+            self.put(key, name, None)
+        self._counted.pop(key, None)
+
     def rom_writes(self, key: str) -> int:
         """The ROM writes rmd-motion has made to drive ``key`` (as recorded)."""
         return int(self._drives.get(key, {}).get("rom_writes", 0))

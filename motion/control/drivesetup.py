@@ -59,6 +59,7 @@ def link_timeout_ms(period_s: float, configured_s: float | None) -> int:
 _Write: TypeAlias = tuple[Request, list[tuple[str, str, Any]]]
 #: The record's names of the settings (:mod:`motion.control.drive_record`).
 LINK_TIMEOUT = "link_timeout"
+MODEL = "model"
 _ORIGINAL_ACCELERATION = "acceleration_before_{}"
 
 
@@ -112,6 +113,7 @@ class DriveSetup:
         Raises:
             TransportError: a drive did not answer a read or a write.
         """
+        self.recognise_drives()
         writes: list[_Write] = []
         if self.family.planning_accelerations:
             writes += self._acceleration_writes(deadline_s)
@@ -125,6 +127,31 @@ class DriveSetup:
 
     def _key(self, motor_id: int) -> str:
         return DriveRecord.key(self.bus.describe(), motor_id)
+
+    def recognise_drives(self) -> None:
+        """Keep each drive's model (0xB5, read at connect: ``bus.identities``) in its record; a drive whose model is
+        not the one its record was made with is another drive at that id: its record starts anew (logged), so that
+        nothing of the drive it replaced is written back to it (``restore``) or taken as set on it."""
+        for motor_id in self.ids:
+            identity = self.bus.identities.get(motor_id)
+            model = identity.model if identity is not None else None
+            if model is None:
+                continue  # (the drive did not tell: its record stands as it is)
+            key = self._key(motor_id)
+            recorded = self.record.get(key, MODEL)
+            if recorded == model:
+                continue
+            if recorded is not None:
+                logger.warning(
+                    "motor %d on %s is a %s, its record was made with a %s: the record starts anew for it",
+                    motor_id,
+                    self.bus.describe(),
+                    model,
+                    recorded,
+                )
+                self.record.forget(key)
+            self.record.put(key, MODEL, model)
+        self.record.save()
 
     def _acceleration_writes(self, deadline_s: float) -> list[_Write]:
         """0x43 of 0 for each planning acceleration that is not 0 (what it held first is recorded once written)."""
@@ -203,6 +230,7 @@ class DriveSetup:
         Raises:
             TransportError: a drive did not answer.
         """
+        self.recognise_drives()
         writes: list[_Write] = []
         done = []
         for motor_id in self.ids:
