@@ -460,10 +460,18 @@ def test_check_holding_finds_a_torque_constant_and_swapped_motor_ids_before_anyt
     assert "--no-holding-check skips this check" in result.stderr
     after = json.loads(cli("status", "--config", fit, *can_arm.bus_args, "--json").stdout)["joints"]
     assert [j["position_deg"] for j in after] == pytest.approx([j["position_deg"] for j in before], abs=0.05)
+    program = tmp_path / "program.yaml"
+    program.write_text("- move: {shoulder: 5}\n")
+    result = cli("run", "--config", doubled, *can_arm.bus_args, program, "--json")
+    skip_if_rate_refused(result)
+    assert result.returncode == 2, result.stderr
+    printed = json.loads(result.stdout)  # (--json: the verdicts, then the refusal)
+    assert printed["command"] == "run" and printed["moved"] is False
+    assert [(v["name"], v["matches"]) for v in printed["holding"]] == [("shoulder", False), ("elbow", True)]
     result = cli("move", "--config", doubled, *can_arm.bus_args, "shoulder=5", "--no-holding-check", "--json")
     skip_if_rate_refused(result)
     assert result.returncode == 0, result.stderr
-    assert json.loads(result.stdout)["holding"] is None
+    assert json.loads(result.stdout)["holding"] == "skipped: --no-holding-check"
 
 
 def test_a_drive_that_does_not_answer_is_a_communication_error(tmp_path: Path) -> None:

@@ -99,11 +99,18 @@ def test_rosbags_reads_every_topic_and_the_values_the_run_measured(recorded: tup
     statuses = [s for array in topics["/diagnostics"] for s in array.status]
     faults = [s for s in statuses if s.name == "rmd_motion/fault"]
     assert [dict((v.key, v.value) for v in s.values)["kind"] for s in faults] == list(log["fault_kind"]) == ["stop"]
-    assert faults[0].level == 2 and faults[0].message == log["fault_text"][0]
+    assert faults[0].level == 1 and faults[0].message == log["fault_text"][0]  # a stop asked for: WARN, not ERROR
+    detected = log.meta["t0_s"] + log["fault_t_s"][0]
+    (stamped,) = [a for a in topics["/diagnostics"] if a.status[0].name == "rmd_motion/fault"]
+    assert _seconds(stamped.header.stamp) == pytest.approx(detected, abs=1e-9)
     changes = [s.message for s in statuses if s.name == "rmd_motion/state"]
     assert changes[:3] == ["ready", "moving", "ready"] and "halted" in changes
     bus = topics["/bus/frames"]
     assert len(bus) == frames and {f.received for f in bus} == {True, False}
+    # the frames on the cycles' clock: the first cycle's set-points went out within its period
+    first_cycle = _seconds(measured[0].header.stamp)
+    sent = [_seconds(f.stamp) for f in bus if not f.received and bytes(f.data)[0] == 0xA4]
+    assert 0.0 <= min(s for s in sent if s >= first_cycle) - first_cycle < log.period_s
     assert any(f.arbitration_id == 0x141 and bytes(f.data)[0] == 0xA4 and not f.received for f in bus)
     (description,) = topics["/robot_description"]
     assert description.data == (CONFIGS / "arm6.urdf").read_text()
@@ -146,9 +153,17 @@ def test_load_log_rebuilds_the_run_from_the_recording(recorded: tuple[Path, Tele
     assert again.meta == dict(log.meta)
 
 
-def test_export_writes_the_columns_for_numpy(recorded: tuple[Path, TelemetryLog, int], tmp_path: Path) -> None:
+def test_export_writes_the_columns_for_numpy(
+    recorded: tuple[Path, TelemetryLog, int], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     path, log, _ = recorded
     out = tmp_path / "run.npz"
+    before = path.read_bytes()
+    assert main(["export", str(path), str(path)]) == 2  # (never over the recording)
+    assert main(["export", str(path), str(tmp_path / "run.txt")]) == 2
+    assert "name it OUT.npz, found" in capsys.readouterr().err and path.read_bytes() == before
+    with pytest.raises(ValueError, match=r"run\.npz: save writes MCAP"):
+        log.save(out)
     assert main(["export", str(path), str(out)]) == 0
     with np.load(out) as archive:
         assert np.array_equal(archive["q_deg"], log["q_deg"]) and str(archive["fault_kind"][0]) == "stop"
@@ -214,13 +229,13 @@ def _their_encoding(kind: str, message: dict[str, Any]) -> bytes:
 def test_the_cdr_shim_encodes_as_the_reference_encoder_does() -> None:
     stamp = {"sec": 1_700_000_000, "nanosec": 123_456_789}
     ns = 1_700_000_000_123_456_789
-    names = ["base_yaw", "shoulder", "e"]
+    names = ["base_yaw", "schulter_ä", ""]
     ours = joint_state(ns, names, [0.1, -2.5, 3.0], [1.0, 2.0, 3.0], [])
     theirs = {"header": {"stamp": stamp, "frame_id": ""}, "name": names, "position": [0.1, -2.5, 3.0]}
     assert ours == _their_encoding("sensor_msgs/msg/JointState", theirs | {"velocity": [1.0, 2.0, 3.0], "effort": []})
     values = {"kind": "stop", "joint": ""}
-    ours = diagnostic_array(ns, 2, "rmd_motion/fault", "stop: E-stop", hardware_id="elbow", values=values)
-    status = {"level": 2, "name": "rmd_motion/fault", "message": "stop: E-stop", "hardware_id": "elbow"}
+    ours = diagnostic_array(ns, 2, "rmd_motion/fault", "stop: E-stop 5 °C", hardware_id="elbow", values=values)
+    status = {"level": 2, "name": "rmd_motion/fault", "message": "stop: E-stop 5 °C", "hardware_id": "elbow"}
     status["values"] = [{"key": k, "value": v} for k, v in values.items()]
     diagnostics = {"header": {"stamp": stamp, "frame_id": ""}, "status": [status]}
     assert ours == _their_encoding("diagnostic_msgs/msg/DiagnosticArray", diagnostics)

@@ -89,12 +89,14 @@ def check_holding(arm: Arm) -> list[HoldingVerdict]:
     it against g(q) (the module docstring). Nothing moves: the arm holds where it is.
 
     Raises:
-        MotionError: the arm is not connected, or not ready (faulted, moving).
-        MotionFault: a fault halted the arm meanwhile.
+        MotionError: the arm is not connected, or not ready (moving).
+        MotionFault: the arm is halted by a fault (that fault), or a fault halted it meanwhile.
     """
     from kinematics import build_arm  # noqa: PLC0415 - Pinocchio only where a check needs it
     from kinematics.dynamics import gravity_torque  # noqa: PLC0415
 
+    if arm.fault is not None:
+        raise arm.fault
     state = arm.status().state
     if state != "ready":
         raise MotionError(f"the holding check needs the arm at rest and ready; it is {state}")

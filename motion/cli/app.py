@@ -177,12 +177,17 @@ def export(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """``export RUN.mcap OUT.npz``: the recording's columns and metadata for numpy (:mod:`motion.telemetry`)."""
     from motion.telemetry import load_log  # noqa: PLC0415 - as plot
 
+    output = Path(args.output)
+    if output.suffix != ".npz":
+        raise UsageError(f"export writes a numpy archive: name it OUT.npz, found {args.output}")
+    if output.exists() and output.resolve() == Path(args.log).resolve():
+        raise UsageError(f"{args.output} is the recording itself: name another file")
     try:
         log = load_log(args.log)
     except (OSError, ValueError) as exc:
         raise UsageError(f"cannot read {args.log}: {exc}") from exc
     try:
-        log.export_npz(args.output)
+        log.export_npz(output)
     except OSError as exc:
         raise UsageError(f"cannot write {args.output}: {exc}") from exc
     print(f"wrote {args.output}: {log.cycles} cycles of {', '.join(log.joint_names)}")

@@ -300,7 +300,7 @@ def move(args: argparse.Namespace, interrupts: Interrupts) -> int:
         if args.json:
             arrival = None if handle.arrival is None else dataclasses.asdict(handle.arrival)
             extra = {"targets": targets, "speed_scale": args.speed_scale, "arrival": arrival}
-            extra["holding"] = None if verdicts is None else [_verdict_dict(v) for v in verdicts]
+            extra["holding"] = verdicts
             print_json(_summary("move", arm, wall, extra))
         else:
             _print_positions(arm, wall)
@@ -365,32 +365,33 @@ def _verdict_dict(verdict: HoldingVerdict) -> dict[str, Any]:
     return dataclasses.asdict(verdict) | {"matches": verdict.matches}
 
 
-def _holding_verdicts(arm: Arm) -> list[HoldingVerdict]:
-    """The holding check (:mod:`motion.api.commissioning`).
+def _holding_first(arm: Arm, args: argparse.Namespace) -> list[dict[str, Any]] | str:
+    """``move`` / ``run``: the holding check before the first motion (:mod:`motion.api.commissioning`), on real
+    buses (emulated drives are built from the configuration itself: they always match it) unless
+    ``--no-holding-check``. Returns the verdicts for ``--json``, or why the check was skipped.
 
     Raises:
         UsageError: a joint's holding torque differs from the model's beyond its bound (each such joint named with
-            what may be wrong): nothing has moved.
+            what may be wrong; with ``--json`` the verdicts are printed first): nothing has moved.
+        MotionFault: the arm is halted by a fault, or one halted it during the check.
     """
+    if args.no_holding_check:
+        return "skipped: --no-holding-check"
+    if args.emulate:
+        return "skipped: --emulate (the emulated drives are built from the configuration)"
     from motion.api.commissioning import check_holding  # noqa: PLC0415 - Pinocchio only where a check needs it
 
     verdicts = check_holding(arm)
     wrong = [v for v in verdicts if not v.matches]
     if wrong:
+        if args.json:
+            print_json({"command": args.command, "holding": [_verdict_dict(v) for v in verdicts], "moved": False})
         said = "; ".join(v.text() for v in wrong)
         raise UsageError(
             f"holding torque does not match the model: {said}. Check the configuration before moving "
             "(`rmd-motion check --holding` shows every joint; --no-holding-check skips this check)"
         )
-    return verdicts
-
-
-def _holding_first(arm: Arm, args: argparse.Namespace) -> list[HoldingVerdict] | None:
-    """``move`` / ``run``: the holding check before the first motion, on real buses (emulated drives are built from
-    the configuration itself: they always match it) unless ``--no-holding-check``."""
-    if args.no_holding_check or args.emulate:
-        return None
-    return _holding_verdicts(arm)
+    return [_verdict_dict(v) for v in verdicts]
 
 
 def holding(args: argparse.Namespace, interrupts: Interrupts) -> int:
@@ -477,10 +478,8 @@ def run(args: argparse.Namespace, interrupts: Interrupts) -> int:
         run_program(arm, program, args.speed_scale)
         wall = now_s() - start
         if args.json:
-            held = None if verdicts is None else [_verdict_dict(v) for v in verdicts]
-            print_json(
-                _summary("run", arm, wall, {"program": program.source, "steps": len(program.steps), "holding": held})
-            )
+            extra = {"program": program.source, "steps": len(program.steps), "holding": verdicts}
+            print_json(_summary("run", arm, wall, extra))
         else:
             _print_positions(arm, wall)
         return EXIT_OK

@@ -1,9 +1,10 @@
 """Run telemetry: a per-cycle log from the controller's cycle hooks and a trace of every frame on the bus.
 
-Recording costs a control cycle a few microseconds and no I/O: rows go into preallocated numpy chunks (a full chunk
-is followed by a new one; nothing recorded is ever copied during the run), frames into preallocated arrays and one
-byte buffer per chunk (a new chunk, every CHUNK_ROWS cycles, costs that cycle a few hundred microseconds). Nothing
-is formatted, logged or written until :meth:`TelemetrySession.close`. Memory grows by about ``(5 + 10 J) * 8`` bytes
+Recording costs a control cycle some 10-40 µs and no I/O (``bench/recording_cost.py``): rows go into preallocated
+numpy chunks (a full chunk is followed by a new one; nothing recorded is ever copied during the run), frames into
+preallocated arrays and one byte buffer per chunk (a new chunk, every CHUNK_ROWS cycles, costs that cycle a few
+hundred microseconds). Nothing is encoded, logged or written until :meth:`TelemetrySession.close` (about 0.5 ms per
+recorded cycle, after the loop has ended). Memory grows by about ``(5 + 10 J) * 8`` bytes
 per cycle for the log (arm6 at 250 Hz: 135 kB/s) and 30 bytes per CAN frame for the trace (arm6: 13 frames per
 cycle, 100 kB/s), so record runs of minutes, not days.
 
@@ -267,6 +268,8 @@ class TelemetryLog:
         from motion.telemetry.mcap import write_mcap  # noqa: PLC0415 - (mcap's writer only where one is written)
 
         if isinstance(file, (str, os.PathLike)):
+            if Path(file).suffix != ".mcap":
+                raise ValueError(f"{os.fspath(file)}: save writes MCAP: name it FILE.mcap (export_npz writes .npz)")
             with open(file, "wb") as stream:
                 write_mcap(self, stream, robot=robot, frames=frames, frames_base_s=frames_base_s)
         else:
@@ -298,15 +301,15 @@ def load_log(path: str | os.PathLike[str]) -> TelemetryLog:
     if is_mcap(path):
         try:
             with open(path, "rb") as stream:
-                arrays, meta = read_mcap(stream)
+                arrays, meta = read_mcap(stream, _check_meta)
         except ValueError as exc:
             raise ValueError(f"{name}: {exc}") from exc
     else:
         arrays, meta = _read_npz(name)
-    if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
-        raise ValueError(f"{name}: not a telemetry log (schema {meta.get('schema')!r})")
-    if int(meta.get("version", 0)) > VERSION:
-        raise ValueError(f"{name}: telemetry log version {meta['version']} is newer than {VERSION}")
+        try:
+            _check_meta(meta)
+        except ValueError as exc:
+            raise ValueError(f"{name}: {exc}") from exc
     version = int(meta.get("version", 0))
     if version < VERSION and "q_deg" in arrays:
         older = (*(_V3_COLUMNS if version < 3 else ()), *(_V4_COLUMNS if version < 4 else ()))
@@ -318,6 +321,13 @@ def load_log(path: str | os.PathLike[str]) -> TelemetryLog:
     if missing:
         raise ValueError(f"{name}: telemetry log without column(s) {', '.join(missing)}")
     return TelemetryLog(arrays, meta)
+
+
+def _check_meta(meta: Any) -> None:
+    if not isinstance(meta, dict) or meta.get("schema") != SCHEMA:
+        raise ValueError(f"not a telemetry log (schema {meta.get('schema') if isinstance(meta, dict) else None!r})")
+    if int(meta.get("version", 0)) > VERSION:
+        raise ValueError(f"telemetry log version {meta['version']} is newer than {VERSION}")
 
 
 def _read_npz(name: str) -> tuple[dict[str, NDArray[Any]], Any]:

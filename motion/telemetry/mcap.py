@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from typing import IO, TYPE_CHECKING, Any, Final, Protocol
 
 import numpy as np
@@ -59,6 +59,10 @@ DIAGNOSTICS_TOPIC: Final = "/diagnostics"
 #: The diagnostic status names of faults and of state changes.
 FAULT_NAME: Final = "rmd_motion/fault"
 STATE_NAME: Final = "rmd_motion/state"
+#: ``diagnostic_msgs/DiagnosticStatus`` levels: a fault is an ERROR, but for the arm's close at the end of a run (OK)
+#: and a stop asked for (WARN).
+OK, WARN, ERROR = 0, 1, 2
+_FAULT_LEVELS: Final = {"close": OK, "stop": WARN, "estop": WARN}
 #: MCAP's magic bytes (the first eight of every file).
 MAGIC: Final = b"\x89MCAP0\r\n"
 
@@ -170,8 +174,17 @@ class Robot(Protocol):
     def transforms(self, q_deg: Any) -> Sequence[LinkPose]: ...
 
 
-def _ns(t_s: float) -> int:
-    return max(0, round(t_s * 1e9))
+def _ns(base_s: float, t_s: float) -> int:
+    """``base_s + t_s`` in whole nanoseconds (each rounded on its own: a Unix time's float sum would lose the last
+    few hundred).
+
+    Raises:
+        ValueError: a time before 1970 (MCAP's log times are unsigned).
+    """
+    ns = round(base_s * 1e9) + round(t_s * 1e9)
+    if ns < 0:
+        raise ValueError(f"a message at {base_s + t_s:.9f} s: before the epoch of MCAP's log time (0)")
+    return ns
 
 
 def _time(writer: CdrWriter, ns: int) -> CdrWriter:
@@ -251,6 +264,27 @@ def cycle_message(ns: int, columns: Any, k: int, state: str, following: Any) -> 
     return out.data()
 
 
+def _faults(columns: Any, base_s: float) -> list[tuple[int, bytes]]:
+    """Each fault as a ``DiagnosticArray`` at its detection time (ns), in time order."""
+    faults = []
+    for f in range(len(columns["fault_t_s"])):
+        detected = float(columns["fault_t_s"][f])
+        ns = _ns(base_s, detected)
+        values = {
+            "index": str(f),
+            "t_s": repr(detected),
+            "halt_s": repr(float(columns["fault_halt_s"][f])),
+            "kind": str(columns["fault_kind"][f]),
+            "joint": str(columns["fault_joint"][f]),
+            "action": str(columns["fault_action"][f]),
+        }
+        level = _FAULT_LEVELS.get(values["kind"], ERROR)
+        text = str(columns["fault_text"][f])
+        faults.append((ns, diagnostic_array(ns, level, FAULT_NAME, text, hardware_id=values["joint"], values=values)))
+    faults.sort(key=lambda fault: fault[0])
+    return faults
+
+
 def write_mcap(
     log: TelemetryLog,
     stream: IO[bytes],
@@ -275,14 +309,18 @@ def write_mcap(
     following = log.following_error_deg()
     previous_state = ""
     if robot is not None and robot.urdf is not None:
-        first = _ns(base_s + (float(t[0]) if len(t) else 0.0))
+        first = _ns(base_s, float(t[0]) if len(t) else 0.0)
         out.write("/robot_description", "std_msgs/msg/String", CdrWriter().string(robot.urdf).data(), first)
+    faults = _faults(columns, base_s)
     for k in range(len(t)):
-        ns = _ns(base_s + float(t[k]))
+        ns = _ns(base_s, float(t[k]))
+        while faults and faults[0][0] <= ns:  # (each fault in time order among the cycles: at its detection)
+            detected, fault = faults.pop(0)
+            out.write(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", fault, detected)
         out.write(
             "/joint_states", "sensor_msgs/msg/JointState", joint_state(ns, names, q_rad[k], qd_rad[k], effort[k]), ns
         )
-        ahead = _ns(base_s + float(t[k]) + period_s)
+        ahead = _ns(base_s, float(t[k]) + period_s)
         reference = joint_state(ahead, names, q_ref[k], qd_ref[k], torques[k])
         out.write("/joint_states/reference", "sensor_msgs/msg/JointState", reference, ns)
         out.write("/joint_states/expected", "sensor_msgs/msg/JointState", joint_state(ns, names, q_exp_rad[k]), ns)
@@ -296,22 +334,10 @@ def write_mcap(
             previous_state = state
         if robot is not None:
             out.write("/tf", "tf2_msgs/msg/TFMessage", tf_message(ns, robot.transforms(q[k])), ns)
-    for f in range(len(columns["fault_t_s"])):
-        detected = float(columns["fault_t_s"][f])
-        ns = _ns(base_s + detected)
-        values = {
-            "index": str(f),
-            "t_s": repr(detected),
-            "halt_s": repr(float(columns["fault_halt_s"][f])),
-            "kind": str(columns["fault_kind"][f]),
-            "joint": str(columns["fault_joint"][f]),
-            "action": str(columns["fault_action"][f]),
-        }
-        text = str(columns["fault_text"][f])
-        fault = diagnostic_array(ns, 2, FAULT_NAME, text, hardware_id=values["joint"], values=values)
+    for ns, fault in faults:  # (after the last cycle)
         out.write(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", fault, ns)
     for frame in frames:
-        ns = _ns(frames_base_s + frame.time_s)
+        ns = _ns(frames_base_s, frame.time_s)
         ident = -1 if frame.arbitration_id is None else frame.arbitration_id
         out.write("/bus/frames", "rmd_motion/msg/BusFrame", bus_frame(ns, frame.received, ident, frame.data), ns)
     out.writer.add_metadata(METADATA, {"meta": json.dumps(meta, allow_nan=False)})
@@ -324,11 +350,12 @@ def is_mcap(path: Any) -> bool:
         return stream.read(len(MAGIC)) == MAGIC
 
 
-def read_mcap(stream: IO[bytes]) -> tuple[dict[str, Any], dict[str, Any]]:
-    """The columns and metadata of a recording written by :func:`write_mcap` (the caller checks them).
+def read_mcap(stream: IO[bytes], check: Callable[[dict[str, Any]], None]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """The columns and metadata of a recording written by :func:`write_mcap`; ``check`` is given the metadata first
+    (it raises ValueError for one of another schema or a newer version).
 
     Raises:
-        ValueError: not such a recording (no ``rmd_motion`` metadata, or unreadable).
+        ValueError: not such a recording (no ``rmd_motion`` metadata, refused by ``check``, or unreadable).
     """
     try:
         reader = make_reader(stream, decoder_factories=[DecoderFactory()])
@@ -338,6 +365,7 @@ def read_mcap(stream: IO[bytes]) -> tuple[dict[str, Any], dict[str, Any]]:
                 meta = json.loads(record.metadata["meta"])
         if meta is None:
             raise ValueError(f"an MCAP file without the {METADATA!r} metadata record (not written by rmd-motion)")
+        check(meta)
         states = list(meta.get("states", ()))
         rows: dict[str, list[Any]] = {name: [] for name in ("t_s", "cycle", "state", *CYCLE_SCALARS)}
         rows |= {name: [] for name in (*CYCLE_ARRAYS, *CYCLE_FLAGS)}
