@@ -227,12 +227,7 @@ def _motion_options(parser: argparse.ArgumentParser, speed_scale: str) -> None:
         "--log", metavar="FILE.mcap", help="record every control cycle as MCAP (Foxglove, rosbags; `rmd-motion plot`)"
     )
     parser.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
-    parser.add_argument(
-        "--no-holding-check",
-        action="store_true",
-        help="skip the holding check before the first motion (each joint's holding torque against the model's gravity "
-        "torque, as `check --holding`; run on real buses, exit 2 on a mismatch before anything moves)",
-    )
+    moves.add_holding_flag(parser)
     _json(parser)
 
 

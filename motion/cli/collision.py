@@ -20,7 +20,7 @@ import numpy as np
 
 from motion.api import Arm
 from motion.cli.common import EXIT_OK, Interrupts, Session, add_emulate_flag, print_json, print_table
-from motion.cli.moves import run_program, with_arm
+from motion.cli.moves import add_holding_flag, holding_first, run_program, with_arm
 from motion.cli.program import load_program
 from motion.config import ArmConfig, write_joint_values
 from motion.config.schema import ControlMode
@@ -85,6 +85,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--log", metavar="FILE.mcap", help="record every control cycle as MCAP (Foxglove, rosbags; `rmd-motion plot`)"
     )
     parser.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
+    add_holding_flag(parser)
     parser.add_argument("--json", action="store_true", help="print one JSON document on stdout (for scripts)")
 
 
@@ -107,6 +108,7 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
                 np.fmax(peak, np.abs(watchdog.collision_signal_nm), out=peak)
                 np.fmax(bound, watchdog.collision_bound_nm, out=bound)
 
+        holding_first(arm, args)
         controller.cycle_hooks.append(record)
         run_program(arm, program, 1.0)
         arm.sleep(2 * controller.period_s)

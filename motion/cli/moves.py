@@ -294,7 +294,7 @@ def move(args: argparse.Namespace, interrupts: Interrupts) -> int:
     targets = parse_targets(session.config, args.targets)
 
     def body(arm: Arm) -> int:
-        verdicts = _holding_first(arm, args)
+        verdicts = holding_first(arm, args)
         handle = arm.move_to(targets, speed_scale=args.speed_scale, wait=False)
         wall = wait_with_progress(arm, handle, "move")
         if args.json:
@@ -365,7 +365,17 @@ def _verdict_dict(verdict: HoldingVerdict) -> dict[str, Any]:
     return dataclasses.asdict(verdict) | {"matches": verdict.matches}
 
 
-def _holding_first(arm: Arm, args: argparse.Namespace) -> list[dict[str, Any]] | str:
+def add_holding_flag(parser: argparse.ArgumentParser) -> None:
+    """``--no-holding-check`` of the commands that move the arm through a program or to targets."""
+    parser.add_argument(
+        "--no-holding-check",
+        action="store_true",
+        help="skip the holding check before the first motion (each joint's holding torque against the model's gravity "
+        "torque, as `check --holding`; run on real buses, exit 2 on a mismatch before anything moves)",
+    )
+
+
+def holding_first(arm: Arm, args: argparse.Namespace) -> list[dict[str, Any]] | str:
     """``move`` / ``run``: the holding check before the first motion (:mod:`motion.api.commissioning`), on real
     buses (emulated drives are built from the configuration itself: they always match it) unless
     ``--no-holding-check``. Returns the verdicts for ``--json``, or why the check was skipped.
@@ -472,7 +482,7 @@ def run(args: argparse.Namespace, interrupts: Interrupts) -> int:
     program = load_program(args.program, session.config)
 
     def body(arm: Arm) -> int:
-        verdicts = _holding_first(arm, args)
+        verdicts = holding_first(arm, args)
         now_s = _arm_clock(arm)
         start = now_s()
         run_program(arm, program, args.speed_scale)
