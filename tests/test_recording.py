@@ -164,6 +164,11 @@ def test_export_writes_the_columns_for_numpy(
     assert "name it OUT.npz, found" in capsys.readouterr().err and path.read_bytes() == before
     with pytest.raises(ValueError, match=r"run\.npz: save writes MCAP"):
         log.save(out)
+    trace = path.with_suffix(".log")  # (the candump trace beside it: text)
+    assert main(["export", str(trace), str(out)]) == 2
+    assert "not a telemetry log (neither an MCAP recording nor an .npz exported from one)" in capsys.readouterr().err
+    assert main(["plot", str(path), "-o", str(tmp_path / "run.txt")]) == 2
+    assert "plot draws a PNG: name it OUT.png" in capsys.readouterr().err
     assert main(["export", str(path), str(out)]) == 0
     with np.load(out) as archive:
         assert np.array_equal(archive["q_deg"], log["q_deg"]) and str(archive["fault_kind"][0]) == "stop"

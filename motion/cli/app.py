@@ -165,6 +165,8 @@ def plot(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """``plot LOG -o OUT.png`` (:mod:`motion.plot`)."""
     from motion.plot import plot_log  # noqa: PLC0415 - matplotlib loads only for plotting
 
+    if Path(args.output).suffix.lower() != ".png":
+        raise UsageError(f"plot draws a PNG: name it OUT.png, found {args.output}")
     try:
         plot_log(args.log, args.output)
     except (OSError, ValueError) as exc:

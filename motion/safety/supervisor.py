@@ -273,9 +273,11 @@ class Supervisor:
         self._estop_detail = detail
         self._estop_request = reason
 
-    def estop(self, reason: FaultKind = FaultKind.ESTOP, timeout_s: float = 1.0) -> bool:
+    def estop(
+        self, reason: FaultKind = FaultKind.ESTOP, timeout_s: float = 1.0, detail: str = "E-stop requested"
+    ) -> bool:
         """Halt every axis now (in the next cycle); returns True once the halt went out."""
-        self.request_estop(reason)
+        self.request_estop(reason, detail)
         machine = self.machine
         return self.controller.wait_for(lambda: machine.state.faulted, timeout_s)
 
@@ -313,7 +315,7 @@ class Supervisor:
         if self.machine.state is ArmState.CLOSED:
             return
         if self.controller.loop.running and not self.machine.state.faulted:
-            self.estop(FaultKind.CLOSE, timeout_s)
+            self.estop(FaultKind.CLOSE, timeout_s, "the arm closed: every axis halted at the run's end")
         self.controller.shutdown(timeout_s)
         self._end_session()  # (if the bus has closed, its close hook did it)
         self._finalizer()

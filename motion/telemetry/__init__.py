@@ -333,8 +333,10 @@ def _check_meta(meta: Any) -> None:
 def _read_npz(name: str) -> tuple[dict[str, NDArray[Any]], Any]:
     try:
         archive = np.load(name, allow_pickle=False)
-    except (ValueError, EOFError) as exc:  # numpy: neither .npz nor .npy, or truncated
-        raise ValueError(f"{name}: not a telemetry log ({exc})") from exc
+    except (ValueError, EOFError):  # numpy: neither .npz nor .npy (it then suggests unpickling), or truncated
+        raise ValueError(
+            f"{name}: not a telemetry log (neither an MCAP recording nor an .npz exported from one)"
+        ) from None
     if not isinstance(archive, np.lib.npyio.NpzFile):
         raise ValueError(f"{name}: not a telemetry log (a single array)")
     with archive:

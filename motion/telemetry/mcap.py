@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import json
 import math
+import struct
 from collections.abc import Callable, Iterable, Sequence
 from typing import IO, TYPE_CHECKING, Any, Final, Protocol
 
@@ -47,7 +48,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2.decoder import DecoderFactory
 
 from motion import __version__
-from motion.telemetry.cdr import CdrWriter
+from motion.telemetry.cdr import HEADER, CdrWriter
 
 if TYPE_CHECKING:
     from motion.telemetry import TelemetryLog, TracedFrame
@@ -63,6 +64,7 @@ STATE_NAME: Final = "rmd_motion/state"
 #: and a stop asked for (WARN).
 OK, WARN, ERROR = 0, 1, 2
 _FAULT_LEVELS: Final = {"close": OK, "stop": WARN, "estop": WARN}
+_UINT32: Final = struct.Struct("<I")
 #: MCAP's magic bytes (the first eight of every file).
 MAGIC: Final = b"\x89MCAP0\r\n"
 
@@ -117,10 +119,10 @@ _CYCLE = "\n".join(
         "float64 t_s",
         "int64 cycle",
         *(f"float64 {name}" for name in CYCLE_SCALARS),
-        "string state",
         *(f"float64[] {name}" for name in CYCLE_ARRAYS),
         "float64[] following_error_deg",
         *(f"bool[] {name}" for name in CYCLE_FLAGS),
+        "string state",  # (last: what precedes it has one layout for a given number of joints)
     ]
 )
 SCHEMAS: Final = {
@@ -255,13 +257,12 @@ def cycle_message(ns: int, columns: Any, k: int, state: str, following: Any) -> 
     out = _time(CdrWriter(), ns).float64(float(columns["t_s"][k])).int64(int(columns["cycle"][k]))
     for name in CYCLE_SCALARS:
         out.float64(float(columns[name][k]))
-    out.string(state)
     for name in CYCLE_ARRAYS:
         out.float64s(columns[name][k])
     out.float64s(following[k])
     for name in CYCLE_FLAGS:
         out.bools(columns[name][k])
-    return out.data()
+    return out.string(state).data()
 
 
 def _faults(columns: Any, base_s: float) -> list[tuple[int, bytes]]:
@@ -350,6 +351,66 @@ def is_mcap(path: Any) -> bool:
         return stream.read(len(MAGIC)) == MAGIC
 
 
+def cycle_layout(joints: int) -> np.dtype[Any]:
+    """The layout of an ``rmd_motion/msg/Cycle`` of ``joints`` joints up to its ``state`` (after the encapsulation
+    header): CDR's alignment, as :class:`~motion.telemetry.cdr.CdrWriter` writes it; ``n_NAME`` the sequences'
+    lengths."""
+    names: list[str] = []
+    formats: list[Any] = []
+    offsets: list[int] = []
+    end = 0
+
+    def field(name: str, kind: Any, size: int, align: int) -> None:
+        nonlocal end
+        end += -end % align
+        names.append(name)
+        formats.append(kind)
+        offsets.append(end)
+        end += size
+
+    field("sec", "<i4", 4, 4)
+    field("nanosec", "<u4", 4, 4)
+    field("t_s", "<f8", 8, 8)
+    field("cycle", "<i8", 8, 8)
+    for name in CYCLE_SCALARS:
+        field(name, "<f8", 8, 8)
+    for name in (*CYCLE_ARRAYS, "following_error_deg"):
+        field(f"n_{name}", "<u4", 4, 4)
+        field(name, ("<f8", (joints,)), 8 * joints, 8)
+    for name in CYCLE_FLAGS:
+        field(f"n_{name}", "<u4", 4, 4)
+        field(name, ("u1", (joints,)), joints, 1)
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": end})
+
+
+def _cycles(raw: list[bytes], joints: int, states: list[str]) -> dict[str, Any]:
+    """The log's cycle columns from the ``Cycle`` messages' bytes (one fixed layout, then the state string).
+
+    Raises:
+        ValueError: a message of another layout (another number of joints, or not written by this version).
+    """
+    layout = cycle_layout(joints)
+    size, head = layout.itemsize, len(HEADER)
+    rows = np.frombuffer(b"".join(data[head : head + size] for data in raw), dtype=layout, count=len(raw))
+    columns: dict[str, Any] = {}
+    counts = [rows[f"n_{name}"] for name in (*CYCLE_ARRAYS, "following_error_deg", *CYCLE_FLAGS)]
+    if len(rows) and not all((count == joints).all() for count in counts):
+        raise ValueError(f"cycle messages not of the layout of {joints} joints")
+    code = {state: index for index, state in enumerate(states)}
+    at = head + size + (-size % 4)  # the state: its length (with the NUL), aligned to 4, then its bytes
+    columns["t_s"] = rows["t_s"].copy()
+    columns["cycle"] = rows["cycle"].astype(np.int64)
+    texts = (data[at + 4 : at + 3 + _UINT32.unpack_from(data, at)[0]].decode() for data in raw)
+    columns["state"] = np.array([code.get(text, 0) for text in texts], dtype=np.int8)  # (unknown: 0)
+    for name in CYCLE_SCALARS:
+        columns[name] = rows[name].copy()
+    for name in CYCLE_ARRAYS:
+        columns[name] = rows[name].reshape(-1, joints).copy()
+    for name in CYCLE_FLAGS:
+        columns[name] = rows[name].reshape(-1, joints).astype(np.bool_)
+    return columns
+
+
 def read_mcap(stream: IO[bytes], check: Callable[[dict[str, Any]], None]) -> tuple[dict[str, Any], dict[str, Any]]:
     """The columns and metadata of a recording written by :func:`write_mcap`; ``check`` is given the metadata first
     (it raises ValueError for one of another schema or a newer version).
@@ -358,7 +419,7 @@ def read_mcap(stream: IO[bytes], check: Callable[[dict[str, Any]], None]) -> tup
         ValueError: not such a recording (no ``rmd_motion`` metadata, refused by ``check``, or unreadable).
     """
     try:
-        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        reader = make_reader(stream)
         meta: dict[str, Any] | None = None
         for record in reader.iter_metadata():
             if record.name == METADATA:
@@ -366,39 +427,29 @@ def read_mcap(stream: IO[bytes], check: Callable[[dict[str, Any]], None]) -> tup
         if meta is None:
             raise ValueError(f"an MCAP file without the {METADATA!r} metadata record (not written by rmd-motion)")
         check(meta)
-        states = list(meta.get("states", ()))
-        rows: dict[str, list[Any]] = {name: [] for name in ("t_s", "cycle", "state", *CYCLE_SCALARS)}
-        rows |= {name: [] for name in (*CYCLE_ARRAYS, *CYCLE_FLAGS)}
+        raw: list[bytes] = []
         faults: list[dict[str, str]] = []
-        for _, _, _, message in reader.iter_decoded_messages(topics=[CYCLE_TOPIC, DIAGNOSTICS_TOPIC]):
-            if hasattr(message, "status"):
-                faults += [
-                    {value.key: value.value for value in status.values} | {"text": status.message}
-                    for status in message.status
-                    if status.name == FAULT_NAME
-                ]
+        decoders: dict[int, Callable[[bytes], Any]] = {}
+        for schema, channel, message in reader.iter_messages(topics=[CYCLE_TOPIC, DIAGNOSTICS_TOPIC]):
+            if channel.topic == CYCLE_TOPIC:
+                raw.append(message.data)
                 continue
-            rows["t_s"].append(message.t_s)
-            rows["cycle"].append(message.cycle)
-            rows["state"].append(states.index(message.state) if message.state in states else 0)
-            for name in (*CYCLE_SCALARS, *CYCLE_ARRAYS, *CYCLE_FLAGS):
-                rows[name].append(getattr(message, name))
+            decode = decoders.get(channel.id)
+            if decode is None:  # (diagnostics are few: the library's decoder)
+                found = DecoderFactory().decoder_for(channel.message_encoding, schema)
+                if found is None:
+                    raise ValueError(f"no decoder for {channel.topic}")
+                decode = decoders[channel.id] = found
+            faults += [
+                {value.key: value.value for value in status.values} | {"text": status.message}
+                for status in decode(message.data).status
+                if status.name == FAULT_NAME
+            ]
+        columns = _cycles(raw, len(meta["joints"]), list(meta.get("states", ())))
     except ValueError:
         raise
     except Exception as exc:  # (the mcap reader raises its own errors, struct's and decoders' on a damaged file)
         raise ValueError(f"not a readable MCAP recording ({type(exc).__name__}: {exc})") from exc
-    joints = len(meta["joints"])
-    columns: dict[str, Any] = {
-        "t_s": np.array(rows["t_s"], dtype=np.float64),
-        "cycle": np.array(rows["cycle"], dtype=np.int64),
-        "state": np.array(rows["state"], dtype=np.int8),
-    }
-    for name in CYCLE_SCALARS:
-        columns[name] = np.array(rows[name], dtype=np.float64)
-    for name in CYCLE_ARRAYS:
-        columns[name] = np.array(rows[name], dtype=np.float64).reshape(-1, joints)
-    for name in CYCLE_FLAGS:
-        columns[name] = np.array(rows[name], dtype=np.bool_).reshape(-1, joints)
     faults.sort(key=lambda f: int(f["index"]))
     columns["fault_t_s"] = np.array([float(f["t_s"]) for f in faults], dtype=np.float64)
     columns["fault_halt_s"] = np.array([float(f["halt_s"]) for f in faults], dtype=np.float64)
