@@ -6,6 +6,7 @@ import io
 import math
 from pathlib import Path
 from typing import Any
+from xml.etree import ElementTree
 
 import numpy as np
 import pytest
@@ -113,7 +114,7 @@ def test_rosbags_reads_every_topic_and_the_values_the_run_measured(recorded: tup
     assert 0.0 <= min(s for s in sent if s >= first_cycle) - first_cycle < log.period_s
     assert any(f.arbitration_id == 0x141 and bytes(f.data)[0] == 0xA4 and not f.received for f in bus)
     (description,) = topics["/robot_description"]
-    assert description.data == (CONFIGS / "arm6.urdf").read_text()
+    _drawn_as_configured(description.data, ARM6)
 
 
 def test_the_link_transforms_place_the_arm_as_its_model_does(recorded: tuple[Path, TelemetryLog, int]) -> None:
@@ -200,17 +201,21 @@ def test_an_mcap_file_of_another_program_is_not_a_run(tmp_path: Path) -> None:
         load_log(tmp_path / "cut.mcap")
 
 
-def test_a_chain_model_hangs_its_links_from_the_world_and_has_no_urdf(tmp_path: Path) -> None:
+def test_a_chain_model_hangs_its_links_from_the_world_and_is_drawn_from_a_urdf_written_from_it(tmp_path: Path) -> None:
     config = load_config(CONFIGS / "arm2.yaml")
     options = TelemetryOptions(log=tmp_path / "arm2.mcap")
     with Arm(config, emulate=True, telemetry=options) as arm:
         arm.move_to({"shoulder": 10.0})
     with AnyReader([tmp_path / "arm2.mcap"]) as reader:
         topics = {c.topic for c in reader.connections}
-        assert "/robot_description" not in topics and "/tf" in topics
+        assert {"/robot_description", "/tf"} <= topics
         (tf,) = [c for c in reader.connections if c.topic == "/tf"]
         for _, _, raw in reader.messages(connections=[tf]):
             message: Any = reader.deserialize(raw, tf.msgtype)
+        (described,) = [c for c in reader.connections if c.topic == "/robot_description"]
+        for _, _, raw in reader.messages(connections=[described]):
+            urdf = reader.deserialize(raw, described.msgtype).data  # type: ignore[attr-defined]
+    _drawn_as_configured(urdf, CONFIGS / "arm2.yaml")
     parents = {t.child_frame_id: t.header.frame_id for t in message.transforms}
     assert parents == {"upper_arm": "universe", "forearm": "upper_arm"}
     shoulder = load_log(tmp_path / "arm2.mcap")["q_deg"][-1][0]
@@ -260,3 +265,41 @@ def test_the_cdr_shim_encodes_as_the_reference_encoder_does() -> None:
     columns = {name: np.array([value]) for name, value in cycle.items() if name not in ("stamp", "state")}
     ours = cycle_message(ns, columns, 0, "moving", columns["following_error_deg"])
     assert ours == _their_encoding("rmd_motion/msg/Cycle", cycle)
+
+
+def _drawn_as_configured(urdf: str, config_path: Path) -> None:
+    """The published URDF: every moving link drawn (a ``<visual>``), and the same arm as the configuration's model:
+    its joints, their limits, and its forward kinematics at a pose within them."""
+    import pinocchio as pin
+
+    from kinematics.model import build_arm
+
+    config = load_config(config_path)
+    published = pin.buildModelFromXML(urdf)
+    configured = build_arm(config)
+    names = list(config.joint_names)
+    assert [str(n) for n in published.names[1:]] == [str(n) for n in configured.model.names[1:]]
+    for name in names:
+        joint = config.joints[names.index(name)]
+        j = published.getJointId(name)
+        lower, upper = (
+            published.lowerPositionLimit[published.idx_qs[j]],
+            published.upperPositionLimit[published.idx_qs[j]],
+        )
+        expected = (math.radians(joint.position_min_deg), math.radians(joint.position_max_deg))
+        assert (lower, upper) == pytest.approx(expected, abs=1e-4)  # (a URDF's limits as its text rounds them)
+    root = ElementTree.fromstring(urdf)
+    moved = {child.get("link") for j in root.iter("joint") if j.get("type") != "fixed" for child in j.iter("child")}
+    assert moved and all(link.find("visual") is not None for link in root.iter("link") if link.get("name") in moved)
+    pose = np.radians([0.5 * (j.position_min_deg + j.position_max_deg) + 3.0 for j in config.joints])
+    q = np.zeros(published.nq)
+    q[[published.idx_qs[published.getJointId(n)] for n in names]] = pose
+    data = published.createData()
+    pin.framesForwardKinematics(published, data, q)
+    q_model = np.zeros(configured.model.nq)
+    q_model[configured.to_config] = pose
+    pin.framesForwardKinematics(configured.model, configured.data, q_model)
+    for name in names:
+        mine = data.oMi[published.getJointId(name)]
+        theirs = configured.data.oMi[configured.model.getJointId(name)]
+        assert np.allclose(mine.homogeneous, theirs.homogeneous, atol=1e-5), name

@@ -22,7 +22,8 @@ topic                          type                               content
                                                                   ``action``) and each change of the arm's state (OK)
 ``/bus/frames``                ``rmd_motion/msg/BusFrame``        every frame on the bus (``--trace``), as sent or
                                                                   taken in; ``arbitration_id`` -1 on RS485
-``/robot_description``         ``std_msgs/msg/String``            the URDF, once (a URDF model only)
+``/robot_description``         ``std_msgs/msg/String``            the URDF a viewer draws the arm from, once
+                                                                  (:class:`kinematics.frames.LinkFrames`)
 ``/tf``                        ``tf2_msgs/msg/TFMessage``         each link's pose in its parent's frame, per cycle
 =============================  =================================  ===================================================
 
@@ -171,7 +172,8 @@ class LinkPose(Protocol):
 class Robot(Protocol):
     """The arm's shape for ``/robot_description`` and ``/tf`` (:class:`kinematics.frames.LinkFrames`)."""
 
-    urdf: str | None
+    @property
+    def urdf(self) -> str | None: ...
 
     def transforms(self, q_deg: Any) -> Sequence[LinkPose]: ...
 
