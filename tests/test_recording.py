@@ -303,3 +303,20 @@ def _drawn_as_configured(urdf: str, config_path: Path) -> None:
         mine = data.oMi[published.getJointId(name)]
         theirs = configured.data.oMi[configured.model.getJointId(name)]
         assert np.allclose(mine.homogeneous, theirs.homogeneous, atol=1e-5), name
+
+
+def test_the_file_is_in_time_order(recorded: tuple[Path, TelemetryLog, int]) -> None:
+    # messages as written (not sorted by a reader's index): log times never go back, faults and frames among the cycles
+    path, _, _ = recorded
+    with path.open("rb") as stream:
+        written = [
+            (channel.topic, m.log_time) for _, channel, m in make_reader(stream).iter_messages(log_time_order=False)
+        ]
+    times = [t for _, t in written]
+    assert times == sorted(times)
+    topics = [topic for topic, _ in written]
+    assert (
+        topics.index("/bus/frames")
+        < topics.index("/rmd_motion/cycle")
+        < len(topics) - topics[::-1].index("/bus/frames")
+    )

@@ -37,10 +37,11 @@ messages are encoded by :mod:`motion.telemetry.cdr`; ``mcap-ros2-support`` decod
 
 from __future__ import annotations
 
+import heapq
 import json
 import math
 import struct
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from typing import IO, TYPE_CHECKING, Any, Final, Protocol
 
 import numpy as np
@@ -267,8 +268,12 @@ def cycle_message(ns: int, columns: Any, k: int, state: str, following: Any) -> 
     return out.string(state).data()
 
 
-def _faults(columns: Any, base_s: float) -> list[tuple[int, bytes]]:
-    """Each fault as a ``DiagnosticArray`` at its detection time (ns), in time order."""
+#: A message to write among the cycles: (time in ns, topic, type, bytes).
+_Event = tuple[int, str, str, bytes]
+
+
+def _faults(columns: Any, base_s: float) -> list[_Event]:
+    """Each fault as a ``DiagnosticArray`` at its detection time, in time order."""
     faults = []
     for f in range(len(columns["fault_t_s"])):
         detected = float(columns["fault_t_s"][f])
@@ -283,9 +288,18 @@ def _faults(columns: Any, base_s: float) -> list[tuple[int, bytes]]:
         }
         level = _FAULT_LEVELS.get(values["kind"], ERROR)
         text = str(columns["fault_text"][f])
-        faults.append((ns, diagnostic_array(ns, level, FAULT_NAME, text, hardware_id=values["joint"], values=values)))
+        fault = diagnostic_array(ns, level, FAULT_NAME, text, hardware_id=values["joint"], values=values)
+        faults.append((ns, DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", fault))
     faults.sort(key=lambda fault: fault[0])
     return faults
+
+
+def _frames(frames: Iterable[TracedFrame], base_s: float) -> Iterator[_Event]:
+    """Each traced frame as a ``BusFrame`` at its time, in the trace's (time) order."""
+    for frame in frames:
+        ns = _ns(base_s, frame.time_s)
+        ident = -1 if frame.arbitration_id is None else frame.arbitration_id
+        yield ns, "/bus/frames", "rmd_motion/msg/BusFrame", bus_frame(ns, frame.received, ident, frame.data)
 
 
 def write_mcap(
@@ -311,15 +325,18 @@ def write_mcap(
     q_rad, qd_rad, q_exp_rad, effort = np.radians(q), np.radians(qd), np.radians(q_exp), iq * per_amp
     following = log.following_error_deg()
     previous_state = ""
-    if robot is not None and robot.urdf is not None:
+    # the faults and the frames, merged in time order, go in among the cycles: the file in time order
+    events = heapq.merge(_faults(columns, base_s), _frames(frames, frames_base_s), key=lambda event: event[0])
+    event = next(events, None)
+    if robot is not None and robot.urdf is not None:  # (at the first message's time)
         first = _ns(base_s, float(t[0]) if len(t) else 0.0)
+        first = first if event is None else min(first, event[0])
         out.write("/robot_description", "std_msgs/msg/String", CdrWriter().string(robot.urdf).data(), first)
-    faults = _faults(columns, base_s)
     for k in range(len(t)):
         ns = _ns(base_s, float(t[k]))
-        while faults and faults[0][0] <= ns:  # (each fault in time order among the cycles: at its detection)
-            detected, fault = faults.pop(0)
-            out.write(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", fault, detected)
+        while event is not None and event[0] <= ns:
+            out.write(event[1], event[2], event[3], event[0])
+            event = next(events, None)
         out.write(
             "/joint_states", "sensor_msgs/msg/JointState", joint_state(ns, names, q_rad[k], qd_rad[k], effort[k]), ns
         )
@@ -337,12 +354,9 @@ def write_mcap(
             previous_state = state
         if robot is not None:
             out.write("/tf", "tf2_msgs/msg/TFMessage", tf_message(ns, robot.transforms(q[k])), ns)
-    for ns, fault in faults:  # (after the last cycle)
-        out.write(DIAGNOSTICS_TOPIC, "diagnostic_msgs/msg/DiagnosticArray", fault, ns)
-    for frame in frames:
-        ns = _ns(frames_base_s, frame.time_s)
-        ident = -1 if frame.arbitration_id is None else frame.arbitration_id
-        out.write("/bus/frames", "rmd_motion/msg/BusFrame", bus_frame(ns, frame.received, ident, frame.data), ns)
+    while event is not None:  # (after the last cycle)
+        out.write(event[1], event[2], event[3], event[0])
+        event = next(events, None)
     out.writer.add_metadata(METADATA, {"meta": json.dumps(meta, allow_nan=False)})
     out.writer.finish()  # type: ignore[no-untyped-call]
 
