@@ -24,6 +24,7 @@ from motion.cli.common import (
     UsageError,
     add_bus_arguments,
     add_emulate_flag,
+    add_holding_flag,
     add_turns_flag,
     add_view_arguments,
     communication_hint,
@@ -229,7 +230,7 @@ def _motion_options(parser: argparse.ArgumentParser, speed_scale: str) -> None:
         "--log", metavar="FILE.mcap", help="record every control cycle as MCAP (Foxglove, rosbags; `rmd-motion plot`)"
     )
     parser.add_argument("--trace", metavar="FILE", help="record every frame on the bus (CAN: candump log)")
-    moves.add_holding_flag(parser)
+    add_holding_flag(parser)
     _json(parser)
 
 

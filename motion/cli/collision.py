@@ -19,8 +19,8 @@ from typing import Final
 import numpy as np
 
 from motion.api import Arm
-from motion.cli.common import EXIT_OK, Interrupts, Session, add_emulate_flag, print_json, print_table
-from motion.cli.moves import add_holding_flag, holding_first, run_program, with_arm
+from motion.cli.common import EXIT_OK, Interrupts, Session, add_emulate_flag, add_holding_flag, print_json, print_table
+from motion.cli.moves import holding_first, run_program, with_arm
 from motion.cli.program import load_program
 from motion.config import ArmConfig, write_joint_values
 from motion.config.schema import ControlMode

@@ -235,6 +235,16 @@ def add_bus_arguments(parser: argparse.ArgumentParser, *, required: bool = True)
     bus.add_argument("--port", metavar="DEVICE", help="RS485: serial device (/dev/ttyUSB0, a pty, ...)")
 
 
+def add_holding_flag(parser: argparse.ArgumentParser) -> None:
+    """``--no-holding-check`` of the commands that move the arm through a program or to targets."""
+    parser.add_argument(
+        "--no-holding-check",
+        action="store_true",
+        help="skip the holding check before the first motion (each joint's holding torque against the model's gravity "
+        "torque, as `check --holding`; run on real buses, exit 2 on a mismatch before anything moves)",
+    )
+
+
 def add_emulate_flag(parser: argparse.ArgumentParser) -> None:
     """``--emulate``: the command runs on the configuration's emulated drives in simulated time (no port opened)."""
     parser.add_argument(

@@ -365,16 +365,6 @@ def _verdict_dict(verdict: HoldingVerdict) -> dict[str, Any]:
     return dataclasses.asdict(verdict) | {"matches": verdict.matches}
 
 
-def add_holding_flag(parser: argparse.ArgumentParser) -> None:
-    """``--no-holding-check`` of the commands that move the arm through a program or to targets."""
-    parser.add_argument(
-        "--no-holding-check",
-        action="store_true",
-        help="skip the holding check before the first motion (each joint's holding torque against the model's gravity "
-        "torque, as `check --holding`; run on real buses, exit 2 on a mismatch before anything moves)",
-    )
-
-
 def holding_first(arm: Arm, args: argparse.Namespace) -> list[dict[str, Any]] | str:
     """``move`` / ``run``: the holding check before the first motion (:mod:`motion.api.commissioning`), on real
     buses (emulated drives are built from the configuration itself: they always match it) unless

@@ -50,6 +50,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_ros2.decoder import DecoderFactory
 
 from motion import __version__
+from motion.telemetry import CYCLE_COLUMNS
 from motion.telemetry.cdr import HEADER, CdrWriter
 
 if TYPE_CHECKING:
@@ -96,25 +97,12 @@ def _definition(text: str, *dependencies: str) -> str:
     return "\n".join(parts) + "\n"
 
 
-#: The cycle message: every column of the per-cycle log (scalars, then per joint in configuration order).
-CYCLE_SCALARS: Final = ("jitter_s", "busy_s", "latency_s")
-CYCLE_ARRAYS: Final = (
-    "q_ref_deg",
-    "qd_ref_dps",
-    "qdd_ref_dps2",
-    "q_deg",
-    "q_exp_deg",
-    "qd_dps",
-    "iq_a",
-    "temperature_c",
-    "cmd_angle_deg",
-    "cmd_speed_dps",
-    "cmd_torque_nm",
-    "residual_nm",
-    "collision_signal_nm",
-    "collision_limit_nm",
-)
-CYCLE_FLAGS: Final = ("fresh", "limited")
+#: The cycle message: every column of the per-cycle log (:data:`motion.telemetry.CYCLE_COLUMNS`; the scalars, then
+#: per joint in configuration order: the float columns, the boolean ones), ``t_s``, ``cycle`` and ``state`` apart.
+_APART = ("t_s", "cycle", "state")
+CYCLE_SCALARS: Final = tuple(n for n, (joint, kind, _) in CYCLE_COLUMNS.items() if not joint and n not in _APART)
+CYCLE_ARRAYS: Final = tuple(n for n, (joint, kind, _) in CYCLE_COLUMNS.items() if joint and kind is np.float64)
+CYCLE_FLAGS: Final = tuple(n for n, (joint, kind, _) in CYCLE_COLUMNS.items() if joint and kind is np.bool_)
 _CYCLE = "\n".join(
     [
         "builtin_interfaces/Time stamp",
