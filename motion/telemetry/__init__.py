@@ -1,6 +1,6 @@
 """Run telemetry: a per-cycle log from the controller's cycle hooks and a trace of every frame on the bus.
 
-Recording costs a control cycle some 10-40 µs and no I/O (``bench/recording_cost.py``): rows go into preallocated
+Recording costs a control cycle 6-40 µs and no I/O (``bench/recording_cost.py``): rows go into preallocated
 numpy chunks (a full chunk is followed by a new one; nothing recorded is ever copied during the run), frames into
 preallocated arrays and one byte buffer per chunk (a new chunk, every CHUNK_ROWS cycles, costs that cycle a few
 hundred microseconds). Nothing is encoded, logged or written until :meth:`TelemetrySession.close` (about 0.5 ms per
