@@ -431,6 +431,18 @@ def test_a_drive_of_another_model_at_an_id_starts_its_record_anew(caplog: pytest
     assert record.rom_writes(again._key(2)) == 3 + 2
 
 
+def test_drives_that_tell_no_model_or_the_recorded_one_leave_the_record_file_alone(tmp_path: Path) -> None:
+    setup, _ = _setup_on([])
+    setup.record = DriveRecord(tmp_path / "drives.json")
+    setup.recognise_drives()  # (no identities read: nothing to keep)
+    assert not (tmp_path / "drives.json").exists()
+    setup.bus.identities.update({i: Identity("X8 1:9", "X8 1:9", "X8-1:9", 20240528) for i in (1, 2)})
+    setup.recognise_drives()
+    first = (tmp_path / "drives.json").stat().st_ino  # (a save writes a new file and renames it over the old one)
+    setup.recognise_drives()
+    assert (tmp_path / "drives.json").stat().st_ino == first
+
+
 def test_programs_that_share_the_drive_record_keep_each_others_changes(tmp_path: Path) -> None:
     # issue 31 §4 (review): two programs read the record at their start and save later; each saves what it changed,
     # merged into the file as it is then, so neither's settings or ROM counts are lost

@@ -132,6 +132,7 @@ class DriveSetup:
         """Keep each drive's model (0xB5, read at connect: ``bus.identities``) in its record; a drive whose model is
         not the one its record was made with is another drive at that id: its record starts anew (logged), so that
         nothing of the drive it replaced is written back to it (``restore``) or taken as set on it."""
+        changed = False
         for motor_id in self.ids:
             identity = self.bus.identities.get(motor_id)
             model = identity.model if identity is not None else None
@@ -151,7 +152,9 @@ class DriveSetup:
                 )
                 self.record.forget(key)
             self.record.put(key, MODEL, model)
-        self.record.save()
+            changed = True
+        if changed:
+            self.record.save()
 
     def _acceleration_writes(self, deadline_s: float) -> list[_Write]:
         """0x43 of 0 for each planning acceleration that is not 0 (what it held first is recorded once written)."""
