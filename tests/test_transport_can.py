@@ -30,6 +30,7 @@ from motion.protocol import (
     TorqueControl,
     can_frame,
 )
+from motion.protocol.table import ProtocolFamily
 from motion.transport import CanTransport, Request, open_transport
 from motion.transport.can_endpoint import CanEndpoint
 from tests.test_transport_peers import MARGIN_S, Script, ScriptedDrives, assert_balanced, status2, tag_of
@@ -167,6 +168,19 @@ def test_late_reply_arriving_between_cycles_is_drained_as_stale(channel: str) ->
         (reply,) = transport.transact([status2(1)], transport.clock() + 0.5)
         assert reply.ok and tag_of(reply.message) == 3
         assert_balanced(transport)
+
+
+def test_after_a_generation_probe_the_next_answer_counts(channel: str) -> None:
+    # scan's second try under a busy host: the late answers to its first status reads were read by the generation
+    # probe (the port, behind the slots), and their outstanding marks then swallowed the drives' real answers: every
+    # drive that had answered late once was reported missing
+    with rig(channel, {1: Script(delays_s=[0.2])}) as (transport, _):
+        assert not transport.transact([Request(1, Bare(Command.READ_STATUS_1))], transport.clock() + 0.02)[0].ok
+        time.sleep(0.4)  # the late reply (tag 1) is now waiting in the receive queue
+        assert transport.probe_families([1], 0.5) == {1: ProtocolFamily.V2}  # drains it, takes the probe's (tag 2)
+        (reply,) = transport.transact([Request(1, Bare(Command.READ_STATUS_1))], transport.clock() + 0.5)
+        assert reply.ok and tag_of(reply.message) == 3
+        assert transport.counters[1].stale_frames == 0
 
 
 def test_lost_reply_costs_at_most_one_more_cycle(channel: str) -> None:

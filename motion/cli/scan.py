@@ -27,7 +27,6 @@ from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, ProtocolFamily, Wi
 from motion.protocol.v3.messages import Status1V3
 from motion.transport import Request, Transport
 from motion.transport.can_transport import CanTransport
-from motion.transport.detect import detect_can
 from motion.transport.identity import Identity, read_identities
 
 #: Scan: the reply window of a CAN batch (the drives answer in parallel), s, plus a share per request: an adapter
@@ -89,7 +88,7 @@ def _scan_ids(bus: Transport, ids: Sequence[int], wire: WireProtocol, stretch: f
     bus's generation alone answers."""
     if not isinstance(bus, CanTransport):
         return _scan_in(bus, ids, wire, stretch)
-    generations = detect_can(bus.port, ids, stretch * _window(WireProtocol.CAN, len(ids)))
+    generations = bus.probe_families(ids, stretch * _window(WireProtocol.CAN, len(ids))) or {}
     groups: dict[ProtocolFamily, list[int]] = {}
     for motor_id in ids:
         groups.setdefault(generations.get(motor_id, bus.family), []).append(motor_id)

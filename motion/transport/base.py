@@ -351,6 +351,13 @@ class Transport(ABC, Closing):
         """
         return None
 
+    def _read_behind_the_slots(self) -> None:
+        """The port was read past the slots (a generation probe drains and reads it at the frame level): the late
+        answers that outstanding marks wait for were taken there, so no mark may swallow the next real answer (scan's
+        second try lost every drive that had answered the first one late)."""
+        self._outstanding.clear()
+        self._ambiguous.clear()
+
     def request_wire_s(self, requests: Sequence[Request]) -> float | None:
         """The time the frames of ``requests`` occupy the wire, s (each encoded as :meth:`transact` would), or None
         where this transport does not know its wire's speed. The rate check adds what a cycle's set-points take on

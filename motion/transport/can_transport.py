@@ -130,7 +130,9 @@ class CanTransport(Transport):
         """See :meth:`Transport.probe_families` (frame level, on :attr:`port`)."""
         from motion.transport.detect import detect_can  # noqa: PLC0415 - detect builds on this module
 
-        return detect_can(self._endpoint, ids, window_s)
+        found = detect_can(self._endpoint, ids, window_s)
+        self._read_behind_the_slots()
+        return found
 
     def with_family(self, family: ProtocolFamily) -> CanTransport:
         """See :meth:`Transport.with_family`."""

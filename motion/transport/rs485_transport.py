@@ -131,7 +131,9 @@ class Rs485Transport(Transport):
         """See :meth:`Transport.probe_families`: a status read (0x9A) in this transport's framing, then in the other
         to the ids silent to it (:func:`~motion.transport.base.probe_in_turn`; a frame of the other framing is
         garbage to a drive: its checksums fail and it stays silent)."""
-        return probe_in_turn(self, ids, window_s, lambda family: self._sibling(family, takes_port=False))
+        found = probe_in_turn(self, ids, window_s, lambda family: self._sibling(family, takes_port=False))
+        self._read_behind_the_slots()  # the other framing's sibling read the line too
+        return found
 
     def with_family(self, family: ProtocolFamily) -> Rs485Transport:
         """See :meth:`Transport.with_family`."""
