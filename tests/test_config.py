@@ -36,10 +36,13 @@ def _mapping(name: str) -> dict[str, Any]:
 
 ARM2 = _mapping("arm2.yaml")
 ARM6 = _mapping("arm6.yaml")
+BIMANUAL = _mapping("bimanual.yaml")
 
 
-def test_there_are_five_examples() -> None:
-    assert [p.name for p in EXAMPLES] == ["arm2.yaml", "arm2_rs485.yaml", "arm6.yaml", "arm6_v3.yaml", "bench1.yaml"]
+def test_there_are_six_examples() -> None:
+    assert [p.name for p in EXAMPLES] == [
+        "arm2.yaml", "arm2_rs485.yaml", "arm6.yaml", "arm6_v3.yaml", "bench1.yaml", "bimanual.yaml"
+    ]  # fmt: skip
 
 
 @pytest.mark.parametrize("path", EXAMPLES, ids=lambda p: p.name)
@@ -48,8 +51,37 @@ def test_every_example_loads_from_any_directory(path: Path, tmp_path: Path, monk
     config = load_config(path)
     assert config.name == path.stem
     assert config.source == str(path)
-    assert sorted(j.motor_id for j in config.joints) == list(range(1, len(config.joints) + 1))
+    for index in range(len(config.buses)):
+        on_bus = config.joints_on(index)
+        assert sorted(j.motor_id for j in on_bus) == list(range(1, len(on_bus) + 1))
     assert len(config.transmission()) == len(config.joints)
+
+
+def test_an_arm_on_two_buses_places_each_joint_on_its_bus_with_ids_per_bus() -> None:
+    # issue 35: `buses:` names the buses; each joint names its own; motor ids are unique per bus, not per arm
+    config = load_config(CONFIGS / "bimanual.yaml")
+    assert [(b.name, b.channel) for b in config.buses] == [("left", "can0"), ("right", "can1")]  # type: ignore[union-attr]
+    assert [(j.name, j.bus, j.motor_id, j.address) for j in config.joints[5:7]] == [
+        ("left_flange_roll", "left", 6, 6),
+        ("right_base_yaw", "right", 1, 101),
+    ]
+    assert config.joints_on(1) == config.joints[6:]
+    assert config.joints[7].drive_label == "motor 2 on bus right"
+    with pytest.raises(ConfigError, match=r"buses: this takes an arm on one bus; the arm is on left, right"):
+        _ = config.bus
+    arm6 = load_config(CONFIGS / "arm6.yaml")
+    assert arm6.bus is arm6.buses[0] and arm6.bus.name == "" and [j.address for j in arm6.joints] == [1, 2, 3, 4, 5, 6]
+    assert arm6.joints[0].drive_label == "motor 1"
+
+
+def test_one_entry_under_buses_needs_no_bus_per_joint(tmp_path: Path) -> None:
+    data = copy.deepcopy(ARM2)
+    data["buses"] = {"main": data.pop("bus")}
+    path = tmp_path / "arm.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    config = load_config(path)
+    assert config.bus.name == "main" and {j.bus for j in config.joints} == {"main"}
+    assert [j.address for j in config.joints] == [j.motor_id for j in config.joints]
 
 
 def test_arm6_uses_the_shipped_urdf() -> None:
@@ -395,6 +427,52 @@ CASES: list[tuple[str, dict[str, Any], Mutation, str, list[str]]] = [
         _set("bus", "port", value="COM3"),
         "bus.port",
         ["unknown key", "allowed keys: bitrate, channel, interface, protocol, transport"],
+    ),
+    (
+        "bus and buses",
+        BIMANUAL,
+        _set("bus", value={"transport": "can"}),
+        "bus",
+        ["give bus (one bus) or buses", "both"],
+    ),
+    ("no bus", ARM2, _delete("bus"), "bus", ["give bus (one bus) or buses", "found neither"]),
+    ("buses empty", BIMANUAL, _set("buses", value={}), "buses", ["a non-empty mapping of names", "an empty mapping"]),
+    ("bus name", BIMANUAL, _set("buses", "left right", value={}), "buses", ["'left right' is not a name"]),
+    (
+        "key of a named bus",
+        BIMANUAL,
+        _set("buses", "right", "port", value="COM3"),
+        "buses.right.port",
+        ["unknown key", "allowed keys: bitrate, channel, interface, protocol, transport"],
+    ),
+    (
+        "bitrate of a named bus",
+        BIMANUAL,
+        _set("buses", "left", "bitrate", value=250_000),
+        "buses.left.bitrate",
+        ["allowed: one of 500000, 1000000", "found 250000"],
+    ),
+    (
+        "joint without its bus",
+        BIMANUAL,
+        _delete("joints", 7, "bus"),
+        "joints[7].bus",
+        ["required key is missing", "one of left, right"],
+    ),
+    ("unknown bus", BIMANUAL, _set("joints", 2, "bus", value="middle"), "joints[2].bus", ["unknown bus 'middle'"]),
+    (
+        "a bus named on an arm of one bus",
+        ARM2,
+        _set("joints", 0, "bus", value="left"),
+        "joints[0].bus",
+        ["this arm has the one `bus:` section", "found 'left'"],
+    ),
+    (
+        "duplicate motor id on one of two buses",
+        BIMANUAL,
+        _set("joints", 7, "motor_id", value=1),
+        "joints[7].motor_id",
+        ["1 is already used by joints[6] on bus right (ids are per bus)"],
     ),
     (
         "duplicate motor id",

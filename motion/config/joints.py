@@ -7,7 +7,7 @@ The keys a joint needs depend on the control mode (torque mode needs the PD gain
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import fields
 
 from motion.config import schema
@@ -102,6 +102,7 @@ def _joint(node: Node, mode: schema.ControlMode) -> schema.JointConfig:
         brake=node.flag("brake"),
         actuator=actuator,
         emulation=_emulation(node.child("emulation", schema.EmulationConfig), rotor_inertia, viscous, coulomb),
+        bus=node.text("bus"),
     )
     if joint.position_min_deg >= joint.position_max_deg:
         raise node.error(
@@ -172,13 +173,39 @@ def _homing(node: Node, joint: schema.JointConfig) -> schema.HomingConfig:
     return homing
 
 
-def joints_section(root: Node, mode: schema.ControlMode) -> tuple[schema.JointConfig, ...]:
-    """The ``joints`` list, each joint read for control mode ``mode``; no two share a name or a motor id."""
+def joints_section(
+    root: Node, mode: schema.ControlMode, buses: Sequence[schema.BusConfig]
+) -> tuple[schema.JointConfig, ...]:
+    """The ``joints`` list, each joint read for control mode ``mode`` and placed on one of ``buses``; no two share a
+    name, nor a motor id on one bus."""
     nodes = root.children("joints", schema.JointConfig)
-    joints = tuple(_joint(node, mode) for node in nodes)
+    joints = tuple(_on_bus(node, _joint(node, mode), buses) for node in nodes)
     for i, joint in enumerate(joints):
         for earlier_index, earlier in enumerate(joints[:i]):
-            for key, value in (("name", joint.name), ("motor_id", joint.motor_id)):
-                if getattr(earlier, key) == value:
-                    raise nodes[i].error(key, f"{value!r} is already used by joints[{earlier_index}]")
+            if earlier.name == joint.name:
+                raise nodes[i].error("name", f"{joint.name!r} is already used by joints[{earlier_index}]")
+            if earlier.address == joint.address:
+                on = f" on bus {joint.bus}" if joint.bus else ""
+                raise nodes[i].error(
+                    "motor_id", f"{joint.motor_id!r} is already used by joints[{earlier_index}]{on} (ids are per bus)"
+                )
     return joints
+
+
+def _on_bus(node: Node, joint: schema.JointConfig, buses: Sequence[schema.BusConfig]) -> schema.JointConfig:
+    """``joint`` placed on the bus its ``bus`` key names: required with several buses, refused with the one ``bus``
+    section, optional with one entry under ``buses``."""
+    names = [b.name for b in buses]
+    if not names[0]:  # the one `bus:` section
+        if joint.bus:
+            raise node.error(
+                "bus", f"names a bus of `buses:`, but this arm has the one `bus:` section; found {joint.bus!r}"
+            )
+        return joint
+    if not joint.bus:
+        if len(names) > 1:
+            raise node.error("bus", f"required key is missing (the bus the drive is on, one of {', '.join(names)})")
+        return dataclasses.replace(joint, bus=names[0])
+    if joint.bus not in names:
+        raise node.error("bus", f"unknown bus {joint.bus!r}; the buses are {', '.join(names)}")
+    return dataclasses.replace(joint, bus_index=names.index(joint.bus))

@@ -18,7 +18,7 @@ import yaml
 from motion.config import schema
 from motion.config.joints import joints_section
 from motion.config.nodes import Node
-from motion.config.sections import LINK_TIMEOUT_MAX_MS, bus_section, control_section, model_section, safety_section
+from motion.config.sections import LINK_TIMEOUT_MAX_MS, buses_section, control_section, model_section, safety_section
 from motion.errors import ConfigError
 
 __all__ = ["LINK_TIMEOUT_MAX_MS", "load_config", "parse_config", "read_yaml", "write_joint_values"]
@@ -37,12 +37,13 @@ def parse_config(
     Raises:
         ConfigError: naming ``source``, the key path, what is allowed and what was found.
     """
-    root = Node(data, source, "", schema.ArmConfig, hidden=["source"])
+    root = Node(data, source, "", schema.ArmConfig, hidden=["source"], extra=["bus"])
     control = control_section(root.child("control", schema.ControlConfig))
-    joints = joints_section(root, control.mode)
+    buses = buses_section(root)
+    joints = joints_section(root, control.mode, buses)
     return schema.ArmConfig(
         name=root.text("name"),
-        bus=bus_section(root),
+        buses=buses,
         control=control,
         model=model_section(root, joints, Path(base_dir) if base_dir is not None else Path.cwd()),
         safety=safety_section(root.child("safety", schema.SafetyConfig), control),

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import difflib
 import math
+import re
 import sys
 from collections.abc import Callable, Hashable, Iterable, Mapping
 from dataclasses import MISSING, dataclass, fields
@@ -23,6 +24,8 @@ _T = TypeVar("_T")
 _E = TypeVar("_E", bound=StrEnum)
 
 _FLOAT_MAX = sys.float_info.max
+#: A name of the configuration's own (a bus under ``buses:``): it also appears in ``--channel NAME=VALUE``.
+_NAME = re.compile(r"[A-Za-z][A-Za-z0-9_-]{0,31}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -280,6 +283,31 @@ class Node:
         if key not in self._data and key not in self._defaults:
             raise self.error(key, "required section is missing")
         return Node(self._data.get(key, {}), self.source, self.key_path(key), *schemas, extra=extra)
+
+    def names(self, key: str) -> list[str]:
+        """The keys of the non-empty mapping ``key`` (names such as ``buses``' ``left``, ``right``), in file order:
+        each a letter, then letters, digits, ``_`` or ``-``."""
+        items = self._data.get(key)
+        if not isinstance(items, Mapping) or not items:
+            found = (
+                "nothing (missing)"
+                if key not in self._data
+                else "an empty mapping"
+                if items == {}
+                else _describe(items)
+            )
+            raise self.error(key, f"expected a non-empty mapping of names to sections; found {found}")
+        for name in items:
+            if not isinstance(name, str) or _NAME.fullmatch(name) is None:
+                raise self.error(
+                    key, f"{name!r} is not a name: a letter, then letters, digits, '_' or '-' (at most 32 characters)"
+                )
+        return list(cast(Mapping[str, object], items))
+
+    def entry(self, key: str, name: str, *schemas: type[Any], extra: Iterable[str] = ()) -> Node:
+        """The section ``name`` of the mapping ``key`` (see :meth:`names`)."""
+        items = cast(Mapping[str, object], self._data[key])
+        return Node(items[name], self.source, f"{self.key_path(key)}.{name}", *schemas, extra=extra)
 
     def children(self, key: str, kind: type[Any]) -> list[Node]:
         """The non-empty list of mappings ``key``."""

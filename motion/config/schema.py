@@ -12,7 +12,9 @@ from enum import StrEnum
 from pathlib import Path
 from typing import ClassVar, TypeAlias
 
+from motion.errors import ConfigError
 from motion.protocol import WireProtocol
+from motion.protocol.table import ADDRESS_STRIDE
 from motion.transmission import ArmTransmission, Transmission
 
 Vec3: TypeAlias = tuple[float, float, float]
@@ -58,6 +60,7 @@ class CanBusConfig:
         channel: interface channel (``can0``, ``/dev/ttyACM0``, ``PCAN_USBBUS1``, ...).
         bitrate: bit rate in bit/s (500000 or 1000000, the rates the RMD drives support).
         protocol: the drives' protocol generation (see :class:`ProtocolSetting`).
+        name: its name under ``buses:`` (the one ``bus:`` section has none: "").
     """
 
     transport: ClassVar[WireProtocol] = WireProtocol.CAN
@@ -67,6 +70,7 @@ class CanBusConfig:
     channel: str
     bitrate: int = 1_000_000
     protocol: ProtocolSetting = ProtocolSetting.AUTO
+    name: str = field(default="", metadata={"derived": True})
 
     @property
     def link(self) -> str:
@@ -87,6 +91,7 @@ class Rs485BusConfig:
         baudrate: baud rate in bit/s (the older drives: 9600, 19200, 57600 or 115200; V3-driver drives: 115200, 500000,
             1000000, 1500000 or 2500000).
         protocol: the drives' protocol generation (see :class:`ProtocolSetting`).
+        name: its name under ``buses:`` (the one ``bus:`` section has none: "").
     """
 
     transport: ClassVar[WireProtocol] = WireProtocol.RS485
@@ -95,6 +100,7 @@ class Rs485BusConfig:
     port: str
     baudrate: int = 115_200
     protocol: ProtocolSetting = ProtocolSetting.AUTO
+    name: str = field(default="", metadata={"derived": True})
 
     @property
     def link(self) -> str:
@@ -289,7 +295,7 @@ class JointConfig:
 
     Attributes:
         name: joint name (as in the model).
-        motor_id: drive id on the bus (1..32).
+        motor_id: drive id on its bus (1..32; unique per bus).
         gear_ratio: motor-shaft degrees per joint degree (9 for a 1:9 drive).
         direction: +1 or -1.
         zero_offset_deg: joint angle when the motor reads 0, in degrees.
@@ -323,6 +329,8 @@ class JointConfig:
         actuator: the model of :mod:`motion.config.actuators` whose published figures are the defaults of
             ``gear_ratio``, ``torque_constant_nm_per_a`` and ``current_limit_a`` (None: each given).
         emulation: emulator plant parameters.
+        bus: the name of the bus the drive is on, one of ``buses:`` ("" with the one ``bus:`` section).
+        bus_index: that bus's place in ``buses:`` (0 with one bus); set from ``bus``.
     """
 
     name: str
@@ -351,6 +359,19 @@ class JointConfig:
     brake: bool = False
     actuator: str | None = None
     emulation: EmulationConfig = field(default_factory=EmulationConfig)
+    bus: str = ""
+    bus_index: int = field(default=0, metadata={"derived": True})
+
+    @property
+    def address(self) -> int:
+        """The drive's address in the arm: its motor id on the first bus (and the only one), else
+        ``bus_index × ADDRESS_STRIDE + motor_id`` (:data:`motion.protocol.table.ADDRESS_STRIDE`)."""
+        return self.bus_index * ADDRESS_STRIDE + self.motor_id
+
+    @property
+    def drive_label(self) -> str:
+        """``"motor 3"``, or ``"motor 3 on bus left"`` on an arm of several buses: how messages name the drive."""
+        return f"motor {self.motor_id}" + (f" on bus {self.bus}" if self.bus else "")
 
     def collision_threshold_in(self, mode: ControlMode) -> float | None:
         """The collision threshold in force in ``mode`` (None: not watched), N·m."""
@@ -412,19 +433,35 @@ class SafetyConfig:
 
 @dataclass(frozen=True, slots=True)
 class ArmConfig:
-    """A whole arm: bus, control loop, model, joints (in controller order) and safety thresholds.
+    """A whole arm: its bus (or buses), control loop, model, joints (in controller order) and safety thresholds.
 
     Attributes:
         source: the file it was read from (``"<string>"`` when parsed from a mapping), for error messages.
     """
 
     name: str
-    bus: BusConfig
+    buses: tuple[BusConfig, ...]
     control: ControlConfig
     model: ModelConfig
     safety: SafetyConfig
     joints: tuple[JointConfig, ...]
     source: str = "<string>"
+
+    @property
+    def bus(self) -> BusConfig:
+        """The arm's one bus.
+
+        Raises:
+            ConfigError: the arm is on several buses (``buses:``) and the caller handles one only.
+        """
+        if len(self.buses) != 1:
+            names = ", ".join(b.name for b in self.buses)
+            raise ConfigError(self.source, "buses", f"this takes an arm on one bus; the arm is on {names}")
+        return self.buses[0]
+
+    def joints_on(self, bus_index: int) -> tuple[JointConfig, ...]:
+        """The joints whose drives are on bus ``bus_index`` (configuration order)."""
+        return tuple(j for j in self.joints if j.bus_index == bus_index)
 
     @property
     def joint_names(self) -> tuple[str, ...]:

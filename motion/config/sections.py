@@ -1,5 +1,5 @@
-"""The arm-wide sections of a configuration: ``bus``, ``control``, ``safety`` and ``model`` (the joints' own
-section is :mod:`motion.config.joints`).
+"""The arm-wide sections of a configuration: ``bus`` (or ``buses``), ``control``, ``safety`` and ``model`` (the
+joints' own section is :mod:`motion.config.joints`).
 
 Each parser reads one :class:`~motion.config.nodes.Node` into its schema dataclass, adding the ranges and the checks
 that span keys (``comply`` needs torque mode; the model names exactly the configured joints).
@@ -8,7 +8,7 @@ that span keys (``comply`` needs torque mode; the model names exactly the config
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -26,27 +26,45 @@ _INERTIA_TOLERANCE = 1e-9
 LINK_TIMEOUT_MAX_MS = 60_000
 
 
-def bus_section(root: Node) -> schema.BusConfig:
-    """The ``bus`` section: the keys of the CAN or the RS485 bus, as its ``transport`` chooses."""
+def buses_section(root: Node) -> tuple[schema.BusConfig, ...]:
+    """``bus`` (the arm's one bus) or ``buses`` (named buses, each a bus section of its own)."""
+    if root.has("bus") == root.has("buses"):
+        found = "both" if root.has("bus") else "neither"
+        raise root.error("bus", f"give bus (one bus) or buses (named buses, each a bus section); found {found}")
+    if root.has("bus"):
+        return (_bus(lambda *kinds, extra: root.child("bus", *kinds, extra=extra), ""),)
+    return tuple(
+        _bus(lambda *kinds, extra, name=name: root.entry("buses", name, *kinds, extra=extra), name)
+        for name in root.names("buses")
+    )
+
+
+def _bus(section: Callable[..., Node], name: str) -> schema.BusConfig:
+    """One bus section (``section(*kinds, extra=...)`` reads it): the keys of the CAN or the RS485 bus, as its
+    ``transport`` chooses."""
     kinds: dict[WireProtocol, type[schema.BusConfig]] = {
         kind.transport: kind for kind in (schema.CanBusConfig, schema.Rs485BusConfig)
     }
     # Read `transport` with the keys of every bus kind allowed, then re-read strictly with the chosen kind's keys.
-    transport = root.child("bus", *kinds.values(), extra=["transport"]).choice("transport", WireProtocol)
-    node = root.child("bus", kinds[transport], extra=["transport"])
+    transport = section(*kinds.values(), extra=["transport"]).choice("transport", WireProtocol)
+    node = section(kinds[transport], extra=["transport"])
     if transport is WireProtocol.CAN:
         return schema.CanBusConfig(
             interface=node.text("interface"),
             channel=node.text("channel"),
             bitrate=node.integer("bitrate", OneOf((500_000, 1_000_000))),
             protocol=node.choice("protocol", schema.ProtocolSetting),
+            name=name,
         )
     protocol = node.choice("protocol", schema.ProtocolSetting)
     # the baud rates of the generation named, or of either with auto
     families = list(ProtocolFamily) if protocol is schema.ProtocolSetting.AUTO else [ProtocolFamily(protocol.value)]
     baudrates = sorted({rate for family in families for rate in RS485_BAUDRATES[family]})
     return schema.Rs485BusConfig(
-        port=node.text("port"), baudrate=node.integer("baudrate", OneOf(tuple(baudrates))), protocol=protocol
+        port=node.text("port"),
+        baudrate=node.integer("baudrate", OneOf(tuple(baudrates))),
+        protocol=protocol,
+        name=name,
     )
 
 

@@ -31,7 +31,7 @@ from motion.emulator.plant import IndependentLoads, Plant
 from motion.errors import ConfigError
 from motion.protocol import CanFrame, Message
 from motion.protocol.generation import GENERATIONS
-from motion.protocol.table import ProtocolFamily, WireProtocol, check_motor_id
+from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily, WireProtocol, check_motor_id, split_address
 
 logger = logging.getLogger("motion.emulator")
 
@@ -123,12 +123,17 @@ class Emulator:
         family: ProtocolFamily = ProtocolFamily.V2,
         brakes: Iterable[int] = (),
     ) -> None:
-        id_list = [check_motor_id(i) for i in ids]
+        id_list = [_check_address(i) for i in ids]
         if len(set(id_list)) != len(id_list) or not id_list:
             raise ValueError(f"motor ids must be distinct and at least one, got {id_list}")
         if not (math.isfinite(step_s) and step_s > 0):
             raise ValueError(f"integration step must be > 0 s, got {step_s!r}")
         self.ids: tuple[int, ...] = tuple(sorted(id_list))
+        #: The drives' motor ids on each line (bus) they are on, by line index (their addresses split).
+        self.line_ids: dict[int, tuple[int, ...]] = {}
+        for address in self.ids:
+            line, motor_id = split_address(address)
+            self.line_ids[line] = (*self.line_ids.get(line, ()), motor_id)
         self.step_s = step_s
         models = [_pick(model, i, DriveModel) for i in self.ids]
         loads = [_pick(load, i, LoadModel) for i in self.ids]
@@ -146,10 +151,11 @@ class Emulator:
         self.drives: dict[int, EmulatedDrive] = {}
         for i, m, ld in zip(self.ids, models, loads, strict=True):
             tuned = m.rotor_inertia_kgm2 + ld.inertia_kgm2 / m.gear_ratio**2
+            wire_id = split_address(i)[1]  # (a drive knows its id on its own bus only)
             if self.family is ProtocolFamily.V3:
-                self.drives[i] = EmulatedDriveV3(i, m, tuned, brake=i in braked)
+                self.drives[i] = EmulatedDriveV3(wire_id, m, tuned, brake=i in braked)
             else:
-                self.drives[i] = EmulatedDrive(i, m, tuned)
+                self.drives[i] = EmulatedDrive(wire_id, m, tuned)
         self._v3 = [(n, d) for n, d in enumerate(self.drives[i] for i in self.ids) if isinstance(d, EmulatedDriveV3)]
         self._order = [self.drives[i] for i in self.ids]
         self._index = {i: n for n, i in enumerate(self.ids)}
@@ -376,61 +382,67 @@ class Emulator:
         with self._lock:
             now = self.time_s if at_s is None else max(self.time_s, at_s)
             return [
-                Outgoing(drive.motor_id, self._encode_can(message, drive.motor_id, None), message)
-                for _, drive in self._v3
+                Outgoing(self.ids[n], self._encode_can(message, drive.motor_id, None), message)
+                for n, drive in self._v3
                 for message in drive.active_replies_due(now)
             ]
 
     # --- requests -------------------------------------------------------------------------------------------------
 
-    def handle_can(self, frame: CanFrame) -> Exchange[CanFrame]:
-        """Execute a CAN request frame (a frame for several drives, 0x280 / 0x300: each takes its share).
+    def handle_can(self, frame: CanFrame, line: int = 0) -> Exchange[CanFrame]:
+        """Execute a CAN request frame that came on bus ``line`` (a frame for several drives, 0x280 / 0x300: each
+        of that bus takes its share).
 
         Raises:
             DecodeError: the frame breaks the family's CAN protocol (id, length, command, field, reserved byte).
         """
         motor_id, message = self.generation.decode_can_request(frame.arbitration_id, frame.data)
-        targets = self.generation.spread(message, self.ids) if motor_id is None else [(motor_id, message)]
-        return self._dispatch(motor_id, message, targets, WireProtocol.CAN, self._encode_can)
+        return self._dispatch(line, motor_id, message, WireProtocol.CAN, self._encode_can)
 
-    def handle_rs485(self, raw: bytes) -> Exchange[bytes]:
-        """Execute an RS485 request frame (V3: id 0xCD reaches every drive).
+    def handle_rs485(self, raw: bytes, line: int = 0) -> Exchange[bytes]:
+        """Execute an RS485 request frame that came on line ``line`` (V3: id 0xCD reaches every drive of it).
 
         Raises:
             DecodeError: the frame breaks the family's RS485 protocol (length, head, checksum, id, command, field).
         """
         motor_id, message = self.generation.decode_rs485_request(raw)
-        targets = self.generation.spread(message, self.ids) if motor_id is None else [(motor_id, message)]
-        return self._dispatch(motor_id, message, targets, WireProtocol.RS485, self._encode_rs485)
+        return self._dispatch(line, motor_id, message, WireProtocol.RS485, self._encode_rs485)
 
     def _dispatch(
         self,
+        line: int,
         motor_id: int | None,
         request: Message,
-        targets: list[tuple[int, Message]],
         transport: WireProtocol,
         encode: Callable[[Message, int, Corruption | None], W],
     ) -> Exchange[W]:
+        """Each drive of bus ``line`` the request reaches (``motor_id``, or its share of a frame for several
+        drives) executes it and answers; the exchange names drives by their addresses."""
+        targets = (
+            self.generation.spread(request, self.line_ids.get(line, ())) if motor_id is None else [(motor_id, request)]
+        )
+        base = line * ADDRESS_STRIDE
         replies: list[Outgoing[W]] = []
         notes: list[str] = []
         with self._lock:
             self._apply_fault_events()  # a request may come before the first step after a fault's start
             for target_id, message in targets:
-                drive = self.drives.get(target_id)
+                address = base + target_id
+                drive = self.drives.get(address)
                 if drive is None:
                     notes.append(f"motor {target_id} is not on the bus")
                     continue
-                lost, delay_s, corruption = self._link(target_id)
+                lost, delay_s, corruption = self._link(address)
                 if lost is not None:
                     notes.append(f"motor {target_id}: {lost}")
                     continue
-                n = self._index[target_id]
+                n = self._index[address]
                 drive.observe(float(self._positions[n]), float(self._velocities[n]))
                 reply = drive.respond(message, self.time_s, transport)
                 if reply is None:  # (V3: 0x76, 0xB4, 0xB6 have no reply)
                     continue
-                replies.append(Outgoing(target_id, encode(reply, target_id, corruption), reply, delay_s, corruption))
-        return Exchange(motor_id, request, tuple(replies), tuple(notes))
+                replies.append(Outgoing(address, encode(reply, target_id, corruption), reply, delay_s, corruption))
+        return Exchange(None if motor_id is None else base + motor_id, request, tuple(replies), tuple(notes))
 
     def request(
         self, motor_id: int, message: Message, transport: WireProtocol = WireProtocol.CAN
@@ -444,11 +456,15 @@ class Emulator:
             DecodeError: a reply was corrupted by a fault.
         """
         generation = self.generation
+        line, wire_id = split_address(motor_id)
         if transport is WireProtocol.CAN:
-            sent = self.handle_can(generation.encode_can_request(message, motor_id))
-            return [_with_id(generation.decode_can_reply(o.wire.arbitration_id, o.wire.data), o) for o in sent.replies]
-        done = self.handle_rs485(generation.encode_rs485_request(message, motor_id))
-        return [_with_id(generation.decode_rs485_reply(o.wire), o) for o in done.replies]
+            sent = self.handle_can(generation.encode_can_request(message, wire_id), line)
+            replies = [(generation.decode_can_reply(o.wire.arbitration_id, o.wire.data), o) for o in sent.replies]
+        else:
+            done = self.handle_rs485(generation.encode_rs485_request(message, wire_id), line)
+            replies = [(generation.decode_rs485_reply(o.wire), o) for o in done.replies]
+        # (the id the reply carries, a corrupted one too; V3's 0x79 replies name no drive: the sender's)
+        return [(o.motor_id if d[0] is None else line * ADDRESS_STRIDE + d[0], d[1]) for d, o in replies]
 
 
 def _pick(value: W | Mapping[int, W] | None, motor_id: int, default: Callable[[], W]) -> W:
@@ -490,6 +506,7 @@ _CORRUPT_RS485: Final[Mapping[ProtocolFamily, Callable[[bytes, Corruption], byte
 }
 
 
-def _with_id(decoded: tuple[int | None, Message], sent: Outgoing[W]) -> tuple[int, Message]:
-    """A decoded reply with the id of the drive that sent it (V3's 0x79 replies name no drive in their id)."""
-    return (sent.motor_id if decoded[0] is None else decoded[0]), decoded[1]
+def _check_address(address: int) -> int:
+    """``address`` if it names a drive: a motor id 1..32 on the first bus, ``bus × ADDRESS_STRIDE + id`` beyond."""
+    check_motor_id(split_address(address)[1] if isinstance(address, int) and address > 0 else address)
+    return address

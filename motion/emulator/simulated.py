@@ -34,7 +34,7 @@ from motion.emulator.timing import TimingModel, can_frame_bits
 from motion.errors import DecodeError
 from motion.protocol import CanFrame, WireProtocol
 from motion.protocol.rs485_frame import rs485_frame_time_s
-from motion.protocol.table import ProtocolFamily
+from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily, split_address
 from motion.transport.base import Request, Transport, probe_in_turn
 from motion.transport.can_transport import take_in_can_frame
 from motion.transport.detect import expected_answers, generations, probe_frames
@@ -50,7 +50,7 @@ _Outgoing = Outgoing[CanFrame] | Outgoing[bytes]
 
 @dataclass(order=True, slots=True)
 class _Frame:
-    """A frame waiting for the bus."""
+    """A frame waiting for its wire."""
 
     ready_s: float
     seq: int
@@ -61,30 +61,49 @@ class _Frame:
 
 @dataclass(frozen=True, slots=True)
 class Arrival:
-    """A reply whose last bit reached the host at ``time_s``."""
+    """A reply whose last bit reached the host at ``time_s``, on line ``line``."""
 
     time_s: float
     motor_id: int
     wire: CanFrame | bytes
+    line: int = 0
 
 
 #: The most CAN frames whose bit counts a simulation remembers (then it starts again).
 _FRAME_BITS_KEPT = 4096
 
 
+@dataclass(slots=True)
+class _Line:
+    """One wire of a simulation (a bus): its frames wait in ``queue`` and go out one at a time."""
+
+    index: int
+    protocol: WireProtocol
+    rate: int  # bit/s: the CAN bit rate or the RS485 baud rate
+    channel: str
+    queue: list[_Frame] = field(default_factory=list)
+    busy_until_s: float = 0.0
+    current: _Frame | None = None  # the frame on the wire now, until busy_until_s
+
+
 class Simulation:
-    """Emulated drives on a modelled wire, and the one clock of the run.
+    """Emulated drives on modelled wires, and the one clock of the run.
+
+    One wire (a bus) by default; ``lines`` gives several, each a medium of its own whose frames go out at the same
+    time as the others' (an arm on several buses): line ``k`` carries the drives whose addresses are
+    ``k × ADDRESS_STRIDE + motor id`` (:mod:`motion.protocol.table`).
 
     Args:
         emulator: the drives (their simulation time is the run's start).
-        protocol: CAN or RS485.
-        bitrate: CAN bit rate, bit/s.
-        baud: RS485 baud rate, bit/s.
+        protocol: CAN or RS485 (of the one line).
+        bitrate: CAN bit rate, bit/s (of the one line).
+        baud: RS485 baud rate, bit/s (of the one line).
         timing: the drives' reply latency (the bus-time model is always on here).
         frame_log: where to log every frame (at its simulated time), or None.
+        lines: several lines instead, each ``(protocol, bit rate or baud rate)``.
 
     Raises:
-        ValueError: a bit rate or baud rate that is not positive.
+        ValueError: a bit rate or baud rate that is not positive, or no line.
     """
 
     def __init__(
@@ -96,20 +115,25 @@ class Simulation:
         baud: int = DEFAULT_BAUD,
         timing: TimingModel | None = None,
         frame_log: FrameLog | None = None,
+        lines: Sequence[tuple[WireProtocol, int]] | None = None,
     ) -> None:
-        if bitrate <= 0 or baud <= 0:
-            raise ValueError(f"bit rate and baud rate must be > 0 bit/s, got {bitrate} and {baud}")
+        if lines is None:
+            lines = [(protocol, bitrate if protocol is WireProtocol.CAN else baud)]
+        if not lines or any(rate <= 0 for _, rate in lines) or bitrate <= 0 or baud <= 0:
+            raise ValueError(f"bit rates and baud rates must be > 0 bit/s and a line given, got {lines}")
         self.emulator = emulator
-        self.protocol = protocol
-        self.bitrate = bitrate
+        self.now_s = emulator.time_s
+        self.lines = [
+            _Line(k, p, rate, f"sim-{p.value.lower()}" + (f"-{k}" if k else ""), busy_until_s=self.now_s)
+            for k, (p, rate) in enumerate(lines)
+        ]
+        self.protocol = self.lines[0].protocol
+        self.bitrate = self.lines[0].rate if self.protocol is WireProtocol.CAN else bitrate
+        self.baud = self.lines[0].rate if self.protocol is WireProtocol.RS485 else baud
         self._frame_bits: dict[tuple[int, bytes], int] = {}  # (the frames of a run repeat: their bits, remembered)
-        self.baud = baud
         self.timing = timing or TimingModel()
         self.frame_log = frame_log
-        self.channel = "sim-can" if protocol is WireProtocol.CAN else "sim-rs485"
-        self.now_s = emulator.time_s
-        self._queue: list[_Frame] = []
-        self._busy_until_s = self.now_s
+        self.channel = self.lines[0].channel
         self._arrived: deque[Arrival] = deque()
         self._seq = 0
         #: Requests that broke the protocol (never answered), and requests no drive answered.
@@ -123,7 +147,7 @@ class Simulation:
         return self.now_s
 
     def sleep_until(self, deadline_s: float) -> None:
-        """Let the bus and the drives run until ``deadline_s`` (never backwards)."""
+        """Let the wires and the drives run until ``deadline_s`` (never backwards)."""
         if deadline_s > self.now_s:
             self._run_bus(deadline_s)
             self.now_s = deadline_s
@@ -131,8 +155,9 @@ class Simulation:
 
     # --- the wire -------------------------------------------------------------------------------------------
 
-    def wire_time_s(self, wire: CanFrame | bytes) -> float:
-        """Time a frame occupies the bus, s."""
+    def wire_time_s(self, wire: CanFrame | bytes, line: int = 0) -> float:
+        """Time a frame occupies line ``line``, s."""
+        rate = self.lines[line].rate
         if isinstance(wire, CanFrame):
             key = (wire.arbitration_id, wire.data)
             bits = self._frame_bits.get(key)
@@ -140,19 +165,19 @@ class Simulation:
                 if len(self._frame_bits) >= _FRAME_BITS_KEPT:
                     self._frame_bits.clear()
                 bits = self._frame_bits[key] = can_frame_bits(*key)
-            return bits / self.bitrate
-        return rs485_frame_time_s(len(wire), self.baud)
+            return bits / rate
+        return rs485_frame_time_s(len(wire), rate)
 
-    def submit(self, wire: CanFrame | bytes) -> None:
-        """The host hands a request to the wire now."""
-        self._push(self.now_s, True, wire, None)
+    def submit(self, wire: CanFrame | bytes, line: int = 0) -> None:
+        """The host hands a request to line ``line`` now."""
+        self._push(self.lines[line], self.now_s, True, wire, None)
 
-    def _push(self, ready_s: float, request: bool, wire: CanFrame | bytes, outgoing: _Outgoing | None) -> None:
+    def _push(self, line: _Line, ready_s: float, request: bool, wire: CanFrame | bytes, out: _Outgoing | None) -> None:
         self._seq += 1
-        heapq.heappush(self._queue, _Frame(ready_s, self._seq, request, wire, outgoing))
+        heapq.heappush(line.queue, _Frame(ready_s, self._seq, request, wire, out))
 
     def next_arrival(self, limit_s: float) -> Arrival | None:
-        """Run the bus until a reply reaches the host by ``limit_s``; the first such reply, or None.
+        """Run the wires until a reply reaches the host by ``limit_s``; the first such reply, or None.
 
         A reply that arrives after ``limit_s`` stays on its way (a later call or cycle takes it in).
         """
@@ -171,58 +196,75 @@ class Simulation:
         return out
 
     def _run_bus(self, limit_s: float, *, stop_at_arrival: bool = False) -> None:
-        """Put the waiting frames on the bus, in order, while the next one starts by ``limit_s``."""
-        queue, emulator = self._queue, self.emulator
+        """Run the wires' events in time order while the next one is by ``limit_s``: a frame's last bit (a request
+        reaches the drives, a reply the host), a waiting frame's first (its wire free, first ready first sent), a V3
+        drive's own reply falling due."""
+        lines, emulator = self.lines, self.emulator
         while True:
-            start = max(queue[0].ready_s, self._busy_until_s) if queue else math.inf
+            when, line, ends = math.inf, lines[0], False
+            for candidate in lines:
+                if candidate.current is not None:
+                    if candidate.busy_until_s < when or (candidate.busy_until_s == when and not ends):
+                        when, line, ends = candidate.busy_until_s, candidate, True
+                elif candidate.queue:
+                    start = max(candidate.queue[0].ready_s, candidate.busy_until_s)
+                    if start < when:
+                        when, line, ends = start, candidate, False
             due = emulator.next_active_reply_s()  # (V3 drives' replies without requests, 0xB6; CAN only)
-            if due is not None and due <= limit_s and due <= start:
+            if due is not None and due <= limit_s and due <= when:
                 emulator.advance_to(due)
                 for outgoing in emulator.active_replies(due):
-                    self._push(due + self.timing.reply_delay_s(), False, outgoing.wire, outgoing)
+                    target = lines[split_address(outgoing.motor_id)[0]]
+                    self._push(target, due + self.timing.reply_delay_s(), False, outgoing.wire, outgoing)
                 continue
-            if start > limit_s:
+            if when > limit_s:
                 return
-            frame = heapq.heappop(queue)
-            end = self._busy_until_s = start + self.wire_time_s(frame.wire)
+            if not ends:
+                frame = line.current = heapq.heappop(line.queue)
+                line.busy_until_s = when + self.wire_time_s(frame.wire, line.index)
+                continue
+            frame = line.current
+            assert frame is not None
+            line.current = None
             if frame.request:
-                self._execute(frame.wire, end)
+                self._execute(frame.wire, when, line)
                 continue
             assert frame.outgoing is not None  # every reply frame carries its outgoing record
-            self._arrived.append(Arrival(end, frame.outgoing.motor_id, frame.wire))
+            self._arrived.append(Arrival(when, frame.outgoing.motor_id, frame.wire, line.index))
             if self.frame_log is not None:  # (the text only where it is written: a message's repr is not free)
-                self._log("OUT", frame.wire, f"motor {frame.outgoing.motor_id}: {frame.outgoing.message}", end)
-            if stop_at_arrival and end <= limit_s:
+                self._log(line, "OUT", frame.wire, f"motor {frame.outgoing.motor_id}: {frame.outgoing.message}", when)
+            if stop_at_arrival:
                 return
 
-    def _execute(self, wire: CanFrame | bytes, arrival_s: float) -> None:
-        """A request reached the drives at ``arrival_s``: advance them there, execute it, queue the replies."""
+    def _execute(self, wire: CanFrame | bytes, arrival_s: float, line: _Line) -> None:
+        """A request reached the drives of ``line`` at ``arrival_s``: advance them there, execute it, queue the
+        replies."""
         self.emulator.advance_to(arrival_s)
         exchange: Exchange[CanFrame] | Exchange[bytes]
         try:
             if isinstance(wire, CanFrame):
-                exchange = self.emulator.handle_can(wire)
+                exchange = self.emulator.handle_can(wire, line.index)
             else:
-                exchange = self.emulator.handle_rs485(wire)
+                exchange = self.emulator.handle_rs485(wire, line.index)
         except DecodeError as exc:
             self.decode_errors += 1
-            self._log("BAD", wire, f"{type(exc).__name__}: {exc}", arrival_s)
+            self._log(line, "BAD", wire, f"{type(exc).__name__}: {exc}", arrival_s)
             return
         if self.frame_log is not None:
             target = f"motor {exchange.motor_id}" if exchange.motor_id is not None else "motors 1-4"
-            self._log("IN", wire, f"{target}: {exchange.request}", arrival_s)
+            self._log(line, "IN", wire, f"{target}: {exchange.request}", arrival_s)
             for note in exchange.notes:
-                self._log("NOTE", wire, note, arrival_s)
+                self._log(line, "NOTE", wire, note, arrival_s)
         if not exchange.replies:
             self.unanswered += 1
         for outgoing in exchange.replies:
             ready = arrival_s + self.timing.reply_delay_s() + outgoing.delay_s
-            self._push(ready, False, outgoing.wire, outgoing)
+            self._push(line, ready, False, outgoing.wire, outgoing)
 
-    def _log(self, direction: str, wire: CanFrame | bytes, decoded: str, time_s: float) -> None:
+    def _log(self, line: _Line, direction: str, wire: CanFrame | bytes, decoded: str, time_s: float) -> None:
         if self.frame_log is not None:
             text = f"{wire.arbitration_id:03X}: {wire.data.hex(' ')}" if isinstance(wire, CanFrame) else wire.hex(" ")
-            self.frame_log.write(direction, self.channel, text, decoded, time_s=time_s)
+            self.frame_log.write(direction, line.channel, text, decoded, time_s=time_s)
 
 
 class SimulatedBus(Transport):
@@ -235,10 +277,13 @@ class SimulatedBus(Transport):
         super().__init__(clock=simulation.now, family=simulation.emulator.family if family is None else family)
         self.simulation = simulation
         self._can = simulation.protocol is WireProtocol.CAN
+        if len(simulation.lines) > 1 and any(line.protocol is not WireProtocol.CAN for line in simulation.lines):
+            raise ValueError("several lines in simulated time: CAN buses only so far (an RS485 line is one at a time)")
         self._encode_can = self.generation.encode_can_request
         self._encode_rs485 = self.generation.encode_rs485_request
         self._decode_rs485 = self.generation.decode_rs485_reply
         self._wires: list[CanFrame | bytes] = []
+        self._lines: list[int] = []
         self._motors: list[int] = []
 
     def probe_families(self, ids: Sequence[int], window_s: float) -> dict[int, ProtocolFamily] | None:
@@ -248,20 +293,30 @@ class SimulatedBus(Transport):
             return probe_in_turn(self, ids, window_s, lambda family: SimulatedBus(self.simulation, family))
         sim = self.simulation
         sim.arrived_by(sim.now_s)  # what was sent before is nobody's answer
-        for frame in probe_frames(ids):
-            sim.submit(frame)
-        wanted, end = expected_answers(ids), sim.now_s + window_s
-        answered: set[int] = set()
-        while len(answered) < len(set(ids)):
+        on_line: dict[int, list[int]] = {}
+        for address in sorted(set(ids)):
+            line, motor_id = split_address(address)
+            on_line.setdefault(line, []).append(motor_id)
+        wanted = {line: expected_answers(motor_ids) for line, motor_ids in on_line.items()}
+        for line, motor_ids in on_line.items():
+            for frame in probe_frames(motor_ids):
+                sim.submit(frame, line)
+        end = sim.now_s + window_s
+        answered: dict[int, set[int]] = {line: set() for line in on_line}
+        while sum(map(len, answered.values())) < len(set(ids)):
             arrival = sim.next_arrival(end)
             if arrival is None:
                 sim.sleep_until(end)
                 break
             sim.now_s = arrival.time_s
-            wire = arrival.wire
-            if isinstance(wire, CanFrame) and wanted.get(wire.arbitration_id) == wire.data[0]:
-                answered.add(wire.arbitration_id)
-        return generations(answered)
+            wire, line = arrival.wire, arrival.line
+            if isinstance(wire, CanFrame) and wanted.get(line, {}).get(wire.arbitration_id) == wire.data[0]:
+                answered[line].add(wire.arbitration_id)
+        return {
+            line * ADDRESS_STRIDE + motor_id: family
+            for line, found in answered.items()
+            for motor_id, family in generations(found).items()
+        }
 
     def with_family(self, family: ProtocolFamily) -> SimulatedBus:
         """See :meth:`Transport.with_family`."""
@@ -271,24 +326,29 @@ class SimulatedBus(Transport):
 
     def request_wire_s(self, requests: Sequence[Request]) -> float | None:
         """See :meth:`Transport.request_wire_s`: the simulated wire's own timing."""
-        sim = self.simulation
-        if self._can:
-            return sum(sim.wire_time_s(self._encode_can(r.message, r.motor_id)) for r in requests)
-        return sum(sim.wire_time_s(self._encode_rs485(r.message, r.motor_id)) for r in requests)
+        sim, busy = self.simulation, [0.0] * len(self.simulation.lines)
+        for request in requests:
+            line, motor_id = split_address(request.motor_id)
+            encode = self._encode_can if self._can else self._encode_rs485
+            busy[line] += sim.wire_time_s(encode(request.message, motor_id), line)
+        return max(busy)  # (the lines carry their frames at the same time)
 
     def describe(self) -> str:
         """``"simulated can"`` or ``"simulated rs485"``."""
         return f"simulated {self.simulation.protocol.value.lower()}"
 
     def _prepare(self, requests: Sequence[Request]) -> None:
-        wires, motors = self._wires, self._motors
+        wires, lines, motors = self._wires, self._lines, self._motors
         wires.clear()
+        lines.clear()
         motors.clear()
         for request in requests:
+            line, motor_id = split_address(request.motor_id)  # (one line: the motor id itself)
             if self._can:
-                wires.append(self._encode_can(request.message, request.motor_id))
+                wires.append(self._encode_can(request.message, motor_id))
             else:
-                wires.append(self._encode_rs485(request.message, request.motor_id))
+                wires.append(self._encode_rs485(request.message, motor_id))
+            lines.append(line)
             motors.append(request.motor_id)
 
     def _exchange(self, deadline_s: float) -> None:
@@ -301,8 +361,8 @@ class SimulatedBus(Transport):
         sim = self.simulation
         for stale in sim.arrived_by(sim.now_s):  # a previous cycle's replies
             self._take_in(stale)
-        for index, wire in enumerate(self._wires):
-            sim.submit(wire)
+        for index, (wire, line) in enumerate(zip(self._wires, self._lines, strict=True)):
+            sim.submit(wire, line)
             self._sent(index)
             self._tap(False, wire)
         while self._open_slots:
@@ -345,7 +405,7 @@ class SimulatedBus(Transport):
     def _take_in(self, arrival: Arrival, waiting_for: int | None = None) -> None:
         wire = arrival.wire
         if isinstance(wire, CanFrame):
-            take_in_can_frame(self, wire)
+            take_in_can_frame(self, wire, arrival.line * ADDRESS_STRIDE)
             return
         self._tap(True, wire)
         try:

@@ -98,6 +98,9 @@ _FLOAT32: Final = struct.Struct("<f")
 
 MOTOR_ID_MIN: Final = 1
 MOTOR_ID_MAX: Final = 32
+#: An arm on several buses names each drive by its address, ``bus index × ADDRESS_STRIDE + motor id`` (the first bus:
+#: the motor id itself), so that control and safety keep one key per drive; the buses' transport splits it again.
+ADDRESS_STRIDE: Final = 100
 CAN_PAYLOAD_BYTES: Final = 8
 RS485_MAX_DATA_BYTES: Final = 60
 
@@ -555,6 +558,11 @@ def spec_and_layout(
     spec = commands.get(code)
     layout = spec.layout(transport, direction) if spec is not None else None
     return None if spec is None or layout is None else (spec, layout)
+
+
+def split_address(address: int) -> tuple[int, int]:
+    """``(bus index, motor id)`` of a drive's address (see :data:`ADDRESS_STRIDE`)."""
+    return divmod(address, ADDRESS_STRIDE)
 
 
 def check_motor_id(motor_id: int) -> int:

@@ -19,8 +19,9 @@ from motion.transport.base import Request, Transport
 from motion.transport.can_endpoint import CanEndpoint
 
 
-def take_in_can_frame(transport: Transport, frame: CanFrame) -> None:
-    """Take one received CAN frame into ``transport``: tap it, decode it, offer it (or count why not).
+def take_in_can_frame(transport: Transport, frame: CanFrame, address_base: int = 0) -> None:
+    """Take one received CAN frame into ``transport``: tap it, decode it, offer it (or count why not); the drive's
+    address is ``address_base`` + its motor id (an arm on several buses: ``bus index × ADDRESS_STRIDE``).
 
     Shared by every transport that carries RMD CAN frames (this one and the simulated bus).
     """
@@ -38,9 +39,9 @@ def take_in_can_frame(transport: Transport, frame: CanFrame) -> None:
     try:
         message = generation.decode_can_reply(arbitration_id, frame.data)[1]
     except DecodeError:
-        transport.motor_counters(motor_id).bad_frames += 1
+        transport.motor_counters(address_base + motor_id).bad_frames += 1
         return
-    transport._offer(motor_id, message)
+    transport._offer(address_base + motor_id, message)
 
 
 # Looked up once, not for every frame.
