@@ -40,7 +40,7 @@ class ArmPlant:
     def __init__(self, arm: ArmModel, config: ArmConfig, initial_deg: FloatArray | None = None) -> None:
         joints = config.joints
         n = len(joints)
-        order = sorted(range(n), key=lambda i: joints[i].motor_id)  # emulator index -> configuration index
+        order = sorted(range(n), key=lambda i: joints[i].address)  # emulator index -> configuration index
         self._order = np.array(order, dtype=np.intp)
         self._model, self._data = arm.model, arm.data
         self._to_model = arm.to_model  # model coordinate -> configuration index

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from motion.config.schema import ArmConfig, CanBusConfig, ControlMode, JointConfig, ProtocolSetting
+from motion.config.schema import ArmConfig, BusConfig, CanBusConfig, ControlMode, JointConfig, ProtocolSetting
 from motion.control import identify
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
@@ -43,6 +43,7 @@ from motion.safety.watchdog import CollisionObserver, Watchdog
 from motion.trajectory import JointLimits
 from motion.transmission import FloatArray
 from motion.transport import Transport, open_transport
+from motion.transport.buses import several
 from motion.transport.identity import read_identities
 
 if TYPE_CHECKING:
@@ -71,7 +72,7 @@ def axis_specs(config: ArmConfig, family: ProtocolFamily = ProtocolFamily.V2) ->
     return tuple(
         AxisSpec(
             j.name,
-            j.motor_id,
+            j.address,
             j.encoder_bits,
             j.kp_nm_per_deg,
             j.kd_nm_per_dps,
@@ -82,8 +83,19 @@ def axis_specs(config: ArmConfig, family: ProtocolFamily = ProtocolFamily.V2) ->
 
 
 def wire_protocol(config: ArmConfig) -> WireProtocol:
-    """The protocol spoken on the configured bus."""
-    return config.bus.transport
+    """The protocol spoken on the configured bus (every bus of the arm).
+
+    Raises:
+        ConfigError: the arm's buses are of both transports (one arm's set-points are built for one wire so far).
+    """
+    wires = {bus.transport for bus in config.buses}
+    if len(wires) > 1:
+        raise ConfigError(
+            config.source,
+            "buses",
+            "buses of both transports (can and rs485) in one arm: not supported yet; put every bus of the arm on one",
+        )
+    return wires.pop()
 
 
 def controller_options(config: ArmConfig) -> ControllerOptions:
@@ -93,24 +105,55 @@ def controller_options(config: ArmConfig) -> ControllerOptions:
 
 def opening_family(config: ArmConfig) -> ProtocolFamily:
     """The generation a bus opens in before :func:`negotiate_family` asks the drives: the one ``bus.protocol`` names;
-    with ``auto`` the older, unless the RS485 baud rate is one only V3 drives run at."""
-    bus = config.bus
-    if bus.protocol is not ProtocolSetting.AUTO:
-        return ProtocolFamily(bus.protocol.value)
+    with ``auto`` the older, unless the RS485 baud rate is one only V3 drives run at. An arm on several buses opens
+    them all in one: the one their settings name, else the one their baud rates tell, else the older.
+
+    Raises:
+        ConfigError: the buses name both generations (one arm's drives speak one so far).
+    """
+    named = {ProtocolFamily(b.protocol.value) for b in config.buses if b.protocol is not ProtocolSetting.AUTO}
+    if len(named) > 1:
+        raise ConfigError(
+            config.source, "buses", "the buses name both protocol generations: one arm's drives speak one so far"
+        )
+    if named:
+        return named.pop()
+    told = {_opening(bus) for bus in config.buses}
+    return told.pop() if len(told) == 1 else ProtocolFamily.V2
+
+
+def _opening(bus: BusConfig) -> ProtocolFamily:
+    """The generation a bus whose ``protocol`` is ``auto`` opens in."""
     if not isinstance(bus, CanBusConfig) and bus.baudrate not in RS485_BAUDRATES[ProtocolFamily.V2]:
         return ProtocolFamily.V3
     return ProtocolFamily.V2
 
 
 def open_bus(config: ArmConfig, **overrides: object) -> Transport:
-    """Open the configured bus, speaking the configured protocol generation (``auto``: the older one until
-    :func:`negotiate_family`); ``overrides`` replace configured values (e.g. ``channel=`` of an emulator).
+    """Open the configured bus (every bus of an arm on several, as one :class:`~motion.transport.buses.Buses`),
+    speaking the configured protocol generation (``auto``: the older one until :func:`negotiate_family`);
+    ``overrides`` replace configured values (e.g. ``channel=`` of an emulator): a value for every bus, or a mapping of
+    bus names to each one's (``channel={"left": ..., "right": ...}``).
 
     Raises:
-        TransportError: the bus or port could not be opened.
+        TransportError: a bus or port could not be opened (those opened before are closed again).
+        ConfigError: the buses name both protocol generations.
     """
-    bus = config.bus
-    return open_transport(bus.transport.value, **(bus.settings() | {"family": opening_family(config)} | overrides))
+    family = opening_family(config)
+    opened: list[Transport] = []
+    try:
+        for bus in config.buses:
+            mine = {
+                key: value[bus.name] if isinstance(value, Mapping) else value
+                for key, value in overrides.items()
+                if not isinstance(value, Mapping) or bus.name in value
+            }
+            opened.append(open_transport(bus.transport.value, **(bus.settings() | {"family": family} | mine)))
+        return several(opened, [bus.name for bus in config.buses])
+    except BaseException:
+        for transport in opened:
+            transport.close()
+        raise
 
 
 #: Connect: the window in which the configured drives answer the generation check on a CAN bus, s.
@@ -136,8 +179,7 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
     """
     from motion.transport.detect import describe_mixed  # noqa: PLC0415 - the CAN backend only where it is used
 
-    setting = config.bus.protocol
-    ids = [j.motor_id for j in config.joints]
+    ids = [j.address for j in config.joints]
     found: dict[int, ProtocolFamily] = {}
     for _ in range(GENERATION_CHECK_ATTEMPTS):  # (a reply later than the window on a busy host: asked again)
         answers = bus.probe_families([i for i in ids if i not in found], GENERATION_CHECK_WINDOW_S)
@@ -146,17 +188,21 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
             break
     answered = set(found.values())
     if len(answered) > 1:
-        raise TransportError(f"drives of both protocol generations on one bus ({describe_mixed(found)}): refused")
+        where = "one bus" if len(config.buses) == 1 else "one arm"
+        raise TransportError(f"drives of both protocol generations on {where} ({describe_mixed(found)}): refused")
     detected = answered.pop() if answered else None
-    if setting is ProtocolSetting.AUTO:
-        wanted = detected or ProtocolFamily.V2
-    else:
-        wanted = ProtocolFamily(setting.value)
-        if detected is not None and detected is not wanted:
+    for index, bus_config in enumerate(config.buses):
+        setting = bus_config.protocol
+        on_bus = {found[j.address] for j in config.joints_on(index) if j.address in found}
+        if setting is not ProtocolSetting.AUTO and on_bus and on_bus != {ProtocolFamily(setting.value)}:
+            key = f"buses.{bus_config.name}.protocol" if bus_config.name else "bus.protocol"
+            (told,) = on_bus
             raise TransportError(
-                f"bus.protocol is {setting.value}, but the drives answer in the {detected.value} protocol "
-                f"({describe_mixed(found)}): set bus.protocol to {detected.value} or auto"
+                f"{key} is {setting.value}, but the drives answer in the {told.value} protocol "
+                f"({describe_mixed(found)}): set {key} to {told.value} or auto"
             )
+    named = {ProtocolFamily(b.protocol.value) for b in config.buses if b.protocol is not ProtocolSetting.AUTO}
+    wanted = detected or (named.pop() if named else ProtocolFamily.V2)
     spoken = bus if bus.family is wanted else bus.with_family(wanted)
     if found:
         described = describe_drives(spoken, sorted(found), wire_protocol(config))
@@ -333,7 +379,7 @@ def build_supervisor(config: ArmConfig, controller: Controller, *, observe: bool
     Raises:
         ConfigError: a joint has ``brake: true`` but its drive's generation has no brake commands.
     """
-    braked = [j.motor_id for j in config.joints if j.brake]
+    braked = [j.address for j in config.joints if j.brake]
     if braked and not controller.family.brakes:
         i, joint = next((i, j) for i, j in enumerate(config.joints) if j.brake)
         raise ConfigError(
@@ -354,8 +400,8 @@ def build_supervisor(config: ArmConfig, controller: Controller, *, observe: bool
 def drive_setup(config: ArmConfig, controller: Controller) -> DriveSetup:
     """The drive-side settings of a session of ``config`` on ``controller``'s bus, with the host's record of them
     (:mod:`motion.control.drive_record`)."""
-    ids = [j.motor_id for j in config.joints]
-    braked = [j.motor_id for j in config.joints if j.brake]
+    ids = [j.address for j in config.joints]
+    braked = [j.address for j in config.joints if j.brake]
     record, now = drive_record_for(controller.bus)
     return DriveSetup(
         controller.bus, controller.family, ids, braked, session_link_timeout_ms(config), record=record, now=now
@@ -402,11 +448,11 @@ def resolve_frames(
     resolved = resolve_turns(
         config.joint_names,
         base,
-        [readings[j.motor_id] for j in config.joints],
+        [readings[j.address] for j in config.joints],
         [None if j.name in provisional else j.power_on_window_deg for j in config.joints],
         found,
         powered_since=[
-            _powered_since(r, runtimes.get(j.motor_id), now) for j, r in zip(config.joints, found, strict=True)
+            _powered_since(r, runtimes.get(j.address), now) for j, r in zip(config.joints, found, strict=True)
         ],
         stayed_powered=stayed_powered,
         # drives that report their output shaft (V3): the reading is the joint's (the joints about to be homed aside)
@@ -417,7 +463,7 @@ def resolve_frames(
         limits=[(j.position_min_deg, j.position_max_deg) for j in config.joints],
     )
     resolved = tuple(
-        dataclasses.replace(t, power_on=None if j.motor_id not in runtimes else (runtimes[j.motor_id], now))
+        dataclasses.replace(t, power_on=None if j.address not in runtimes else (runtimes[j.address], now))
         for j, t in zip(config.joints, resolved, strict=True)
     )
     controller.set_turns([j.turns for j in resolved])

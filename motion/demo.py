@@ -222,7 +222,9 @@ def run_demo(
         path = config_path(drives)
         position = load_config(path)
         # the controller tells the drives' generation at connect, as with real drives (the file names it)
-        position = dataclasses.replace(position, bus=dataclasses.replace(position.bus, protocol=ProtocolSetting.AUTO))
+        position = dataclasses.replace(
+            position, buses=(dataclasses.replace(position.bus, protocol=ProtocolSetting.AUTO),)
+        )
         target.mkdir(parents=True, exist_ok=True)
     except (ConfigError, OSError) as exc:
         print(f"rmd-motion demo: {exc}", file=sys.stderr)

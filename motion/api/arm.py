@@ -465,11 +465,14 @@ class Arm:
         )
         if self._start_pose is not None:
             self.emulator.power_cycle()  # powered up there: each drive counts its turns from this pose
-        bus_config = self.config.bus
-        if isinstance(bus_config, CanBusConfig):
-            simulation = Simulation(self.emulator, WireProtocol.CAN, bitrate=bus_config.bitrate or DEFAULT_BITRATE)
-        else:
-            simulation = Simulation(self.emulator, WireProtocol.RS485, baud=bus_config.baudrate)
+        # one line per bus, each at its own rate (their frames go out at the same time)
+        lines = [
+            (WireProtocol.CAN, bus.bitrate or DEFAULT_BITRATE)
+            if isinstance(bus, CanBusConfig)
+            else (WireProtocol.RS485, bus.baudrate)
+            for bus in self.config.buses
+        ]
+        simulation = Simulation(self.emulator, lines=lines)
         if self._emulator_log is not None:
             self.frame_log = self._stack.enter_context(FrameLog(self._emulator_log, clock=simulation.now))
             simulation.frame_log = self.frame_log
@@ -535,7 +538,7 @@ class Arm:
                 firmware's ranges are not known for its model.
         """
         supervisor = self._guard()
-        ids = {j.name: j.motor_id for j in self.config.joints}
+        ids = {j.name: j.address for j in self.config.joints}
         if joint not in ids:
             raise PlanningError(f"motion_ranges: unknown joint {joint!r}; joints: {', '.join(ids)}")
         motor_id = ids[joint]

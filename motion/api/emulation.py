@@ -20,14 +20,15 @@ from motion.compose import (
     open_bus,
     opening_family,
     rehearsal_watchdog,
+    wire_protocol,
 )
 from motion.config import ArmConfig
-from motion.config.schema import CanBusConfig, ControlMode, ProtocolSetting
+from motion.config.schema import ControlMode, ProtocolSetting
 from motion.control.ratecheck import RateCheck, measure_rate
 from motion.emulator import Fault
 from motion.emulator.simulated import DEFAULT_BITRATE
 from motion.errors import ConfigError, MotionError, TransportError
-from motion.protocol.table import ProtocolFamily
+from motion.protocol.table import ProtocolFamily, WireProtocol
 from motion.transport import Transport
 
 #: How long the emulator process gets to end after SIGTERM, s.
@@ -50,19 +51,21 @@ def emulated_family(config: ArmConfig, protocol: ProtocolFamily | str | None) ->
     Raises:
         ConfigError: an unknown generation, or one that contradicts ``bus.protocol``.
     """
-    setting = config.bus.protocol
     if protocol is None:
         return opening_family(config)
     try:
         family = ProtocolFamily(protocol)
     except ValueError:
         raise ConfigError(config.source, "<emulated_protocol>", f"{protocol!r} is not one of v2, v3") from None
-    if setting is not ProtocolSetting.AUTO and setting.value != family.value:
-        raise ConfigError(
-            config.source,
-            "<emulated_protocol>",
-            f"bus.protocol is {setting.value}: the emulated drives cannot speak {family.value} (use auto)",
-        )
+    for bus in config.buses:
+        setting = bus.protocol
+        if setting is not ProtocolSetting.AUTO and setting.value != family.value:
+            key = f"buses.{bus.name}.protocol" if bus.name else "bus.protocol"
+            raise ConfigError(
+                config.source,
+                "<emulated_protocol>",
+                f"{key} is {setting.value}: the emulated drives cannot speak {family.value} (use auto)",
+            )
     return family
 
 
@@ -88,10 +91,12 @@ def emulator_process(
     if not source.is_file():
         raise MotionError("real-time emulation builds the drives from the configuration file; this one has none")
     folder = Path(tempfile.mkdtemp(prefix="rmd-emulated-"))
-    link = folder / "link"
-    can = isinstance(config.bus, CanBusConfig)
-    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(source)]
-    command += ["--slcan-link" if can else "--rs485-link", str(link), "--protocol", protocol.value]
+    several = len(config.buses) > 1
+    links = {bus.name: folder / (f"link-{bus.name}" if several else "link") for bus in config.buses}
+    can = wire_protocol(config) is WireProtocol.CAN
+    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(source), "--protocol", protocol.value]
+    for name, link in links.items():
+        command += ["--slcan-link" if can else "--rs485-link", f"{name}={link}" if several else str(link)]
     if log is not None:
         command += ["--log", os.fspath(log)]
     if latency_ms is not None:
@@ -111,10 +116,11 @@ def emulator_process(
                 error = process.stderr.read() if process.stderr is not None else ""
                 raise TransportError(f"the emulator process did not start: {' '.join(lines)} {error}".strip())
             lines.append(line.strip())
+        paths: object = {name: str(link) for name, link in links.items()} if several else str(*links.values())
         if can:
-            yield {"interface": "slcan", "channel": str(link), "bitrate": DEFAULT_BITRATE, "sleep_after_open": 0}
+            yield {"interface": "slcan", "channel": paths, "bitrate": DEFAULT_BITRATE, "sleep_after_open": 0}
         else:
-            yield {"port": str(link)}
+            yield {"port": paths}
     finally:
         _end_process(process)
         shutil.rmtree(folder, ignore_errors=True)

@@ -85,7 +85,7 @@ def arm_emulator_factory(
         if start_pose:
             emulator.power_cycle()
         for joint in config.joints:
-            drive = emulator.drives[joint.motor_id]
+            drive = emulator.drives[joint.address]
             speed = joint.velocity_limit_dps * joint.gear_ratio * EMULATED_HOLD_SPEED_SHARE
             drive.hold_here(speed)
         return emulator
@@ -102,10 +102,11 @@ def emulate(args: argparse.Namespace, interrupts: Interrupts) -> int:
         return run_emulate(args, None)
     config = load_config_or_example(args.config)
     if args.protocol is None:  # the configuration's generation, where it names one (auto: the older, as before)
-        configured = config.bus.protocol.value
-        args.protocol = configured if configured in {f.value for f in ProtocolFamily} else ProtocolFamily.V2.value
+        configured = {b.protocol.value for b in config.buses} & {f.value for f in ProtocolFamily}
+        args.protocol = configured.pop() if len(configured) == 1 else ProtocolFamily.V2.value
     family = ProtocolFamily(args.protocol)
-    return run_emulate(args, arm_emulator_factory(config, parse_pose(config, args.start_pose), family))
+    buses = [(b.name, b.transport.value.lower()) for b in config.buses] if len(config.buses) > 1 else []
+    return run_emulate(args, arm_emulator_factory(config, parse_pose(config, args.start_pose), family), buses)
 
 
 # ---------------------------------------------------------------------------------------------------- demo, plot

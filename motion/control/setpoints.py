@@ -25,7 +25,7 @@ from motion.control.family import DriveFamily
 from motion.protocol import MultiMotorTorque, MultiTurnPositionSpeed, TorqueControl, WireProtocol
 from motion.protocol.compiled import frozen_builder
 from motion.protocol.scales import iq_amps
-from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS
+from motion.protocol.table import ADDRESS_STRIDE, MULTI_TORQUE_MOTOR_IDS, split_address
 from motion.trajectory import State
 from motion.transmission import ArmTransmission, FloatArray
 from motion.transport.base import Request
@@ -169,19 +169,24 @@ class PositionSetpoints:
 
 class TorqueSetpoints:
     """PD plus the feed-forward per joint, as torque currents limited per joint: 0xA1 each, and one 0x280 frame for
-    motors 1..4 where it applies (CAN, all four joints of this arm: the frame commands them whether they belong to the
-    arm or not, so a foreign drive on the bus is never switched into torque mode)."""
+    motors 1..4 of a bus where it applies (CAN, all four joints of this arm: the frame commands them whether they
+    belong to the arm or not, so a foreign drive on the bus is never switched into torque mode); on each bus of an arm
+    on several."""
 
     def __init__(self, settings: BuilderSettings) -> None:
         self._settings = settings
         specs, family = settings.specs, settings.family
-        self._ids = [s.motor_id for s in specs]
-        in_multi = [i for i, s in enumerate(specs) if s.motor_id in MULTI_TORQUE_MOTOR_IDS]
+        self._ids = ids = [s.motor_id for s in specs]  # (the drives' addresses: bus index × stride + motor id)
         usable = settings.wire is WireProtocol.CAN and settings.multi_motor_frame and family.multi_torque_frame
-        self._multi = in_multi if usable and len(in_multi) == len(MULTI_TORQUE_MOTOR_IDS) else []
-        self._single = [i for i in range(len(specs)) if i not in self._multi]
-        # the joints of the 0x280 frame's four currents, in the frame's order (motors 1..4)
-        self._multi_joints = sorted(self._multi, key=lambda i: MULTI_TORQUE_MOTOR_IDS.index(self._ids[i]))
+        #: One 0x280 frame per bus whose motors 1..4 are all joints of the arm: (the address of that bus's motor 1,
+        #: the joints of the frame's four currents in the frame's order).
+        self._frames: list[tuple[int, list[int]]] = []
+        for bus in sorted({split_address(a)[0] for a in ids}) if usable else ():
+            addresses = [bus * ADDRESS_STRIDE + m for m in MULTI_TORQUE_MOTOR_IDS]
+            if all(a in ids for a in addresses):
+                self._frames.append((addresses[0], [ids.index(a) for a in addresses]))
+        framed = {i for _, joints in self._frames for i in joints}
+        self._single = [i for i in range(len(specs)) if i not in framed]
         self._transmission: ArmTransmission | None = None
         self._state: AxisStates | None = None
 
@@ -219,9 +224,8 @@ class TorqueSetpoints:
         currents = [iq_amps(r) for r in raw]
         ids, new_request, new_torque = self._ids, NEW_REQUEST, _NEW_TORQUE
         requests = [new_request(ids[i], new_torque(currents[i])) for i in self._single]
-        if self._multi:
-            frame = _NEW_MULTI_TORQUE(*[currents[i] for i in self._multi_joints])
-            requests.append(new_request(MULTI_TORQUE_MOTOR_IDS[0], frame))
+        for first, joints in self._frames:
+            requests.append(new_request(first, _NEW_MULTI_TORQUE(*[currents[i] for i in joints])))
         return requests
 
     def tracking_caps(self) -> FloatArray | None:

@@ -83,19 +83,19 @@ def emulator_for(
     inertia = dict(load_inertia_kgm2 or {})
     # The emulated supply sits comfortably above the configured minimum (a 48 V arm gets 48 V, not 24 V).
     supply = max(_EMULATED_SUPPLY_V, config.safety.min_voltage_v * _SUPPLY_MARGIN)
-    models = {j.motor_id: drive_model(j, supply) for j in config.joints}
+    models = {j.address: drive_model(j, supply) for j in config.joints}
     loads = {
-        j.motor_id: LoadModel(
+        j.address: LoadModel(
             inertia_kgm2=inertia.get(j.name, DEFAULT_LOAD_INERTIA_KGM2),
             viscous_friction_nm_per_dps=j.emulation.viscous_friction_nm_per_dps,
             coulomb_friction_nm=j.emulation.coulomb_friction_nm,
         )
         for j in config.joints
     }
-    stops = {j.motor_id: hard_stops(j) for j in config.joints if j.homing is not None}
+    stops = {j.address: hard_stops(j) for j in config.joints if j.homing is not None}
     # The emulator's own rule (only its V3 drives have brakes), not control's FAMILIES[family].brakes, which says the
     # same from a layer above the emulator.
-    braked = [j.motor_id for j in config.joints if j.brake] if family is ProtocolFamily.V3 else []
+    braked = [j.address for j in config.joints if j.brake] if family is ProtocolFamily.V3 else []
     return Emulator(
         models.keys(), model=models, load=loads, plant=plant, faults=faults, stops=stops, family=family, brakes=braked
     )

@@ -103,9 +103,13 @@ class Attachment(ABC, Closing, Generic[W, R]):
         frame_log: where to log every frame, or None.
     """
 
-    def __init__(self, emulator: Emulator, channel: str, timing: TimingModel, frame_log: FrameLog | None) -> None:
+    def __init__(
+        self, emulator: Emulator, channel: str, timing: TimingModel, frame_log: FrameLog | None, line: int = 0
+    ) -> None:
         self.emulator = emulator
         self.channel = channel
+        #: The bus this attachment is (an emulator of an arm on several buses has one attachment per bus).
+        self.line = line
         self.timing = timing
         self.stats = AttachmentStats()
         #: The exception that stopped the thread, if any.
@@ -246,7 +250,7 @@ class _CanAttachment(Attachment[CanFrame, CanFrame]):
     def _on_input(self, item: CanFrame, now_s: float) -> None:
         self.stats.requests += 1
         try:
-            exchange = self.emulator.handle_can(item)
+            exchange = self.emulator.handle_can(item, self.line)
         except DecodeError as exc:
             self._bad(_can_text(item), exc)
             return
@@ -254,7 +258,7 @@ class _CanAttachment(Attachment[CanFrame, CanFrame]):
 
     def _unsolicited(self, now_s: float) -> None:
         """V3 drives' replies without requests (0xB6), due by now (the loop wakes every tick)."""
-        for outgoing in self.emulator.active_replies():
+        for outgoing in self.emulator.active_replies(line=self.line):
             self._schedule(outgoing, now_s)
 
     def _wire_time(self, wire: CanFrame) -> float:
@@ -286,10 +290,11 @@ class VirtualCanAttachment(_CanAttachment):
         bitrate: int = DEFAULT_CAN_BITRATE,
         timing: TimingModel | None = None,
         frame_log: FrameLog | None = None,
+        line: int = 0,
     ) -> None:
         if bitrate <= 0:
             raise ValueError(f"bit rate must be > 0 bit/s, got {bitrate}")
-        super().__init__(emulator, f"can:{channel}", timing or TimingModel(), frame_log)
+        super().__init__(emulator, f"can:{channel}", timing or TimingModel(), frame_log, line)
         self._bitrate = bitrate
         self._virtual_channel = channel
         self._endpoint = CanEndpoint("virtual", channel)
@@ -367,9 +372,10 @@ class SlcanAttachment(_OnPty, _CanAttachment):
         *,
         timing: TimingModel | None = None,
         frame_log: FrameLog | None = None,
+        line: int = 0,
     ) -> None:
         self._pty = PseudoTerminal(link)
-        super().__init__(emulator, "slcan", timing or TimingModel(), frame_log)
+        super().__init__(emulator, "slcan" + (f"-{line}" if line else ""), timing or TimingModel(), frame_log, line)
         self.device = SlcanDevice()
         self._start()
 
@@ -425,11 +431,12 @@ class Rs485Attachment(_OnPty, Attachment[bytes, bytes]):
         baud: int = DEFAULT_RS485_BAUD,
         timing: TimingModel | None = None,
         frame_log: FrameLog | None = None,
+        line: int = 0,
     ) -> None:
         if baud <= 0:
             raise ValueError(f"baud rate must be > 0 bit/s, got {baud}")
         self._pty = PseudoTerminal(link)
-        super().__init__(emulator, "rs485", timing or TimingModel(), frame_log)
+        super().__init__(emulator, "rs485" + (f"-{line}" if line else ""), timing or TimingModel(), frame_log, line)
         self.baud = baud
         self.parser = emulator.generation.rs485_parser()
         self._gap_s = max(_RS485_MIN_GAP_S, rs485_frame_time_s(_RS485_GAP_BYTES, baud))
@@ -468,7 +475,7 @@ class Rs485Attachment(_OnPty, Attachment[bytes, bytes]):
     def _on_input(self, raw: bytes, now_s: float) -> None:
         self.stats.requests += 1
         try:
-            exchange = self.emulator.handle_rs485(raw)
+            exchange = self.emulator.handle_rs485(raw, self.line)
         except DecodeError as exc:
             self._bad(raw.hex(" "), exc)
             return

@@ -154,9 +154,20 @@ def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = Fal
         )
     where = parser.add_argument_group("attachments (at least one)")
     where.add_argument(
-        "--slcan-link", metavar="PATH", help="virtual slcan USB-CAN adapter on a pty, with a symlink at PATH"
+        "--slcan-link",
+        action="append",
+        default=[],
+        metavar="[BUS=]PATH",
+        help="virtual slcan USB-CAN adapter on a pty, with a symlink at PATH; with --config of an arm on several "
+        "buses, BUS=PATH for each of its CAN buses (repeat the option)",
     )
-    where.add_argument("--rs485-link", metavar="PATH", help="RS485 line on a pty, with a symlink at PATH")
+    where.add_argument(
+        "--rs485-link",
+        action="append",
+        default=[],
+        metavar="[BUS=]PATH",
+        help="RS485 line on a pty, with a symlink at PATH; BUS=PATH for each RS485 bus of an arm on several",
+    )
     where.add_argument(
         "--virtual-channel",
         metavar="NAME",
@@ -270,26 +281,79 @@ def emulator_clock(emulator: Emulator) -> Callable[[], float]:
     return lambda: emulator.time_s
 
 
+#: The kinds of link and the bus transport each carries.
+_LINKS = {"slcan_link": ("--slcan-link", "can"), "rs485_link": ("--rs485-link", "rs485")}
+
+
+def _links(args: argparse.Namespace, buses: Sequence[tuple[str, str]]) -> list[tuple[str, int, str, str]]:
+    """``(option, line, bus name, path)`` of each ``--slcan-link`` / ``--rs485-link``: a plain PATH where the drives are
+    on one bus (``buses`` empty or of one), ``BUS=PATH`` for each of an arm's several ``buses`` (name, transport).
+
+    Raises:
+        ValueError: a link given twice, a BUS=PATH without several buses, a bus unknown, of the other transport, or
+            without a link.
+    """
+    links: list[tuple[str, int, str, str]] = []
+    several = len(buses) > 1
+    names = [name for name, _ in buses]
+    for key, (option, transport) in _LINKS.items():
+        given: list[str] = getattr(args, key)
+        if not several:
+            if len(given) > 1:
+                raise ValueError(f"{option} is given {len(given)} times: the drives are on one bus")
+            if given and "=" in given[0] and given[0].split("=", 1)[0] in names:
+                given = [given[0].split("=", 1)[1]]
+            links += [(option, 0, "", path) for path in given]
+            continue
+        for text in given:
+            name, equals, path = text.partition("=")
+            if not equals or not path:
+                raise ValueError(
+                    f"{option} {text!r}: the arm is on several buses: give BUS=PATH, BUS one of {', '.join(names)}"
+                )
+            if name not in names:
+                raise ValueError(f"{option} {text!r}: no bus {name!r}; the buses are {', '.join(names)}")
+            if buses[names.index(name)][1] != transport:
+                raise ValueError(f"{option} {text!r}: bus {name} is a {buses[names.index(name)][1]} bus")
+            if any(line == names.index(name) for _, line, _, _ in links):
+                raise ValueError(f"{option} {text!r}: bus {name} has a link already")
+            links.append((option, names.index(name), name, path))
+    missing = [name for k, name in enumerate(names) if several and all(line != k for _, line, _, _ in links)]
+    if missing:
+        raise ValueError(
+            f"no link for bus(es) {', '.join(missing)}: give one --slcan-link or --rs485-link BUS=PATH each"
+        )
+    return links
+
+
 def _attachments(
-    args: argparse.Namespace, emulator: Emulator, timing: TimingModel, frame_log: FrameLog | None
+    args: argparse.Namespace,
+    emulator: Emulator,
+    timing: TimingModel,
+    frame_log: FrameLog | None,
+    links: Sequence[tuple[str, int, str, str]],
 ) -> Iterator[Attachment[Any, Any]]:
     """The attachments the options ask for, made one at a time (the caller enters each before the next is made)."""
     if args.virtual_channel:
         yield VirtualCanAttachment(
             emulator, args.virtual_channel, bitrate=args.bitrate, timing=timing, frame_log=frame_log
         )
-    if args.slcan_link:
-        yield SlcanAttachment(emulator, args.slcan_link, timing=timing, frame_log=frame_log)
-    if args.rs485_link:
-        yield Rs485Attachment(emulator, args.rs485_link, baud=args.baud, timing=timing, frame_log=frame_log)
+    for option, line, _name, path in links:
+        if option == "--slcan-link":
+            yield SlcanAttachment(emulator, path, timing=timing, frame_log=frame_log, line=line)
+        else:
+            yield Rs485Attachment(emulator, path, baud=args.baud, timing=timing, frame_log=frame_log, line=line)
 
 
-def run_emulate(args: argparse.Namespace, factory: EmulatorFactory | None = None) -> int:
+def run_emulate(
+    args: argparse.Namespace, factory: EmulatorFactory | None = None, buses: Sequence[tuple[str, str]] = ()
+) -> int:
     """Run the emulator until SIGINT or SIGTERM; returns the exit code.
 
     Args:
         args: the parsed options of :func:`add_emulate_arguments`.
         factory: builds the drives when ``args.config`` is given (see :data:`EmulatorFactory`).
+        buses: the configuration's buses, ``(name, transport)`` each, when it has several (a link each).
     """
     if not (args.slcan_link or args.rs485_link or args.virtual_channel):
         print("error: give at least one of --slcan-link, --rs485-link, --virtual-channel", file=sys.stderr)
@@ -297,6 +361,9 @@ def run_emulate(args: argparse.Namespace, factory: EmulatorFactory | None = None
     if not logging.getLogger().handlers:
         logging.basicConfig(level=logging.WARNING, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
+        links = _links(args, buses)
+        if args.virtual_channel and len(buses) > 1:
+            raise ValueError("--virtual-channel carries one bus: the arm is on several (give a link per bus)")
         emulator = _build_emulator(args, factory)
         timing = TimingModel(args.latency_ms / 1000.0, args.bus_time)
     except ValueError as exc:  # ConfigError is a ValueError
@@ -317,13 +384,17 @@ def run_emulate(args: argparse.Namespace, factory: EmulatorFactory | None = None
                 # and of the frames are then on one clock
                 clock = emulator_clock(emulator)
                 frame_log = stack.enter_context(FrameLog(args.log, clock=clock)) if args.log else None
-                attachments += [stack.enter_context(a) for a in _attachments(args, emulator, timing, frame_log)]
+                made = _attachments(args, emulator, timing, frame_log, links)
+                attachments += [stack.enter_context(a) for a in made]
             except (TransportError, OSError) as exc:
                 print(f"communication error: {exc}", file=sys.stderr)
                 return EXIT_COMMUNICATION
+            names = {line: name for _, line, name, _ in links}
             for attachment in attachments:
                 device = getattr(attachment, "device_path", None)
-                print(f"{attachment.channel}: {attachment.path}" + (f" (pty {device})" if device else ""), flush=True)
+                bus = f" (bus {names[attachment.line]})" if names.get(attachment.line) else ""
+                pty = f" (pty {device})" if device else ""
+                print(f"{attachment.channel}: {attachment.path}{pty}{bus}", flush=True)
             faults = ", ".join(f.describe() for f in emulator.faults) or "none"
             print(
                 f"emulating motors {','.join(map(str, emulator.ids))}; faults: {faults}; stop with Ctrl-C or SIGTERM",

@@ -376,14 +376,16 @@ class Emulator:
                 default=None,
             )
 
-    def active_replies(self, at_s: float | None = None) -> list[Outgoing[CanFrame]]:
-        """The CAN frames the V3 drives send by themselves (0xB6) that are due by the present simulation time (or
-        ``at_s``, where the emulator was advanced to: its whole steps may stop short of it), in ascending drive id."""
+    def active_replies(self, at_s: float | None = None, line: int | None = None) -> list[Outgoing[CanFrame]]:
+        """The CAN frames the V3 drives (of bus ``line``, or of every bus) send by themselves (0xB6) that are due by
+        the present simulation time (or ``at_s``, where the emulator was advanced to: its whole steps may stop short
+        of it), in ascending drive address."""
         with self._lock:
             now = self.time_s if at_s is None else max(self.time_s, at_s)
             return [
                 Outgoing(self.ids[n], self._encode_can(message, drive.motor_id, None), message)
                 for n, drive in self._v3
+                if line is None or self.ids[n] // ADDRESS_STRIDE == line
                 for message in drive.active_replies_due(now)
             ]
 
@@ -457,6 +459,7 @@ class Emulator:
         """
         generation = self.generation
         line, wire_id = split_address(motor_id)
+        replies: list[tuple[tuple[int | None, Message], Outgoing[CanFrame] | Outgoing[bytes]]]
         if transport is WireProtocol.CAN:
             sent = self.handle_can(generation.encode_can_request(message, wire_id), line)
             replies = [(generation.decode_can_reply(o.wire.arbitration_id, o.wire.data), o) for o in sent.replies]

@@ -220,8 +220,8 @@ class Simulation:
             if when > limit_s:
                 return
             if not ends:
-                frame = line.current = heapq.heappop(line.queue)
-                line.busy_until_s = when + self.wire_time_s(frame.wire, line.index)
+                started = line.current = heapq.heappop(line.queue)
+                line.busy_until_s = when + self.wire_time_s(started.wire, line.index)
                 continue
             frame = line.current
             assert frame is not None
