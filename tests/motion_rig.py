@@ -36,7 +36,7 @@ from motion.emulator.arm import arm_emulator
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.emulator.timing import TimingModel
 from motion.protocol import Message, MultiTurnPositionSpeed, WireProtocol, can_frame, rs485_frame
-from motion.protocol.table import ProtocolFamily
+from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily
 from motion.protocol.v3 import frames as frames_v3
 from motion.safety import Supervisor
 from motion.transport import Transport
@@ -108,10 +108,17 @@ def emulated_arm(
     log_path = tmp_path / f"frames-{uuid.uuid4().hex[:8]}.log"
     clock = None
     with ExitStack() as stack:
+        several = len(config.buses) > 1  # (an arm on several buses: a line, attachment and link each)
+        names = [b.name for b in config.buses]
         if attachment == "sim":
-            wire = WireProtocol.CAN if isinstance(config.bus, CanBusConfig) else WireProtocol.RS485
+            lines = [
+                (WireProtocol.CAN, b.bitrate) if isinstance(b, CanBusConfig) else (WireProtocol.RS485, b.baudrate)
+                for b in config.buses
+            ]
+            if not several:  # (the rigs of one bus keep the emulator's default rates, as their tests were tuned on)
+                lines = [(lines[0][0], 1_000_000 if lines[0][0] is WireProtocol.CAN else 115_200)]
             timing = TimingModel(latency_s=latency_s) if latency_s is not None else None
-            simulation = Simulation(emulator, wire, timing=timing)
+            simulation = Simulation(emulator, timing=timing, lines=lines)
             log = stack.enter_context(FrameLog(log_path, clock=simulation.now))
             simulation.frame_log = log
             bus: Transport = stack.enter_context(SimulatedBus(simulation, opening_family(config)))
@@ -119,19 +126,23 @@ def emulated_arm(
         else:
             log = stack.enter_context(FrameLog(log_path))
         if attachment == "virtual":
-            channel = uuid.uuid4().hex
-            stack.enter_context(VirtualCanAttachment(emulator, channel, frame_log=log))
-            bus = stack.enter_context(open_bus(config, interface="virtual", channel=channel, bitrate=None))
+            channels = {name: uuid.uuid4().hex for name in names}
+            for line, channel in enumerate(channels.values()):
+                stack.enter_context(VirtualCanAttachment(emulator, channel, frame_log=log, line=line))
+            given: object = channels if several else channels[names[0]]
+            bus = stack.enter_context(open_bus(config, interface="virtual", channel=given, bitrate=None))
         elif attachment == "slcan":
-            link = tmp_path / f"slcan-{uuid.uuid4().hex[:8]}"
-            stack.enter_context(SlcanAttachment(emulator, link, frame_log=log))
+            links = {name: str(tmp_path / f"slcan-{uuid.uuid4().hex[:8]}") for name in names}
+            for line, link in enumerate(links.values()):
+                stack.enter_context(SlcanAttachment(emulator, link, frame_log=log, line=line))
+            given = links if several else links[names[0]]
             bus = stack.enter_context(
-                open_bus(config, interface="slcan", channel=str(link), bitrate=1_000_000, sleep_after_open=0)
+                open_bus(config, interface="slcan", channel=given, bitrate=1_000_000, sleep_after_open=0)
             )
         elif attachment == "rs485":
-            link = tmp_path / f"rs485-{uuid.uuid4().hex[:8]}"
-            stack.enter_context(Rs485Attachment(emulator, link, frame_log=log))
-            bus = stack.enter_context(open_bus(config, port=str(link)))
+            port = tmp_path / f"rs485-{uuid.uuid4().hex[:8]}"
+            stack.enter_context(Rs485Attachment(emulator, port, frame_log=log))
+            bus = stack.enter_context(open_bus(config, port=str(port)))
         # the generation told as at connect (the older drives' rigs skip the probe: their timing stays what the tests
         # were tuned on; issue 19's identification test shifts with it, see its note)
         spoken = negotiate_family(bus, config) if family is not ProtocolFamily.V2 else bus
@@ -176,13 +187,16 @@ def requests_in_log(
         if len(fields) < 4 or fields[1] != "IN" or not line.endswith("\n"):
             continue
         wire = fields[3].split(" | ")[0]
+        # an arm on several buses: the channel's suffix is the bus ("sim-can-1", "slcan-1"), the drive its address
+        suffix = fields[2].rsplit("-", 1)[-1]
+        base = int(suffix) * ADDRESS_STRIDE if "-" in fields[2] and suffix.isdigit() else 0
         if ":" in wire:
             ident, data = wire.split(":")
             request = decode_can(int(ident, 16), bytes.fromhex(data))
-            yield float(fields[0]), request.motor_id, request.message
+            yield float(fields[0]), None if request.motor_id is None else base + request.motor_id, request.message
         else:
             motor_id, message = decode_rs485(bytes.fromhex(wire))
-            yield float(fields[0]), motor_id, message
+            yield float(fields[0]), None if motor_id is None else base + motor_id, message
 
 
 def received(rig: Rig, command: int) -> dict[int, list[float]]:
@@ -203,7 +217,7 @@ def commanded_positions(rig: Rig) -> np.ndarray:
     """
     config = rig.config
     period = 1.0 / config.control.rate_hz
-    column = {j.motor_id: i for i, j in enumerate(config.joints)}
+    column = {j.address: i for i, j in enumerate(config.joints)}
     transmissions = [j.transmission() for j in config.joints]
     # a V3 drive takes output-shaft angles (motor degrees / its reduction)
     drive_gear = [j.gear_ratio if rig.family is ProtocolFamily.V3 else 1.0 for j in config.joints]

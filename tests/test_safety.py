@@ -94,7 +94,7 @@ def _assert_halted_in_detection_cycle(rig: Rig, command: int = Command.MOTOR_STO
     assert halt.halt_sent_s - halt.detected_s < period  # sent in the cycle of the detection
     times = received(rig, command)
     for joint in rig.config.joints:
-        first = min(times.get(joint.motor_id, [np.inf]))
+        first = min(times.get(joint.address, [np.inf]))
         # simulated time: exact (the frame log stamps each request when its last bit reached the drive)
         assert halt.detected_s <= first < halt.detected_s + period, (joint.name, first - halt.detected_s)
 

@@ -18,6 +18,7 @@ from typing import Any, Final
 
 from motion.compose import negotiate_family, open_bus
 from motion.config import ArmConfig, CanBusConfig, JointConfig, Rs485BusConfig, load_config_or_example
+from motion.config.schema import BusConfig
 from motion.errors import DrivesSilent, MotionError, PortUnavailable, TransportError
 from motion.protocol import Message
 from motion.protocol.generation import GENERATIONS
@@ -151,23 +152,23 @@ class Session:
             UsageError: an override for the other kind of bus.
         """
         config = load_config_or_example(args.config)
-        allowed = config.bus.overridable
-        given = {name: value for name in BUS_OVERRIDES if (value := getattr(args, name, None))}
-        wrong = [f"--{name}" for name in given if name not in allowed]
-        if wrong:
-            valid = " and ".join(f"--{n}" for n in allowed)
-            raise UsageError(
-                f"{', '.join(wrong)}: {config.source} has a {config.bus.transport.value} bus; its overrides are {valid}"
-            )
-        overrides: dict[str, object] = dict(given)
-        bus = config.bus
+        overrides: dict[str, object] = {}
+        for name in BUS_OVERRIDES:
+            values = getattr(args, name, None) or []
+            if isinstance(values, str):  # (a Namespace made by hand)
+                values = [values]
+            if values:
+                overrides[name] = _override(config, name, values)
+        sleeps = {
+            bus.name: 0
+            for bus in config.buses
+            if isinstance(bus, CanBusConfig)
+            and _given(overrides, "interface", bus, bus.interface) == "slcan"
+            and _is_pty(str(_given(overrides, "channel", bus, bus.channel)))
+        }
         # python-can waits 2 s for a real slcan adapter to boot; a pseudo-terminal (an emulator) has none.
-        if (
-            isinstance(bus, CanBusConfig)
-            and given.get("interface", bus.interface) == "slcan"
-            and _is_pty(str(given.get("channel", bus.channel)))
-        ):
-            overrides["sleep_after_open"] = 0
+        if sleeps:
+            overrides["sleep_after_open"] = sleeps if len(config.buses) > 1 else 0
         return cls(config, overrides)
 
     def open_bus(self, *, check: bool = True, speaks: Collection[ProtocolFamily] = OLDER_ONLY) -> Transport:
@@ -216,6 +217,55 @@ class Session:
         return tuple(self.joint(n) for n in names) if names else self.config.joints
 
 
+def _override(config: ArmConfig, name: str, values: Sequence[str]) -> object:
+    """The override ``--NAME`` of ``values``: one value for the arm's one bus (or for every bus: ``--interface``), or
+    ``BUS=VALUE`` per bus of an arm on several (``{bus: value}``).
+
+    Raises:
+        UsageError: an override for the other kind of bus, given twice for one bus, a plain ``--channel`` or ``--port``
+            for several buses, or an unknown bus name.
+    """
+    buses = {bus.name: bus for bus in config.buses}
+    several = len(buses) > 1
+    per_bus: dict[str, str] = {}
+    for value in values:
+        bus_name, equals, rest = value.partition("=")
+        if several and equals and bus_name in buses:
+            target = [buses[bus_name]]
+            if bus_name in per_bus:
+                raise UsageError(f"--{name} is given twice for bus {bus_name}")
+            per_bus[bus_name] = rest
+        elif several and name != "interface":
+            raise UsageError(
+                f"--{name} {value!r}: {config.source} has several buses ({', '.join(buses)}): give --{name} BUS=VALUE "
+                "for each bus it overrides"
+            )
+        else:
+            if len(values) > 1:
+                raise UsageError(f"--{name} is given {len(values)} times: the arm has one bus")
+            target = list(buses.values())
+        for bus in target:
+            if name not in bus.overridable:
+                valid = " and ".join(f"--{n}" for n in bus.overridable)
+                where = f"bus {bus.name}" if bus.name else "bus"
+                raise UsageError(
+                    f"--{name}: {config.source}'s {where} is a {bus.transport.value} bus; its overrides are {valid}"
+                )
+    if per_bus:
+        if len(per_bus) != len(values):
+            raise UsageError(f"--{name}: give BUS=VALUE for every bus it overrides, or one value for them all")
+        return per_bus
+    return values[0]
+
+
+def _given(overrides: Mapping[str, object], name: str, bus: BusConfig, configured: str) -> object:
+    """The value of ``name`` that ``bus`` opens with: the override (its own, or every bus's), else ``configured``."""
+    value = overrides.get(name, configured)
+    if isinstance(value, Mapping):
+        return value.get(bus.name, configured)
+    return value
+
+
 def _is_pty(path: str) -> bool:
     """Whether ``path`` leads to a pseudo-terminal (such as the emulator's)."""
     return os.path.realpath(path).startswith(_PTY_PREFIX)
@@ -229,10 +279,22 @@ def add_bus_arguments(parser: argparse.ArgumentParser, *, required: bool = True)
         metavar="FILE",
         help="arm configuration (YAML); when no such file exists, an example's name (arm2.yaml, configs/arm2.yaml)",
     )
-    bus = parser.add_argument_group("bus overrides (replace the configured bus settings)")
-    bus.add_argument("--interface", metavar="NAME", help="CAN: python-can interface (socketcan, slcan, pcan, ...)")
-    bus.add_argument("--channel", metavar="CHANNEL", help="CAN: interface channel (can0, /dev/ttyACM0, a pty, ...)")
-    bus.add_argument("--port", metavar="DEVICE", help="RS485: serial device (/dev/ttyUSB0, a pty, ...)")
+    bus = parser.add_argument_group(
+        "bus overrides (replace the configured bus settings; an arm on several buses: BUS=VALUE, once per bus)"
+    )
+    bus.add_argument(
+        "--interface",
+        action="append",
+        metavar="[BUS=]NAME",
+        help="CAN: python-can interface (socketcan, slcan, pcan, ...)",
+    )
+    bus.add_argument(
+        "--channel",
+        action="append",
+        metavar="[BUS=]CHANNEL",
+        help="CAN: interface channel (can0, /dev/ttyACM0, a pty, ...)",
+    )
+    bus.add_argument("--port", action="append", metavar="[BUS=]DEVICE", help="RS485: serial device (/dev/ttyUSB0, ...)")
 
 
 def add_holding_flag(parser: argparse.ArgumentParser) -> None:

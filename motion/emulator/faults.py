@@ -41,7 +41,7 @@ from enum import Enum
 
 from motion.protocol import CanFrame
 from motion.protocol.rs485_frame import HEADER_BYTES, checksum
-from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN
+from motion.protocol.table import ADDRESS_STRIDE, MOTOR_ID_MAX, MOTOR_ID_MIN, split_address
 from motion.protocol.v3.frames import crc16
 
 
@@ -90,7 +90,8 @@ class Fault:
 
     Attributes:
         kind: what goes wrong.
-        motor_id: the drive, 1..32.
+        motor_id: the drive, 1..32 (an arm on several buses: its address, bus index × 100 + motor id, so that 103 is
+            motor 3 of the second bus).
         start_s: simulation time the fault begins, s.
         end_s: simulation time it ends, s (None: never).
         value: numeric parameter (degC, V, ms or a probability, per kind) or None for the kind's default.
@@ -108,8 +109,11 @@ class Fault:
     corruption: Corruption = Corruption.PAYLOAD
 
     def __post_init__(self) -> None:
-        if not MOTOR_ID_MIN <= self.motor_id <= MOTOR_ID_MAX:
-            raise ValueError(f"fault motor id {self.motor_id} is outside {MOTOR_ID_MIN}..{MOTOR_ID_MAX}")
+        if self.motor_id < 0 or not MOTOR_ID_MIN <= split_address(self.motor_id)[1] <= MOTOR_ID_MAX:
+            raise ValueError(
+                f"fault motor id {self.motor_id} is outside {MOTOR_ID_MIN}..{MOTOR_ID_MAX} (an arm on several buses: "
+                f"bus index × {ADDRESS_STRIDE} + motor id)"
+            )
         if not (math.isfinite(self.start_s) and self.start_s >= 0):
             raise ValueError(f"fault start {self.start_s!r} s must be a time >= 0")
         if self.end_s is not None and not (math.isfinite(self.end_s) and self.end_s > self.start_s):

@@ -1,0 +1,109 @@
+"""An arm on several buses (issue 35): one trajectory over both, each cycle's batches on the buses at the same time,
+and one safety domain (a fault on either bus halts every axis on both in its detection cycle)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from motion.emulator.faults import Fault, InjectedFault
+from motion.errors import MotionFault
+from motion.protocol import Command
+from motion.protocol.table import ADDRESS_STRIDE
+from motion.safety import ArmState
+from tests.motion_rig import Rig, arm_config, commanded_positions, emulated_arm, logged_requests, received
+
+BIMANUAL = arm_config("bimanual.yaml")
+#: Both arms move: each its own way (different distances on each joint, so that Ruckig's synchronisation matters).
+TARGETS = np.array([30.0, -25.0, 40.0, 20.0, -15.0, 10.0, -35.0, 20.0, -30.0, -10.0, 25.0, -20.0])
+
+
+def _addresses() -> list[int]:
+    return [j.address for j in BIMANUAL.joints]
+
+
+def test_both_arms_move_together_and_every_joint_arrives_within_one_cycle_of_the_others(tmp_path: Path) -> None:
+    with emulated_arm(BIMANUAL, "sim", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        references: list[np.ndarray] = []
+        rig.controller.cycle_hooks.append(lambda c, _start, _replies: references.append(c.reference.position.copy()))
+        supervisor.move_to(TARGETS, 1.0)
+        assert supervisor.wait(20.0)
+        # one trajectory over both buses: every joint's reference reaches its target in the same cycle (within one)
+        reference = np.array(references)
+        arrived = [int(np.argmax(np.abs(reference[:, i] - TARGETS[i]) < 1e-9)) for i in range(len(TARGETS))]
+        assert all(np.abs(reference[a:, i] - TARGETS[i]).max() < 1e-9 for i, a in enumerate(arrived))
+        assert max(arrived) - min(arrived) <= 1, arrived
+        assert min(arrived) > 100  # (a real move: well over 100 cycles at 250 Hz)
+        # and the drives followed: every joint within the goal tolerance when the move returned
+        tolerance = BIMANUAL.control.goal_tolerance_deg
+        np.testing.assert_allclose(rig.controller.snapshot.position_deg, TARGETS, atol=tolerance)
+        # the set-points each drive received on its bus (both buses' 0xA4 streams, joint angles on the cycle grid)
+        commanded = commanded_positions(rig)
+        np.testing.assert_allclose(commanded[-1], TARGETS, atol=2e-3)  # (the 0xA4 field's 0.01 motor deg)
+    assert set(received(rig, Command.MULTI_TURN_POSITION_SPEED)) == set(_addresses())
+
+
+def test_each_cycle_carries_both_buses_batches_at_the_same_time(tmp_path: Path) -> None:
+    # simulated wire time: the last 0xA4 of a cycle reaches its drive at the same instant on both buses (each bus
+    # carries six frames), not one bus's time later
+    with emulated_arm(BIMANUAL, "sim", tmp_path, supervised=True) as rig:
+        assert rig.supervisor is not None
+        rig.supervisor.move_to(TARGETS, 1.0)
+        rig.sleep(0.3)
+    last: dict[tuple[int, int], float] = {}  # (cycle, bus) -> the last 0xA4's arrival
+    counts: dict[int, int] = {}
+    for t, address, message in logged_requests(rig):
+        if address is None or getattr(message, "command", None) != Command.MULTI_TURN_POSITION_SPEED:
+            continue
+        counts[address] = counts.get(address, 0) + 1
+        key = (counts[address], address // ADDRESS_STRIDE)
+        last[key] = max(last.get(key, -np.inf), t)
+    cycles = sorted({cycle for cycle, _ in last})
+    assert len(cycles) > 50
+    skew = [abs(last[(c, 1)] - last[(c, 0)]) for c in cycles if (c, 0) in last and (c, 1) in last]
+    assert max(skew) < 20e-6, max(skew)  # (one 0xA4 frame takes about 130 us at 1 Mbit/s)
+
+
+def _halted_everywhere_in_the_detection_cycle(rig: Rig) -> None:
+    supervisor = rig.supervisor
+    assert supervisor is not None and supervisor.halts
+    halt, period = supervisor.halts[0], rig.controller.period_s
+    assert halt.halt_sent_s - halt.detected_s < period
+    stops = received(rig, Command.MOTOR_STOP)
+    for joint in rig.config.joints:
+        first = min(stops.get(joint.address, [np.inf]))
+        assert halt.detected_s <= first < halt.detected_s + period, (joint.name, first - halt.detected_s)
+
+
+@pytest.mark.parametrize(
+    ("kind", "address", "value", "expected"),
+    [
+        (InjectedFault.OVER_TEMPERATURE, 103, 90.0, "drive_over_temperature"),  # right elbow's drive flag
+        (InjectedFault.SILENT, 105, None, "no_reply"),  # right wrist_pitch's drive falls silent
+        (InjectedFault.OVER_TEMPERATURE, 2, 90.0, "drive_over_temperature"),  # the left bus's shoulder
+    ],
+)
+def test_a_fault_on_one_bus_halts_every_axis_on_both_in_its_detection_cycle(
+    tmp_path: Path, kind: InjectedFault, address: int, value: float | None, expected: str
+) -> None:
+    # our own temperature limit above the drive's protection (80 degC): the 0x9A flag is what trips
+    joints = tuple(dataclasses.replace(j, temperature_limit_c=100.0) for j in BIMANUAL.joints)
+    config = dataclasses.replace(BIMANUAL, joints=joints)
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        supervisor.move_to(TARGETS, 0.5)
+        rig.sleep(0.4)
+        now = rig.emulator.time_s
+        rig.emulator.add_fault(Fault(kind, address, start_s=now, end_s=now + 60.0, value=value))
+        with pytest.raises(MotionFault) as info:
+            supervisor.wait(10.0)
+        assert info.value.kind == expected
+        assert info.value.joint == next(j.name for j in config.joints if j.address == address)
+        _halted_everywhere_in_the_detection_cycle(rig)
+        assert supervisor.state in (ArmState.HALTING, ArmState.HALTED)
