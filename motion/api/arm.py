@@ -668,4 +668,4 @@ class Arm:
 
     def status(self) -> ArmStatus:
         """Measured and reference state of every joint, the arm state and the loop statistics."""
-        return arm_status(self.config.name, self._guard().controller)
+        return arm_status(self.config.name, self._guard().controller, [b.name for b in self.config.buses])

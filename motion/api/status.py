@@ -4,6 +4,7 @@ the latter two from the snapshot the loop published last (read without waiting o
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -14,6 +15,7 @@ from motion.config.schema import ControlConfig
 from motion.control.controller import Controller
 from motion.control.scheduler import LoopStatistics
 from motion.control.snapshot import MotionProgress
+from motion.protocol.table import split_address
 from motion.safety import Supervisor
 
 logger = logging.getLogger("motion.api")
@@ -30,6 +32,7 @@ class JointStatus:
     reference_deg: float
     iq_a: float
     temperature_c: float
+    bus: str = ""  #: the bus the drive is on, on an arm of several ("" on an arm of one)
 
 
 @dataclass(frozen=True, slots=True)
@@ -52,6 +55,7 @@ class ArmStatus:
                 {
                     "name": j.name,
                     "motor_id": j.motor_id,
+                    **({"bus": j.bus} if j.bus else {}),
                     "position_deg": round(j.position_deg, 4),
                     "velocity_dps": round(j.velocity_dps, 3),
                     "reference_deg": round(j.reference_deg, 4),
@@ -69,13 +73,15 @@ class ArmStatus:
         }
 
 
-def arm_status(name: str, controller: Controller) -> ArmStatus:
-    """Measured and reference state of every joint of arm ``name``, its state and the loop statistics."""
+def arm_status(name: str, controller: Controller, buses: Sequence[str] = ()) -> ArmStatus:
+    """Measured and reference state of every joint of arm ``name`` (on ``buses``, by index, where it has several),
+    its state and the loop statistics."""
     snapshot = controller.snapshot  # published by the loop: one consistent cycle, read without a lock
     joints = tuple(
         JointStatus(
             name=spec.name,
-            motor_id=spec.motor_id,
+            motor_id=split_address(spec.motor_id)[1],
+            bus=buses[split_address(spec.motor_id)[0]] if len(buses) > 1 else "",
             position_deg=float(snapshot.position_deg[i]),
             velocity_dps=float(snapshot.velocity_dps[i]),
             reference_deg=float(snapshot.reference_deg[i]),

@@ -198,8 +198,8 @@ class Session:
 
     @property
     def names(self) -> dict[int, str]:
-        """Joint name by motor id."""
-        return {j.motor_id: j.name for j in self.config.joints}
+        """Joint name by drive address (the motor id on an arm of one bus)."""
+        return {j.address: j.name for j in self.config.joints}
 
     def joint(self, name: str) -> JointConfig:
         """The configured joint ``name``.

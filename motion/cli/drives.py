@@ -89,7 +89,7 @@ FLASH_WARNING: Final = (
 
 
 def _requests(joints: Sequence[JointConfig], message: Message) -> list[Request]:
-    return [Request(j.motor_id, message) for j in joints]
+    return [Request(j.address, message) for j in joints]
 
 
 def _ask(
@@ -113,7 +113,7 @@ def _check_echo(joint: JointConfig, echo: Message, sent: Message) -> None:
 
 
 def _label(joint: JointConfig) -> str:
-    return f"{joint.name} (motor {joint.motor_id})"
+    return f"{joint.name} ({joint.drive_label})"
 
 
 # ---------------------------------------------------------------------------------------------------- status
@@ -138,10 +138,11 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
         where = bus.describe()
         record, _ = drive_record_for(bus)
     axes = controller.axes
+    several = len(config.buses) > 1  # (then each joint's bus is shown)
     joints: list[dict[str, object]] = []
     rows: list[tuple[object, ...]] = []
     for i, joint in enumerate(config.joints):
-        s = status1[joint.motor_id]
+        s = status1[joint.address]
         q, qd, iq = float(axes.q_deg[i]), float(axes.qd_dps[i]), float(axes.iq_a[i])
         inside = joint.position_min_deg <= q <= joint.position_max_deg
         flags = flag_names(s.errors)
@@ -149,6 +150,7 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
             {
                 "name": joint.name,
                 "motor_id": joint.motor_id,
+                **({"bus": joint.bus} if several else {}),
                 "position_deg": round(q, 4),
                 "velocity_dps": round(qd, 3),
                 "iq_a": round(iq, 3),
@@ -158,13 +160,14 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
                 "within_limits": inside,
                 "turns": turns[i].turns,
                 "turns_from": str(turns[i].source),
-                "rom_writes": record.rom_writes(DriveRecord.key(where, joint.motor_id)),
+                "rom_writes": record.rom_writes(DriveRecord.key(where, joint.address)),
             }
         )
         rows.append(
             (
                 joint.name,
                 joint.motor_id,
+                *((joint.bus,) if several else ()),
                 f"{q:9.3f} deg" + ("" if inside else " (outside limits)"),
                 f"{qd:8.2f} deg/s",
                 f"{iq:6.2f} A",
@@ -172,16 +175,15 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
                 f"{s.voltage_v:.1f} V",
                 ",".join(flags) or "ok",
                 turns[i].describe(),
-                record.rom_writes(DriveRecord.key(where, joint.motor_id)),
+                record.rom_writes(DriveRecord.key(where, joint.address)),
             )
         )
     if args.json:
         print_json({"name": config.name, "bus": where, "joints": joints})
         return EXIT_OK
     print(f"{config.name} on {where}")
-    print_table(
-        ("joint", "motor", "position", "velocity", "iq", "temp", "voltage", "flags", "turns", "ROM writes"), rows
-    )
+    header = ("position", "velocity", "iq", "temp", "voltage", "flags", "turns", "ROM writes")
+    print_table(("joint", "motor", *(("bus",) if several else ()), *header), rows)
     return EXIT_OK
 
 
@@ -218,16 +220,16 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
         if family.link_protection:
             _refuse_hold_under_protection(bus, joints)
         # (a V3 drive reads and takes output-shaft degrees: motor degrees / its reduction)
-        gear = {j.motor_id: j.gear_ratio if family.output_shaft else 1.0 for j in joints}
+        gear = {j.address: j.gear_ratio if family.output_shaft else 1.0 for j in joints}
         angles: dict[int, MultiTurnAngle] = _ask(
             bus, session, joints, family.bare(Command.READ_MULTI_TURN_ANGLE), MultiTurnAngle
         )
         requests = [
             Request(
-                j.motor_id,
+                j.address,
                 MultiTurnPositionSpeed(
-                    angles[j.motor_id].angle_deg,
-                    j.velocity_limit_dps * j.gear_ratio * HOLD_SPEED_SHARE / gear[j.motor_id],
+                    angles[j.address].angle_deg,
+                    j.velocity_limit_dps * j.gear_ratio * HOLD_SPEED_SHARE / gear[j.address],
                 ),
             )
             for j in joints
@@ -237,7 +239,7 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
 
     def joint_deg(joint: JointConfig) -> str:
         """The joint angle with the turns the last session recorded, while the drive continues from it."""
-        reading = angles[joint.motor_id].angle_deg * gear[joint.motor_id]
+        reading = angles[joint.address].angle_deg * gear[joint.address]
         record = records.get(joint.name)
         if record is None or abs(reading - record.reading_deg) > CONTINUITY_MOTOR_DEG:
             return f"{joint_angle(joint.transmission(), reading, 0):.2f} deg (turns not known)"
@@ -254,7 +256,7 @@ def _refuse_hold_under_protection(bus: Transport, joints: Sequence[JointConfig])
     record, _ = drive_record_for(bus)
     on = {}
     for joint in joints:
-        written = record.get(DriveRecord.key(bus.describe(), joint.motor_id), LINK_TIMEOUT)
+        written = record.get(DriveRecord.key(bus.describe(), joint.address), LINK_TIMEOUT)
         if isinstance(written, dict) and written.get("ms"):
             on[joint.name] = written["ms"]
     if on:
@@ -276,7 +278,7 @@ def clear(args: argparse.Namespace, interrupts: Interrupts) -> int:
         family = FAMILIES[bus.family]
         request = family.bare(Command.CLEAR_ERRORS if family.clears_errors else Command.READ_STATUS_1)
         replies: dict[int, Status1 | Status1V3] = _ask(bus, session, joints, request, family.status_type)
-    left = {j.name: flag_names(replies[j.motor_id].errors) for j in joints if replies[j.motor_id].errors}
+    left = {j.name: flag_names(replies[j.address].errors) for j in joints if replies[j.address].errors}
     for joint in joints:
         print(f"{_label(joint)}: {', '.join(left.get(joint.name, [])) or 'clear'}")
     if left:
@@ -316,10 +318,10 @@ def pid(args: argparse.Namespace, interrupts: Interrupts) -> int:
         )
     code = Command.WRITE_PID_ROM if args.rom else Command.WRITE_PID_RAM
     with session.open_bus() as bus:
-        old: PidGains = _ask(bus, session, [joint], Bare(Command.READ_PID), PidGains)[joint.motor_id]
+        old: PidGains = _ask(bus, session, [joint], Bare(Command.READ_PID), PidGains)[joint.address]
         values = {f: v for f, v in zip(PID_FIELDS, args.gains, strict=True) if v is not None}
         new = replace(old, command=code, **values)
-        _check_echo(joint, _ask(bus, session, [joint], new, PidGains)[joint.motor_id], new)
+        _check_echo(joint, _ask(bus, session, [joint], new, PidGains)[joint.address], new)
     target = "ROM (kept at power-off)" if args.rom else "RAM (lost at the next power cycle)"
     print(f"{_label(joint)}: PI gains written to {target}")
     print_table(("", *PID_FIELDS), [("before", *_gains_row(joint, old)[2:]), ("after", *_gains_row(joint, new)[2:])])
@@ -368,19 +370,19 @@ def _print_parameters(
 ) -> int:
     """The joints' parameters that ``reads`` names for the drives' generation, printed as a table or JSON."""
     joints = session.joints(args.joints)
-    values: dict[int, dict[str, float]] = {j.motor_id: {} for j in joints}
-    by_id = {j.motor_id: j for j in joints}
+    values: dict[int, dict[str, float]] = {j.address: {} for j in joints}
+    by_id = {j.address: j for j in joints}
     with session.open_bus(speaks=EVERY_GENERATION) as bus:
         for request, expect, columns in reads[bus.family]:
             for motor_id, reply in _ask(bus, session, joints, request, expect).items():
                 values[motor_id].update(columns(reply, by_id[motor_id]))
     if args.json:
-        print_json({j.name: values[j.motor_id] for j in joints})
+        print_json({j.name: values[j.address] for j in joints})
     else:
-        names = list(values[joints[0].motor_id]) if joints else []
+        names = list(values[joints[0].address]) if joints else []
         print_table(
             ("joint", "motor", *names),
-            [(j.name, j.motor_id, *(f"{values[j.motor_id][c]:g}" for c in names)) for j in joints],
+            [(j.name, j.motor_id, *(f"{values[j.address][c]:g}" for c in names)) for j in joints],
         )
     return EXIT_OK
 
@@ -399,7 +401,7 @@ def accel(args: argparse.Namespace, interrupts: Interrupts) -> int:
         return _print_parameters(session, args, _ACCELERATION_READS)
     joint = session.joint(args.joint)
     request = Acceleration(Command.WRITE_ACCELERATION_RAM, args.dps2)
-    _check_echo(joint, _ask_once(session, [joint], request, Acceleration)[joint.motor_id], request)
+    _check_echo(joint, _ask_once(session, [joint], request, Acceleration)[joint.address], request)
     print(
         f"{_label(joint)}: acceleration limit {args.dps2} motor deg/s² ({args.dps2 / joint.gear_ratio:g} joint "
         "deg/s²) in RAM (lost at the next power cycle)"
@@ -417,7 +419,7 @@ def zero(args: argparse.Namespace, interrupts: Interrupts) -> int:
     )
     if not args.yes:
         raise UsageError(f"zero refused without --yes: {FLASH_WARNING}, {consequence}")
-    message = _ask_once(session, [joint], Bare(Command.WRITE_ZERO_ROM), Message)[joint.motor_id]
+    message = _ask_once(session, [joint], Bare(Command.WRITE_ZERO_ROM), Message)[joint.address]
     offset = f" (encoder offset {message.encoder_offset})" if isinstance(message, EncoderOffset) else ""
     print(f"{_label(joint)}: present position written to ROM as zero{offset}; power-cycle the drive to apply it")
     return EXIT_OK

@@ -19,13 +19,21 @@ from motion.cli.common import (
     print_table,
     warn,
 )
-from motion.config import JointConfig
+from motion.config import ArmConfig, JointConfig
 from motion.control.family import STATUS_TYPES
 from motion.protocol import Status1
 from motion.protocol.generation import GENERATIONS
-from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, ProtocolFamily, WireProtocol
+from motion.protocol.table import (
+    ADDRESS_STRIDE,
+    MOTOR_ID_MAX,
+    MOTOR_ID_MIN,
+    ProtocolFamily,
+    WireProtocol,
+    split_address,
+)
 from motion.protocol.v3.messages import Status1V3
 from motion.transport import Request, Transport
+from motion.transport.buses import Buses
 from motion.transport.can_transport import CanTransport
 from motion.transport.identity import Identity, read_identities
 
@@ -40,7 +48,13 @@ SCAN_RETRY_STRETCH: Final = 4.0
 
 
 def _label(joint: JointConfig) -> str:
-    return f"{joint.name} (motor {joint.motor_id})"
+    return f"{joint.name} ({joint.drive_label})"
+
+
+def _drive(config: ArmConfig, address: int) -> str:
+    """``"3"``, or ``"3 on bus right"`` on an arm of several buses."""
+    index, motor_id = split_address(address)
+    return f"{motor_id} on bus {config.buses[index].name}" if len(config.buses) > 1 else str(motor_id)
 
 
 @dataclass(frozen=True)
@@ -103,27 +117,36 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
     """Which motor ids answer 0x9A, in which protocol generation (CAN: told by the reply id), and their model (RS485:
     0x12; V3 drives: 0xB5 and the firmware date 0xB2)."""
     session = Session.from_args(args)
+    config = session.config
     ids: tuple[int, ...] = args.ids or tuple(range(MOTOR_ID_MIN, MOTOR_ID_MAX + 1))
-    configured = {j.motor_id for j in session.config.joints}
-    wire = session.config.bus.transport
+    several = len(config.buses) > 1
+    answered: dict[int, _Scanned] = {}  # by address (an arm on several buses: each bus scanned on its own)
     with session.open_bus(check=False) as bus:
-        answered = _scan_ids(bus, ids, wire, 1.0)
-        # a configured drive that did not answer is asked once more with a longer window (a busy host or adapter can
-        # hold replies back longer than the first window): it is reported missing only then
-        again = [i for i in ids if i in configured and i not in answered]
-        if again:
-            answered.update(_scan_ids(bus, again, wire, SCAN_RETRY_STRETCH))
+        parts = bus.buses if isinstance(bus, Buses) else (bus,)
+        for index, (part, bus_config) in enumerate(zip(parts, config.buses, strict=True)):
+            wire, base = bus_config.transport, index * ADDRESS_STRIDE
+            found = _scan_ids(part, ids, wire, 1.0)
+            # a configured drive that did not answer is asked once more with a longer window (a busy host or
+            # adapter can hold replies back longer than the first window): it is reported missing only then
+            configured = {j.motor_id for j in config.joints_on(index)}
+            again = [i for i in ids if i in configured and i not in found]
+            if again:
+                found.update(_scan_ids(part, again, wire, SCAN_RETRY_STRETCH))
+            answered.update({base + i: scanned for i, scanned in found.items()})
         where, family = bus.describe(), bus.family
     names = session.names
     drives: list[dict[str, object]] = []
     rows: list[tuple[object, ...]] = []
-    for motor_id, scanned in sorted(answered.items()):
+    for address, scanned in sorted(answered.items()):
         status, identity = scanned.status, scanned.identity
         flags = flag_names(status.errors)
+        index, motor_id = split_address(address)
+        bus_name = config.buses[index].name
         drives.append(
             {
                 "motor_id": motor_id,
-                "joint": names.get(motor_id),
+                **({"bus": bus_name} if several else {}),
+                "joint": names.get(address),
                 "protocol": scanned.family.value,
                 "voltage_v": status.voltage_v,
                 "temperature_c": status.temperature_c,
@@ -132,20 +155,24 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
             }
         )
         rows.append(
-            (motor_id, names.get(motor_id, "-"), scanned.family.value, f"{status.voltage_v:.1f} V",
-             f"{status.temperature_c} °C", ",".join(flags) or "ok", "-" if identity is None else identity.text)
+            (motor_id, *((bus_name,) if several else ()), names.get(address, "-"), scanned.family.value,
+             f"{status.voltage_v:.1f} V", f"{status.temperature_c} °C", ",".join(flags) or "ok",
+             "-" if identity is None else identity.text)
         )  # fmt: skip
-    missing = [_label(j) for j in session.config.joints if j.motor_id not in answered]
+    missing = [_label(j) for j in config.joints if j.address not in answered]
     if args.json:
         print_json({"bus": where, "drives": drives, "missing": missing})
     else:
-        print(f"{where}: {len(drives)} of {len(ids)} ids answered")
-        print_table(("id", "joint", "protocol", "voltage", "temp", "flags", "model"), rows)
-    other = sorted(i for i, scanned in answered.items() if scanned.family is not family)
+        print(f"{where}: {len(drives)} of {len(ids) * len(config.buses)} ids answered")
+        print_table(
+            ("id", *(("bus",) if several else ()), "joint", "protocol", "voltage", "temp", "flags", "model"), rows
+        )
+    other = [a for a, scanned in sorted(answered.items()) if scanned.family is not family]
     if other:
         speaks = GENERATIONS[answered[other[0]].family].title
+        told = ", ".join(_drive(config, a) for a in other)
         warn(
-            f"motor(s) {', '.join(map(str, other))} speak the {speaks}, not the configuration's "
+            f"motor(s) {told} speak the {speaks}, not the configuration's "
             f"(bus.protocol: {family.value}): one arm's drives speak one generation"
         )
     if missing:

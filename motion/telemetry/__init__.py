@@ -101,6 +101,7 @@ from motion.closing import Closing
 from motion.config.schema import ArmConfig, CanBusConfig, ControlMode
 from motion.control.clock import MonotonicClock
 from motion.control.controller import Controller
+from motion.protocol.table import ADDRESS_STRIDE, split_address
 from motion.safety.states import ArmState
 from motion.transmission import FloatArray
 from motion.transport.base import Reply, Transport
@@ -458,8 +459,10 @@ class Recorder:
         """The metadata the recorder knows (joints, mode, rate, time base, units, loop statistics, counters)."""
         controller = self.controller
         per_amp = controller.transmission.joint_torque_nm(np.ones(len(controller.specs)))
+        # (a drive's address splits into its bus's index in the metadata's "buses" and its motor id on that bus)
         joints = [
-            {"name": s.name, "motor_id": s.motor_id, "torque_nm_per_a": float(k)}
+            {"name": s.name, "motor_id": split_address(s.motor_id)[1], "torque_nm_per_a": float(k)}
+            | ({"bus": split_address(s.motor_id)[0]} if s.motor_id >= ADDRESS_STRIDE else {})
             for s, k in zip(controller.specs, per_amp, strict=True)
         ]
         return _schema_meta(controller.options.mode.value, controller.options.rate_hz, joints) | {
@@ -672,9 +675,11 @@ class TelemetrySession(Closing):
                 self.recorder.detach()
                 self.recorder.finish()
             if self._trace_file is not None and self.trace is not None:
-                bus = self.config.bus
-                if isinstance(bus, CanBusConfig):
-                    self.trace.write_candump(self._trace_file, bus.channel)
+                buses = self.config.buses
+                if all(isinstance(bus, CanBusConfig) for bus in buses):
+                    # (an arm on several buses: one trace of all their frames, named by the buses' channels joined)
+                    channel = "+".join(bus.channel for bus in buses if isinstance(bus, CanBusConfig))
+                    self.trace.write_candump(self._trace_file, channel)
                 else:
                     self.trace.write_hex(self._trace_file)
             if self._log_file is not None:
@@ -688,23 +693,26 @@ class TelemetrySession(Closing):
 
     def _log(self) -> TelemetryLog:
         config = self.config
-        bus = config.bus
         meta: dict[str, Any] = {
             "config": config.name,
             "config_source": config.source,
-            "transport": bus.transport.value,
-            "channel": bus.link,
+            "transport": ", ".join(dict.fromkeys(bus.transport.value for bus in config.buses)),
+            "channel": ", ".join(f"{b.name}={b.link}" if b.name else b.link for b in config.buses),
             "emulated": self.emulated,
             "following_error_limit_deg": config.safety.following_error_deg,
             "collision_threshold_nm": list(config.collision_thresholds_nm),
             "trace": Path(self.options.trace).name if self.options.trace is not None else None,
         }
+        if len(config.buses) > 1:  # each joint's "bus" is an index of these
+            meta["buses"] = [{"name": b.name, "transport": b.transport.value, "channel": b.link} for b in config.buses]
         if self.recorder is not None:
             return self.recorder.log(**meta)
         # Nothing was recorded (the arm never connected): an empty log that still names the joints.
         columns: dict[str, NDArray[Any]] = dict(_allocate(0, len(config.joints)))
         columns.update(_fault_columns((), 0.0))
-        joints = [{"name": j.name, "motor_id": j.motor_id} for j in config.joints]
+        joints = [
+            {"name": j.name, "motor_id": j.motor_id} | ({"bus": j.bus_index} if j.bus else {}) for j in config.joints
+        ]
         meta |= _schema_meta(config.control.mode.value, config.control.rate_hz, joints)
         meta |= {"t0_s": 0.0, "t0_wall_unix_s": time.time(), "loop": None, "counters": {}}
         return TelemetryLog(columns, meta)
