@@ -117,6 +117,15 @@ class RateCheck:
     samples: int
     simulated: bool
     spread_hz: tuple[float, float] | None = None
+    by_bus_p99_s: tuple[tuple[str, float], ...] = ()
+
+    def bus_text(self) -> str:
+        """An arm on several buses: each bus's own exchange (p99) and the one that limits ("" on one bus)."""
+        if not self.by_bus_p99_s:
+            return ""
+        slowest = max(self.by_bus_p99_s, key=lambda item: item[1])[0]
+        each = ", ".join(f"{name} {t * 1e3:.2f} ms" for name, t in self.by_bus_p99_s)
+        return f"; by bus (p99, at the same time): {each}: bus {slowest} limits"
 
     @property
     def highest_rate_hz(self) -> float:
@@ -164,7 +173,7 @@ class RateCheck:
         return (
             f"{clock}: round trip p99 {self.round_trip_p99_s * 1e3:.2f} ms, host work p99 "
             f"{self.host_p99_s * 1e3:.2f} ms per cycle ({self.samples} exchanges); highest rate with margin "
-            f"{self.margin:g}: {self.highest_rate_hz:g} Hz{self.spread_text()} (recommended "
+            f"{self.margin:g}: {self.highest_rate_hz:g} Hz{self.spread_text()}{self.bus_text()} (recommended "
             f"{self.recommended_rate_hz:g} Hz); configured "
             f"{self.rate_hz:g} Hz " + ("holds" if self.holds else "does NOT hold")
         )
@@ -194,7 +203,8 @@ class RateError(ConfigError):
             f"{check.rate_hz:g} Hz cannot be held: the cycle's bus round trip takes {check.round_trip_p99_s * 1e3:.2f}"
             f" ms (p99) and this host's work {check.host_p99_s * 1e3:.2f} ms, against a period of "
             f"{1e3 / check.rate_hz:.2f} ms ({check.reply_budget:.0%} of it for the replies) with a margin of "
-            f"{check.margin:g}; the highest rate that holds is {check.highest_rate_hz:g} Hz{check.spread_text()} (set "
+            f"{check.margin:g}; the highest rate that holds is {check.highest_rate_hz:g} Hz{check.spread_text()}"
+            f"{check.bus_text()} (set "
             f"control.rate_hz to "
             f"{check.recommended_rate_hz:g} Hz or lower, which leaves room for the spread between measurements, or "
             "accept a smaller margin with control.rate_margin)",
@@ -260,9 +270,12 @@ def measure_rate(
     at = -math.inf
     began, n = time.monotonic(), 0
     misses = dict.fromkeys(ids, 0)
+    by_bus: dict[str, list[float]] = {}
     while n < fewest or (n < most and time.monotonic() - began < MEASURE_S):
         start = clock.now()
         replies = bus.transact(batch, start + _EXCHANGE_TIMEOUT_S)
+        for name, took_s in (bus.bus_times_s() or {}).items():
+            by_bus.setdefault(name, []).append(took_s)
         missing = {r.motor_id for r in replies if r.message is None}
         # a reply missing once is a round trip of at least the timeout (a stalled host, a lost frame: the p99 says
         # so); a drive that answers none of several exchanges in a row does not answer
@@ -289,6 +302,7 @@ def measure_rate(
         host_p99_s=float(np.percentile(host, 99)),
         samples=n,
         simulated=simulated,
+        by_bus_p99_s=tuple((name, float(np.percentile(times, 99))) for name, times in by_bus.items()),
     )
     if simulated or n < 2 * SPREAD_PARTS:
         return check

@@ -351,6 +351,11 @@ class Transport(ABC, Closing):
         """
         return None
 
+    def bus_times_s(self) -> Mapping[str, float] | None:
+        """An arm on several buses: how long each bus's share of the last :meth:`transact` took, s, by bus name (the
+        rate check names the bus that limits); None on one bus."""
+        return None
+
     def _read_behind_the_slots(self) -> None:
         """The port was read past the slots (a generation probe drains and reads it at the frame level): the late
         answers that outstanding marks wait for were taken there, so no mark may swallow the next real answer (scan's

@@ -37,6 +37,7 @@ class _Worker:
         self._deadline_s = 0.0
         self.replies: list[Reply] = []
         self.error: BaseException | None = None
+        self.took_s = 0.0  # how long the last exchange took, s
         self._start = threading.Event()
         self._done = threading.Event()
         self._stopping = False
@@ -72,10 +73,12 @@ class _Worker:
             self._start.clear()
             if self._stopping:
                 return
+            began = self.bus.clock()
             try:
                 self.replies = self.bus.transact(self._requests, self._deadline_s)
             except BaseException as exc:  # handed to the control loop's thread, which decides
                 self.error = exc
+            self.took_s = self.bus.clock() - began
             self._done.set()
 
 
@@ -104,6 +107,7 @@ class Buses(Transport):
         self._workers = [_Worker(bus, name) for bus, name in zip(self.buses[1:], self.names[1:], strict=True)]
         self._split: list[list[Request]] = [[] for _ in self.buses]
         self._where: list[int] = []  # per request of the cycle, its bus
+        self._took_s = 0.0  # how long the first bus's share of the last exchange took, s
 
     # --- the cycle -----------------------------------------------------------------------------------------
 
@@ -134,11 +138,13 @@ class Buses(Transport):
             worker.submit(share, deadline_s)
         errors: list[BaseException] = []
         answers: list[list[Reply]] = []
+        began = self.clock()
         try:
             answers.append(self.buses[0].transact(split[0], deadline_s))
         except BaseException as exc:  # the other buses still end their exchange first
             errors.append(exc)
             answers.append([])
+        self._took_s = self.clock() - began
         grace = max(0.0, deadline_s - self.clock()) + _WORKER_GRACE_S
         for worker in self._workers:
             try:
@@ -184,6 +190,10 @@ class Buses(Transport):
         """The counters of the drive at address ``motor_id`` (its bus's own object)."""
         bus, wire_id = split_address(motor_id)
         return self.buses[bus].motor_counters(wire_id)
+
+    def bus_times_s(self) -> Mapping[str, float] | None:
+        """See :meth:`Transport.bus_times_s`."""
+        return dict(zip(self.names, [self._took_s, *(w.took_s for w in self._workers)], strict=False))
 
     def junk_note(self) -> str:
         """See :meth:`Transport.junk_note`: each bus's."""
