@@ -119,8 +119,6 @@ class Buses(Transport):
             PortLost: a bus's port is gone (the other buses' batches went out first).
             TransportError: a bus failed, or the transport is closed.
         """
-        if self._lost is not None:
-            raise PortLost(str(self._lost))
         if self._closed:
             raise TransportError(f"{self.describe()} is closed")
         split, where = self._split, self._where
@@ -134,29 +132,35 @@ class Buses(Transport):
             split[bus].append(Request(motor_id, request.message) if bus else request)
             where.append(bus)
         self.bus_counters.cycles += 1
-        for worker, share in zip(self._workers, split[1:], strict=True):
-            worker.submit(share, deadline_s)
+        # a bus whose port is gone is skipped: the others' batches (the halt that follows a fault) still go out
+        live = [bus.lost is None and not bus.closed for bus in self.buses]
+        for worker, share, alive in zip(self._workers, split[1:], live[1:], strict=True):
+            if alive:
+                worker.submit(share, deadline_s)
         errors: list[BaseException] = []
         answers: list[list[Reply]] = []
         began = self.clock()
         try:
-            answers.append(self.buses[0].transact(split[0], deadline_s))
+            answers.append(self.buses[0].transact(split[0], deadline_s) if live[0] else [])
         except BaseException as exc:  # the other buses still end their exchange first
             errors.append(exc)
             answers.append([])
         self._took_s = self.clock() - began
         grace = max(0.0, deadline_s - self.clock()) + _WORKER_GRACE_S
-        for worker in self._workers:
+        for worker, alive in zip(self._workers, live[1:], strict=True):
             try:
-                answers.append(worker.result(grace))
+                answers.append(worker.result(grace) if alive else [])
             except BaseException as exc:
                 errors.append(exc)
                 answers.append([])
+        gone = [bus.lost for bus in self.buses if bus.lost is not None]
+        if gone and self._lost is None:
+            self._lost = gone[0]
         if errors:
-            lost = next((e for e in errors if isinstance(e, PortLost)), None)
-            if lost is not None:
-                self._lost = lost
-            raise lost or errors[0]
+            raise next((e for e in errors if isinstance(e, PortLost)), errors[0])
+        if not all(live):
+            closed = ", ".join(name for name, alive in zip(self.names, live, strict=True) if not alive)
+            raise self._lost or PortLost(f"bus(es) {closed} of {self.describe()} closed")
         return self._merge(requests, answers)
 
     def _merge(self, requests: Sequence[Request], answers: list[list[Reply]]) -> list[Reply]:
@@ -174,7 +178,8 @@ class Buses(Transport):
 
     @property
     def closed(self) -> bool:
-        """True once closed, or once any bus is closed or lost: the arm's drives are not all reachable any more."""
+        """True once closed, or once any bus is closed or lost: the arm's drives are not all reachable any more
+        (:meth:`transact` still carries the other buses' batches, then raises)."""
         return self._closed or self._lost is not None or any(bus.closed for bus in self.buses)
 
     @property
