@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -33,6 +34,7 @@ from motion.config.schema import CanBusConfig, ControlMode
 from motion.control.controller import Controller
 from motion.emulator import Emulator, FrameLog, Rs485Attachment, SlcanAttachment, VirtualCanAttachment
 from motion.emulator.arm import arm_emulator
+from motion.emulator.attach import Attachment
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.emulator.timing import TimingModel
 from motion.protocol import Message, MultiTurnPositionSpeed, WireProtocol, can_frame, rs485_frame
@@ -65,6 +67,8 @@ class Rig:
     supervisor: Supervisor | None = None
     log_start_s: float = 0.0
     family: ProtocolFamily = ProtocolFamily.V2
+    #: The in-process attachments of a real-time rig, by bus (none in simulated time).
+    attachments: tuple[Attachment[Any, Any], ...] = ()
 
     def sleep(self, duration_s: float) -> None:
         """Let ``duration_s`` pass with the loop running (simulated time, or a real sleep)."""
@@ -109,6 +113,7 @@ def emulated_arm(
     clock = None
     with ExitStack() as stack:
         several = len(config.buses) > 1  # (an arm on several buses: a line, attachment and link each)
+        attached: list[Attachment[Any, Any]] = []
         names = [b.name for b in config.buses]
         if attachment == "sim":
             lines = [
@@ -128,20 +133,20 @@ def emulated_arm(
         if attachment == "virtual":
             channels = {name: uuid.uuid4().hex for name in names}
             for line, channel in enumerate(channels.values()):
-                stack.enter_context(VirtualCanAttachment(emulator, channel, frame_log=log, line=line))
+                attached.append(stack.enter_context(VirtualCanAttachment(emulator, channel, frame_log=log, line=line)))
             given: object = channels if several else channels[names[0]]
             bus = stack.enter_context(open_bus(config, interface="virtual", channel=given, bitrate=None))
         elif attachment == "slcan":
             links = {name: str(tmp_path / f"slcan-{uuid.uuid4().hex[:8]}") for name in names}
             for line, link in enumerate(links.values()):
-                stack.enter_context(SlcanAttachment(emulator, link, frame_log=log, line=line))
+                attached.append(stack.enter_context(SlcanAttachment(emulator, link, frame_log=log, line=line)))
             given = links if several else links[names[0]]
             bus = stack.enter_context(
                 open_bus(config, interface="slcan", channel=given, bitrate=1_000_000, sleep_after_open=0)
             )
         elif attachment == "rs485":
             port = tmp_path / f"rs485-{uuid.uuid4().hex[:8]}"
-            stack.enter_context(Rs485Attachment(emulator, port, frame_log=log))
+            attached.append(stack.enter_context(Rs485Attachment(emulator, port, frame_log=log)))
             bus = stack.enter_context(open_bus(config, port=str(port)))
         # the generation told as at connect (the older drives' rigs skip the probe: their timing stays what the tests
         # were tuned on; issue 19's identification test shifts with it, see its note)
@@ -160,7 +165,9 @@ def emulated_arm(
         else:
             controller.start()
         try:
-            yield Rig(config, controller, plant, emulator, log_path, starts, supervisor, log.start_s, family)
+            yield Rig(
+                config, controller, plant, emulator, log_path, starts, supervisor, log.start_s, family, tuple(attached)
+            )
         finally:
             if supervisor is not None:
                 supervisor.close()

@@ -4,11 +4,13 @@ and one safety domain (a fault on either bus halts every axis on both in its det
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from motion.config import ArmConfig
 from motion.emulator.faults import Fault, InjectedFault
 from motion.errors import MotionFault
 from motion.protocol import Command
@@ -107,3 +109,35 @@ def test_a_fault_on_one_bus_halts_every_axis_on_both_in_its_detection_cycle(
         assert info.value.joint == next(j.name for j in config.joints if j.address == address)
         _halted_everywhere_in_the_detection_cycle(rig)
         assert supervisor.state in (ArmState.HALTING, ArmState.HALTED)
+
+
+def _realtime(config: ArmConfig) -> ArmConfig:
+    """``config`` as the real-time rigs run it: at 50 Hz, with a quarter of a second for a reply (a busy host keeps an
+    in-process emulator waiting; silence itself is asserted in simulated time above)."""
+    safety = dataclasses.replace(config.safety, reply_timeout_ms=250.0)
+    return dataclasses.replace(config, control=dataclasses.replace(config.control, rate_hz=50.0), safety=safety)
+
+
+def test_a_bus_lost_in_real_time_halts_the_other_buses_drives_in_its_detection_cycle(tmp_path: Path) -> None:
+    # the right bus's adapter goes (its pty closes under the host): the left bus's six drives get their 0x81 in the
+    # cycle that found the port gone, and the arm is BUS_LOST (the right drives cannot be reached any more)
+    with emulated_arm(_realtime(BIMANUAL), "slcan", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        supervisor.move_to(TARGETS, 0.5)
+        rig.sleep(0.4)
+        assert supervisor.state is ArmState.MOVING
+        rig.attachments[1].close()
+        with pytest.raises(MotionFault) as info:
+            supervisor.wait(5.0)
+        assert info.value.kind == "transport" and "the port is gone" in str(info.value)
+        deadline = time.monotonic() + 2.0
+        while supervisor.state is not ArmState.BUS_LOST and time.monotonic() < deadline:
+            time.sleep(0.01)  # (the halt's own send finds the port gone a moment after the wait has returned)
+        assert supervisor.state is ArmState.BUS_LOST
+        halt = supervisor.halts[0]
+        stops = received(rig, Command.MOTOR_STOP)
+        for joint in BIMANUAL.joints_on(0):
+            first = min(stops.get(joint.address, [np.inf]))
+            assert halt.detected_s <= first < halt.detected_s + rig.controller.period_s, joint.name
+        assert not any(a >= ADDRESS_STRIDE for a in stops)  # (nothing reaches the lost bus)

@@ -18,14 +18,19 @@ from motion.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
-EXAMPLES = ("arm2.yaml", "arm2_rs485.yaml", "arm6.urdf", "arm6.yaml", "arm6_v3.yaml", "bench1.yaml")
+EXAMPLES = (
+    "arm2.yaml", "arm2_rs485.yaml", "arm6.urdf", "arm6.yaml", "arm6_v3.yaml", "bench1.yaml", "bimanual.urdf",
+    "bimanual.yaml",
+)  # fmt: skip
 
 
 def test_the_examples_are_package_data_of_motion_found_through_importlib_resources() -> None:
     packaged = importlib.resources.files("motion") / "examples"
     assert examples_dir() == packaged
     assert [p.name for p in example_files()] == list(EXAMPLES)
-    assert example_names() == ("arm2.yaml", "arm2_rs485.yaml", "arm6.yaml", "arm6_v3.yaml", "bench1.yaml")
+    assert example_names() == (
+        "arm2.yaml", "arm2_rs485.yaml", "arm6.yaml", "arm6_v3.yaml", "bench1.yaml", "bimanual.yaml"
+    )  # fmt: skip
     # configs/ is their only copy: in a checkout motion/examples leads there.
     assert examples_dir().resolve() == CONFIGS.resolve()
 
@@ -109,7 +114,10 @@ def test_init_copies_the_examples_into_configs(
     assert arm6.model.urdf == tmp_path / "configs" / "arm6.urdf"
     # Again: nothing differs, nothing is rewritten.
     assert main(["init"]) == 0
-    there = "already there: arm2.yaml, arm2_rs485.yaml, arm6.urdf, arm6.yaml, arm6_v3.yaml, bench1.yaml, programs/arm2"
+    there = (
+        "already there: arm2.yaml, arm2_rs485.yaml, arm6.urdf, arm6.yaml, arm6_v3.yaml, bench1.yaml, bimanual.urdf, "
+        "bimanual.yaml, programs/arm2"
+    )
     out = capsys.readouterr().out
     assert there in out and "programs/bench1.yaml" in out
     # ... with a program per example arm, which runs from there as it is named in the README

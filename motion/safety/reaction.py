@@ -97,7 +97,10 @@ class FaultReaction(SafetyPart):
         try:
             sent = self._start(chosen, fault, start_s, deadline_s, detected_s=detected, code=code)
         except TransportError as exc:
+            # recorded before the state changes (HALTING, or BUS_LOST): a thread waiting on the state reads it at once
+            self.log.halts.append(HaltRecord(fault, k, detected, sent, Reaction(code.name)))
             self._send_failed(exc, detected, code)
+            return
         except Exception as exc:  # the state is HALTING: the next cycle sends the halt again
             logger.error("halt could not be sent: %s: %s", type(exc).__name__, exc)
         reaction = REACTIONS.get(self.machine.state) or Reaction(self.guard.code.name)
@@ -257,7 +260,11 @@ class FaultReaction(SafetyPart):
         """BUS_LOST: nothing more can be sent, the loop ends."""
         if self.machine.state is not ArmState.BUS_LOST:
             self.machine.fire(ArmEvent.BUS_GONE)
-            logger.critical("the bus is gone (%s): the halt could not be sent; the control loop ends", exc)
+            logger.critical(
+                "the bus is gone (%s): the halt could not be sent to the drives on it (an arm on several buses: it went "
+                "to the others'); the control loop ends",
+                exc,
+            )
 
     def send_halt(self, deadline_s: float) -> None:
         """The halt to the drives not known to be halted (in the detection cycle: every drive, one batch)."""

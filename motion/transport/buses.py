@@ -157,7 +157,7 @@ class Buses(Transport):
         if gone and self._lost is None:
             self._lost = gone[0]
         if errors:
-            raise next((e for e in errors if isinstance(e, PortLost)), errors[0])
+            raise next((e for e in errors if isinstance(e, PortLost)), errors[0])  # (each names its port)
         if not all(live):
             closed = ", ".join(name for name, alive in zip(self.names, live, strict=True) if not alive)
             raise self._lost or PortLost(f"bus(es) {closed} of {self.describe()} closed")
