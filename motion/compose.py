@@ -77,6 +77,7 @@ def axis_specs(config: ArmConfig, family: ProtocolFamily = ProtocolFamily.V2) ->
             j.kp_nm_per_deg,
             j.kd_nm_per_dps,
             drive_gear_ratio=j.gear_ratio if output_shaft else 1.0,
+            label=j.drive_label,
         )
         for j in config.joints
     )

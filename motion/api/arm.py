@@ -41,7 +41,7 @@ from motion.errors import EncodeError, FaultKind, MotionError, MotionFault, Plan
 from motion.homing import HomingResult, corrected_turns, finish_halt, homed_joints, homing_variant, seek_stop
 from motion.keep import load_turn_records, offer_stored_tracking, save_turn_records, store_tracking, turns_store
 from motion.protocol import WireProtocol
-from motion.protocol.table import ProtocolFamily
+from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily
 from motion.protocol.v3.messages import MotionRanges
 from motion.safety import ArmState, Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
@@ -546,7 +546,7 @@ class Arm:
         if identity is None:
             raise EncodeError(
                 "firmware_date", "the drive's firmware date and model, told at connect (V3 drives)", None,
-                f"the motion frame of joint {joint} (motor {motor_id})",
+                f"the motion frame of joint {joint} (motor {motor_id % ADDRESS_STRIDE})",
             )  # fmt: skip
         return identity.motion_ranges()
 

@@ -45,6 +45,7 @@ class HoldingVerdict:
         model_nm: the model's gravity torque g(q) there.
         bound_nm: how far they may differ (the module docstring).
         judged: gravity loads the joint beyond the bound (else it is not judged: jog it).
+        drive: how messages name its drive ("motor 2", "motor 2 on bus right").
     """
 
     name: str
@@ -53,6 +54,7 @@ class HoldingVerdict:
     model_nm: float
     bound_nm: float
     judged: bool
+    drive: str = ""
 
     @property
     def matches(self) -> bool:
@@ -60,7 +62,7 @@ class HoldingVerdict:
 
     def text(self) -> str:
         """In words, with what a mismatch may mean."""
-        label = f"{self.name} (motor {self.motor_id})"
+        label = f"{self.name} ({self.drive or f'motor {self.motor_id}'})"
         figures = f"holds with {self.measured_nm:+.2f} N·m where the model's gravity takes {self.model_nm:+.2f} N·m"
         if not self.judged:
             return f"{label} {figures}: gravity does not load it enough to tell (rmd-motion jog {self.name})"
@@ -117,7 +119,13 @@ def check_holding(arm: Arm) -> list[HoldingVerdict]:
     bound = (MODEL_ERROR[0] + MASS_ERROR) * np.abs(model) + floor
     return [
         HoldingVerdict(
-            j.name, j.motor_id, float(measured[i]), float(model[i]), float(bound[i]), bool(abs(model[i]) > 2 * floor[i])
+            j.name,
+            j.motor_id,
+            float(measured[i]),
+            float(model[i]),
+            float(bound[i]),
+            bool(abs(model[i]) > 2 * floor[i]),
+            j.drive_label,
         )
         for i, j in enumerate(joints)
     ]

@@ -22,7 +22,7 @@ from motion.config.schema import BusConfig
 from motion.errors import DrivesSilent, MotionError, PortUnavailable, TransportError
 from motion.protocol import Message
 from motion.protocol.generation import GENERATIONS
-from motion.protocol.table import ProtocolFamily
+from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily
 from motion.transport import Request, Transport
 from motion.view import DEFAULT_HOST, DEFAULT_PORT, PORTS, ViewOptions, host_warning
 
@@ -479,7 +479,10 @@ def exchange(
     """
     replies = bus.transact(requests, bus.clock() + REPLY_TIMEOUT_S)
     got = {r.motor_id: r.message for r in replies if isinstance(r.message, expect)}
-    missing = [f"{names.get(r.motor_id, '?')} (motor {r.motor_id})" for r in replies if r.motor_id not in got]
+    # (the joint's name tells the bus of an arm on several; the motor id is the drive's own on it)
+    missing = [
+        f"{names.get(r.motor_id, '?')} (motor {r.motor_id % ADDRESS_STRIDE})" for r in replies if r.motor_id not in got
+    ]
     if missing:
         raise TransportError(
             f"no {expect.__name__} reply from {', '.join(missing)} on {bus.describe()} "

@@ -424,15 +424,15 @@ def _jog_verdict(joint: JointConfig, expected_motor_deg: float, moved: list[tupl
     """In words: which drives turned against what was commanded, and what the user must watch. The readings follow
     the configuration (the drive is commanded and read through the same ``motor_id``, ``direction`` and
     ``gear_ratio``), so only the arm itself shows a swapped id, a reversed direction or a wrong gear."""
-    label = f"{joint.name} (motor {joint.motor_id})"
-    ids = [spec.motor_id for spec, _ in moved]
+    label = f"{joint.name} ({joint.drive_label})"
+    ids = [spec.motor_id for spec, _ in moved]  # (the drives' addresses)
     if not moved:
         return (
             f"{label} was commanded {expected_motor_deg:+.1f} motor deg and no drive turned: check that the joint is "
             "free to move and its drive runs (`rmd-motion status`)"
         )
-    if ids != [joint.motor_id]:
-        turned = ", ".join(f"motor {spec.motor_id} ({spec.name}) {delta:+.1f} motor deg" for spec, delta in moved)
+    if ids != [joint.address]:
+        turned = ", ".join(f"{spec.drive_label} ({spec.name}) {delta:+.1f} motor deg" for spec, delta in moved)
         return f"{label} was commanded {expected_motor_deg:+.1f} motor deg; turned: {turned}: the joints are coupled?"
     delta = moved[0][1]
     if not 0.8 <= delta / expected_motor_deg <= 1.25:

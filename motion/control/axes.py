@@ -31,7 +31,8 @@ class AxisSpec:
 
     Attributes:
         name: joint name.
-        motor_id: drive id 1..32.
+        motor_id: the drive's address: its motor id 1..32 on an arm of one bus, else ``bus index × ADDRESS_STRIDE +
+            motor id`` (:mod:`motion.transport.buses`).
         encoder_bits: encoder resolution (counts per rotor revolution = 2**bits).
         kp_nm_per_deg: torque-mode position gain, N·m per degree of joint error.
         kd_nm_per_dps: torque-mode velocity gain, N·m per deg/s of joint velocity error.
@@ -46,6 +47,12 @@ class AxisSpec:
     kp_nm_per_deg: float = 0.0
     kd_nm_per_dps: float = 0.0
     drive_gear_ratio: float = 1.0
+    label: str = ""  #: how messages name the drive ("motor 3 on bus right"); "" gives "motor {motor_id}"
+
+    @property
+    def drive_label(self) -> str:
+        """How messages name the drive."""
+        return self.label or f"motor {self.motor_id}"
 
 
 def _cells(array: NDArray[Any]) -> MutableSequence[Any]:

@@ -49,7 +49,7 @@ def read_every_drive(controller: Controller, reads: Sequence[Message], timeout_s
 def silent_drives(controller: Controller, what: str, answered: Collection[int], note: str = "") -> DrivesSilent:
     """The error for the joints whose drives did not answer ``what``, each named with its motor id."""
     silent = [s for s in controller.specs if s.motor_id not in answered]
-    named = ", ".join(f"{s.name} (motor {s.motor_id})" for s in silent)
+    named = ", ".join(f"{s.name} ({s.drive_label})" for s in silent)
     return DrivesSilent(f"no reply to the {what} from joint(s) {named}{note}", tuple(s.motor_id for s in silent))
 
 

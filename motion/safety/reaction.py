@@ -261,8 +261,8 @@ class FaultReaction(SafetyPart):
         if self.machine.state is not ArmState.BUS_LOST:
             self.machine.fire(ArmEvent.BUS_GONE)
             logger.critical(
-                "the bus is gone (%s): the halt could not be sent to the drives on it (an arm on several buses: it went "
-                "to the others'); the control loop ends",
+                "the bus is gone (%s): the halt could not be sent to the drives on it (an arm on several buses: it "
+                "went to the others'); the control loop ends",
                 exc,
             )
 
