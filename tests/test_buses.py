@@ -4,6 +4,11 @@ and one safety domain (a fault on either bus halts every axis on both in its det
 from __future__ import annotations
 
 import dataclasses
+import json
+import shutil
+import signal
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -18,6 +23,10 @@ from motion.protocol.table import ADDRESS_STRIDE
 from motion.safety import ArmState
 from tests.motion_rig import Rig, arm_config, commanded_positions, emulated_arm, logged_requests, received
 
+ROOT = Path(__file__).resolve().parent.parent
+CONFIGS = ROOT / "configs"
+#: As tests/test_cli.py's moving tests: half the rate check's highest rate, and none below 50 Hz.
+RATE_SHARE, MIN_RATE_HZ = 0.5, 50.0
 BIMANUAL = arm_config("bimanual.yaml")
 #: Both arms move: each its own way (different distances on each joint, so that Ruckig's synchronisation matters).
 TARGETS = np.array([30.0, -25.0, 40.0, 20.0, -15.0, 10.0, -35.0, 20.0, -30.0, -10.0, 25.0, -20.0])
@@ -143,3 +152,65 @@ def test_a_bus_lost_in_real_time_halts_the_other_buses_drives_in_its_detection_c
             first = min(stops.get(joint.address, [np.inf]))
             assert halt.detected_s <= first < halt.detected_s + rig.controller.period_s, joint.name
         assert not any(a >= ADDRESS_STRIDE for a in stops)  # (nothing reaches the lost bus)
+
+
+def test_the_cli_moves_both_arms_in_real_time_against_the_emulator_on_two_slcan_ptys(tmp_path: Path) -> None:
+    # `rmd-motion emulate --config bimanual.yaml --slcan-link left=... --slcan-link right=...`, then `move` of all
+    # twelve joints with `--channel BUS=...` per bus: every joint at its target when the move returns
+    links = {name: tmp_path / f"slcan-{name}" for name in ("left", "right")}
+    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(CONFIGS / "bimanual.yaml")]
+    for name, link in links.items():
+        command += ["--slcan-link", f"{name}={link}"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert process.stdout is not None
+        started = [process.stdout.readline() for _ in range(3)]
+        assert started[0].startswith(f"slcan: {links['left']}") and "(bus left)" in started[0], started
+        assert f"{links['right']}" in started[1] and "(bus right)" in started[1], started
+        assert "on bus left" in started[2] and "on bus right" in started[2], started
+        bus = ["--interface", "slcan", *(a for n, p in links.items() for a in ("--channel", f"{n}={p}"))]
+        checked = _cli("check", "--config", CONFIGS / "bimanual.yaml", *bus, "--json")
+        assert checked.returncode in {0, 2}, checked.stderr
+        data = json.loads(checked.stdout)
+        highest = float(data["modes"]["position"]["highest_rate_hz"]) * RATE_SHARE
+        if highest < MIN_RATE_HZ:
+            pytest.skip(f"this host holds no rate the moving tests run bimanual.yaml at (rate check: {highest:g} Hz)")
+        config = _copy_at(tmp_path, min(round(highest), 250))
+        targets = [f"{j.name}={t:g}" for j, t in zip(BIMANUAL.joints, TARGETS, strict=True)]
+        moved = _cli("move", "--config", config, *bus, "--speed-scale", "0.5", *targets, "--json")
+        assert moved.returncode == 0, moved.stderr
+        assert json.loads(moved.stdout)["arrival"]["arrived"]
+        status = _cli("status", "--config", config, *bus, "--json")
+        assert status.returncode == 0, status.stderr
+        joints = json.loads(status.stdout)["joints"]
+        assert [(j["name"], j["bus"], j["motor_id"]) for j in joints] == [
+            (j.name, j.bus, j.motor_id) for j in BIMANUAL.joints
+        ]
+        tolerance = BIMANUAL.control.goal_tolerance_deg
+        np.testing.assert_allclose([j["position_deg"] for j in joints], TARGETS, atol=tolerance + 0.01)
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.communicate(timeout=10)
+
+
+def _cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "motion.cli", *map(str, args)],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=ROOT,
+        check=False,
+    )
+
+
+def _copy_at(tmp_path: Path, rate_hz: float) -> Path:
+    """bimanual.yaml (and its URDF) in ``tmp_path`` at ``rate_hz``, with a quarter of a second for a reply (a busy
+    host; silence is asserted in simulated time above)."""
+    shutil.copy(CONFIGS / "bimanual.urdf", tmp_path / "bimanual.urdf")
+    text = (CONFIGS / "bimanual.yaml").read_text()
+    text = text.replace("rate_hz: 250", f"rate_hz: {rate_hz:g}").replace("reply_timeout_ms: 5", "reply_timeout_ms: 250")
+    assert f"rate_hz: {rate_hz:g}" in text and "reply_timeout_ms: 250" in text
+    path = tmp_path / "bimanual.yaml"
+    path.write_text(text)
+    return path

@@ -396,10 +396,14 @@ def run_emulate(
                 pty = f" (pty {device})" if device else ""
                 print(f"{attachment.channel}: {attachment.path}{pty}{bus}", flush=True)
             faults = ", ".join(f.describe() for f in emulator.faults) or "none"
-            print(
-                f"emulating motors {','.join(map(str, emulator.ids))}; faults: {faults}; stop with Ctrl-C or SIGTERM",
-                flush=True,
-            )
+            if len(buses) > 1:  # (each bus's drives by their own ids; a fault names a drive by its address)
+                motors = ", ".join(
+                    f"{','.join(map(str, emulator.line_ids.get(line, ())))} on bus {name}"
+                    for line, (name, _) in enumerate(buses)
+                )
+            else:
+                motors = ",".join(map(str, emulator.ids))
+            print(f"emulating motors {motors}; faults: {faults}; stop with Ctrl-C or SIGTERM", flush=True)
             while not stop.wait(_WATCH_S):
                 if any(a.failure is not None for a in attachments):
                     break
