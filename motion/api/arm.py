@@ -79,7 +79,8 @@ class Arm:
             that waits (``handle.wait()``, :meth:`sleep`), and a run gives the same result on every host, faster than
             real time. ``"realtime"``: the drives run in real time in a process of their own (``rmd-motion emulate``
             on a slcan or RS485 pseudo-terminal, built from the configuration file), as hardware would.
-        bus_overrides: replace configured bus settings (``channel=...``, ``port=...``).
+        bus_overrides: replace configured bus settings (``channel=...``, ``port=...``; an arm on several buses: a
+            mapping of bus names per setting, ``channel={"left": ..., "right": ...}``).
         initial_deg: emulated joint angles at start (emulation only).
         emulator_log: write every frame the emulated drives receive and send to this file (emulation only).
         telemetry: record the run: a per-cycle log and/or a bus trace, written when the arm closes (see

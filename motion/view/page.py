@@ -123,6 +123,8 @@ class Page:
         viser = _viser()
         self.server = server
         self.names = [html.escape(name, quote=True) for name in config.joint_names]
+        #: An arm on several buses: each joint's bus, a column of the table (none on one bus).
+        self.buses = [html.escape(j.bus) for j in config.joints] if len(config.buses) > 1 else []
         server.gui.configure_theme(control_width="large", show_share_button=False)
         self.measured = new_figure(
             server, config=config, geometry=geometry, name="measured", rgb=_MEASURED_RGB, opacity=None
@@ -160,11 +162,13 @@ class Page:
 
     def show_joints(self, q: FloatArray, q_ref: FloatArray, q_exp: FloatArray, iq: FloatArray) -> None:
         """The per-joint table, and both figures."""
-        rows = ["| joint | measured ° | reference ° | error ° | iq A |", "|---|---:|---:|---:|---:|"]
+        bus, rule = ("| bus ", "|---") if self.buses else ("", "")
+        rows = [f"| joint {bus}| measured ° | reference ° | error ° | iq A |", f"|---{rule}|---:|---:|---:|---:|"]
         for i, name in enumerate(self.names):
+            on = f"| {self.buses[i]} " if self.buses else ""
             rows.append(
-                f"| {name} | <span data-joint='{name}'>{q[i]:.2f}</span> | {q_ref[i]:.2f} | {q_exp[i] - q[i]:.3f} | "
-                f"{iq[i]:.2f} |"
+                f"| {name} {on}| <span data-joint='{name}'>{q[i]:.2f}</span> | {q_ref[i]:.2f} | "
+                f"{q_exp[i] - q[i]:.3f} | {iq[i]:.2f} |"
             )
         self.table.content = "\n".join(rows)
         self.measured.pose(q)
