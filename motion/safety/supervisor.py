@@ -30,6 +30,7 @@ process exit send 0x81 to every axis before the bus is released.
 from __future__ import annotations
 
 import atexit
+import itertools
 import logging
 import threading
 import weakref
@@ -40,6 +41,7 @@ from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.ratecheck import status_reads_per_cycle
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command
+from motion.protocol.table import split_address
 from motion.safety.clearing import Clearing
 from motion.safety.collision import CollisionObserver
 from motion.safety.context import SafetyContext
@@ -138,7 +140,12 @@ class Supervisor:
         # 0x9A (flags, voltage, temperature) and 0x92 (the multi-turn angle: a drive that restarted) in turn
         # (the V3 family: 0x9A and 0xB1, its runtime, which starts again when the drive restarted)
         reads_of = (Command.READ_STATUS_1, family.restart_read)
-        self._status_reads = [Request(i, family.bare(command)) for i in ids for command in reads_of]
+        # an arm on several buses takes its buses in turn, so that each cycle's reads spread over them (one bus
+        # carrying them all would make its cycle the longer one)
+        per_bus: dict[int, list[Request]] = {}
+        for i in ids:
+            per_bus.setdefault(split_address(i)[0], []).extend(Request(i, family.bare(c)) for c in reads_of)
+        self._status_reads = [r for turn in itertools.zip_longest(*per_bus.values()) for r in turn if r is not None]
         self._round_robin = 0  # a counter of its own: the cycle index k jumps over skipped cycles
         #: How many of them each cycle carries (CAN: every drive's flags at most FLAG_AGE_S old).
         self.status_reads_per_cycle = status_reads_per_cycle(len(ids), controller.period_s, controller.options.protocol)

@@ -89,12 +89,14 @@ class Buses(Transport):
         buses: the transports, in the order of the configuration's ``buses:`` (index = the address's bus index); all
             of one protocol generation and one clock.
         names: the buses' names, for messages.
+        parallel: the buses' exchanges at the same time (a worker thread per bus beyond the first); False: one after
+            the other in the calling thread (``bench/buses_bench.py`` measures the difference).
 
     Raises:
         TransportError: fewer than two buses, or buses of different generations.
     """
 
-    def __init__(self, buses: Sequence[Transport], names: Sequence[str]) -> None:
+    def __init__(self, buses: Sequence[Transport], names: Sequence[str], *, parallel: bool = True) -> None:
         if len(buses) < 2 or len(names) != len(buses):
             raise TransportError(f"several buses take two or more transports, each named; got {len(buses)}")
         families = {bus.family for bus in buses}
@@ -104,10 +106,13 @@ class Buses(Transport):
         self.buses = tuple(buses)
         self.names = tuple(names)
         super().__init__(clock=buses[0].clock, family=buses[0].family)
-        self._workers = [_Worker(bus, name) for bus, name in zip(self.buses[1:], self.names[1:], strict=True)]
+        self.parallel = parallel
+        self._workers = (
+            [_Worker(bus, name) for bus, name in zip(self.buses[1:], self.names[1:], strict=True)] if parallel else []
+        )
         self._split: list[list[Request]] = [[] for _ in self.buses]
         self._where: list[int] = []  # per request of the cycle, its bus
-        self._took_s = 0.0  # how long the first bus's share of the last exchange took, s
+        self._took_s = [0.0] * len(self.buses)  # how long each bus's share of the last exchange took, s
 
     # --- the cycle -----------------------------------------------------------------------------------------
 
@@ -139,20 +144,24 @@ class Buses(Transport):
                 worker.submit(share, deadline_s)
         errors: list[BaseException] = []
         answers: list[list[Reply]] = []
-        began = self.clock()
-        try:
-            answers.append(self.buses[0].transact(split[0], deadline_s) if live[0] else [])
-        except BaseException as exc:  # the other buses still end their exchange first
-            errors.append(exc)
-            answers.append([])
-        self._took_s = self.clock() - began
+        inline = range(len(self.buses)) if not self.parallel else range(1)  # (the buses this thread exchanges on)
+        took = self._took_s
+        for k in inline:
+            began = self.clock()
+            try:
+                answers.append(self.buses[k].transact(split[k], deadline_s) if live[k] else [])
+            except BaseException as exc:  # the other buses still end their exchange first
+                errors.append(exc)
+                answers.append([])
+            took[k] = self.clock() - began
         grace = max(0.0, deadline_s - self.clock()) + _WORKER_GRACE_S
-        for worker, alive in zip(self._workers, live[1:], strict=True):
+        for k, (worker, alive) in enumerate(zip(self._workers, live[1:], strict=True), start=1):
             try:
                 answers.append(worker.result(grace) if alive else [])
             except BaseException as exc:
                 errors.append(exc)
                 answers.append([])
+            took[k] = worker.took_s
         gone = [bus.lost for bus in self.buses if bus.lost is not None]
         if gone and self._lost is None:
             self._lost = gone[0]
@@ -198,7 +207,7 @@ class Buses(Transport):
 
     def bus_times_s(self) -> Mapping[str, float] | None:
         """See :meth:`Transport.bus_times_s`."""
-        return dict(zip(self.names, [self._took_s, *(w.took_s for w in self._workers)], strict=False))
+        return dict(zip(self.names, self._took_s, strict=True))
 
     def junk_note(self) -> str:
         """See :meth:`Transport.junk_note`: each bus's."""
