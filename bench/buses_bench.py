@@ -36,7 +36,7 @@ from motion.api import Arm
 from motion.compose import build_controller, open_bus
 from motion.config import ArmConfig, load_config
 from motion.control.controller import Controller
-from motion.transport.base import Reply
+from motion.transport.base import Reply, Transport
 from motion.transport.buses import Buses
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -112,15 +112,20 @@ def run_live_case(name: str, rate_hz: float, seconds: float, *, parallel: bool =
         channel: object = {k: str(v) for k, v in links.items()} if len(links) > 1 else str(*links.values())
         with (
             emulator(name, links),
-            open_bus(config, interface="slcan", channel=channel, bitrate=1_000_000, sleep_after_open=0) as bus,
+            open_bus(config, interface="slcan", channel=channel, bitrate=1_000_000, sleep_after_open=0) as opened,
         ):
-            if isinstance(bus, Buses) and not parallel:
-                bus = Buses(bus.buses, bus.names, parallel=False)  # (the same ports, one after the other)
-            return _hold(config, bus, seconds, f"{name} ({'sequential' if not parallel else 'parallel'})")
+            # (sequential: the same ports, one bus after the other in the loop's thread)
+            sequential = isinstance(opened, Buses) and not parallel
+            bus = (
+                Buses(opened.buses, opened.names, parallel=False)
+                if isinstance(opened, Buses) and sequential
+                else opened
+            )
+            return _hold(config, bus, seconds, f"{name} ({'sequential' if sequential else 'parallel'})")
 
 
-def _hold(config: ArmConfig, bus: object, seconds: float, label: str) -> LiveResult:
-    controller = build_controller(config, bus)  # type: ignore[arg-type]
+def _hold(config: ArmConfig, bus: Transport, seconds: float, label: str) -> LiveResult:
+    controller = build_controller(config, bus)
     controller.read_positions()
     complete: list[bool] = []
     done_s: list[float] = []
