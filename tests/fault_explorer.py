@@ -67,6 +67,7 @@ ARMS: dict[str, float] = {
     "arm6.yaml": 100.0,
     "arm6_v3.yaml": 100.0,
     "bench1.yaml": 100.0,
+    "bimanual.yaml": 100.0,  # (two buses: a fault on either halts both)
 }
 POLICIES = (HaltPolicy.STOP, HaltPolicy.OFF, HaltPolicy.HOLD)
 #: How long the arm is faulted (or a joint undisturbed) before its joints are held to the invariants, s: the drives'
@@ -175,7 +176,7 @@ def draw(rng: random.Random) -> Schedule:
     """A random schedule."""
     arm = rng.choice(sorted(ARMS))
     config = load_config(CONFIGS / arm)
-    ids = [j.motor_id for j in config.joints]
+    ids = [j.address for j in config.joints]  # (an arm on several buses: a fault names its drive by address)
     tuned = all(j.kp_nm_per_deg > 0 for j in config.joints)  # torque mode needs the joints' gains
     mode = ControlMode.TORQUE if tuned and rng.random() < 0.25 else ControlMode.POSITION
     faults = tuple(_draw_fault(rng, rng.choice(ids)) for _ in range(rng.choice((1, 1, 2, 2, 3))))
@@ -227,7 +228,7 @@ class _Checker:
         self.arm = arm
         self.outcome = outcome
         config = arm.config
-        self.ids = [j.motor_id for j in config.joints]
+        self.ids = [j.address for j in config.joints]
         self.names = config.joint_names
         self.lower = np.array([j.position_min_deg for j in config.joints])
         self.upper = np.array([j.position_max_deg for j in config.joints])

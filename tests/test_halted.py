@@ -482,6 +482,7 @@ EXPLORED = 200
 def test_random_fault_schedules_keep_every_invariant() -> None:
     outcomes = list(fault_explorer.explore(seed=29, count=EXPLORED, jobs=2))
     assert len(outcomes) == EXPLORED and sum(o.cycles for o in outcomes) > 100 * EXPLORED  # every run was checked
+    assert {o.schedule.arm for o in outcomes} == set(fault_explorer.ARMS)  # every example arm (bimanual's two buses)
     failed = [o for o in outcomes if o.violations]
     assert not failed, "\n".join(f"{o.schedule.describe()}\n    {o.violations}" for o in failed)
 
