@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from motion.config import ArmConfig
+from motion.config import ArmConfig, ControlMode
 from motion.emulator.faults import Fault, InjectedFault
 from motion.errors import MotionFault
 from motion.protocol import Command
@@ -214,3 +214,51 @@ def _copy_at(tmp_path: Path, rate_hz: float) -> Path:
     path = tmp_path / "bimanual.yaml"
     path.write_text(text)
     return path
+
+
+def test_torque_mode_sends_one_0x280_frame_per_bus_for_its_motors_1_to_4(tmp_path: Path) -> None:
+    config = arm_config("bimanual.yaml", mode=ControlMode.TORQUE, rate_hz=250)
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
+        assert rig.supervisor is not None
+        rig.supervisor.move_to(TARGETS * 0.2, 1.0)
+        assert rig.supervisor.wait(20.0)
+    frames: dict[str, int] = {}
+    torque: set[int] = set()
+    for line in rig.frame_log.read_text().splitlines():
+        fields = line.split(maxsplit=3)
+        if len(fields) == 4 and fields[1] == "IN" and fields[3].startswith("280:"):
+            frames[fields[2]] = frames.get(fields[2], 0) + 1
+    for _, address, message in logged_requests(rig):
+        if address is not None and getattr(message, "command", None) == Command.TORQUE:
+            torque.add(address)
+    assert len(frames) == 2 and min(frames.values()) > 100, frames  # both buses, every cycle
+    assert torque == {5, 6, 105, 106}  # each bus's motors beyond 4 by 0xA1
+
+
+def test_the_command_line_refuses_overrides_that_do_not_name_each_bus(tmp_path: Path) -> None:
+    config = CONFIGS / "bimanual.yaml"
+    plain = _cli("status", "--config", config, "--interface", "slcan", "--channel", "/dev/ttyACM0")
+    assert plain.returncode == 2 and "has several buses (left, right): give --channel BUS=VALUE" in plain.stderr
+    twice = _cli("status", "--config", config, "--channel", "left=/a", "--channel", "left=/b")
+    assert twice.returncode == 2 and "--channel is given twice for bus left" in twice.stderr
+    port = _cli("status", "--config", config, "--port", "left=/dev/ttyUSB0")
+    assert port.returncode == 2 and "bus left is a can bus; its overrides are --interface and --channel" in port.stderr
+    one = _cli("status", "--config", CONFIGS / "arm2.yaml", "--channel", "/a", "--channel", "/b")
+    assert one.returncode == 2 and "--channel is given 2 times: the arm has one bus" in one.stderr
+
+
+@pytest.mark.parametrize(
+    ("links", "message"),
+    [
+        (["left={0}/l"], "no link for bus(es) right"),
+        (["left={0}/l", "{0}/r"], "the arm is on several buses: give BUS=PATH"),
+        (["left={0}/l", "middle={0}/m"], "no bus 'middle'; the buses are left, right"),
+        (["left={0}/l", "left={0}/m"], "bus left has a link already"),
+    ],
+)
+def test_emulate_takes_one_link_per_bus(tmp_path: Path, links: list[str], message: str) -> None:
+    args = [a for link in links for a in ("--slcan-link", link.format(tmp_path))]
+    result = _cli("emulate", "--config", CONFIGS / "bimanual.yaml", *args)
+    assert result.returncode == 2 and message in result.stderr, result.stderr
+    rs485 = _cli("emulate", "--config", CONFIGS / "bimanual.yaml", "--rs485-link", f"left={tmp_path}/l")
+    assert rs485.returncode == 2 and "bus left is a can bus" in rs485.stderr, rs485.stderr

@@ -69,7 +69,7 @@ except ImportError:  # (not a POSIX system: pyserial's ports raise OSError alone
 from motion.closing import Closing
 from motion.protocol import Command, Message, MultiMotorTorque
 from motion.protocol.generation import GENERATIONS
-from motion.protocol.table import MULTI_TORQUE_MOTOR_IDS, ProtocolFamily
+from motion.protocol.table import ADDRESS_STRIDE, MULTI_TORQUE_MOTOR_IDS, ProtocolFamily
 
 if TYPE_CHECKING:
     from motion.transport.identity import Identity
@@ -450,7 +450,7 @@ class Transport(ABC, Closing):
         """
         signature = tuple(
             [
-                _MULTI_KEY
+                _MULTI_KEY - request.motor_id // ADDRESS_STRIDE  # (one per bus of an arm on several)
                 if isinstance(request.message, MultiMotorTorque)
                 # _prepare already rejected the messages without a command byte.
                 else request.motor_id << 8 | request.message.command  # type: ignore[attr-defined]
@@ -566,7 +566,8 @@ class Transport(ABC, Closing):
         )
 
 
-#: Signature entry of a 0x280 request (four slots, motors 1..4; it has no motor id or command byte of its own).
+#: Signature entry of a 0x280 request (four slots, motors 1..4; it has no motor id or command byte of its own), less
+#: its bus's index on an arm of several buses (its request's address names the bus).
 _MULTI_KEY: Final = -1
 #: Plans a transport keeps (a supervisor's status read rotates over the motors: one shape per motor).
 _PLANS_KEPT: Final = 64
@@ -621,8 +622,9 @@ class _Plan:
         last_of_key: dict[int, int] = {}
         for index, (request, key) in enumerate(zip(requests, signature, strict=True)):
             first_slot.append(len(slot_motor))
-            if key == _MULTI_KEY:
-                expected = [(motor_id, motor_id << 8 | Command.TORQUE) for motor_id in MULTI_TORQUE_MOTOR_IDS]
+            if key <= _MULTI_KEY:  # motors 1..4 of the bus the request's address names
+                base = (_MULTI_KEY - key) * ADDRESS_STRIDE
+                expected = [(base + m, (base + m) << 8 | Command.TORQUE) for m in MULTI_TORQUE_MOTOR_IDS]
             else:
                 expected = [(request.motor_id, key)]
             for motor_id, slot_key_ in expected:
