@@ -21,6 +21,7 @@ from motion.errors import MotionFault
 from motion.protocol import Command
 from motion.protocol.table import ADDRESS_STRIDE
 from motion.safety import ArmState
+from motion.telemetry import load_log
 from tests.motion_rig import Rig, arm_config, commanded_positions, emulated_arm, logged_requests, received
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -262,3 +263,17 @@ def test_emulate_takes_one_link_per_bus(tmp_path: Path, links: list[str], messag
     assert result.returncode == 2 and message in result.stderr, result.stderr
     rs485 = _cli("emulate", "--config", CONFIGS / "bimanual.yaml", "--rs485-link", f"left={tmp_path}/l")
     assert rs485.returncode == 2 and "bus left is a can bus" in rs485.stderr, rs485.stderr
+
+
+def test_a_recording_of_both_arms_names_each_joints_bus(tmp_path: Path) -> None:
+    recording = tmp_path / "run.mcap"
+    moved = _cli("move", "--config", CONFIGS / "bimanual.yaml", "--emulate", "--log", recording, "right_base_yaw=10")
+    assert moved.returncode == 0, moved.stderr
+    log = load_log(recording)
+    assert [b["name"] for b in log.meta["buses"]] == ["left", "right"]
+    assert [(j["name"], j["bus"], j["motor_id"]) for j in log.meta["joints"]] == [
+        (j.name, j.bus, j.motor_id) for j in BIMANUAL.joints
+    ]
+    assert log.meta["channel"] == "left=can0, right=can1"
+    final = log.columns["q_deg"][-1]
+    assert abs(final[6] - 10.0) < BIMANUAL.control.goal_tolerance_deg + 0.01  # right_base_yaw, the 7th joint

@@ -101,7 +101,7 @@ from motion.closing import Closing
 from motion.config.schema import ArmConfig, CanBusConfig, ControlMode
 from motion.control.clock import MonotonicClock
 from motion.control.controller import Controller
-from motion.protocol.table import ADDRESS_STRIDE, split_address
+from motion.protocol.table import split_address
 from motion.safety.states import ArmState
 from motion.transmission import FloatArray
 from motion.transport.base import Reply, Transport
@@ -361,6 +361,8 @@ class Recorder:
     ) -> None:
         self.controller = controller
         self.supervisor = supervisor
+        #: The names of an arm's several buses, by index (the joints' metadata names each one's); empty: one bus.
+        self.bus_names: tuple[str, ...] = ()
         self._joints = len(controller.specs)
         self._position_mode = controller.options.mode is ControlMode.POSITION
         self._state_code = {state: STATES.index(state.value) for state in ArmState}
@@ -459,10 +461,12 @@ class Recorder:
         """The metadata the recorder knows (joints, mode, rate, time base, units, loop statistics, counters)."""
         controller = self.controller
         per_amp = controller.transmission.joint_torque_nm(np.ones(len(controller.specs)))
-        # (a drive's address splits into its bus's index in the metadata's "buses" and its motor id on that bus)
+        # (an arm on several buses: a drive's address splits into its bus, named as in the metadata's "buses", and
+        # its motor id on that bus)
+        names = self.bus_names
         joints = [
             {"name": s.name, "motor_id": split_address(s.motor_id)[1], "torque_nm_per_a": float(k)}
-            | ({"bus": split_address(s.motor_id)[0]} if s.motor_id >= ADDRESS_STRIDE else {})
+            | ({"bus": names[split_address(s.motor_id)[0]]} if len(names) > 1 else {})
             for s, k in zip(controller.specs, per_amp, strict=True)
         ]
         return _schema_meta(controller.options.mode.value, controller.options.rate_hz, joints) | {
@@ -655,6 +659,7 @@ class TelemetrySession(Closing):
         """Record every cycle of ``controller`` (if a log file was asked for)."""
         if self._log_file is not None:
             self.recorder = Recorder(controller, supervisor).attach()
+            self.recorder.bus_names = tuple(bus.name for bus in self.config.buses)
 
     def close(self) -> TelemetryLog | None:
         """Stop recording and write the files (after the control loop ended); safe to call twice.
@@ -703,7 +708,7 @@ class TelemetrySession(Closing):
             "collision_threshold_nm": list(config.collision_thresholds_nm),
             "trace": Path(self.options.trace).name if self.options.trace is not None else None,
         }
-        if len(config.buses) > 1:  # each joint's "bus" is an index of these
+        if len(config.buses) > 1:  # each joint's "bus" names one of these
             meta["buses"] = [{"name": b.name, "transport": b.transport.value, "channel": b.link} for b in config.buses]
         if self.recorder is not None:
             return self.recorder.log(**meta)
