@@ -23,6 +23,7 @@ from motion.protocol.table import ADDRESS_STRIDE
 from motion.safety import ArmState
 from motion.telemetry import load_log
 from tests.motion_rig import Rig, arm_config, commanded_positions, emulated_arm, logged_requests, received
+from tests.test_cli import cli
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
@@ -170,7 +171,7 @@ def test_the_cli_moves_both_arms_in_real_time_against_the_emulator_on_two_slcan_
         assert f"{links['right']}" in started[1] and "(bus right)" in started[1], started
         assert "on bus left" in started[2] and "on bus right" in started[2], started
         bus = ["--interface", "slcan", *(a for n, p in links.items() for a in ("--channel", f"{n}={p}"))]
-        checked = _cli("check", "--config", CONFIGS / "bimanual.yaml", *bus, "--json")
+        checked = cli("check", "--config", CONFIGS / "bimanual.yaml", *bus, "--json")
         assert checked.returncode in {0, 2}, checked.stderr
         data = json.loads(checked.stdout)
         highest = float(data["modes"]["position"]["highest_rate_hz"]) * RATE_SHARE
@@ -178,10 +179,10 @@ def test_the_cli_moves_both_arms_in_real_time_against_the_emulator_on_two_slcan_
             pytest.skip(f"this host holds no rate the moving tests run bimanual.yaml at (rate check: {highest:g} Hz)")
         config = _copy_at(tmp_path, min(round(highest), 250))
         targets = [f"{j.name}={t:g}" for j, t in zip(BIMANUAL.joints, TARGETS, strict=True)]
-        moved = _cli("move", "--config", config, *bus, "--speed-scale", "0.5", *targets, "--json")
+        moved = cli("move", "--config", config, *bus, "--speed-scale", "0.5", *targets, "--json")
         assert moved.returncode == 0, moved.stderr
         assert json.loads(moved.stdout)["arrival"]["arrived"]
-        status = _cli("status", "--config", config, *bus, "--json")
+        status = cli("status", "--config", config, *bus, "--json")
         assert status.returncode == 0, status.stderr
         joints = json.loads(status.stdout)["joints"]
         assert [(j["name"], j["bus"], j["motor_id"]) for j in joints] == [
@@ -192,17 +193,6 @@ def test_the_cli_moves_both_arms_in_real_time_against_the_emulator_on_two_slcan_
     finally:
         process.send_signal(signal.SIGTERM)
         process.communicate(timeout=10)
-
-
-def _cli(*args: str | Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "motion.cli", *map(str, args)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        cwd=ROOT,
-        check=False,
-    )
 
 
 def _copy_at(tmp_path: Path, rate_hz: float) -> Path:
@@ -238,13 +228,13 @@ def test_torque_mode_sends_one_0x280_frame_per_bus_for_its_motors_1_to_4(tmp_pat
 
 def test_the_command_line_refuses_overrides_that_do_not_name_each_bus(tmp_path: Path) -> None:
     config = CONFIGS / "bimanual.yaml"
-    plain = _cli("status", "--config", config, "--interface", "slcan", "--channel", "/dev/ttyACM0")
+    plain = cli("status", "--config", config, "--interface", "slcan", "--channel", "/dev/ttyACM0")
     assert plain.returncode == 2 and "has several buses (left, right): give --channel BUS=VALUE" in plain.stderr
-    twice = _cli("status", "--config", config, "--channel", "left=/a", "--channel", "left=/b")
+    twice = cli("status", "--config", config, "--channel", "left=/a", "--channel", "left=/b")
     assert twice.returncode == 2 and "--channel is given twice for bus left" in twice.stderr
-    port = _cli("status", "--config", config, "--port", "left=/dev/ttyUSB0")
+    port = cli("status", "--config", config, "--port", "left=/dev/ttyUSB0")
     assert port.returncode == 2 and "bus left is a can bus; its overrides are --interface and --channel" in port.stderr
-    one = _cli("status", "--config", CONFIGS / "arm2.yaml", "--channel", "/a", "--channel", "/b")
+    one = cli("status", "--config", CONFIGS / "arm2.yaml", "--channel", "/a", "--channel", "/b")
     assert one.returncode == 2 and "--channel is given 2 times: the arm has one bus" in one.stderr
 
 
@@ -259,15 +249,15 @@ def test_the_command_line_refuses_overrides_that_do_not_name_each_bus(tmp_path: 
 )
 def test_emulate_takes_one_link_per_bus(tmp_path: Path, links: list[str], message: str) -> None:
     args = [a for link in links for a in ("--slcan-link", link.format(tmp_path))]
-    result = _cli("emulate", "--config", CONFIGS / "bimanual.yaml", *args)
+    result = cli("emulate", "--config", CONFIGS / "bimanual.yaml", *args)
     assert result.returncode == 2 and message in result.stderr, result.stderr
-    rs485 = _cli("emulate", "--config", CONFIGS / "bimanual.yaml", "--rs485-link", f"left={tmp_path}/l")
+    rs485 = cli("emulate", "--config", CONFIGS / "bimanual.yaml", "--rs485-link", f"left={tmp_path}/l")
     assert rs485.returncode == 2 and "bus left is a can bus" in rs485.stderr, rs485.stderr
 
 
 def test_a_recording_of_both_arms_names_each_joints_bus(tmp_path: Path) -> None:
     recording = tmp_path / "run.mcap"
-    moved = _cli("move", "--config", CONFIGS / "bimanual.yaml", "--emulate", "--log", recording, "right_base_yaw=10")
+    moved = cli("move", "--config", CONFIGS / "bimanual.yaml", "--emulate", "--log", recording, "right_base_yaw=10")
     assert moved.returncode == 0, moved.stderr
     log = load_log(recording)
     assert [b["name"] for b in log.meta["buses"]] == ["left", "right"]
