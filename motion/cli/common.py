@@ -152,13 +152,21 @@ class Session:
             UsageError: an override for the other kind of bus.
         """
         config = load_config_or_example(args.config)
-        overrides: dict[str, object] = {}
+        given: dict[str, list[str]] = {}
         for name in BUS_OVERRIDES:
             values = getattr(args, name, None) or []
-            if isinstance(values, str):  # (a Namespace made by hand)
-                values = [values]
             if values:
-                overrides[name] = _override(config, name, values)
+                given[name] = [values] if isinstance(values, str) else list(values)  # (a Namespace made by hand: str)
+        if len(config.buses) == 1:
+            allowed = config.bus.overridable
+            wrong = [f"--{name}" for name in given if name not in allowed]
+            if wrong:
+                valid = " and ".join(f"--{n}" for n in allowed)
+                raise UsageError(
+                    f"{', '.join(wrong)}: {config.source} has a {config.bus.transport.value} bus; its overrides are "
+                    f"{valid}"
+                )
+        overrides: dict[str, object] = {name: _override(config, name, values) for name, values in given.items()}
         sleeps = {
             bus.name: 0
             for bus in config.buses
