@@ -208,7 +208,8 @@ def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = Fal
         metavar="KIND:MOTOR@START[-END][:PARAM]",
         help="inject a fault at simulation time START s (until END s): over_temperature[:degC], "
         "under_voltage[:V], silent, delay[:ms], corrupt[:payload|id|length], drop[:probability], blocked, "
-        "collision:NM, power_cycle; repeatable",
+        "collision:NM, power_cycle; repeatable (MOTOR of an arm on several buses: bus index x 100 + motor id, "
+        "103 for motor 3 of the second)",
     )
     parser.add_argument(
         "--encoder-bits",
