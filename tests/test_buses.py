@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from motion.config import ArmConfig, ControlMode
 from motion.emulator.faults import Fault, InjectedFault
@@ -267,3 +268,25 @@ def test_a_recording_of_both_arms_names_each_joints_bus(tmp_path: Path) -> None:
     assert log.meta["channel"] == "left=can0, right=can1"
     final = log.columns["q_deg"][-1]
     assert abs(final[6] - 10.0) < BIMANUAL.control.goal_tolerance_deg + 0.01  # right_base_yaw, the 7th joint
+
+
+@pytest.mark.parametrize(
+    ("buses", "message"),
+    [
+        ({"a": {"transport": "rs485", "port": "/dev/null"}, "b": {"transport": "rs485", "port": "/dev/null"}},
+         "simulated time models several CAN buses"),
+        ({"a": {"transport": "can", "interface": "virtual", "channel": "x"},
+          "b": {"transport": "rs485", "port": "/dev/null"}}, "buses of both transports (can and rs485) in one arm"),
+    ],
+)  # fmt: skip
+def test_what_several_buses_do_not_do_yet_is_refused_naming_it(
+    tmp_path: Path, buses: dict[str, object], message: str
+) -> None:
+    data = yaml.safe_load((CONFIGS / "arm2.yaml").read_text())
+    del data["bus"]
+    data["buses"] = buses
+    data["joints"][1]["bus"], data["joints"][0]["bus"] = "b", "a"
+    path = tmp_path / "arm.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    result = cli("move", "--config", path, "--emulate", "shoulder=10")
+    assert result.returncode == 2 and message in result.stderr, result.stderr

@@ -27,6 +27,7 @@ from motion.compose import (
     open_bus,
     opening_family,
     resolve_frames,
+    wire_protocol,
 )
 from motion.config import ArmConfig, load_config_or_example
 from motion.config.schema import CanBusConfig
@@ -37,7 +38,7 @@ from motion.control.tracking import PositionLoopFit
 from motion.control.turns import JointTurns, Source, ambiguous_after
 from motion.emulator import Fault, FrameLog
 from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
-from motion.errors import EncodeError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
+from motion.errors import ConfigError, EncodeError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
 from motion.homing import HomingResult, corrected_turns, finish_halt, homed_joints, homing_variant, seek_stop
 from motion.keep import load_turn_records, offer_stored_tracking, save_turn_records, store_tracking, turns_store
 from motion.protocol import WireProtocol
@@ -466,6 +467,13 @@ class Arm:
         )
         if self._start_pose is not None:
             self.emulator.power_cycle()  # powered up there: each drive counts its turns from this pose
+        if wire_protocol(self.config) is not WireProtocol.CAN and len(self.config.buses) > 1:
+            raise ConfigError(
+                self.config.source,
+                "buses",
+                "simulated time models several CAN buses; an arm on several RS485 lines runs on emulated drives in "
+                "real time only (rmd-motion emulate --config FILE --rs485-link BUS=PATH for each)",
+            )
         # one line per bus, each at its own rate (their frames go out at the same time)
         lines = [
             (WireProtocol.CAN, bus.bitrate or DEFAULT_BITRATE)
