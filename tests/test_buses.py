@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 import yaml
 
+from motion.cli.moves import _jog_verdict
+from motion.compose import axis_specs
 from motion.config import ArmConfig, ControlMode
 from motion.emulator.faults import Fault, InjectedFault
 from motion.errors import MotionFault
@@ -290,3 +292,14 @@ def test_what_several_buses_do_not_do_yet_is_refused_naming_it(
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     result = cli("move", "--config", path, "--emulate", "shoulder=10")
     assert result.returncode == 2 and message in result.stderr, result.stderr
+
+
+def test_jog_of_a_joint_on_the_second_bus_names_its_drive_there() -> None:
+    # the jog verdict compares the drives that turned (by address) with the joint's: motor 2 of the right bus is not
+    # motor 2 of the left one
+    specs = {s.motor_id: s for s in axis_specs(BIMANUAL)}
+    joint = BIMANUAL.joints[7]  # right_shoulder_pitch
+    verdict = _jog_verdict(joint, 36.0, [(specs[102], 35.8)], 1.0)
+    assert "right_shoulder_pitch (motor 2 on bus right) turned +35.8 motor deg, as commanded" in verdict
+    other = _jog_verdict(joint, 36.0, [(specs[2], 35.8)], 1.0)
+    assert "turned: motor 2 on bus left (left_shoulder_pitch) +35.8 motor deg" in other

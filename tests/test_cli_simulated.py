@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
 from motion.cli import main
 from motion.cli.moves import _jog_verdict
+from motion.compose import axis_specs
 from motion.config import load_config, read_yaml
 from motion.config.examples import example_names, resolve_program
 from motion.telemetry import load_log
@@ -186,7 +186,7 @@ def test_the_jog_verdict_says_which_drives_turned_and_what_to_watch() -> None:
     # that turned, and others that turned too
     config = load_config(CONFIGS / "arm2.yaml")
     shoulder, elbow = config.joints
-    specs = {j.motor_id: SimpleNamespace(name=j.name, motor_id=j.motor_id) for j in config.joints}
+    specs = {s.motor_id: s for s in axis_specs(config)}
     ok = _jog_verdict(elbow, -36.0, [(specs[2], -35.5)], 4.0)
     assert "elbow (motor 2) turned -35.5 motor deg, as commanded. Its reading follows the configuration" in ok
     assert "elbow should have moved +4 deg and back" in ok and "flip its direction" in ok and "9 times too far" in ok
