@@ -139,7 +139,7 @@ class Buses(Transport):
         self.bus_counters.cycles += 1
         # a bus whose port is gone is skipped: the others' batches (the halt that follows a fault) still go out
         live = [bus.lost is None and not bus.closed for bus in self.buses]
-        for worker, share, alive in zip(self._workers, split[1:], live[1:], strict=True):
+        for worker, share, alive in zip(self._workers, split[1:], live[1:], strict=False):  # (none: sequential)
             if alive:
                 worker.submit(share, deadline_s)
         errors: list[BaseException] = []
@@ -155,7 +155,7 @@ class Buses(Transport):
                 answers.append([])
             took[k] = self.clock() - began
         grace = max(0.0, deadline_s - self.clock()) + _WORKER_GRACE_S
-        for k, (worker, alive) in enumerate(zip(self._workers, live[1:], strict=True), start=1):
+        for k, (worker, alive) in enumerate(zip(self._workers, live[1:], strict=False), start=1):
             try:
                 answers.append(worker.result(grace) if alive else [])
             except BaseException as exc:
