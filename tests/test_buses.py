@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
+from motion.api import Arm
 from motion.cli.moves import _jog_verdict
 from motion.compose import axis_specs
 from motion.config import ArmConfig, ControlMode
@@ -303,3 +304,11 @@ def test_jog_of_a_joint_on_the_second_bus_names_its_drive_there() -> None:
     assert "right_shoulder_pitch (motor 2 on bus right) turned +35.8 motor deg, as commanded" in verdict
     other = _jog_verdict(joint, 36.0, [(specs[2], 35.8)], 1.0)
     assert "turned: motor 2 on bus left (left_shoulder_pitch) +35.8 motor deg" in other
+
+
+def test_the_rate_check_measures_each_bus_and_names_the_one_that_limits() -> None:
+    with Arm.from_config(CONFIGS / "bimanual.yaml", emulate=True) as arm:
+        check = arm.rate_check
+    assert check is not None and [name for name, _ in check.by_bus_p99_s] == ["left", "right"]
+    assert all(0.0 < t <= check.round_trip_p99_s for _, t in check.by_bus_p99_s)
+    assert "by bus (p99, at the same time): left" in check.summary() and "limits" in check.summary()

@@ -487,7 +487,8 @@ class Arm:
             simulation.frame_log = self.frame_log
         self.simulation = simulation
         # the bus opens in the configured generation (auto: the older) and is told the drives' at connect
-        return SimulatedBus(simulation, opening_family(self.config)), SimulatedClock(simulation)
+        names = [bus.name for bus in self.config.buses]
+        return SimulatedBus(simulation, opening_family(self.config), names=names), SimulatedClock(simulation)
 
     def _start_emulator_process(self) -> None:
         if self._initial is not None:

@@ -24,7 +24,7 @@ import heapq
 import math
 import time
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Final
 
@@ -273,9 +273,15 @@ class SimulatedBus(Transport):
     Its clock is the simulation's (pass ``simulation`` as the controller's clock too).
     """
 
-    def __init__(self, simulation: Simulation, family: ProtocolFamily | None = None) -> None:
+    def __init__(
+        self, simulation: Simulation, family: ProtocolFamily | None = None, *, names: Sequence[str] = ()
+    ) -> None:
         super().__init__(clock=simulation.now, family=simulation.emulator.family if family is None else family)
         self.simulation = simulation
+        #: The lines' names (an arm's buses), for the rate check's figures per bus; empty: not told.
+        self.names = tuple(names)
+        self._line_took_s = [0.0] * len(simulation.lines)  # each line's share of the last exchange, s
+        self._started_s = simulation.now_s
         self._can = simulation.protocol is WireProtocol.CAN
         if len(simulation.lines) > 1 and any(line.protocol is not WireProtocol.CAN for line in simulation.lines):
             raise ValueError("several lines in simulated time: CAN buses only so far (an RS485 line is one at a time)")
@@ -320,7 +326,7 @@ class SimulatedBus(Transport):
 
     def with_family(self, family: ProtocolFamily) -> SimulatedBus:
         """See :meth:`Transport.with_family`."""
-        bus = SimulatedBus(self.simulation, family)
+        bus = SimulatedBus(self.simulation, family, names=self.names)
         bus.frame_tap = self.frame_tap
         return bus
 
@@ -357,10 +363,17 @@ class SimulatedBus(Transport):
         else:
             self._exchange_rs485(deadline_s)
 
+    def bus_times_s(self) -> Mapping[str, float] | None:
+        """See :meth:`Transport.bus_times_s`: each line's time from the exchange's start to its last reply."""
+        if len(self.names) < 2:
+            return None
+        return dict(zip(self.names, self._line_took_s, strict=False))
+
     def _exchange_can(self, deadline_s: float) -> None:
         sim = self.simulation
         for stale in sim.arrived_by(sim.now_s):  # a previous cycle's replies
             self._take_in(stale)
+        self._started_s = sim.now_s
         for index, (wire, line) in enumerate(zip(self._wires, self._lines, strict=True)):
             sim.submit(wire, line)
             self._sent(index)
@@ -406,6 +419,7 @@ class SimulatedBus(Transport):
         wire = arrival.wire
         if isinstance(wire, CanFrame):
             take_in_can_frame(self, wire, arrival.line * ADDRESS_STRIDE)
+            self._line_took_s[arrival.line] = arrival.time_s - self._started_s
             return
         self._tap(True, wire)
         try:
