@@ -3,13 +3,16 @@ and one safety domain (a fault on either bus halts every axis on both in its det
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -20,12 +23,15 @@ from motion.api import Arm
 from motion.cli.moves import _jog_verdict
 from motion.compose import axis_specs
 from motion.config import ArmConfig, ControlMode
+from motion.emulator import Emulator, VirtualCanAttachment
 from motion.emulator.faults import Fault, InjectedFault
-from motion.errors import MotionFault
-from motion.protocol import Command
+from motion.errors import MotionFault, PortLost, TransportError
+from motion.protocol import Bare, Command, MotorState, MultiMotorTorque, Status1
 from motion.protocol.table import ADDRESS_STRIDE
 from motion.safety import ArmState
 from motion.telemetry import load_log
+from motion.transport import CanTransport, Request
+from motion.transport.buses import Buses
 from tests.motion_rig import Rig, arm_config, commanded_positions, emulated_arm, logged_requests, received
 from tests.test_cli import cli
 
@@ -312,3 +318,57 @@ def test_the_rate_check_measures_each_bus_and_names_the_one_that_limits() -> Non
     assert check is not None and [name for name, _ in check.by_bus_p99_s] == ["left", "right"]
     assert all(0.0 < t <= check.round_trip_p99_s for _, t in check.by_bus_p99_s)
     assert "by bus (p99, at the same time): left" in check.summary() and "limits" in check.summary()
+
+
+def test_the_buses_transport_merges_replies_in_request_order_by_address() -> None:
+    # two virtual CAN buses of one emulator (lines 0 and 1); a batch that mixes them, with a 0x280 frame on the second
+    emulator = Emulator([1, 2, 3, 4, 101, 102, 103, 104])
+    channels = [uuid.uuid4().hex, uuid.uuid4().hex]
+    with contextlib.ExitStack() as stack:
+        for line, channel in enumerate(channels):
+            stack.enter_context(VirtualCanAttachment(emulator, channel, line=line))
+        buses = stack.enter_context(Buses([CanTransport("virtual", c, None) for c in channels], ["left", "right"]))
+        requests = [
+            Request(102, Bare(Command.READ_STATUS_2)),
+            Request(1, Bare(Command.READ_STATUS_1)),
+            Request(101, MultiMotorTorque(0.0, 0.0, 0.0, 0.0)),
+            Request(2, Bare(Command.READ_STATUS_2)),
+        ]
+        replies = buses.transact(requests, buses.clock() + 0.5)
+        assert [(r.motor_id, r.ok) for r in replies] == [
+            (102, True), (1, True), (101, True), (102, True), (103, True), (104, True), (2, True)
+        ]  # fmt: skip
+        assert isinstance(replies[1].message, Status1) and isinstance(replies[2].message, MotorState)
+        assert buses.counters[103].replied == 1 and buses.motor_counters(103) is buses.buses[1].counters[3]
+        assert set(buses.bus_times_s() or {}) == {"left", "right"}
+        assert buses.describe().startswith("left: can virtual:") and ", right: can virtual:" in buses.describe()
+        with pytest.raises(TransportError, match="no bus 2"):
+            buses.transact([Request(201, Bare(Command.READ_STATUS_1))], buses.clock() + 0.1)
+
+
+class _Stalling(CanTransport):
+    """A backend whose exchange blocks (a write that never returns, a wedged driver) until released."""
+
+    release = threading.Event()
+
+    def _exchange(self, deadline_s: float) -> None:
+        self.release.wait(5.0)
+        super()._exchange(deadline_s)
+
+
+def test_a_bus_whose_exchange_never_ends_is_taken_for_gone_and_the_others_still_answer() -> None:
+    emulator = Emulator([1, 101])
+    channels = [uuid.uuid4().hex, uuid.uuid4().hex]
+    with contextlib.ExitStack() as stack:
+        for line, channel in enumerate(channels):
+            stack.enter_context(VirtualCanAttachment(emulator, channel, line=line))
+        stalling = _Stalling("virtual", channels[1], None)
+        buses = stack.enter_context(Buses([CanTransport("virtual", channels[0], None), stalling], ["left", "right"]))
+        batch = [Request(1, Bare(Command.READ_STATUS_1)), Request(101, Bare(Command.READ_STATUS_1))]
+        with pytest.raises(PortLost, match="its exchange did not end within 1 s of its deadline"):
+            buses.transact(batch, buses.clock() + 0.1)
+        assert buses.closed
+        with pytest.raises(PortLost):  # the left bus still carries its share (the halt), then the loss is raised
+            buses.transact(batch, buses.clock() + 0.1)
+        assert buses.buses[0].counters[1].replied == 2
+        _Stalling.release.set()

@@ -38,6 +38,7 @@ class _Worker:
         self.replies: list[Reply] = []
         self.error: BaseException | None = None
         self.took_s = 0.0  # how long the last exchange took, s
+        self.stuck = False  # an exchange did not end in time: the bus is taken for gone
         self._start = threading.Event()
         self._done = threading.Event()
         self._stopping = False
@@ -54,10 +55,15 @@ class _Worker:
         """The replies of the exchange submitted last.
 
         Raises:
-            TransportError: the bus failed (the backend's own error), or the exchange did not end in time.
+            TransportError: the bus failed (the backend's own error).
+            PortLost: the port is gone, or the exchange did not end in time (then :attr:`stuck` is set).
         """
         if not self._done.wait(timeout_s):
-            raise TransportError(f"{self.bus.describe()}: the exchange did not end {timeout_s:g} s after its deadline")
+            # its thread is stuck in the backend: the bus is taken for gone (never handed a batch again)
+            self.stuck = True
+            raise PortLost(
+                f"{self.bus.describe()}: its exchange did not end within {_WORKER_GRACE_S:g} s of its deadline"
+            )
         if self.error is not None:
             raise self.error
         return self.replies
@@ -138,7 +144,8 @@ class Buses(Transport):
             where.append(bus)
         self.bus_counters.cycles += 1
         # a bus whose port is gone is skipped: the others' batches (the halt that follows a fault) still go out
-        live = [bus.lost is None and not bus.closed for bus in self.buses]
+        stuck = [False, *(w.stuck for w in self._workers)]
+        live = [bus.lost is None and not bus.closed and not s for bus, s in zip(self.buses, stuck, strict=False)]
         for worker, share, alive in zip(self._workers, split[1:], live[1:], strict=False):  # (none: sequential)
             if alive:
                 worker.submit(share, deadline_s)
@@ -163,6 +170,7 @@ class Buses(Transport):
                 answers.append([])
             took[k] = worker.took_s
         gone = [bus.lost for bus in self.buses if bus.lost is not None]
+        gone += [e for e in errors if isinstance(e, PortLost)]
         if gone and self._lost is None:
             self._lost = gone[0]
         if errors:
@@ -189,7 +197,12 @@ class Buses(Transport):
     def closed(self) -> bool:
         """True once closed, or once any bus is closed or lost: the arm's drives are not all reachable any more
         (:meth:`transact` still carries the other buses' batches, then raises)."""
-        return self._closed or self._lost is not None or any(bus.closed for bus in self.buses)
+        return (
+            self._closed
+            or self._lost is not None
+            or any(bus.closed for bus in self.buses)
+            or any(w.stuck for w in self._workers)
+        )
 
     @property
     def counters(self) -> Mapping[int, MotorCounters]:
