@@ -23,6 +23,7 @@ from motion.api import Arm
 from motion.cli.moves import _jog_verdict
 from motion.compose import axis_specs
 from motion.config import ArmConfig, ControlMode
+from motion.control.ratecheck import RateError
 from motion.emulator import Emulator, VirtualCanAttachment
 from motion.emulator.faults import Fault, InjectedFault
 from motion.errors import MotionFault, PortLost, TransportError
@@ -372,3 +373,18 @@ def test_a_bus_whose_exchange_never_ends_is_taken_for_gone_and_the_others_still_
             buses.transact(batch, buses.clock() + 0.1)
         assert buses.buses[0].counters[1].replied == 2
         _Stalling.release.set()
+
+
+def test_the_api_emulates_both_buses_in_real_time_in_a_process_of_their_own(tmp_path: Path) -> None:
+    # Arm(emulate="realtime"): `rmd-motion emulate` with a pty per bus, the bus overrides a mapping per bus (at 50 Hz:
+    # a rate a busy host holds; the rate check's refusal is a skip)
+    try:
+        with Arm.from_config(_copy_at(tmp_path, 50), emulate="realtime") as arm:
+            assert arm.bus is not None and isinstance(arm.bus, Buses)
+            assert [b.describe().split(":")[0] for b in arm.bus.buses] == ["can slcan", "can slcan"]
+            arm.move_to({"left_elbow_pitch": 20.0, "right_elbow_pitch": -20.0}, speed_scale=0.5)
+            q = arm.positions()
+    except RateError as exc:
+        pytest.skip(f"this host does not hold bimanual.yaml at 50 Hz just now: {exc}")
+    tolerance = BIMANUAL.control.goal_tolerance_deg + 0.01
+    assert abs(q["left_elbow_pitch"] - 20.0) < tolerance and abs(q["right_elbow_pitch"] + 20.0) < tolerance
