@@ -455,6 +455,38 @@ REGRESSIONS: tuple[Schedule, ...] = (
         actions=((0.0, "move", (22.6,)),),
         end_s=2.2,
     ),
+    # (bimanual, 10,000 schedules) a collision beyond its drive's peak spun the right flange turns away; once it went,
+    # the drive's 0x81 hold ran it back at top speed for 1.7 s: its restless time restarted whenever its halt was owed
+    # again (leaving its limits) or the spin jolted another joint past SWING_DPS, and it was never released
+    Schedule(
+        "bimanual.yaml",
+        HaltPolicy.STOP,
+        ControlMode.POSITION,
+        faults=("collision:106@0.027-0.377:4.74",),
+        actions=(
+            (0.0, "move", (-23.9, -56.4, 50.7, -81.0, 28.3, 40.9, 93.9, 61.9, 6.0, 11.5, 56.8, -25.4)),
+            (1.168, "stop", ()),
+            (1.298, "clear", ()),
+            (1.502, "move", (-73.8, -33.1, 26.6, -85.0, 16.8, -71.8, -54.2, -51.7, -11.6, 72.6, -33.7, -31.2)),
+            (1.533, "move", (61.2, 32.3, 79.8, 49.3, -55.1, 61.8, -65.9, -48.9, 85.9, 63.2, -68.2, 87.5)),
+        ),
+        end_s=2.2,
+    ),
+    # (arm6_v3, 10,000 schedules) homing halted by base_yaw's dropped replies; suspending the protection between the
+    # loops read every drive's runtime for 0.25 s while base_yaw stayed silent, and skipped them all: the four
+    # answering drives not being homed heard nothing for their 40 ms and stopped
+    Schedule(
+        "arm6_v3.yaml",
+        HaltPolicy.STOP,
+        ControlMode.TORQUE,
+        faults=("drop:1@0.385-0.483:1.00",),
+        actions=(
+            (0.0, "move", (101.9, -51.0, -52.6, -86.7, 5.2, 14.3)),
+            (0.058, "move", (-69.4, -3.0, 60.7, 66.0, -5.6, -71.2)),
+        ),
+        home=("shoulder_pitch",),
+        end_s=2.2,
+    ),
 )
 
 
@@ -470,7 +502,9 @@ def _quiet() -> Iterator[None]:
 def test_explorer_regressions(schedule: Schedule) -> None:
     outcome = fault_explorer.run(schedule)
     assert not outcome.violations, (schedule.describe(), outcome.violations)
-    assert outcome.cycles > 50  # the invariants were checked in every cycle of a real run
+    # the invariants were checked in every cycle of a real run (a homing halted at connect has none: its drives'
+    # link-loss trips are counted once the arm has closed)
+    assert outcome.cycles > 50 or schedule.home
 
 
 #: Schedules the test command explores (seeded: the same ones in every run), in two worker processes (the test

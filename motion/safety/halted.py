@@ -131,6 +131,7 @@ class HaltGuard:
         self._silent.clear()
         for i in range(len(self.ids)):
             self._forget(i)
+            self._moving_since[i] = math.nan
             self._outside[i] = False
             self._swings[i], self._swing_sign[i] = 0, 0.0
 
@@ -276,15 +277,18 @@ class HaltGuard:
 
     def _restless(self, i: int, qd: float) -> bool:
         """Whether joint ``i`` has just moved faster than :data:`SWING_DPS` for :data:`RESTLESS_S` (once a run), by
-        itself: while another joint moves that fast too (one falling, its drive off or unreachable), a joint its
-        hold resists with is dragged through the arm, and released it would only coast further."""
-        if abs(qd) <= SWING_DPS or self._others_unsettled():
+        itself: not reported while another joint moves that fast too (one falling, its drive off or unreachable: a
+        joint its hold resists with is dragged through the arm, and released it would only coast further)."""
+        if abs(qd) <= SWING_DPS:
             self._moving_since[i] = math.nan
             return False
         if math.isnan(self._moving_since[i]):
             self._moving_since[i] = self._now
             return False
-        if self._now - self._moving_since[i] < RESTLESS_S:
+        # (another joint fast now: not reported at this reading, but its time still counts: a joint whose hold runs
+        # it back at top speed jolts the others through the arm itself, now and then, all the way; the explorer found
+        # one whose count restarted at each jolt and was never released)
+        if self._now - self._moving_since[i] < RESTLESS_S or self._others_unsettled():
             return False
         self._moving_since[i] = math.inf  # reported: not again until it slows down
         return True
@@ -326,7 +330,9 @@ class HaltGuard:
         self._forget(i)
 
     def _forget(self, i: int) -> None:
+        # (not when joint i began moving fast: a halt sent again does not move a hold point, and a joint its hold runs
+        # back turns away at top speed is restless however often its halt is owed meanwhile: leaving its limits on
+        # the way, an E-stop; the explorer found one whose timer was restarted by each until its run ended)
         self._acknowledged[i] = False
-        self._moving_since[i] = math.nan
         self._rest_deg[i] = math.nan
         self._rest_since[i] = math.nan
