@@ -178,8 +178,6 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
         TransportError: drives of both generations on one bus (each named), or drives that answer in the other
             generation than ``bus.protocol`` says.
     """
-    from motion.transport.detect import describe_mixed  # noqa: PLC0415 - the CAN backend only where it is used
-
     ids = [j.address for j in config.joints]
     found: dict[int, ProtocolFamily] = {}
     for _ in range(GENERATION_CHECK_ATTEMPTS):  # (a reply later than the window on a busy host: asked again)
@@ -190,7 +188,9 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
     answered = set(found.values())
     if len(answered) > 1:
         where = "one bus" if len(config.buses) == 1 else "one arm"
-        raise TransportError(f"drives of both protocol generations on {where} ({describe_mixed(found)}): refused")
+        raise TransportError(
+            f"drives of both protocol generations on {where} ({_families_text(found, config)}): refused"
+        )
     detected = answered.pop() if answered else None
     for index, bus_config in enumerate(config.buses):
         setting = bus_config.protocol
@@ -200,22 +200,32 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
             (told,) = on_bus
             raise TransportError(
                 f"{key} is {setting.value}, but the drives answer in the {told.value} protocol "
-                f"({describe_mixed(found)}): set {key} to {told.value} or auto"
+                f"({_families_text(found, config)}): set {key} to {told.value} or auto"
             )
     named = {ProtocolFamily(b.protocol.value) for b in config.buses if b.protocol is not ProtocolSetting.AUTO}
     wanted = detected or (named.pop() if named else ProtocolFamily.V2)
     spoken = bus if bus.family is wanted else bus.with_family(wanted)
     if found:
-        described = describe_drives(spoken, sorted(found), wire_protocol(config))
+        labels = {j.address: j.drive_label for j in config.joints}
+        described = describe_drives(spoken, sorted(found), wire_protocol(config), labels)
         if described:
             logger.info("drives of the %s: %s", spoken.generation.title, described)
     return spoken
 
 
-def describe_drives(bus: Transport, ids: Sequence[int], wire: WireProtocol) -> str:
+def _families_text(found: Mapping[int, ProtocolFamily], config: ArmConfig) -> str:
+    """``"motor 1: v2, motor 2: v3"`` (``"motor 2 on bus right: v3"`` on an arm of several buses): for an error that
+    names each drive's generation."""
+    labels = {j.address: j.drive_label for j in config.joints}
+    return ", ".join(f"{labels.get(a, f'motor {a}')}: {f.value}" for a, f in sorted(found.items()))
+
+
+def describe_drives(
+    bus: Transport, ids: Sequence[int], wire: WireProtocol, labels: Mapping[int, str] | None = None
+) -> str:
     """``"motor 1 X8S2V10 firmware 20240528, ..."``: what each drive tells of its model and firmware, as read now
     (a drive that does not answer is named so) and kept in ``bus.identities``; empty where the generation has no such
-    read on ``wire``.
+    read on ``wire``. ``labels`` name the drives by address (``"motor 1 on bus left"``).
 
     Raises:
         TransportError: the bus failed.
@@ -224,7 +234,8 @@ def describe_drives(bus: Transport, ids: Sequence[int], wire: WireProtocol) -> s
         return ""
     told = read_identities(bus, ids, wire, GENERATION_CHECK_WINDOW_S)
     bus.identities.update(told)
-    return ", ".join(f"motor {i} {told[i].text if i in told else '(no answer)'}" for i in ids)
+    named = labels or {}
+    return ", ".join(f"{named.get(i, f'motor {i}')} {told[i].text if i in told else '(no answer)'}" for i in ids)
 
 
 def feedforward_for(config: ArmConfig) -> Feedforward | None:

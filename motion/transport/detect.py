@@ -74,8 +74,3 @@ def detect_can(port: CanPort, ids: Iterable[int], window_s: float) -> dict[int, 
     for frame in probe_frames(id_list):
         port.send(frame, SEND_TIMEOUT_MIN_S)
     return generations(_collect(port, window_s, expected_answers(id_list)))
-
-
-def describe_mixed(families: Mapping[int, ProtocolFamily]) -> str:
-    """``"motor 1: v2, motor 2: v3"``: for an error that names each drive's generation."""
-    return ", ".join(f"motor {i}: {f.value}" for i, f in sorted(families.items()))
