@@ -26,13 +26,13 @@ from motion.config import ArmConfig, ControlMode
 from motion.control.ratecheck import RateError
 from motion.emulator import Emulator, VirtualCanAttachment
 from motion.emulator.faults import Fault, InjectedFault
-from motion.errors import MotionFault, PortLost, TransportError
+from motion.errors import MotionFault, TransportError
 from motion.protocol import Bare, Command, MotorState, MultiMotorTorque, Status1
 from motion.protocol.table import ADDRESS_STRIDE
 from motion.safety import ArmState
 from motion.telemetry import load_log
 from motion.transport import CanTransport, Request
-from motion.transport.buses import Buses
+from motion.transport.buses import WORKER_GRACE_S, Buses
 from tests.motion_rig import Rig, arm_config, commanded_positions, emulated_arm, logged_requests, received
 from tests.test_cli import cli
 
@@ -142,7 +142,8 @@ def _realtime(config: ArmConfig) -> ArmConfig:
 
 def test_a_bus_lost_in_real_time_halts_the_other_buses_drives_in_its_detection_cycle(tmp_path: Path) -> None:
     # the right bus's adapter goes (its pty closes under the host): the left bus's six drives get their 0x81 in the
-    # cycle that found the port gone, and the arm is BUS_LOST (the right drives cannot be reached any more)
+    # cycle that found the port gone; they are then halted as usual (acknowledged: HALTED, and the session's end halts
+    # them again), while the right bus's drives, unreachable, read as silent drives whose halt is owed
     with emulated_arm(_realtime(BIMANUAL), "slcan", tmp_path, supervised=True) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None
@@ -152,19 +153,19 @@ def test_a_bus_lost_in_real_time_halts_the_other_buses_drives_in_its_detection_c
         rig.attachments[1].close()
         with pytest.raises(MotionFault) as info:
             supervisor.wait(5.0)
-        assert info.value.kind == "transport" and "the port is gone" in str(info.value)
-        deadline = time.monotonic() + 2.0
-        state = supervisor.machine.state
-        while state is not ArmState.BUS_LOST and time.monotonic() < deadline:
-            time.sleep(0.01)  # (the halt's own send finds the port gone a moment after the wait has returned)
-            state = supervisor.machine.state
-        assert state is ArmState.BUS_LOST
+        assert info.value.kind == "transport" and "bus right:" in str(info.value) and "port is gone" in str(info.value)
+        rig.sleep(0.6)  # (the halt's retry window: 0x81 to every drive not known to be halted)
+        assert supervisor.machine.state is ArmState.HALTED
+        assert supervisor.unacknowledged == {j.address for j in BIMANUAL.joints_on(1)}
+        assert not rig.controller.bus.closed  # (the left bus is still reachable)
         halt = supervisor.halts[0]
         stops = received(rig, Command.MOTOR_STOP)
         for joint in BIMANUAL.joints_on(0):
             first = min(stops.get(joint.address, [np.inf]))
             assert halt.detected_s <= first < halt.detected_s + rig.controller.period_s, joint.name
         assert not any(a >= ADDRESS_STRIDE for a in stops)  # (nothing reaches the lost bus)
+    closing = received(rig, Command.MOTOR_STOP)
+    assert all(len(closing[j.address]) > len(stops[j.address]) for j in BIMANUAL.joints_on(0))  # halted at close too
 
 
 def test_the_cli_moves_both_arms_in_real_time_against_the_emulator_on_two_slcan_ptys(tmp_path: Path) -> None:
@@ -357,7 +358,9 @@ class _Stalling(CanTransport):
         super()._exchange(deadline_s)
 
 
-def test_a_bus_whose_exchange_never_ends_is_taken_for_gone_and_the_others_still_answer() -> None:
+def test_a_bus_whose_exchange_does_not_end_reads_as_silent_and_never_holds_the_cycle_up() -> None:
+    # a wedged backend: its drives' replies are missing in that cycle (and while it stays wedged); the other bus
+    # answers in every cycle, each cycle ends within WORKER_GRACE_S of its deadline; once it ends, the bus is back
     emulator = Emulator([1, 101])
     channels = [uuid.uuid4().hex, uuid.uuid4().hex]
     with contextlib.ExitStack() as stack:
@@ -366,13 +369,17 @@ def test_a_bus_whose_exchange_never_ends_is_taken_for_gone_and_the_others_still_
         stalling = _Stalling("virtual", channels[1], None)
         buses = stack.enter_context(Buses([CanTransport("virtual", channels[0], None), stalling], ["left", "right"]))
         batch = [Request(1, Bare(Command.READ_STATUS_1)), Request(101, Bare(Command.READ_STATUS_1))]
-        with pytest.raises(PortLost, match="its exchange did not end within 1 s of its deadline"):
-            buses.transact(batch, buses.clock() + 0.1)
-        assert buses.closed
-        with pytest.raises(PortLost):  # the left bus still carries its share (the halt), then the loss is raised
-            buses.transact(batch, buses.clock() + 0.1)
-        assert buses.buses[0].counters[1].replied == 2
+        for _ in range(3):
+            deadline = buses.clock() + 0.05
+            replies = buses.transact(batch, deadline)
+            assert buses.clock() < deadline + WORKER_GRACE_S + 0.05  # (+ this host's scheduling)
+            assert [(r.motor_id, r.ok) for r in replies] == [(1, True), (101, False)]
+        assert not buses.closed
         _Stalling.release.set()
+        time.sleep(0.2)  # (the wedged exchange ends; its late reply is the next one's stale frame)
+        for _ in range(3):
+            replies = buses.transact(batch, buses.clock() + 0.2)
+        assert [(r.motor_id, r.ok) for r in replies] == [(1, True), (101, True)]
 
 
 def test_the_api_emulates_both_buses_in_real_time_in_a_process_of_their_own(tmp_path: Path) -> None:

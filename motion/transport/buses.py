@@ -8,9 +8,15 @@ thread, each other in a worker thread of its own: a backend waits on its port wi
 waits overlap) and merges the replies back into the request order, each named by its address. A 0x280 multi-motor
 frame goes to the bus of its request's address (motors 1..4 of that bus).
 
-A fault on one bus is every bus's: a port lost on one raises :class:`~motion.errors.PortLost` from :meth:`transact`
-after the other buses' batches went out (the halt that follows reaches their drives in the same cycle), and the
-transport counts as closed from then on.
+A fault on one bus is every bus's, and the other buses stay reachable:
+
+- a bus whose port is gone raises :class:`~motion.errors.PortLost` from :meth:`transact` once, in the cycle that
+  found it (after the other buses' batches went out): the arm halts in that cycle. From then on the bus is skipped and
+  its drives' replies are missing, as silent drives' are: their halts are owed for ever, the other buses' drives are
+  halted, acknowledged, braked and closed as usual. The transport counts as closed once every bus is gone;
+- a bus whose exchange has not ended :data:`WORKER_GRACE_S` after the deadline (a wedged driver, a thread kept off
+  the CPU) has its replies missing in that cycle, and is skipped while its worker is still in it: the arm sees silent
+  drives (its missed-reply rule halts it), never a loop held up by one bus.
 """
 
 from __future__ import annotations
@@ -21,11 +27,13 @@ from typing import Final
 
 from motion.errors import PortLost, TransportError
 from motion.protocol import MultiMotorTorque
-from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily, split_address
+from motion.protocol.table import ADDRESS_STRIDE, MULTI_TORQUE_MOTOR_IDS, ProtocolFamily, split_address
 from motion.transport.base import BusCounters, FrameTap, MotorCounters, Reply, Request, Transport
 
-#: How long :meth:`Buses.transact` waits for a worker beyond the deadline before it counts the bus as failed, s.
-_WORKER_GRACE_S: Final = 1.0
+#: How long :meth:`Buses.transact` waits for a worker beyond the deadline, s (a backend returns by its deadline).
+WORKER_GRACE_S: Final = 0.005
+#: How long closing waits for a worker's thread to end, s.
+_JOIN_S: Final = 1.0
 
 
 class _Worker:
@@ -38,32 +46,32 @@ class _Worker:
         self.replies: list[Reply] = []
         self.error: BaseException | None = None
         self.took_s = 0.0  # how long the last exchange took, s
-        self.stuck = False  # an exchange did not end in time: the bus is taken for gone
         self._start = threading.Event()
         self._done = threading.Event()
+        self._done.set()  # (nothing handed yet)
         self._stopping = False
         self._thread = threading.Thread(target=self._run, name=f"rmd-bus-{name}", daemon=True)
         self._thread.start()
 
+    @property
+    def busy(self) -> bool:
+        """Whether the exchange handed last has not ended (its bus must not be touched from another thread)."""
+        return not self._done.is_set()
+
     def submit(self, requests: Sequence[Request], deadline_s: float) -> None:
-        """Start an exchange of ``requests`` (collect it with :meth:`result`)."""
+        """Start an exchange of ``requests`` (collect it with :meth:`result`); not while :attr:`busy`."""
         self._requests, self._deadline_s, self.error = requests, deadline_s, None
         self._done.clear()
         self._start.set()
 
-    def result(self, timeout_s: float) -> list[Reply]:
-        """The replies of the exchange submitted last.
+    def result(self, timeout_s: float) -> list[Reply] | None:
+        """The replies of the exchange submitted last, or None when it has not ended within ``timeout_s``.
 
         Raises:
-            TransportError: the bus failed (the backend's own error).
-            PortLost: the port is gone, or the exchange did not end in time (then :attr:`stuck` is set).
+            TransportError: the bus failed (the backend's own error; PortLost: the port is gone).
         """
         if not self._done.wait(timeout_s):
-            # its thread is stuck in the backend: the bus is taken for gone (never handed a batch again)
-            self.stuck = True
-            raise PortLost(
-                f"{self.bus.describe()}: its exchange did not end within {_WORKER_GRACE_S:g} s of its deadline"
-            )
+            return None
         if self.error is not None:
             raise self.error
         return self.replies
@@ -71,7 +79,7 @@ class _Worker:
     def stop(self) -> None:
         self._stopping = True
         self._start.set()
-        self._thread.join(_WORKER_GRACE_S)
+        self._thread.join(_JOIN_S)
 
     def _run(self) -> None:
         while True:
@@ -119,20 +127,22 @@ class Buses(Transport):
         self._split: list[list[Request]] = [[] for _ in self.buses]
         self._where: list[int] = []  # per request of the cycle, its bus
         self._took_s = [0.0] * len(self.buses)  # how long each bus's share of the last exchange took, s
+        self._gone: set[int] = set()  # the buses found gone (skipped from then on)
+        self._tap_lock = threading.Lock()
 
     # --- the cycle -----------------------------------------------------------------------------------------
 
     def transact(self, requests: Sequence[Request], deadline_s: float) -> list[Reply]:
         """See :meth:`Transport.transact`: each bus's share at the same time, the replies in request order with the
-        drives' addresses.
+        drives' addresses (those of a bus gone or late: missing).
 
         Raises:
-            PortLost: a bus's port is gone (the other buses' batches went out first).
+            PortLost: a bus's port was found gone in this exchange (the other buses' batches went out first).
             TransportError: a bus failed, or the transport is closed.
         """
         if self._closed:
             raise TransportError(f"{self.describe()} is closed")
-        split, where = self._split, self._where
+        split, where, buses, gone = self._split, self._where, self.buses, self._gone
         for share in split:
             share.clear()
         where.clear()
@@ -143,50 +153,71 @@ class Buses(Transport):
             split[bus].append(Request(motor_id, request.message) if bus else request)
             where.append(bus)
         self.bus_counters.cycles += 1
-        # a bus whose port is gone is skipped: the others' batches (the halt that follows a fault) still go out
-        stuck = [False, *(w.stuck for w in self._workers)]
-        live = [bus.lost is None and not bus.closed and not s for bus, s in zip(self.buses, stuck, strict=False)]
-        for worker, share, alive in zip(self._workers, split[1:], live[1:], strict=False):  # (none: sequential)
-            if alive:
-                worker.submit(share, deadline_s)
-        errors: list[BaseException] = []
-        answers: list[list[Reply]] = []
-        inline = range(len(self.buses)) if not self.parallel else range(1)  # (the buses this thread exchanges on)
+        answers: list[list[Reply] | None] = [None] * len(buses)
+        handed = [False] * len(buses)
+        for k, worker in enumerate(self._workers, start=1):  # (none: sequential)
+            if k not in gone and not worker.busy:
+                worker.submit(split[k], deadline_s)
+                handed[k] = True
+        errors: dict[int, BaseException] = {}
         took = self._took_s
-        for k in inline:
+        for k in range(len(buses)) if not self.parallel else range(1):  # (the buses this thread exchanges on)
+            if k in gone:
+                continue
             began = self.clock()
             try:
-                answers.append(self.buses[k].transact(split[k], deadline_s) if live[k] else [])
+                answers[k] = buses[k].transact(split[k], deadline_s)
             except BaseException as exc:  # the other buses still end their exchange first
-                errors.append(exc)
-                answers.append([])
+                errors[k] = exc
             took[k] = self.clock() - began
-        grace = max(0.0, deadline_s - self.clock()) + _WORKER_GRACE_S
-        for k, (worker, alive) in enumerate(zip(self._workers, live[1:], strict=False), start=1):
-            try:
-                answers.append(worker.result(grace) if alive else [])
-            except BaseException as exc:
-                errors.append(exc)
-                answers.append([])
-            took[k] = worker.took_s
-        gone = [bus.lost for bus in self.buses if bus.lost is not None]
-        gone += [e for e in errors if isinstance(e, PortLost)]
-        if gone and self._lost is None:
-            self._lost = gone[0]
+        for k, worker in enumerate(self._workers, start=1):
+            if handed[k]:
+                try:
+                    answers[k] = worker.result(max(0.0, deadline_s - self.clock()) + WORKER_GRACE_S)
+                except BaseException as exc:
+                    errors[k] = exc
+                took[k] = worker.took_s
+        self._found_gone(errors)
         if errors:
-            raise next((e for e in errors if isinstance(e, PortLost)), errors[0])  # (each names its port)
-        if not all(live):
-            closed = ", ".join(name for name, alive in zip(self.names, live, strict=True) if not alive)
-            raise self._lost or PortLost(f"bus(es) {closed} of {self.describe()} closed")
+            raise errors[min(errors)]  # (each names its port)
         return self._merge(requests, answers)
 
-    def _merge(self, requests: Sequence[Request], answers: list[list[Reply]]) -> list[Reply]:
-        """The buses' replies in request order (a 0x280 request's four in its place), named by address."""
-        streams: list[Iterator[Reply]] = [iter(a) for a in answers]
+    def _found_gone(self, errors: dict[int, BaseException]) -> None:
+        """Take the buses found gone in this exchange out of every later one.
+
+        Raises:
+            PortLost: one was (the first of them).
+        """
+        newly = [
+            k
+            for k, bus in enumerate(self.buses)
+            if k not in self._gone and (bus.lost is not None or bus.closed or isinstance(errors.get(k), PortLost))
+        ]
+        if not newly:
+            return
+        self._gone.update(newly)
+        for k in newly:
+            errors.pop(k, None)
+        first = self.buses[newly[0]]
+        lost = first.lost or PortLost(f"{first.describe()} closed")
+        if self._lost is None:
+            self._lost = lost
+        names = ", ".join(self.names[k] for k in newly)
+        raise PortLost(f"bus {names}: {lost} (the other buses go on; its drives cannot be reached)")
+
+    def _merge(self, requests: Sequence[Request], answers: list[list[Reply] | None]) -> list[Reply]:
+        """The buses' replies in request order (a 0x280 request's four in its place), named by address; a bus gone or
+        late answers none."""
+        streams: list[Iterator[Reply] | None] = [None if a is None else iter(a) for a in answers]
         merged: list[Reply] = []
         for request, bus in zip(requests, self._where, strict=True):
             stream, base = streams[bus], bus * ADDRESS_STRIDE
-            for _ in range(4 if isinstance(request.message, MultiMotorTorque) else 1):
+            multi = isinstance(request.message, MultiMotorTorque)
+            if stream is None:
+                motors = [base + m for m in MULTI_TORQUE_MOTOR_IDS] if multi else [request.motor_id]
+                merged.extend(Reply(motor_id, request.message, None, None) for motor_id in motors)
+                continue
+            for _ in range(4 if multi else 1):
                 reply = next(stream)
                 merged.append(reply._replace(motor_id=base + reply.motor_id) if base else reply)
         return merged
@@ -195,14 +226,8 @@ class Buses(Transport):
 
     @property
     def closed(self) -> bool:
-        """True once closed, or once any bus is closed or lost: the arm's drives are not all reachable any more
-        (:meth:`transact` still carries the other buses' batches, then raises)."""
-        return (
-            self._closed
-            or self._lost is not None
-            or any(bus.closed for bus in self.buses)
-            or any(w.stuck for w in self._workers)
-        )
+        """True once closed, or once every bus is gone (a bus gone among others: its drives read as silent)."""
+        return self._closed or len(self._gone) == len(self.buses)
 
     @property
     def counters(self) -> Mapping[int, MotorCounters]:
@@ -255,7 +280,7 @@ class Buses(Transport):
     def with_family(self, family: ProtocolFamily) -> Buses:
         """See :meth:`Transport.with_family`: every bus switches (each takes its link over)."""
         self._stop_workers()
-        buses = Buses([bus.with_family(family) for bus in self.buses], self.names)
+        buses = Buses([bus.with_family(family) for bus in self.buses], self.names, parallel=self.parallel)
         buses.frame_tap = self.frame_tap
         buses.identities.update(self.identities)
         self._closed = True  # (its buses are the new transport's now)
@@ -271,8 +296,17 @@ class Buses(Transport):
     @frame_tap.setter
     def frame_tap(self, tap: FrameTap | None) -> None:
         self._tap = tap
+        # (the buses' exchanges run in several threads: their frames reach the tap one at a time)
+        lock = getattr(self, "_tap_lock", None)
+        locked: FrameTap | None = None
+        if tap is not None and lock is not None:
+
+            def locked(time_s: float, received: bool, arbitration_id: int | None, data: bytes) -> None:
+                with lock:
+                    tap(time_s, received, arbitration_id, data)
+
         for bus in getattr(self, "buses", ()):
-            bus.frame_tap = tap
+            bus.frame_tap = locked
 
     @property
     def bus_counters_by_bus(self) -> dict[str, BusCounters]:
