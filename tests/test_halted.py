@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import logging
+import types
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,7 @@ from motion.control.family import FAMILIES
 from motion.emulator import DEFAULT_PID, Fault, InjectedFault
 from motion.emulator.drive import RunState
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
-from motion.protocol import Command, MotorState
+from motion.protocol import Bare, Command, MotorState
 from motion.protocol.table import ProtocolFamily
 from motion.protocol.v3.messages import BrakeCommand, CommandV3, CommunicationTimeout, PlanningAcceleration
 from motion.safety import ArmState
@@ -651,3 +652,42 @@ def test_on_rs485_a_silent_drive_goes_last_in_every_halted_cycle(tmp_path: Path)
     for begin, end in itertools.pairwise(cycles):
         ids = [motor_id for t, motor_id in requests if begin <= t < end]
         assert ids and ids[0] == 2 and 1 in ids, (begin, ids)  # the healthy drive first, the silent one still asked
+
+
+def _restless_after(events: list[tuple[float, float, str]]) -> float | None:
+    """A halted two-joint guard fed joint 0's readings ``(t, speed, how)`` every 10 ms (``how``: "seen", "silent" or
+    "outside": read beyond its limits, its halt owed again); when joint 0 was reported restless (None: never)."""
+    guard = HaltGuard([1, 2], [], lambda code: Bare(Command(code)))
+    guard.begin(Command.MOTOR_STOP)
+    axes = types.SimpleNamespace(q_deg=np.zeros(2), qd_dps=np.zeros(2), iq_a=np.zeros(2))
+    state = MotorState(Command.READ_STATUS_2, 30, 0.0, 0, 0)
+    halt = Bare(Command.MOTOR_STOP)
+    for t, speed, how in events:
+        axes.qd_dps[:] = [speed, 0.0]
+        replies = []
+        for motor_id in (1, 2):
+            silent = motor_id == 1 and how == "silent"
+            replies += [
+                Reply(motor_id, halt, None if silent else halt, t),
+                Reply(motor_id, state, None if silent else state, t),
+            ]
+        within = (lambda i, q: i != 0) if how == "outside" else (lambda i, q: True)
+        if 0 in guard.take(replies, axes, within, t)[2]:  # type: ignore[arg-type]
+            return t
+    return None
+
+
+def _steps(start: float, end: float, speed: float, how: str = "seen") -> list[tuple[float, float, str]]:
+    return [(round(start + 0.01 * k, 3), speed, how) for k in range(round((end - start) / 0.01))]
+
+
+def test_a_halted_joint_is_restless_after_a_second_of_motion_seen_whatever_is_owed_meanwhile() -> None:
+    # (explorer, bimanual) a joint run back at top speed left its limits on the way: its halt was owed again, which
+    # restarted its second each time; and motion not seen (its drive silent) is no motion: its second starts again
+    owed = _steps(0.0, 0.5, 700.0) + _steps(0.5, 0.52, 700.0, "outside") + _steps(0.52, 2.0, 700.0)
+    reported = _restless_after(owed)
+    assert reported is not None and 1.0 <= reported < 1.05
+    silent = _steps(0.0, 0.1, 700.0) + _steps(0.1, 1.1, 700.0, "silent") + _steps(1.1, 3.0, 700.0)
+    reported = _restless_after(silent)
+    assert reported is not None and 2.1 <= reported < 2.15  # a second after it was seen moving again
+    assert _restless_after(_steps(0.0, 3.0, 5.0)) is None  # (slower than SWING_DPS: held)

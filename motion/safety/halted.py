@@ -211,6 +211,7 @@ class HaltGuard:
             motor_id = reply.motor_id
             if message is None:  # silent, dropped or corrupt: whatever it did meanwhile, halt it again
                 self._owe(i)
+                self._moving_since[i] = math.nan  # (restless counts motion seen: none was, meanwhile)
                 unanswered.add(motor_id)
                 continue
             answered.add(motor_id)
