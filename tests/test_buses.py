@@ -26,9 +26,10 @@ from motion.config import ArmConfig, ControlMode
 from motion.control.ratecheck import RateError
 from motion.emulator import Emulator, VirtualCanAttachment
 from motion.emulator.faults import Fault, InjectedFault
+from motion.emulator.simulated import SimulatedBus, Simulation
 from motion.errors import MotionFault, TransportError
 from motion.protocol import Bare, Command, MotorState, MultiMotorTorque, Status1
-from motion.protocol.table import ADDRESS_STRIDE
+from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily
 from motion.safety import ArmState
 from motion.telemetry import load_log
 from motion.transport import CanTransport, Request
@@ -395,3 +396,17 @@ def test_the_api_emulates_both_buses_in_real_time_in_a_process_of_their_own(tmp_
         pytest.skip(f"this host does not hold bimanual.yaml at 50 Hz just now: {exc}")
     tolerance = BIMANUAL.control.goal_tolerance_deg + 0.01
     assert abs(q["left_elbow_pitch"] - 20.0) < tolerance and abs(q["right_elbow_pitch"] + 20.0) < tolerance
+
+
+def test_a_simulated_generation_probe_drops_the_outstanding_marks_too() -> None:
+    # as CanTransport's (de860ff): the probe drains the late replies the marks wait for; a mark left would swallow
+    # the drive's next real answer
+    emulator = Emulator([1])
+    emulator.add_fault(Fault(InjectedFault.DELAY, 1, start_s=0.0, end_s=0.05, value=30.0))
+    simulation = Simulation(emulator)
+    bus = SimulatedBus(simulation)
+    assert not bus.transact([Request(1, Bare(Command.READ_STATUS_1))], bus.clock() + 0.005)[0].ok
+    simulation.sleep_until(simulation.now_s + 0.06)  # the late reply has arrived
+    assert bus.probe_families([1], 0.02) == {1: ProtocolFamily.V2}
+    (reply,) = bus.transact([Request(1, Bare(Command.READ_STATUS_1))], bus.clock() + 0.01)
+    assert reply.ok and bus.counters[1].stale_frames == 0

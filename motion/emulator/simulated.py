@@ -318,6 +318,7 @@ class SimulatedBus(Transport):
             wire, line = arrival.wire, arrival.line
             if isinstance(wire, CanFrame) and wanted.get(line, {}).get(wire.arbitration_id) == wire.data[0]:
                 answered[line].add(wire.arbitration_id)
+        self._read_behind_the_slots()  # (the late replies it drained are no outstanding answer any more)
         return {
             line * ADDRESS_STRIDE + motor_id: family
             for line, found in answered.items()
