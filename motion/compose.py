@@ -416,7 +416,14 @@ def drive_setup(config: ArmConfig, controller: Controller) -> DriveSetup:
     braked = [j.address for j in config.joints if j.brake]
     record, now = drive_record_for(controller.bus)
     return DriveSetup(
-        controller.bus, controller.family, ids, braked, session_link_timeout_ms(config), record=record, now=now
+        controller.bus,
+        controller.family,
+        ids,
+        braked,
+        session_link_timeout_ms(config),
+        record=record,
+        now=now,
+        labels={j.address: j.drive_label for j in config.joints},
     )
 
 

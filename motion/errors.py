@@ -83,12 +83,15 @@ class DrivesSilent(TransportError):
     """Drives did not answer a read every drive must answer (wrong motor id, no power, wiring, another protocol).
 
     Attributes:
-        motor_ids: the motor ids that were asked and did not answer.
+        motor_ids: the drives that were asked and did not answer (their addresses: the motor ids on an arm of one
+            bus).
+        labels: how messages name them ("motor 3", "motor 3 on bus right"), in the same order.
     """
 
-    def __init__(self, message: str, motor_ids: tuple[int, ...] = ()) -> None:
+    def __init__(self, message: str, motor_ids: tuple[int, ...] = (), labels: tuple[str, ...] = ()) -> None:
         super().__init__(message)
         self.motor_ids = motor_ids
+        self.labels = labels or tuple(f"motor {i}" for i in motor_ids)
 
 
 class ConfigError(MotionError, ValueError):

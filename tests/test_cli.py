@@ -482,7 +482,7 @@ def test_a_drive_that_does_not_answer_is_a_communication_error(tmp_path: Path) -
         assert result.returncode == 3, result.stderr
         assert "communication error" in result.stderr and "from joint(s) elbow (motor 7)" in result.stderr
         # issue 33 §8: the next step is named: which id was asked, and the command that lists the ids that answer
-        assert f"hint: motor id(s) 7 were asked: `rmd-motion scan --config {config}`" in result.stderr
+        assert f"hint: the drive(s) asked: motor 7. `rmd-motion scan --config {config}`" in result.stderr
         scan = cli("scan", "--config", config, *emulated.bus_args, "--ids", "1-8")
         assert scan.returncode == 3
         assert "not answering: elbow (motor 7)" in scan.stderr

@@ -391,7 +391,7 @@ def test_an_unacknowledged_rom_write_is_not_recorded_and_a_missed_brake_release_
     assert setup.rom_writes == 6 and setup.record.rom_writes(setup._key(2)) == 3
     silent_from_writes = Fault(InjectedFault.SILENT, 2, start_s=first_write - 1e-4, end_s=first_write + 0.5)
     setup, sent = _setup_on([silent_from_writes])
-    with pytest.raises(DrivesSilent, match=r"no reply to the session settings from motor\(s\) 2") as caught:
+    with pytest.raises(DrivesSilent, match=r"no reply to the session settings from motor 2") as caught:
         setup.apply(1.0)
     assert caught.value.motor_ids == (2,)
     assert setup.rom_writes == 3 and setup.record.rom_writes(setup._key(1)) == 3
@@ -401,7 +401,7 @@ def test_an_unacknowledged_rom_write_is_not_recorded_and_a_missed_brake_release_
     # release; now a release that one drive misses: both count as released, and the end locks both
     assert setup.brakes_locked
     setup, sent = _setup_on([Fault(InjectedFault.SILENT, 2, start_s=0.0, end_s=0.01)])
-    with pytest.raises(DrivesSilent, match=r"brake release \(0x77\) from motor\(s\) 2"):
+    with pytest.raises(DrivesSilent, match=r"brake release \(0x77\) from motor 2"):
         setup.release_brakes(0.005)
     assert not setup.brakes_locked
     setup.restore(0.5)

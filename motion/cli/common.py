@@ -557,9 +557,9 @@ def communication_hint(exc: BaseException, config_path: object) -> str | None:
             f"{link}` in another terminal, then this command with {override} (move and run also take --emulate)"
         )
     if isinstance(exc, DrivesSilent):
-        ids = ", ".join(map(str, exc.motor_ids)) or "the configured ones"
+        asked = ", ".join(exc.labels) or "the configured ones"
         return (
-            f"motor id(s) {ids} were asked: `rmd-motion scan --config {config}` lists the ids that answer and their "
+            f"the drive(s) asked: {asked}. `rmd-motion scan --config {config}` lists the ids that answer and their "
             "protocol generation. Check each drive's id (MyActuator's setup tool), its power, the wiring and, on CAN, "
             'the bus bit rate and the 120 Ohm termination at both ends (README, "Connecting hardware")'
         )

@@ -226,8 +226,10 @@ def with_arm(
             raise lost
         silent = sorted(arm.supervisor.unacknowledged) if arm.supervisor is not None else []
         if silent:  # "every axis halted" does not hold for these
+            labels = {j.address: f"{j.name} ({j.drive_label})" for j in arm.config.joints}
             warn(
-                f"motor(s) {', '.join(map(str, silent))} never acknowledged the halt (sent to them every cycle until "
+                f"{', '.join(labels.get(a, f'motor {a}') for a in silent)} never acknowledged the halt (sent to them "
+                "every cycle until "
                 "the arm closed): they may still run their last command; use the hardware E-stop"
             )
 
@@ -345,7 +347,7 @@ def jog(args: argparse.Namespace, interrupts: Interrupts) -> int:
         for spec, delta in zip(controller.specs, turned, strict=True):
             if abs(delta) >= JOG_MOVED_SHARE * abs(expected):
                 moved.append((spec, float(delta)))
-            rows.append((spec.name, spec.motor_id, f"{delta:+.2f}"))
+            rows.append((spec.name, spec.drive_label.removeprefix("motor "), f"{delta:+.2f}"))
         report = _jog_verdict(joint, expected, moved, args.deg)
         if args.json:
             turned_by = {spec.name: round(float(d), 3) for spec, d in zip(controller.specs, turned, strict=True)}

@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from typing import Any, TypeAlias
 
 from motion.control.drive_record import DriveRecord, same_power_on
@@ -90,6 +90,7 @@ class DriveSetup:
         *,
         record: DriveRecord | None = None,
         now: Callable[[], float] = time.time,
+        labels: Mapping[int, str] | None = None,
     ) -> None:
         if braked_ids and not family.brakes:
             raise ConfigError(
@@ -102,6 +103,7 @@ class DriveSetup:
         self.link_timeout_ms = link_timeout_ms if family.link_protection else 0
         self.record = record if record is not None else DriveRecord(None)
         self._now = now
+        self._labels = dict(labels or {})
         #: ROM writes this session sent (0x43, 0xB3).
         self.rom_writes = 0
         self.brakes_locked = True
@@ -222,9 +224,7 @@ class DriveSetup:
             self.record.count_rom_writes(self._key(reply.motor_id), 1)
         self.record.save()
         if silent:
-            raise DrivesSilent(
-                f"no reply to the {what} from motor(s) {', '.join(map(str, sorted(silent)))}", tuple(sorted(silent))
-            )
+            raise self._silent(what, sorted(silent))
 
     def suspend_protection(self, deadline_s: float) -> None:
         """The communication-loss protection off (0xB3 = 0) where the record does not show it off, before this session
@@ -246,11 +246,7 @@ class DriveSetup:
             if writes:
                 self._write_rom(writes, deadline_s, "communication-loss protection off (0xB3)")
             if silent:
-                raise DrivesSilent(
-                    f"no reply to the runtime read (0xB1) from motor(s) {', '.join(map(str, silent))}: their "
-                    "protection stays on",
-                    tuple(silent),
-                )
+                raise self._silent("runtime read (0xB1)", silent, ": their protection stays on")
 
     def restore_settings(self, deadline_s: float) -> list[str]:
         """Write back what the drives held before rmd-motion first changed them: the planning accelerations the
@@ -276,7 +272,7 @@ class DriveSetup:
                 writes.append((Request(motor_id, CommunicationTimeout(0)), [(key, LINK_TIMEOUT, None)]))
                 written.append("communication-loss protection off")
             if written:
-                done.append(f"motor {motor_id}: " + ", ".join(written))
+                done.append(f"{self._labels.get(motor_id, f'motor {motor_id}')}: " + ", ".join(written))
         if writes:
             self._write_rom(writes, deadline_s, "restore")
         return done
@@ -311,11 +307,16 @@ class DriveSetup:
         finally:
             self.brakes_locked = True
 
+    def _silent(self, what: str, silent: Sequence[int], more: str = "") -> DrivesSilent:
+        """The error for drives (by address) that did not answer ``what``, each named as messages name it."""
+        named = tuple(self._labels.get(i, f"motor {i}") for i in silent)
+        return DrivesSilent(f"no reply to the {what} from {', '.join(named)}{more}", tuple(silent), named)
+
     def _ask(self, requests: list[Request], deadline_s: float, what: str) -> list[Reply]:
         replies = self.bus.transact(requests, deadline_s)
         silent = sorted({r.motor_id for r in replies if r.message is None})
         if silent:
-            raise DrivesSilent(f"no reply to the {what} from motor(s) {', '.join(map(str, silent))}", tuple(silent))
+            raise self._silent(what, silent)
         return replies
 
 

@@ -284,7 +284,9 @@ def measure_rate(
             misses[motor_id] = misses[motor_id] + 1 if motor_id in missing else 0
         silent = sorted(i for i, count in misses.items() if count >= _SILENT_EXCHANGES)
         if silent:
-            raise DrivesSilent(f"no reply to the rate check's reads from motor(s) {silent}", tuple(silent))
+            labels = {spec.motor_id: spec.drive_label for spec in controller.specs}
+            named = tuple(labels.get(i, f"motor {i}") for i in silent)
+            raise DrivesSilent(f"no reply to the rate check's reads from {', '.join(named)}", tuple(silent), named)
         for m in range(rehearsals):
             # strictly later than the last (the models step by the time between two cycles and divide by it)
             at = max(clock.now(), at + _REHEARSAL_STEP_S)

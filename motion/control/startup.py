@@ -50,7 +50,11 @@ def silent_drives(controller: Controller, what: str, answered: Collection[int], 
     """The error for the joints whose drives did not answer ``what``, each named with its motor id."""
     silent = [s for s in controller.specs if s.motor_id not in answered]
     named = ", ".join(f"{s.name} ({s.drive_label})" for s in silent)
-    return DrivesSilent(f"no reply to the {what} from joint(s) {named}{note}", tuple(s.motor_id for s in silent))
+    return DrivesSilent(
+        f"no reply to the {what} from joint(s) {named}{note}",
+        tuple(s.motor_id for s in silent),
+        tuple(s.drive_label for s in silent),
+    )
 
 
 def read_angles(controller: Controller, timeout_s: float = 0.2) -> dict[int, float]:
