@@ -87,7 +87,9 @@ def load_turn_records(config: ArmConfig, where: str) -> dict[str, TurnRecord]:
             raise ValueError(f"not a {TURNS_SCHEMA} version {TURNS_VERSION} file")
         if document.get("bus") != where:
             return {}
-        ids = {j.name: j.motor_id for j in config.joints}
+        # (a drive's address: its motor id on an arm of one bus; on several it names the bus too, so that a joint moved
+        # to another bus at the same id is not taken for the drive it was)
+        ids = {j.name: j.address for j in config.joints}
         records = {
             name: TurnRecord(
                 int(e["motor_id"]),
@@ -117,7 +119,7 @@ def save_turn_records(
     q = controller.snapshot.position_deg
     joints = {
         j.name: {
-            "motor_id": j.motor_id,
+            "motor_id": j.address,  # (see load_turn_records)
             "turns": k,
             "reading_deg": drive_reading(t, float(q[i]), k),
             "source": str(source),
@@ -154,7 +156,7 @@ def store_tracking(config: ArmConfig, controller: Controller, fits: Mapping[str,
         joints.append(
             {
                 "name": joint.name,
-                "motor_id": joint.motor_id,
+                "motor_id": joint.address,  # (its address: see load_turn_records)
                 "drive_angle_kp": angle_kp,
                 "drive_acceleration_dps2": accel,
                 "angle_gain_per_s": fit.loop.angle_gain_per_s,
@@ -187,7 +189,7 @@ def offer_stored_tracking(config: ArmConfig, controller: Controller) -> list[str
         offered = []
         for j, joint in enumerate(config.joints):
             entry = stored.get(joint.name)
-            if entry is None or entry.get("motor_id") != joint.motor_id:
+            if entry is None or entry.get("motor_id") != joint.address:
                 continue
             accel = entry["drive_acceleration_dps2"]
             settings = (int(entry["drive_angle_kp"]), None if accel is None else int(accel))

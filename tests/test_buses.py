@@ -28,6 +28,7 @@ from motion.emulator import Emulator, VirtualCanAttachment
 from motion.emulator.faults import Fault, InjectedFault
 from motion.emulator.simulated import SimulatedBus, Simulation
 from motion.errors import MotionFault, TransportError
+from motion.keep import TURNS_SCHEMA, TURNS_VERSION, load_turn_records, turns_store
 from motion.protocol import Bare, Command, MotorState, MultiMotorTorque, Status1
 from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily
 from motion.safety import ArmState
@@ -410,3 +411,25 @@ def test_a_simulated_generation_probe_drops_the_outstanding_marks_too() -> None:
     assert bus.probe_families([1], 0.02) == {1: ProtocolFamily.V2}
     (reply,) = bus.transact([Request(1, Bare(Command.READ_STATUS_1))], bus.clock() + 0.01)
     assert reply.ok and bus.counters[1].stale_frames == 0
+
+
+def test_a_turn_record_belongs_to_the_drive_on_its_bus(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # the record keeps each joint's drive address: a joint moved to the other bus at the same motor id is another
+    # drive, whose turns the record does not give
+    monkeypatch.setenv("RMD_MOTION_STATE_DIR", str(tmp_path))
+    entry = {"turns": 2, "reading_deg": 12.5, "source": "power-on window", "power_on": None}
+    document = {
+        "schema": TURNS_SCHEMA,
+        "version": TURNS_VERSION,
+        "bus": "here",
+        "joints": {"right_base_yaw": {**entry, "motor_id": 101}, "left_base_yaw": {**entry, "motor_id": 1}},
+    }
+    turns_store(BIMANUAL).write_text(json.dumps(document))
+    assert set(load_turn_records(BIMANUAL, "here")) == {"right_base_yaw", "left_base_yaw"}
+    moved = [
+        dataclasses.replace(j, bus="left", bus_index=0, motor_id=7) if j.name == "left_base_yaw" else j
+        for j in BIMANUAL.joints
+    ]
+    moved = [dataclasses.replace(j, bus="left", bus_index=0) if j.name == "right_base_yaw" else j for j in moved]
+    # right_base_yaw now on the left bus at motor id 1 (its id on the right bus): not the drive the record was made on
+    assert set(load_turn_records(dataclasses.replace(BIMANUAL, joints=tuple(moved)), "here")) == set()
