@@ -715,9 +715,8 @@ class TelemetrySession(Closing):
         # Nothing was recorded (the arm never connected): an empty log that still names the joints.
         columns: dict[str, NDArray[Any]] = dict(_allocate(0, len(config.joints)))
         columns.update(_fault_columns((), 0.0))
-        joints = [
-            {"name": j.name, "motor_id": j.motor_id} | ({"bus": j.bus_index} if j.bus else {}) for j in config.joints
-        ]
+        several = len(config.buses) > 1  # (as the recorder's: each joint's bus named on an arm of several)
+        joints = [{"name": j.name, "motor_id": j.motor_id} | ({"bus": j.bus} if several else {}) for j in config.joints]
         meta |= _schema_meta(config.control.mode.value, config.control.rate_hz, joints)
         meta |= {"t0_s": 0.0, "t0_wall_unix_s": time.time(), "loop": None, "counters": {}}
         return TelemetryLog(columns, meta)
