@@ -248,6 +248,8 @@ def test_the_command_line_refuses_overrides_that_do_not_name_each_bus(tmp_path: 
     assert twice.returncode == 2 and "--channel is given twice for bus left" in twice.stderr
     port = cli("status", "--config", config, "--port", "left=/dev/ttyUSB0")
     assert port.returncode == 2 and "bus left is a can bus; its overrides are --interface and --channel" in port.stderr
+    mixed = cli("status", "--config", config, "--interface", "slcan", "--interface", "left=socketcan")
+    assert mixed.returncode == 2 and "--interface: give BUS=VALUE for every bus it overrides, or one" in mixed.stderr
     one = cli("status", "--config", CONFIGS / "arm2.yaml", "--channel", "/a", "--channel", "/b")
     assert one.returncode == 2 and "--channel is given 2 times: the arm has one bus" in one.stderr
 
@@ -324,14 +326,16 @@ def test_the_rate_check_measures_each_bus_and_names_the_one_that_limits() -> Non
     assert "by bus (p99, at the same time): left" in check.summary() and "limits" in check.summary()
 
 
-def test_the_buses_transport_merges_replies_in_request_order_by_address() -> None:
+@pytest.mark.parametrize("parallel", [True, False], ids=["parallel", "sequential"])
+def test_the_buses_transport_merges_replies_in_request_order_by_address(parallel: bool) -> None:
     # two virtual CAN buses of one emulator (lines 0 and 1); a batch that mixes them, with a 0x280 frame on the second
     emulator = Emulator([1, 2, 3, 4, 101, 102, 103, 104])
     channels = [uuid.uuid4().hex, uuid.uuid4().hex]
     with contextlib.ExitStack() as stack:
         for line, channel in enumerate(channels):
             stack.enter_context(VirtualCanAttachment(emulator, channel, line=line))
-        buses = stack.enter_context(Buses([CanTransport("virtual", c, None) for c in channels], ["left", "right"]))
+        transports = [CanTransport("virtual", c, None) for c in channels]
+        buses = stack.enter_context(Buses(transports, ["left", "right"], parallel=parallel))
         requests = [
             Request(102, Bare(Command.READ_STATUS_2)),
             Request(1, Bare(Command.READ_STATUS_1)),

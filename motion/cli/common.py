@@ -250,6 +250,8 @@ def _override(config: ArmConfig, name: str, values: Sequence[str]) -> object:
             )
         else:
             if len(values) > 1:
+                if several:
+                    raise UsageError(f"--{name}: give BUS=VALUE for every bus it overrides, or one value for them all")
                 raise UsageError(f"--{name} is given {len(values)} times: the arm has one bus")
             target = list(buses.values())
         for bus in target:
