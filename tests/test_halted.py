@@ -488,6 +488,35 @@ REGRESSIONS: tuple[Schedule, ...] = (
         home=("shoulder_pitch",),
         end_s=2.2,
     ),
+    # (arm6_v3 at 100 Hz, 20 ms protection, 10,000 schedules) an E-stop at a cycle's start while flange_roll's drive
+    # was silent: its halt waited for that drive up to the next cycle's start, ran over it, the loop skipped the next
+    # cycle, and the healthy shoulder heard nothing for 20.5 ms
+    Schedule(
+        "arm6_v3.yaml",
+        HaltPolicy.OFF,
+        ControlMode.POSITION,
+        faults=("drop:6@0.031-0.304:1.00",),
+        actions=(
+            (0.0, "move", (71.9, -33.1, 85.7, 28.5, 26.2, 52.7)),
+            (0.102, "stop", ()),
+            (0.466, "move", (-10.3, 8.8, -49.1, -88.6, 71.1, 33.6)),
+            (1.192, "clear", ()),
+            (1.206, "clear", ()),
+        ),
+        end_s=2.2,
+        drives=DriveDraw(
+            (
+                JointDraw(1.51, 1.17, 0.988, 0.737),
+                JointDraw(0.687, 0.976, 0.725, 1.24),
+                JointDraw(0.675, 0.807, 1.01, 1.36),
+                JointDraw(1.83, 1.2, 1.21, 0.926),
+                JointDraw(0.714, 0.931, 0.9, 1.38),
+                JointDraw(0.68, 1.18, 0.929, 0.939),
+            ),
+            latency_s=0.000644,
+        ),
+        link_timeout_ms=20.0,
+    ),
 )
 
 

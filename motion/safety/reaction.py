@@ -35,8 +35,10 @@ from motion.transport import Request
 
 logger = logging.getLogger("motion.safety")
 
-# Shortest window given to the halt frames' acknowledgements in the detection cycle, s.
+#: Shortest window given to a reaction's first frames in the detection cycle, s: a fault found late in its cycle still
+#: gets its halt (on RS485 one frame after the other) out and answered.
 HALT_WINDOW_S = 0.002
+
 #: What the log says each reaction does.
 _ACTIONS: Final = {
     Reaction.COMPLY: "comply",
@@ -187,7 +189,7 @@ class FaultReaction(SafetyPart):
             raise MotionError("no gravity model to comply with")
         self.machine.fire(ArmEvent.COMPLY)
         sent = controller.clock.now()
-        controller.comply_step(sent, max(deadline_s, sent + HALT_WINDOW_S), gravity)
+        controller.comply_step(sent, self._window_end(sent, deadline_s), gravity)
         return sent
 
     def _start_hold(self, fault: MotionFault, start_s: float, deadline_s: float) -> float:
@@ -213,7 +215,7 @@ class FaultReaction(SafetyPart):
         else:
             follower.stop(start_s)
         sent = controller.clock.now()
-        controller.step(sent, max(deadline_s, sent + HALT_WINDOW_S), apply_pending=False)
+        controller.step(sent, self._window_end(sent, deadline_s), apply_pending=False)
         return sent
 
     def start_halt(self, detected_s: float, deadline_s: float, code: Command) -> float:
@@ -222,10 +224,21 @@ class FaultReaction(SafetyPart):
         self._enter_halting(code, detected_s)
         sent = self.controller.clock.now()
         try:
-            self.send_halt(max(deadline_s, sent + HALT_WINDOW_S))
+            self.send_halt(self._window_end(sent, deadline_s))
         finally:
             self._stop_reference()
         return sent
+
+    def _window_end(self, sent_s: float, deadline_s: float) -> float:
+        """Until when a reaction's first exchange, sent at ``sent_s``, waits for its replies in a cycle that ends at
+        ``deadline_s`` (the next one's start): :data:`HALT_WINDOW_S` at least, else not into the last part of the
+        cycle (half of what the reply budget leaves). One that waited for a silent drive up to the next cycle's start
+        ran over it, the loop skipped the next cycle, and the other drives heard nothing for two periods (the
+        explorer: an E-stop at a cycle's start, a healthy V3 drive tripped its 20 ms link-loss protection at 100 Hz).
+        What answers after the window is taken in the next cycles."""
+        controller = self.controller
+        leave_s = 0.5 * (1.0 - controller.options.reply_budget) * controller.period_s
+        return max(sent_s + HALT_WINDOW_S, deadline_s - leave_s)
 
     def _enter_halting(self, code: Command, detected_s: float) -> None:
         """Every drive is owed the halt ``code``; HALTING, which waits for their acknowledgements until
