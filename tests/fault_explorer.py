@@ -355,12 +355,35 @@ class _Checker:
                 and not self._acting(t, (InjectedFault.DROP,), motor_id)  # (a dropped halt: sent again next cycle)
             ):
                 self._violate(f"halted{i}", f"halted: {name}'s drive answers and still runs at {t:.3f} s")
-            if disturbed or free[i] or gone[i]:
+            if disturbed or free[i] or gone[i] or self._returning(motor_id, t):
                 self.anchor[i] = self.held_since[i] = np.nan
                 continue
             self._check_held(i, t, float(q[i]), float(qd[i]), state, still_states)
         self.previous_state = state
         self.previous_answered = answered
+
+    def _returning(self, motor_id: int, t: float) -> bool:
+        """Whether the drive holds with 0x81 a point its joint was pushed away from (a collision or an obstruction
+        acted on it) and runs it back there, the supervisor having kept that hold (``hold_failed``, "kept at 0x81":
+        gravity loads the joint): its hold working, not the arm moving by itself. A joint pushed turns past its drive's
+        peak torque comes back at the drive's top speed, for longer than :data:`SETTLE_S` (found on a wrist pitch:
+        released, it would fall)."""
+        drive = self.drives[motor_id]
+        hold = getattr(drive, "_hold_deg", None)
+        if drive.state is not RunState.STOPPED or hold is None or not self._since(motor_id, _EXTERNAL, t):
+            return False
+        # only once the supervisor has judged it and kept its hold (gravity loads it): a joint it may release is held
+        # to being released, as any other (a checker that let every run back pass would not see a release missed)
+        supervisor = self.arm.supervisor
+        name = self.names[self.ids.index(motor_id)]
+        kept = supervisor is not None and any(
+            f.kind is FaultKind.HOLD_FAILED and f.joint == name and "kept at 0x81" in f.detail
+            for f in supervisor.faults
+        )
+        if not kept:
+            return False
+        gap = float(hold - drive._shaft_deg)
+        return abs(gap) > BAND_DEG * float(drive.model.gear_ratio) and gap * float(drive._speed_dps) > 0
 
     def _free(self, i: int, motor_id: int, halted: bool, codes: Any, t: float) -> bool:
         """Whether joint ``i`` is one its halt leaves free: an unbraked joint under ``halt_policy: off``, one whose

@@ -517,6 +517,38 @@ REGRESSIONS: tuple[Schedule, ...] = (
         ),
         link_timeout_ms=20.0,
     ),
+    # (bimanual, 10,000 schedules) a collision 75 % past right_wrist_pitch's peak torque spun it turns away; its drive's
+    # hold ran it back at top speed for over a second: the supervisor judged it (hold_failed) and kept the hold, as
+    # gravity loads it (released, it would fall): the checker now takes that run back for the hold working
+    Schedule(
+        "bimanual.yaml",
+        HaltPolicy.STOP,
+        ControlMode.POSITION,
+        faults=("collision:105@0.014-0.339:-7.89", "delay:2@0.194:2.6"),
+        actions=(
+            (0.0, "move", (59.5, 33.8, -48.7, 42.3, -68.3, -76.8, -55.5, -40.5, -79.4, -97.7, -23.8, 16.4)),
+            (0.213, "clear", ()),
+            (0.523, "clear", ()),
+        ),
+        end_s=2.2,
+        drives=DriveDraw(
+            (
+                JointDraw(1.51, 1.02, 0.842, 1.28),
+                JointDraw(1.97, 0.941, 0.821, 1.12),
+                JointDraw(0.588, 0.841, 0.704, 0.885),
+                JointDraw(0.714, 0.876, 0.916, 1.22),
+                JointDraw(0.688, 0.892, 1.0, 1.27),
+                JointDraw(1.26, 0.97, 0.89, 0.618),
+                JointDraw(0.973, 0.97, 0.757, 0.757),
+                JointDraw(1.97, 0.985, 1.17, 0.945),
+                JointDraw(0.555, 0.8, 0.778, 1.46),
+                JointDraw(0.764, 1.03, 1.01, 1.12),
+                JointDraw(0.791, 1.15, 0.874, 0.743),
+                JointDraw(1.91, 0.943, 1.25, 0.648),
+            ),
+            latency_s=0.000271,
+        ),
+    ),
 )
 
 
