@@ -90,9 +90,9 @@ import dataclasses
 import json
 import os
 import time
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any, Final, NamedTuple, TextIO
+from typing import IO, TYPE_CHECKING, Any, Final, TextIO
 
 import numpy as np
 from numpy.typing import NDArray
@@ -103,6 +103,8 @@ from motion.control.clock import MonotonicClock
 from motion.control.controller import Controller
 from motion.protocol.table import split_address
 from motion.safety.states import ArmState
+from motion.telemetry.trace import BusTrace as BusTrace
+from motion.telemetry.trace import TracedFrame as TracedFrame
 from motion.transmission import FloatArray
 from motion.transport.base import Reply, Transport
 
@@ -121,8 +123,6 @@ _V5_COLUMNS: Final = ("collision_limit_nm",)
 STATES: Final = ("", *(state.value for state in ArmState))
 #: Rows per chunk of the per-cycle log (16 s at 250 Hz).
 CHUNK_ROWS: Final = 4096
-#: Frames per chunk of the bus trace.
-CHUNK_FRAMES: Final = 16384
 
 #: Per-cycle columns: name -> (per joint, dtype, unit).
 CYCLE_COLUMNS: Final[Mapping[str, tuple[bool, type[np.generic], str]]] = {
@@ -481,105 +481,6 @@ class Recorder:
     def log(self, **meta: Any) -> TelemetryLog:
         """The run so far as a :class:`TelemetryLog`; ``meta`` entries are added to (or replace) the metadata."""
         return TelemetryLog(self.columns(), self.meta() | meta)
-
-
-class TracedFrame(NamedTuple):
-    """One frame of a :class:`BusTrace`."""
-
-    time_s: float  #: transport clock, s
-    received: bool  #: True for a frame the host took in, False for one it sent
-    arbitration_id: int | None  #: CAN identifier, None on RS485
-    data: bytes  #: payload (CAN) or port bytes (RS485)
-
-
-class _FrameChunk:
-    __slots__ = ("data", "end", "ident", "received", "time_s")
-
-    def __init__(self, frames: int) -> None:
-        self.time_s = np.zeros(frames)
-        self.ident = np.zeros(frames, dtype=np.int32)
-        self.received = np.zeros(frames, dtype=np.bool_)
-        self.end = np.zeros(frames, dtype=np.int64)
-        self.data = bytearray()
-
-
-class BusTrace:
-    """Every frame of a transport, kept in memory (install with :meth:`install`; it is the bus's frame tap).
-
-    Args:
-        chunk_frames: frames per preallocated chunk.
-    """
-
-    def __init__(self, *, chunk_frames: int = CHUNK_FRAMES) -> None:
-        self._chunk_frames = chunk_frames
-        self._chunks = [_FrameChunk(chunk_frames)]
-        self._chunk = self._chunks[0]
-        self._n = 0
-        #: Unix time minus transport clock, s (set by :meth:`install`).
-        self.unix_offset_s = 0.0
-        self._bus: Transport | None = None
-
-    def install(self, bus: Transport) -> BusTrace:
-        """Observe every frame ``bus`` sends and takes in from now on."""
-        self.unix_offset_s = time.time() - bus.clock()
-        bus.frame_tap = self
-        self._bus = bus
-        return self
-
-    def uninstall(self) -> None:
-        """Stop observing (the recorded frames stay)."""
-        if self._bus is not None and self._bus.frame_tap is self:
-            self._bus.frame_tap = None
-        self._bus = None
-
-    def __call__(self, time_s: float, received: bool, arbitration_id: int | None, data: bytes) -> None:
-        """Record one frame (a :data:`~motion.transport.base.FrameTap`)."""
-        chunk, n = self._chunk, self._n
-        if n == self._chunk_frames:
-            chunk, n = _FrameChunk(self._chunk_frames), 0
-            self._chunks.append(chunk)
-            self._chunk = chunk
-        chunk.time_s[n] = time_s
-        chunk.ident[n] = -1 if arbitration_id is None else arbitration_id
-        chunk.received[n] = received
-        chunk.data += data
-        chunk.end[n] = len(chunk.data)
-        self._n = n + 1
-
-    def __len__(self) -> int:
-        return (len(self._chunks) - 1) * self._chunk_frames + self._n
-
-    def __iter__(self) -> Iterator[TracedFrame]:
-        for chunk in self._chunks:
-            count = self._n if chunk is self._chunk else self._chunk_frames
-            start = 0
-            for k in range(count):
-                end = int(chunk.end[k])
-                ident = int(chunk.ident[k])
-                yield TracedFrame(
-                    float(chunk.time_s[k]),
-                    bool(chunk.received[k]),
-                    None if ident < 0 else ident,
-                    bytes(chunk.data[start:end]),
-                )
-                start = end
-
-    def write_candump(self, file: TextIO, channel: str = "can0") -> None:
-        """Write the CAN frames as a candump log (see the module docstring)."""
-        offset, channel = self.unix_offset_s, "_".join(channel.split()) or "can0"
-        for frame in self:
-            if frame.arbitration_id is not None:
-                file.write(
-                    f"({frame.time_s + offset:.6f}) {channel} {frame.arbitration_id:03X}#{frame.data.hex().upper()}"
-                    f" {'R' if frame.received else 'T'}\n"
-                )
-
-    def write_hex(self, file: TextIO) -> None:
-        """Write every frame as ``(UNIX_TIME) T|R HEX BYTES`` (the RS485 trace)."""
-        offset = self.unix_offset_s
-        for frame in self:
-            direction = "R" if frame.received else "T"
-            file.write(f"({frame.time_s + offset:.6f}) {direction} {frame.data.hex(' ').upper()}\n")
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
