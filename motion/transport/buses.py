@@ -28,7 +28,7 @@ from typing import Final
 from motion.errors import PortLost, TransportError
 from motion.protocol import MultiMotorTorque
 from motion.protocol.table import ADDRESS_STRIDE, MULTI_TORQUE_MOTOR_IDS, ProtocolFamily, split_address
-from motion.transport.base import BusCounters, FrameTap, MotorCounters, Reply, Request, Transport
+from motion.transport.base import FrameTap, MotorCounters, Reply, Request, Transport
 
 #: How long :meth:`Buses.transact` waits for a worker beyond the deadline, s (a backend returns by its deadline).
 WORKER_GRACE_S: Final = 0.005
@@ -142,16 +142,7 @@ class Buses(Transport):
         """
         if self._closed:
             raise TransportError(f"{self.describe()} is closed")
-        split, where, buses, gone = self._split, self._where, self.buses, self._gone
-        for share in split:
-            share.clear()
-        where.clear()
-        for request in requests:
-            bus, motor_id = split_address(request.motor_id)
-            if not 0 <= bus < len(split):
-                raise TransportError(f"request to address {request.motor_id}: no bus {bus} in {self.describe()}")
-            split[bus].append(Request(motor_id, request.message) if bus else request)
-            where.append(bus)
+        split, buses, gone = self._split_batch(requests), self.buses, self._gone
         self.bus_counters.cycles += 1
         answers: list[list[Reply] | None] = [None] * len(buses)
         handed = [False] * len(buses)
@@ -181,6 +172,25 @@ class Buses(Transport):
         if errors:
             raise errors[min(errors)]  # (each names its port)
         return self._merge(requests, answers)
+
+    def _split_batch(self, requests: Sequence[Request]) -> list[list[Request]]:
+        """``requests`` by bus, each with its motor id on its bus (kept in :attr:`_split`, the bus of each request in
+        :attr:`_where`: the lists are reused from cycle to cycle).
+
+        Raises:
+            TransportError: an address names no bus of this arm.
+        """
+        split, where = self._split, self._where
+        for share in split:
+            share.clear()
+        where.clear()
+        for request in requests:
+            bus, motor_id = divmod(request.motor_id, ADDRESS_STRIDE)
+            if not 0 <= bus < len(split):
+                raise TransportError(f"request to address {request.motor_id}: no bus {bus} in {self.describe()}")
+            split[bus].append(Request(motor_id, request.message) if bus else request)
+            where.append(bus)
+        return split
 
     def _found_gone(self, errors: dict[int, BaseException]) -> None:
         """Take the buses found gone in this exchange out of every later one.
@@ -270,10 +280,7 @@ class Buses(Transport):
 
     def request_wire_s(self, requests: Sequence[Request]) -> float | None:
         """See :meth:`Transport.request_wire_s`: the busiest bus's share (the buses carry theirs at the same time)."""
-        shares: list[list[Request]] = [[] for _ in self.buses]
-        for request in requests:
-            bus, motor_id = split_address(request.motor_id)
-            shares[bus].append(Request(motor_id, request.message))
+        shares = self._split_batch(requests)
         times = [bus.request_wire_s(share) for bus, share in zip(self.buses, shares, strict=True)]
         return None if any(t is None for t in times) else max(t for t in times if t is not None)
 
@@ -307,11 +314,6 @@ class Buses(Transport):
 
         for bus in getattr(self, "buses", ()):
             bus.frame_tap = locked
-
-    @property
-    def bus_counters_by_bus(self) -> dict[str, BusCounters]:
-        """Each bus's own counters, by name."""
-        return {name: bus.bus_counters for name, bus in zip(self.names, self.buses, strict=True)}
 
     def _prepare(self, requests: Sequence[Request]) -> None:
         raise NotImplementedError  # (transact is the buses')
