@@ -727,6 +727,13 @@ def test_a_joints_actuator_model_fills_its_published_figures(tmp_path: Path) -> 
     joint = parse_config(joint0(actuator="X4-10"), source="mem", base_dir=CONFIGS).joints[0]
     assert (joint.actuator, joint.gear_ratio, joint.current_limit_a) == ("X4-10", 12.6, 19.5)
     assert joint.torque_constant_nm_per_a == pytest.approx(4.0 / 7.8 / 12.6)
+    # the L series' direct drive (1:1, the driver's 15 A instant current) and an MG model (stall current as peak)
+    joint = parse_config(joint0(actuator="L-7015"), source="mem", base_dir=CONFIGS).joints[0]
+    assert (joint.gear_ratio, joint.current_limit_a) == (1.0, 15.0)
+    assert joint.torque_constant_nm_per_a == pytest.approx(1.0 / 3.62)
+    joint = parse_config(joint0(actuator="MG4010-10"), source="mem", base_dir=CONFIGS).joints[0]
+    assert (joint.gear_ratio, joint.current_limit_a) == (10.0, 6.97)
+    assert joint.torque_constant_nm_per_a == pytest.approx(2.5 / 3.5 / 10.0)
     joint = parse_config(
         joint0(actuator="X8-90", current_limit_a=12.0, gear_ratio=9.0), source="mem", base_dir=CONFIGS
     ).joints[0]

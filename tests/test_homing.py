@@ -30,6 +30,7 @@ from tests.test_cli import (
     HOST_STALL_MS,
     MIN_RATE_HZ,
     Emulated,
+    cli,
     first_halts,
     interrupt_when_moving,
     running_emulator,
@@ -261,3 +262,35 @@ def test_homing_v3_drives_turns_their_link_loss_protection_off_between_the_loops
         # per drive: 0x43 of both planning indexes once; 0xB3 on (homing), off (between), on (the arm's loop)
         assert [d.rom_writes for d in drives] == [5] * len(drives)
         assert all(d.link_losses == 0 for d in drives)
+
+
+@pytest.mark.realtime
+@pytest.mark.skipif(os.name != "posix", reason="the emulator's links are pseudo-terminals")
+def test_cli_home_checks_the_holding_torque_once_the_homed_angle_is_known(
+    arm6_emulated: tuple[Path, Emulated], tmp_path: Path
+) -> None:
+    # issue 33 §2: `home` ran no holding check. A homed joint's angle is known only after its seek, so the check runs
+    # then, before the arm is handed over: the configuration as the drives are passes; one whose shoulder torque
+    # constant is twice the drive's exits 2 naming the shoulder; --no-holding-check skips it
+    emulated_config, emulated = arm6_emulated
+    data = yaml.safe_load(emulated_config.read_text())
+    data["joints"][SHOULDER]["homing"]["speed_dps"] = 20.0  # (the seek from 0 deg to the stop at -125 in a few s)
+    config = tmp_path / "fast.yaml"
+    config.write_text(yaml.safe_dump(data))
+    args = ["home", *emulated.bus_args, "shoulder_pitch", "--json"]
+    right = cli(*args, "--config", config)
+    assert right.returncode == 0, right.stderr
+    verdicts = {v["name"]: v for v in json.loads(right.stdout)["holding"]}
+    assert verdicts["shoulder_pitch"]["judged"] and all(v["matches"] for v in verdicts.values()), verdicts
+    data["joints"][SHOULDER]["torque_constant_nm_per_a"] *= 2.0
+    doubled = tmp_path / "doubled.yaml"
+    doubled.write_text(yaml.safe_dump(data))
+    result = cli(*args, "--config", doubled)
+    assert result.returncode == 2, result.stderr
+    assert "holding torque does not match the model: shoulder_pitch (motor 2) holds with" in result.stderr
+    printed = json.loads(result.stdout)
+    assert printed["command"] == "home" and printed["moved"] is True  # (the seek, nothing after it)
+    assert [v["name"] for v in printed["holding"] if not v["matches"]] == ["shoulder_pitch"]
+    skipped = cli(*args, "--config", doubled, "--no-holding-check")
+    assert skipped.returncode == 0, skipped.stderr
+    assert json.loads(skipped.stdout)["holding"] == "skipped: --no-holding-check"

@@ -365,6 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     home.add_argument("joints", nargs="+", metavar="JOINT")
     add_emulate_flag(home)
     add_turns_flag(home)
+    add_holding_flag(home)
     home.add_argument(
         "--log", metavar="FILE.mcap", help="record every control cycle as MCAP (Foxglove, rosbags; `rmd-motion plot`)"
     )

@@ -308,12 +308,12 @@ def add_bus_arguments(parser: argparse.ArgumentParser, *, required: bool = True)
 
 
 def add_holding_flag(parser: argparse.ArgumentParser) -> None:
-    """``--no-holding-check`` of the commands that move the arm through a program or to targets."""
+    """``--no-holding-check`` of the commands that move the arm through a program or to targets, or home it."""
     parser.add_argument(
         "--no-holding-check",
         action="store_true",
-        help="skip the holding check before the first motion (each joint's holding torque against the model's gravity "
-        "torque, as `check --holding`; run on real buses, exit 2 on a mismatch before anything moves)",
+        help="skip the holding check (each joint's holding torque against the model's gravity torque, as `check "
+        "--holding`; run on real buses before the first move, after the seek for `home`; exit 2 on a mismatch)",
     )
 
 

@@ -368,13 +368,14 @@ def _verdict_dict(verdict: HoldingVerdict) -> dict[str, Any]:
 
 
 def holding_first(arm: Arm, args: argparse.Namespace) -> list[dict[str, Any]] | str:
-    """``move`` / ``run``: the holding check before the first motion (:mod:`motion.api.commissioning`), on real
-    buses (emulated drives are built from the configuration itself: they always match it) unless
-    ``--no-holding-check``. Returns the verdicts for ``--json``, or why the check was skipped.
+    """``move`` / ``run`` / ``collision-calibrate``: the holding check before the first motion (``home``: after the
+    seek, before the arm is handed over) (:mod:`motion.api.commissioning`), on real buses (emulated drives are built
+    from the configuration itself: they always match it) unless ``--no-holding-check``. Returns the verdicts for
+    ``--json``, or why the check was skipped.
 
     Raises:
         UsageError: a joint's holding torque differs from the model's beyond its bound (each such joint named with
-            what may be wrong; with ``--json`` the verdicts are printed first): nothing has moved.
+            what may be wrong; with ``--json`` the verdicts are printed first): nothing (more) has moved.
         MotionFault: the arm is halted by a fault, or one halted it during the check.
     """
     if args.no_holding_check:
@@ -387,7 +388,8 @@ def holding_first(arm: Arm, args: argparse.Namespace) -> list[dict[str, Any]] | 
     wrong = [v for v in verdicts if not v.matches]
     if wrong:
         if args.json:
-            print_json({"command": args.command, "holding": [_verdict_dict(v) for v in verdicts], "moved": False})
+            moved = args.command == "home"  # (home: the seek has moved the homed joints; nothing moves after it)
+            print_json({"command": args.command, "holding": [_verdict_dict(v) for v in verdicts], "moved": moved})
         said = "; ".join(v.text() for v in wrong)
         raise UsageError(
             f"holding torque does not match the model: {said}. Check the configuration before moving "
@@ -490,12 +492,14 @@ def run(args: argparse.Namespace, interrupts: Interrupts) -> int:
 
 
 def home(args: argparse.Namespace, interrupts: Interrupts) -> int:
-    """``home JOINT...``: each joint seeks its configured hard stop, backs off, and its turn offset is set from it."""
+    """``home JOINT...``: each joint seeks its configured hard stop, backs off, and its turn offset is set from it;
+    then the holding check (as before a move: a homed joint's angle is known only now), exit 2 on a mismatch."""
     session = Session.from_args(args)
     joints = tuple(args.joints)
     homed_joints(session.config, joints)  # refused before the bus is opened
 
     def body(arm: Arm) -> int:
+        verdicts = holding_first(arm, args)
         rows = [
             {
                 "joint": r.name,
@@ -508,7 +512,7 @@ def home(args: argparse.Namespace, interrupts: Interrupts) -> int:
             for r in arm.homing
         ]
         if args.json:
-            print_json({"command": "home", "joints": rows, "status": arm.status().as_dict()})
+            print_json({"command": "home", "joints": rows, "holding": verdicts, "status": arm.status().as_dict()})
             return EXIT_OK
         for r in arm.homing:
             print(

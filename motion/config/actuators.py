@@ -6,7 +6,8 @@ The torque constant is the published torque over the published current (the tabl
 reduction: torque per ampere of the drive's torque current at the motor, as the joint's key means it. The figures are
 MyActuator's as the cited pages give them; a drive's own figures vary (the collision check bears ±20 % on the torque
 constant: :mod:`motion.safety.collision_bound`). Not yet in the table, for want of a published source reachable here:
-the L and MG series, and the peak currents of most X models (their ``current_limit_a`` is then required).
+the L series other than the L-7015, and the peak currents of most X models (their ``current_limit_a`` is then
+required). The MG rows take the stall current as the peak.
 """
 
 from __future__ import annotations
@@ -19,6 +20,11 @@ from typing import Final
 _PRODUCT_PAGES: Final = "https://www.myactuator.com/{page} (via docs.ros.org/en/humble/p/myactuator_rmd)"
 #: Seeed Studio's table of the X series (rated and peak torque and current, module torque constant).
 _SEEED: Final = "https://wiki.seeedstudio.com/myactuator_series (specification table)"
+#: MyActuator's RMD-L-7015 specification table (direct drive, MC200 driver: 8 A rated, 15 A instant), as the
+#: myactuator_rmd fork of github.com/whyscience transcribes it in ``actuator_constants.hpp``.
+_L7015: Final = "MyActuator RMD-L-7015 specification (via github.com/whyscience/myactuator_rmd actuator_constants.hpp)"
+#: A reseller's table of the MG series (nominal torque and current, stall current, the models' reductions).
+_MG: Final = "https://shop.smc-powers.com/MG8016-6-DUO-RS485.html (MG series specification table)"
 
 
 @dataclass(frozen=True, slots=True)
@@ -55,6 +61,10 @@ def _seeed(model: str, gear: float, torque: float, current: float, peak: float) 
     return Actuator(model, gear, torque, current, peak, _SEEED)
 
 
+def _mg(model: str, gear: float, torque: float, current: float, stall: float) -> Actuator:
+    return Actuator(model, gear, torque, current, stall, _MG)
+
+
 #: The models, by name.
 ACTUATORS: Final[Mapping[str, Actuator]] = {
     a.model: a
@@ -76,5 +86,18 @@ ACTUATORS: Final[Mapping[str, Actuator]] = {
         _seeed("X8-120", 19.61, 43.0, 17.6, 43.8),
         _seeed("X12-320", 20.0, 85.0, 30.0, 100.0),
         _seeed("X15-450", 20.25, 145.0, 25.0, 69.2),
+        Actuator("L-7015", 1.0, 1.0, 3.62, 15.0, _L7015),
+        _mg("MG4005-10", 10.0, 1.0, 1.6, 4.0),
+        _mg("MG4010-10", 10.0, 2.5, 3.5, 6.97),
+        _mg("MG4010-36", 36.0, 9.0, 3.5, 6.97),
+        _mg("MG5010-10", 10.0, 4.0, 4.4, 6.7),
+        _mg("MG6010-6", 6.0, 5.0, 3.8, 8.0),
+        _mg("MG6012-8", 8.0, 5.0, 3.8, 8.0),
+        _mg("MG6012-36", 36.0, 15.0, 3.8, 8.0),
+        _mg("MG8008-9", 9.0, 10.0, 4.9, 10.0),
+        _mg("MG8010-6", 6.0, 9.0, 4.9, 7.0),
+        _mg("MG8010-36", 36.0, 35.0, 6.9, 9.0),
+        _mg("MG8016-6", 6.0, 13.0, 6.5, 12.5),
+        _mg("MG10015-10", 10.0, 30.0, 8.0, 13.0),
     )
 }
