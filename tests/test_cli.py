@@ -474,6 +474,24 @@ def test_check_holding_finds_a_torque_constant_and_swapped_motor_ids_before_anyt
     assert json.loads(result.stdout)["holding"] == "skipped: --no-holding-check"
 
 
+def test_a_move_planned_to_end_a_whole_motor_turn_from_the_window_warns_and_so_does_the_session_end(
+    can_arm: Emulated, tmp_path: Path
+) -> None:
+    # issue 33 §1: arm2's shoulder (1:9) at 39.9 deg reads 359.1 motor deg, as at -0.1 after a power-up: the move that
+    # ends there warns when it is planned, the session's end warns again; the next session continues with --keep-turns
+    fit = rate_that_holds(ARM2, can_arm, tmp_path, 100.0)
+    result = cli("move", "--config", fit, *can_arm.bus_args, "shoulder=39.9", "--no-holding-check")
+    skip_if_rate_refused(result)
+    assert result.returncode == 0, result.stderr
+    assert "joint shoulder is planned to end at 39.90 deg, a whole number of motor turns from" in result.stderr
+    assert "joint shoulder is left at 39." in result.stderr and "a whole number of motor turns from" in result.stderr
+    assert "elbow is" not in result.stderr
+    back = cli("move", "--config", fit, *can_arm.bus_args, "shoulder=0", "--keep-turns", "--no-holding-check")
+    skip_if_rate_refused(back)
+    assert back.returncode == 0, back.stderr
+    assert "whole number of motor turns" not in back.stderr
+
+
 def test_a_drive_that_does_not_answer_is_a_communication_error(tmp_path: Path) -> None:
     config = tmp_path / "arm2_missing.yaml"
     config.write_text(ARM2.read_text().replace("motor_id: 2", "motor_id: 7"))
@@ -483,6 +501,10 @@ def test_a_drive_that_does_not_answer_is_a_communication_error(tmp_path: Path) -
         assert "communication error" in result.stderr and "from joint(s) elbow (motor 7)" in result.stderr
         # issue 33 §8: the next step is named: which id was asked, and the command that lists the ids that answer
         assert f"hint: the drive(s) asked: motor 7. `rmd-motion scan --config {config}`" in result.stderr
+        assert (
+            f"A dry run without the drives: move and run take --emulate, or `rmd-motion emulate --config {config}`"
+            in (result.stderr)
+        )
         scan = cli("scan", "--config", config, *emulated.bus_args, "--ids", "1-8")
         assert scan.returncode == 3
         assert "not answering: elbow (motor 7)" in scan.stderr

@@ -119,6 +119,19 @@ def test_a_fault_of_a_joint_starved_of_current_names_its_physical_cause(
     assert "motion fault, every axis halted: following_error joint=elbow" in err
     assert "likely cause: elbow at its 0.2 A current limit for " in err
     assert "torque_constant_nm_per_a and current_limit_a" in err
+    assert "run until the fault: " in out and "current-limited cycles: elbow" in out  # the summary as far as it went
+    code, out, err = _run(capsys, "move", "--config", config, "--emulate", "elbow=-80", "shoulder=40", "--json")
+    assert code == 1, err
+    printed = json.loads(out)  # --json: the summary with the fault and its cause, then the exit code
+    assert printed["command"] == "move" and printed["fault"]["kind"] == "following_error"
+    assert printed["fault"]["joint"] == "elbow" and "0.2 A current limit" in printed["fault"]["cause"]
+    assert printed["run"]["joints"]["elbow"]["current_limited_cycles"] > 0
+    assert printed["status"]["state"] not in ("ready", "moving")  # (halted: holding, braked or off by its policy)
+    program = tmp_path / "program.yaml"
+    program.write_text("- move: {elbow: -80, shoulder: 40}\n")
+    code, out, err = _run(capsys, "run", "--config", config, "--emulate", program, "--json")
+    assert code == 1, err
+    assert json.loads(out)["fault"]["kind"] == "following_error"
     code, out, err = _run(capsys, "move", "--config", "arm2.yaml", "--emulate", "elbow=-20", "--json")
     assert code == 0, err
     run = json.loads(out)["run"]

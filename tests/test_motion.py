@@ -214,3 +214,15 @@ def test_a_move_ends_when_its_joints_arrive_or_reports_the_miss_at_the_goal_time
         assert handle.arrival is None
         snapshot = arm.controller.snapshot  # type: ignore[union-attr]
         assert np.abs(snapshot.position_deg - snapshot.reference_deg).max() > 0.1  # short and moving at the end
+
+
+def test_a_position_mode_move_ends_when_its_joints_arrive_too() -> None:
+    # issue 33 §6, the other mode: the drives' own position loops lag the streamed set-points; the move ends once every
+    # joint is within goal_tolerance_deg of its target for goal_settle_s, not when the reference ends
+    base = load_config(CONFIGS / "arm2.yaml")
+    control = dataclasses.replace(base.control, mode=ControlMode.POSITION)
+    with Arm(dataclasses.replace(base, control=control), emulate=True) as arm:
+        handle = arm.move_to({"shoulder": 30.0, "elbow": -45.0})
+        assert handle.arrival is not None and handle.arrival.arrived
+        assert arm.controller is not None and arm.plant is not None
+        np.testing.assert_allclose(arm.plant.joint_positions_deg(), [30.0, -45.0], atol=base.control.goal_tolerance_deg)

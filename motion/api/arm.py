@@ -410,28 +410,29 @@ class Arm:
         except OSError as exc:
             logger.warning("turn offsets not kept for the next session: %s", exc)
 
-    def _warn_ambiguous_pose(self) -> None:
-        """Warn of a joint left where the next session cannot tell its turns from its reading (a whole motor turn
-        from its power-on window): it will ask whether the drives stayed powered (``--keep-turns``)."""
+    def _warn_ambiguous_pose(self, q_deg: Sequence[float] | None = None) -> None:
+        """Warn of a joint left (or, with ``q_deg``, a motion planned to end) where the next session cannot tell its
+        turns from its reading (a whole motor turn from its power-on window): it will ask whether the drives stayed
+        powered (``--keep-turns``)."""
         controller = self.controller
         assert controller is not None
-        q = controller.snapshot.position_deg
+        q = controller.snapshot.position_deg if q_deg is None else q_deg
         for i, (joint, spec) in enumerate(zip(self.config.joints, self.turns, strict=True)):
             window = joint.power_on_window_deg
             if window is None or controller.family.output_shaft:
                 continue
             transmission = controller.base_transmission.transmissions[i]
-            counted = ambiguous_after(transmission, float(q[i]), spec.turns, window)
-            if counted is not None:
-                logger.warning(
-                    "joint %s is left at %.2f deg, a whole number of motor turns from its power_on_window_deg "
-                    "[%g, %g]: the next session cannot tell from its reading whether the drives were powered up "
-                    "meanwhile and will ask (--keep-turns if they stayed powered); move it elsewhere, or home it after "
-                    "a power cycle",
-                    joint.name,
-                    float(q[i]),
-                    *window,
-                )
+            if ambiguous_after(transmission, float(q[i]), spec.turns, window) is None:
+                continue
+            logger.warning(
+                "joint %s %s %.2f deg, a whole number of motor turns from its power_on_window_deg [%g, %g]: after a "
+                "power cycle there a session cannot tell from its reading whether the drives were powered up meanwhile "
+                "and will ask (--keep-turns if they stayed powered); move it elsewhere, or home it after a power cycle",
+                joint.name,
+                "is left at" if q_deg is None else "is planned to end at",
+                float(q[i]),
+                *window,
+            )
 
     @property
     def _remembers(self) -> bool:
@@ -570,6 +571,8 @@ class Arm:
         supervisor = self._guard()
         q = joint_targets(targets, supervisor.controller.reference.position, self._index)
         supervisor.move_to(q, speed_scale)
+        if self._remembers:
+            self._warn_ambiguous_pose(q)
         return self._handle(supervisor, wait)
 
     def follow(
@@ -587,6 +590,8 @@ class Arm:
         supervisor = self._guard()
         rows = waypoint_rows(waypoints, supervisor.controller.reference.position, self._index)
         supervisor.follow(rows, speed_scale)
+        if self._remembers:
+            self._warn_ambiguous_pose(rows[-1])
         return self._handle(supervisor, wait)
 
     def _handle(self, supervisor: Supervisor, wait: bool) -> MotionHandle:

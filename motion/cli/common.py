@@ -563,6 +563,8 @@ def communication_hint(exc: BaseException, config_path: object) -> str | None:
         return (
             f"the drive(s) asked: {asked}. `rmd-motion scan --config {config}` lists the ids that answer and their "
             "protocol generation. Check each drive's id (MyActuator's setup tool), its power, the wiring and, on CAN, "
-            'the bus bit rate and the 120 Ohm termination at both ends (README, "Connecting hardware")'
+            'the bus bit rate and the 120 Ohm termination at both ends (README, "Connecting hardware"). A dry run '
+            f"without the drives: move and run take --emulate, or `rmd-motion emulate --config {config}` in another "
+            "terminal serves the configured drives on a virtual adapter"
         )
     return None

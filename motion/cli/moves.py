@@ -9,11 +9,12 @@ command exits with 130.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import sys
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from typing import TYPE_CHECKING, Any, Final, TextIO
 
 from motion.api import Arm, MotionHandle
@@ -283,6 +284,33 @@ def _summary(command: str, arm: Arm, wall_s: float, extra: Mapping[str, object])
     }
 
 
+@contextlib.contextmanager
+def _summary_on_fault(command: str, arm: Arm, args: argparse.Namespace, extra: Mapping[str, object]) -> Iterator[None]:
+    """``move`` / ``run``: a fault that halts the arm is reported with the run's summary as far as it went (``--json``:
+    the summary with the fault and its likely cause on stdout), then raised on (the command exits with its code)."""
+    now_s = _arm_clock(arm)
+    start = now_s()
+    try:
+        yield
+    except MotionFault as fault:
+        if arm.summary is not None and arm.controller is not None:
+            if args.json:
+                said = {
+                    "kind": str(fault.kind),
+                    "joint": fault.joint,
+                    "joints": list(fault.joints),
+                    "value": fault.value,
+                    "threshold": fault.threshold,
+                    "time_s": fault.time_s,
+                    "detail": fault.detail,
+                    "cause": fault.cause,
+                }
+                print_json(_summary(command, arm, now_s() - start, {**extra, "fault": said}))
+            else:
+                print(f"run until the fault: {arm.summary.text(arm.controller)}")
+        raise
+
+
 def _print_positions(arm: Arm, wall_s: float) -> None:
     reached = " ".join(f"{name}={deg:.2f}" for name, deg in arm.positions().items())
     print(f"at {reached} deg after {wall_s:.2f} s")
@@ -297,12 +325,12 @@ def move(args: argparse.Namespace, interrupts: Interrupts) -> int:
 
     def body(arm: Arm) -> int:
         verdicts = holding_first(arm, args)
-        handle = arm.move_to(targets, speed_scale=args.speed_scale, wait=False)
-        wall = wait_with_progress(arm, handle, "move")
+        extra: dict[str, object] = {"targets": targets, "speed_scale": args.speed_scale, "holding": verdicts}
+        with _summary_on_fault("move", arm, args, extra):
+            handle = arm.move_to(targets, speed_scale=args.speed_scale, wait=False)
+            wall = wait_with_progress(arm, handle, "move")
         if args.json:
-            arrival = None if handle.arrival is None else dataclasses.asdict(handle.arrival)
-            extra = {"targets": targets, "speed_scale": args.speed_scale, "arrival": arrival}
-            extra["holding"] = verdicts
+            extra["arrival"] = None if handle.arrival is None else dataclasses.asdict(handle.arrival)
             print_json(_summary("move", arm, wall, extra))
         else:
             _print_positions(arm, wall)
@@ -479,10 +507,11 @@ def run(args: argparse.Namespace, interrupts: Interrupts) -> int:
         verdicts = holding_first(arm, args)
         now_s = _arm_clock(arm)
         start = now_s()
-        run_program(arm, program, args.speed_scale)
+        extra = {"program": program.source, "steps": len(program.steps), "holding": verdicts}
+        with _summary_on_fault("run", arm, args, extra):
+            run_program(arm, program, args.speed_scale)
         wall = now_s() - start
         if args.json:
-            extra = {"program": program.source, "steps": len(program.steps), "holding": verdicts}
             print_json(_summary("run", arm, wall, extra))
         else:
             _print_positions(arm, wall)
