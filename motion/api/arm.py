@@ -46,6 +46,7 @@ from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily
 from motion.protocol.v3.messages import MotionRanges
 from motion.safety import ArmState, Supervisor
 from motion.telemetry import TelemetryOptions, TelemetrySession
+from motion.transmission import FloatArray
 from motion.transport import Transport
 from motion.view import LiveView, ViewOptions
 
@@ -410,7 +411,7 @@ class Arm:
         except OSError as exc:
             logger.warning("turn offsets not kept for the next session: %s", exc)
 
-    def _warn_ambiguous_pose(self, q_deg: Sequence[float] | None = None) -> None:
+    def _warn_ambiguous_pose(self, q_deg: FloatArray | None = None) -> None:
         """Warn of a joint left (or, with ``q_deg``, a motion planned to end) where the next session cannot tell its
         turns from its reading (a whole motor turn from its power-on window): it will ask whether the drives stayed
         powered (``--keep-turns``)."""
