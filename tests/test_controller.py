@@ -99,3 +99,19 @@ def test_arm6_torque_packs_motors_1_to_4_in_one_0x280_frame() -> None:
         assert sorted(r.motor_id for r in requests if isinstance(r.message, TorqueControl)) == [5, 6]
         multi = next(r.message for r in requests if isinstance(r.message, MultiMotorTorque))
         assert all(getattr(multi, f"iq{i}_a") != 0.0 for i in range(1, 5))  # every joint of 1..4 got its current
+
+
+def test_a_v3_drives_speed_cap_is_its_joints_velocity_limit_in_output_degrees() -> None:
+    # issue 31 §5 on the later generation: the V3 drive takes 0xA4's angle and speed cap at its output shaft, so the
+    # cap of a jumping reference is the joint's own limit, not 1.5 x the planned speed + 10 % (elbow: 192 of 120)
+    from motion.api import Arm  # noqa: PLC0415 - (the arm builds the V3 controller of the example)
+
+    config = load_config(CONFIGS / "arm6_v3.yaml")
+    with Arm(config, emulate=True) as arm:
+        controller = arm.controller
+        assert controller is not None and controller.family.output_shaft
+        limits = [j.velocity_limit_dps for j in config.joints]
+        for scale in (1.0, 1e3):
+            ref = State(np.zeros(len(limits)), scale * np.array(limits), np.zeros(len(limits)))
+            caps = [r.message.max_speed_dps for r in controller.build_requests(ref)]  # type: ignore[attr-defined]
+            assert caps == pytest.approx(limits)

@@ -304,8 +304,9 @@ class CanIdCommand(Message):
 
 @dataclass(frozen=True, slots=True)
 class CanIdReply(Message):
-    """0x79 reply: DATA[6..7] as a little-endian uint16. A read answers the drive's reply id (0x240 + id on CAN,
-    the id on RS485); a write echoes the request, whose id sits in DATA[7] (so ``value`` is ``id << 8``)."""
+    """0x79 reply: DATA[6..7] as a little-endian uint16. A read answers the drive's reply id on CAN (``value`` is
+    0x240 + id) and the id itself in DATA[7] on RS485 (section 7.4: ``value`` is ``id << 8``); a write echoes the
+    request, whose id sits in DATA[7] (``value`` is ``id << 8`` too)."""
 
     command: ClassVar[CommandV3] = CommandV3.CAN_ID
     access: ReadWrite
