@@ -10,6 +10,7 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
+from motion.api import Arm
 from motion.compose import build_controller, open_bus
 from motion.config import ArmConfig, load_config
 from motion.config.schema import ControlMode
@@ -104,8 +105,6 @@ def test_arm6_torque_packs_motors_1_to_4_in_one_0x280_frame() -> None:
 def test_a_v3_drives_speed_cap_is_its_joints_velocity_limit_in_output_degrees() -> None:
     # issue 31 §5 on the later generation: the V3 drive takes 0xA4's angle and speed cap at its output shaft, so the
     # cap of a jumping reference is the joint's own limit, not 1.5 x the planned speed + 10 % (elbow: 192 of 120)
-    from motion.api import Arm  # noqa: PLC0415 - (the arm builds the V3 controller of the example)
-
     config = load_config(CONFIGS / "arm6_v3.yaml")
     with Arm(config, emulate=True) as arm:
         controller = arm.controller
