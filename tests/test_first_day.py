@@ -32,7 +32,7 @@ def test_the_readme_walks_a_new_arm_from_init_to_a_first_move(tmp_path: Path) ->
     assert (tmp_path / "my-arm" / "programs" / "arm2.yaml").is_file()
     config = tmp_path / "my-arm" / "arm2.yaml"
     with running_emulator(tmp_path, config, "--slcan-link") as emulated:
-        fit = config_at(config, tmp_path / "my-arm", 50.0)  # (a rate a busy host holds: the walk is not about speed)
+        fit = config_at(config, tmp_path / "my-arm", 20.0)  # (a rate a busy host holds: the walk is not about speed)
         for step in steps[3:]:
             args = [str(fit) if arg == "my-arm/arm2.yaml" else arg for arg in step]
             result = cli(*args, *emulated.bus_args, cwd=tmp_path)
