@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from motion.config.schema import ArmConfig, BusConfig, CanBusConfig, ControlMode, JointConfig, ProtocolSetting
+from motion.config.schema import ArmConfig, BusConfig, CanBusConfig, JointConfig, ProtocolSetting
 from motion.control import identify
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
@@ -243,7 +243,7 @@ def feedforward_for(config: ArmConfig) -> Feedforward | None:
     (``control.gravity_feedforward``, ``control.inertia_feedforward``); in position mode none (the drive closes the
     loop)."""
     control = config.control
-    if control.mode is not ControlMode.TORQUE or not (control.gravity_feedforward or control.inertia_feedforward):
+    if not control.mode.traits.host_torque or not (control.gravity_feedforward or control.inertia_feedforward):
         return None
     from kinematics import build_arm, feedforward  # noqa: PLC0415 - Pinocchio only where an arm needs it
 
@@ -258,7 +258,7 @@ def inertia_for(config: ArmConfig) -> Callable[[FloatArray], FloatArray] | None:
     the joints' ``rotor_inertia_kgm2`` (on a light wrist joint it is most of the inertia the PD loop
     moves).
     """
-    if config.control.mode is not ControlMode.TORQUE:
+    if not config.control.mode.traits.host_torque:
         return None
     from kinematics import build_arm, mass_matrix  # noqa: PLC0415 - Pinocchio only where an arm needs it
 

@@ -229,3 +229,22 @@ def test_every_key_a_configuration_accepts_is_in_the_readmes_configuration_refer
     assert missing == [], f"keys not in README's Configuration section: {missing}"
     api = text[text.index("\n## Python API\n") : text.index("\n## Command line\n")]
     assert "bus_overrides" in api
+
+
+def test_every_layer_asks_a_control_modes_traits_not_which_mode_it_is() -> None:
+    # issue 32 §3: a mode was compared in ~19 modules; a new one would have been taken for torque mode silently. Each
+    # layer asks ControlMode.traits (motion/config/schema.py), and every member has its traits and its builder
+    from motion.config.schema import ControlMode, ModeTraits
+    from motion.control.setpoints import BUILDERS
+
+    compared = re.compile(r"(\bis\b|\bis not\b|==|!=)\s*(schema\.)?ControlMode\.[A-Z]")
+    found = [
+        f"{path.relative_to(ROOT)}:{number}"
+        for path in sorted((ROOT / "motion").rglob("*.py"))
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if compared.search(line)
+    ]
+    assert found == [], f"modes compared (ask mode.traits): {found}"
+    for mode in ControlMode:
+        assert isinstance(mode.traits, ModeTraits) and mode in BUILDERS
+        assert mode.traits.drive_position_loop != mode.traits.host_torque  # (the two kinds of loop there are)

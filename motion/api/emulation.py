@@ -133,7 +133,7 @@ def measure_modes(config: ArmConfig, bus: Transport) -> dict[str, RateCheck]:
         TransportError: a drive did not answer.
     """
     checks: dict[str, RateCheck] = {}
-    for mode in (ControlMode.POSITION, ControlMode.TORQUE):
+    for mode in ControlMode:
         variant = dataclasses.replace(config, control=dataclasses.replace(config.control, mode=mode))
         controller = build_controller(variant, bus, feedforward=feedforward_for(variant))
         controller.read_positions()

@@ -16,7 +16,6 @@ from typing import TYPE_CHECKING, Any, Final
 import numpy as np
 
 from motion.config import ArmConfig
-from motion.config.schema import ControlMode
 from motion.errors import FaultKind, MotionFault
 
 if TYPE_CHECKING:
@@ -47,7 +46,7 @@ class RunSummary:
         step_a = supervisor.controller.family.current_step_a
         margin = np.maximum((1.0 - AT_LIMIT_SHARE) * self._limit_a, AT_LIMIT_STEPS * step_a)
         self._at_limit_a = self._limit_a - margin  # position mode: a measured current at the limit
-        self._torque = config.control.mode is ControlMode.TORQUE
+        self._torque = config.control.mode.traits.host_torque
         self._supervisor = supervisor
         #: Cycles seen.
         self.cycles = 0

@@ -48,7 +48,7 @@ def written_thresholds(config: ArmConfig, thresholds: np.ndarray) -> dict[str, f
     and the other mode's threshold kept where it has one of its own (``{position: N, torque: N}``); else one number
     (both modes: calibrate in the other mode too before running in it)."""
     mode = config.control.mode
-    other = ControlMode.TORQUE if mode is ControlMode.POSITION else ControlMode.POSITION
+    other = ControlMode.POSITION if mode.traits.host_torque else ControlMode.TORQUE  # (the key's other half)
     values: dict[str, float | dict[str, float]] = {}
     for joint, threshold in zip(config.joints, thresholds, strict=True):
         kept = joint.collision_threshold_in(other)

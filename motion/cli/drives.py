@@ -31,7 +31,6 @@ from motion.cli.common import (
 from motion.cli.program import load_program
 from motion.compose import build_controller, drive_setup, resolve_frames
 from motion.config import JointConfig
-from motion.config.schema import ControlMode
 from motion.control.drive_record import DriveRecord
 from motion.control.drivesetup import LINK_TIMEOUT
 from motion.control.family import FAMILIES
@@ -469,7 +468,7 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
         return holding(args, interrupts)
     if args.emulate:
         raise UsageError("--emulate: the rate check measures this host and bus; --holding and --offline run emulated")
-    if args.identify and config.control.mode is not ControlMode.POSITION:
+    if args.identify and not config.control.mode.traits.drive_position_loop:
         mode = config.control.mode.value
         raise UsageError(f"--identify: {config.source} runs in {mode} mode; identification needs position mode")
     with session.open_bus(speaks=EVERY_GENERATION) as bus:

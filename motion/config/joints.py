@@ -70,7 +70,7 @@ def _actuator(node: Node) -> str | None:
 
 
 def _joint(node: Node, mode: schema.ControlMode) -> schema.JointConfig:
-    torque_mode = mode is schema.ControlMode.TORQUE
+    torque_mode = mode.traits.host_torque  # (per-joint gains)
     actuator = _actuator(node)
     rotor_inertia = node.number("rotor_inertia_kgm2", NON_NEGATIVE)
     viscous = node.number("viscous_friction_nm_per_dps", NON_NEGATIVE)

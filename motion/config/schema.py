@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
-from typing import ClassVar, TypeAlias
+from typing import ClassVar, NamedTuple, TypeAlias
 
 from motion.errors import ConfigError
 from motion.protocol import WireProtocol
@@ -20,13 +20,41 @@ from motion.transmission import ArmTransmission, Transmission
 Vec3: TypeAlias = tuple[float, float, float]
 
 
+class ModeTraits(NamedTuple):
+    """What a control mode is, for every layer that behaves by it: each asks these instead of naming a mode (a new
+    mode is its member and its traits here, and its set-point builder in :mod:`motion.control.setpoints`; see
+    docs/architecture.md).
+
+    Attributes:
+        drive_position_loop: the drives close the position loop on streamed set-points (0xA4 with a speed cap): the
+            expected tracking runs the drive's loop, the planner leaves the drive room to catch up below the cap,
+            the loops can be identified, the collision bound counts the set-points' steps.
+        host_torque: the host closes the loop and sends torque (0xA1, 0x280): per-joint gains (``kp_nm_per_deg``,
+            ``kd_nm_per_dps``), gravity and inertia feed-forward, the set-points' current limiting, ``comply``.
+    """
+
+    drive_position_loop: bool
+    host_torque: bool
+
+
 class ControlMode(StrEnum):
-    """How the controller drives the motors."""
+    """How the controller drives the motors (:attr:`traits`: what that means to the layers above)."""
 
     #: Stream position setpoints (0xA4) with a speed cap; the drive closes the position loop.
     POSITION = "position"
     #: Stream torque-current setpoints (0xA1); the controller closes a PD loop plus feed-forward.
     TORQUE = "torque"
+
+    @property
+    def traits(self) -> ModeTraits:
+        """This mode's :class:`ModeTraits`."""
+        return _MODE_TRAITS[self]
+
+
+_MODE_TRAITS: dict[ControlMode, ModeTraits] = {
+    ControlMode.POSITION: ModeTraits(drive_position_loop=True, host_torque=False),
+    ControlMode.TORQUE: ModeTraits(drive_position_loop=False, host_torque=True),
+}
 
 
 class HaltPolicy(StrEnum):
@@ -375,7 +403,7 @@ class JointConfig:
 
     def collision_threshold_in(self, mode: ControlMode) -> float | None:
         """The collision threshold in force in ``mode`` (None: not watched), N·m."""
-        if mode is ControlMode.TORQUE and self.collision_threshold_torque_nm is not None:
+        if mode.traits.host_torque and self.collision_threshold_torque_nm is not None:
             return self.collision_threshold_torque_nm
         return self.collision_threshold_nm
 

@@ -98,7 +98,7 @@ def safety_section(node: Node, control: schema.ControlConfig) -> schema.SafetyCo
         if node.has("collision_reaction")
         else None
     )
-    if reaction is schema.HaltPolicy.COMPLY and control.mode is not schema.ControlMode.TORQUE:
+    if reaction is schema.HaltPolicy.COMPLY and not control.mode.traits.host_torque:
         raise node.error(
             "collision_reaction",
             f"comply needs control.mode torque (it streams gravity compensation); found mode {control.mode.value}",

@@ -59,7 +59,7 @@ def planning_limits(limits: JointLimits, mode: ControlMode, catch_up_share: floa
     """The limits the planner plans within: the joints' own, but for position mode's velocities, which keep
     ``catch_up_share`` of each limit free (the 0xA4 speed cap is the limit itself: a drive lagging the stream still has
     room below it to catch up)."""
-    if mode is not ControlMode.POSITION or not catch_up_share:
+    if not mode.traits.drive_position_loop or not catch_up_share:
         return limits
     share = 1.0 - catch_up_share
     return dataclasses.replace(limits, velocity_dps=tuple(v * share for v in limits.velocity_dps))

@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from motion.config.schema import ArmConfig, ControlMode
+from motion.config.schema import ArmConfig
 from motion.control.tracking import MoveRecord, PositionLoopFit, fit_position_loop
 from motion.errors import MotionError
 from motion.transmission import FloatArray
@@ -44,7 +44,7 @@ def identify_position_loops(
     Raises:
         MotionError: the arm is not in position mode.
     """
-    if config.control.mode is not ControlMode.POSITION:
+    if not config.control.mode.traits.drive_position_loop:
         raise MotionError("identification moves need position mode (the drive's own loop is what is identified)")
     tracking = controller.tracking
     ratios = tracking.gear_ratio

@@ -46,7 +46,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from motion.config.schema import ControlMode
 from motion.transmission import FloatArray
 
 if TYPE_CHECKING:
@@ -142,7 +141,7 @@ class CollisionBound:
         # position mode: the steps' X = |M| (k |v| + |a|) per joint (M from the observer, k from the tracking model, v
         # and a from the reference), filtered as the residual; the terms of the latest step, all rows
         self._controller = controller
-        self._steps = controller.options.mode is ControlMode.POSITION
+        self._steps = controller.options.mode.traits.drive_position_loop
         self._gain_factor = 1.0 if family.reads_loop_settings else UNREAD_GAIN_FACTOR
         self._x = np.zeros(len(specs))
         self._gain = np.zeros(len(specs))

@@ -11,7 +11,6 @@ import math
 
 import numpy as np
 
-from motion.config.schema import ControlMode
 from motion.control.controller import Controller
 from motion.errors import FaultKind, MotionFault
 from motion.safety.watchdog import Watchdog
@@ -45,7 +44,7 @@ class HoldCheck:
         self._current_limit_a = np.array([t.current_limit_a for t in controller.transmission.transmissions])
         self._iq_magnitude = np.zeros_like(self._current_limit_a)
         self._at_limit = np.zeros(len(self._current_limit_a), dtype=bool)
-        self._torque_mode = controller.options.mode is ControlMode.TORQUE
+        self._torque_mode = controller.options.mode.traits.host_torque
 
     def restart(self) -> None:
         """A hold starts: no strikes, no current at its limit yet."""

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from motion.config.schema import ControlMode, HaltPolicy
+from motion.config.schema import HaltPolicy
 from motion.control.controller import Controller
 from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionFault
@@ -49,16 +49,17 @@ _DEG_PER_RAD = 180.0 / math.pi
 # Window of the corrupt-frame count, s.
 CORRUPT_WINDOW_S = 1.0
 #: The share of the tracking model's lag (behind the reference) that a drive within the stated bounds may add to the
-#: following error, by control mode and whether the drives' loop settings are read (0x30, 0x33): torque mode, the
-#: torque constant (±20 %) and rotor inertia (±30 %) of the controller's own loop (and, through the PD's stiffness,
-#: the torque constant's share of the torque asked for and the friction's of the Coulomb figure:
-#: :data:`motion.safety.collision_bound.MODEL_ERROR`); position mode with the settings read, none (the model runs the
-#: drive's own loop); without them (V3 drives), a tuning from half to twice the model's prior: up to twice its lag.
-FOLLOWING_LAG_ERROR: dict[tuple[ControlMode, bool], float] = {
-    (ControlMode.TORQUE, True): 0.5,
-    (ControlMode.TORQUE, False): 0.5,
-    (ControlMode.POSITION, True): 0.0,
-    (ControlMode.POSITION, False): 1.0,
+#: following error, by whether the drives close the position loop (the mode's ``drive_position_loop``) and whether
+#: their loop settings are read (0x30, 0x33): the host's loop (torque mode), the torque constant (±20 %) and rotor
+#: inertia (±30 %) of the controller's own loop (and, through the PD's stiffness, the torque constant's share of the
+#: torque asked for and the friction's of the Coulomb figure: :data:`motion.safety.collision_bound.MODEL_ERROR`); the
+#: drive's loop with the settings read, none (the model runs the drive's own loop); without them (V3 drives), a
+#: tuning from half to twice the model's prior: up to twice its lag.
+FOLLOWING_LAG_ERROR: dict[tuple[bool, bool], float] = {
+    (False, True): 0.5,
+    (False, False): 0.5,
+    (True, True): 0.0,
+    (True, False): 1.0,
 }
 # Expected joint speed above which a joint counts as moving for the following-error check, deg/s.
 _MOVING_DPS = 1.0
@@ -155,9 +156,11 @@ class Watchdog:
         self._error = np.zeros(n)
         self._slip = np.zeros(n)
         self._following_limit = np.zeros(n)
-        self._lag_error = FOLLOWING_LAG_ERROR[controller.options.mode, controller.family.reads_loop_settings]
+        self._lag_error = FOLLOWING_LAG_ERROR[
+            controller.options.mode.traits.drive_position_loop, controller.family.reads_loop_settings
+        ]
         # torque mode: what a drive within the stated model error adds (see _advance_sensitivity)
-        self._torque_mode = controller.options.mode is ControlMode.TORQUE
+        self._torque_mode = controller.options.mode.traits.host_torque
         self._kp = np.array([s.kp_nm_per_deg for s in specs], dtype=np.float64)
         self._kd = np.array([s.kd_nm_per_dps for s in specs], dtype=np.float64)
         self._friction_allowance = np.zeros(n)

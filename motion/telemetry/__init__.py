@@ -98,7 +98,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from motion.closing import Closing
-from motion.config.schema import ArmConfig, CanBusConfig, ControlMode
+from motion.config.schema import ArmConfig, CanBusConfig
 from motion.control.clock import MonotonicClock
 from motion.control.controller import Controller
 from motion.protocol.table import split_address
@@ -364,7 +364,7 @@ class Recorder:
         #: The names of an arm's several buses, by index (the joints' metadata names each one's); empty: one bus.
         self.bus_names: tuple[str, ...] = ()
         self._joints = len(controller.specs)
-        self._position_mode = controller.options.mode is ControlMode.POSITION
+        self._position_mode = controller.options.mode.traits.drive_position_loop
         self._state_code = {state: STATES.index(state.value) for state in ArmState}
         self._chunk_rows = chunk_rows
         self._chunks: list[Chunk] = [_allocate(chunk_rows, self._joints)]
