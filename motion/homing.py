@@ -27,6 +27,7 @@ steps look for faults every control period and raise it (a MotionFault of kind `
 from __future__ import annotations
 
 import dataclasses
+import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Final
@@ -34,10 +35,12 @@ from typing import Final
 from motion.config.schema import ArmConfig, ControlMode, JointConfig
 from motion.control.controller import Controller
 from motion.control.turns import TURN_DEG, turn_joint_deg
-from motion.errors import MotionError
+from motion.errors import MotionError, TransportError
 from motion.safety import ArmState, Supervisor
 from motion.transmission import Transmission
 from motion.transport import Reply
+
+logger = logging.getLogger("motion.homing")
 
 #: A joint that falls this far behind its reference while seeking has reached its stop, degrees.
 STALL_DEG: Final = 1.0
@@ -253,6 +256,21 @@ def finish_halt(supervisor: Supervisor) -> None:
         controller.wait_for(lambda: supervisor.state not in halting, supervisor.settings.halt_retry_s)
 
 
+def quiet_ahead(supervisor: Supervisor) -> None:
+    """Before a loop closes with another of this program to follow (homing, then the arm's): the drives' link-loss
+    protection off, so that the quiet time between the loops (the next controller built, positions read) does not stop
+    them (:meth:`~motion.control.drivesetup.DriveSetup.suspend_protection`; the next loop sets it again). A drive that
+    does not answer is logged: the close goes on."""
+    try:
+        supervisor.drives.suspend_protection(supervisor.controller.clock.now() + SUSPEND_WINDOW_S)
+    except TransportError as exc:
+        logger.warning("the drives' link-loss protection was not turned off between loops: %s", exc)
+
+
+#: How long the drives have to acknowledge the protection's suspension (:func:`quiet_ahead`), s.
+SUSPEND_WINDOW_S = 0.5
+
+
 def corrected_turns(turns: Sequence[int], index_of: Callable[[str], int], results: Sequence[HomingResult]) -> list[int]:
     """The turn offsets after homing: each homed joint's plus its correction."""
     corrected = list(turns)
@@ -270,6 +288,7 @@ __all__ = [
     "finish_halt",
     "homed_joints",
     "homing_variant",
+    "quiet_ahead",
     "seek_stop",
     "turns_to_stop",
 ]

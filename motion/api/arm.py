@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from motion.api.arguments import emulation_of, joint_targets, seconds, start_pose_of, waypoint_rows
-from motion.api.emulation import emulated_family, emulator_process
+from motion.api.emulation import emulated_family, emulator_process, simulated_lines
 from motion.api.status import ArmStatus, MotionHandle, arm_status
 from motion.api.summary import RunSummary
 from motion.compose import (
@@ -27,21 +27,26 @@ from motion.compose import (
     open_bus,
     opening_family,
     resolve_frames,
-    wire_protocol,
 )
 from motion.config import ArmConfig, load_config_or_example
-from motion.config.schema import CanBusConfig
 from motion.control.clock import Clock
 from motion.control.controller import Controller
 from motion.control.ratecheck import RateCheck
 from motion.control.tracking import PositionLoopFit
-from motion.control.turns import JointTurns, Source, ambiguous_after
+from motion.control.turns import JointTurns, Source, ambiguous_joints
 from motion.emulator import Fault, FrameLog
-from motion.emulator.simulated import DEFAULT_BITRATE, SimulatedBus, SimulatedClock, Simulation
-from motion.errors import ConfigError, EncodeError, FaultKind, MotionError, MotionFault, PlanningError, TransportError
-from motion.homing import HomingResult, corrected_turns, finish_halt, homed_joints, homing_variant, seek_stop
+from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
+from motion.errors import EncodeError, FaultKind, MotionError, MotionFault, PlanningError
+from motion.homing import (
+    HomingResult,
+    corrected_turns,
+    finish_halt,
+    homed_joints,
+    homing_variant,
+    quiet_ahead,
+    seek_stop,
+)
 from motion.keep import load_turn_records, offer_stored_tracking, save_turn_records, store_tracking, turns_store
-from motion.protocol import WireProtocol
 from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily
 from motion.protocol.v3.messages import MotionRanges
 from motion.safety import ArmState, Supervisor
@@ -54,21 +59,6 @@ logger = logging.getLogger("motion.api")
 
 #: The fault's detail of :meth:`Arm.stop`.
 _STOP_DETAIL = "E-stop requested"
-
-
-def _quiet_ahead(supervisor: Supervisor) -> None:
-    """Before a loop closes with another of this program to follow (homing, then the arm's): the drives' link-loss
-    protection off, so that the quiet time between the loops (the next controller built, positions read) does not stop
-    them (:meth:`~motion.control.drivesetup.DriveSetup.suspend_protection`; the next loop sets it again). A drive that
-    does not answer is logged: the close goes on."""
-    try:
-        supervisor.drives.suspend_protection(supervisor.controller.clock.now() + _SUSPEND_WINDOW_S)
-    except TransportError as exc:
-        logger.warning("the drives' link-loss protection was not turned off between loops: %s", exc)
-
-
-#: How long the drives have to acknowledge the protection's suspension, s.
-_SUSPEND_WINDOW_S = 0.5
 
 
 class Arm:
@@ -344,7 +334,7 @@ class Arm:
             raise MotionError("homing a recording arm: home at connect instead (Arm(..., home=[...]))")
         self._begin_connecting()
         try:
-            _quiet_ahead(supervisor)
+            quiet_ahead(supervisor)
             supervisor.close()
             fault = supervisor.fault
             if fault is not None and fault.kind is not FaultKind.CLOSE:
@@ -354,14 +344,7 @@ class Arm:
             self.controller.set_turns([j.turns for j in self.turns])
             self.controller.read_positions()
             self.homing = self._home_joints(joints)
-            if self._remembers:
-                save_turn_records(
-                    self.config,
-                    self.controller.bus.describe(),
-                    self.controller,
-                    (j.source for j in self.turns),
-                    [j.power_on for j in self.turns],
-                )
+            self._keep_turns()
             self._start_supervisor()
         finally:
             self._connecting = False
@@ -385,7 +368,7 @@ class Arm:
         finally:
             self._running = None  # a stop from now on is latched for the arm's loop
             finish_halt(supervisor)
-            _quiet_ahead(supervisor)
+            quiet_ahead(supervisor)
             supervisor.close()
         controller.set_turns(corrected_turns(controller.turns, self._index.__getitem__, results))
         q = controller.read_positions()
@@ -414,24 +397,20 @@ class Arm:
     def _warn_ambiguous_pose(self, q_deg: FloatArray | None = None) -> None:
         """Warn of a joint left (or, with ``q_deg``, a motion planned to end) where the next session cannot tell its
         turns from its reading (a whole motor turn from its power-on window): it will ask whether the drives stayed
-        powered (``--keep-turns``)."""
+        powered (``--keep-turns``). (A V3 drive's reading is absolute: never.)"""
         controller = self.controller
         assert controller is not None
+        if controller.family.output_shaft:
+            return
         q = controller.snapshot.position_deg if q_deg is None else q_deg
-        for i, (joint, spec) in enumerate(zip(self.config.joints, self.turns, strict=True)):
-            window = joint.power_on_window_deg
-            if window is None or controller.family.output_shaft:
-                continue
-            transmission = controller.base_transmission.transmissions[i]
-            if ambiguous_after(transmission, float(q[i]), spec.turns, window) is None:
-                continue
+        for name, angle, window in ambiguous_joints(controller.base_transmission.transmissions, self.turns, q):
             logger.warning(
                 "joint %s %s %.2f deg, a whole number of motor turns from its power_on_window_deg [%g, %g]: after a "
                 "power cycle there a session cannot tell from its reading whether the drives were powered up meanwhile "
                 "and will ask (--keep-turns if they stayed powered); move it elsewhere, or home it after a power cycle",
-                joint.name,
+                name,
                 "is left at" if q_deg is None else "is planned to end at",
-                float(q[i]),
+                angle,
                 *window,
             )
 
@@ -469,21 +448,7 @@ class Arm:
         )
         if self._start_pose is not None:
             self.emulator.power_cycle()  # powered up there: each drive counts its turns from this pose
-        if wire_protocol(self.config) is not WireProtocol.CAN and len(self.config.buses) > 1:
-            raise ConfigError(
-                self.config.source,
-                "buses",
-                "simulated time models several CAN buses; an arm on several RS485 lines runs on emulated drives in "
-                "real time only (rmd-motion emulate --config FILE --rs485-link BUS=PATH for each)",
-            )
-        # one line per bus, each at its own rate (their frames go out at the same time)
-        lines = [
-            (WireProtocol.CAN, bus.bitrate or DEFAULT_BITRATE)
-            if isinstance(bus, CanBusConfig)
-            else (WireProtocol.RS485, bus.baudrate)
-            for bus in self.config.buses
-        ]
-        simulation = Simulation(self.emulator, lines=lines)
+        simulation = Simulation(self.emulator, lines=simulated_lines(self.config))
         if self._emulator_log is not None:
             self.frame_log = self._stack.enter_context(FrameLog(self._emulator_log, clock=simulation.now))
             simulation.frame_log = self.frame_log

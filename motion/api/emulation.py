@@ -23,7 +23,7 @@ from motion.compose import (
     wire_protocol,
 )
 from motion.config import ArmConfig
-from motion.config.schema import ControlMode, ProtocolSetting
+from motion.config.schema import CanBusConfig, ControlMode, ProtocolSetting
 from motion.control.ratecheck import RateCheck, measure_rate
 from motion.emulator import Fault
 from motion.emulator.simulated import DEFAULT_BITRATE
@@ -67,6 +67,28 @@ def emulated_family(config: ArmConfig, protocol: ProtocolFamily | str | None) ->
                 f"{key} is {setting.value}: the emulated drives cannot speak {family.value} (use auto)",
             )
     return family
+
+
+def simulated_lines(config: ArmConfig) -> list[tuple[WireProtocol, int]]:
+    """The lines of ``config``'s simulated time: one per bus, each at its own rate (their frames go out at the same
+    time).
+
+    Raises:
+        ConfigError: several RS485 lines (simulated time models several CAN buses only).
+    """
+    if wire_protocol(config) is not WireProtocol.CAN and len(config.buses) > 1:
+        raise ConfigError(
+            config.source,
+            "buses",
+            "simulated time models several CAN buses; an arm on several RS485 lines runs on emulated drives in "
+            "real time only (rmd-motion emulate --config FILE --rs485-link BUS=PATH for each)",
+        )
+    return [
+        (WireProtocol.CAN, bus.bitrate or DEFAULT_BITRATE)
+        if isinstance(bus, CanBusConfig)
+        else (WireProtocol.RS485, bus.baudrate)
+        for bus in config.buses
+    ]
 
 
 @contextmanager

@@ -46,7 +46,7 @@ reading (the drive must keep its multi-turn value, 0x20 index 4).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from enum import StrEnum
 from typing import Final
@@ -179,6 +179,19 @@ def ambiguous_after(
     except TurnError:
         return None
     return counted if counted != turns else None
+
+
+def ambiguous_joints(
+    transmissions: Sequence[Transmission], turns: Sequence[JointTurns], q_deg: Iterable[float]
+) -> list[tuple[str, float, tuple[float, float]]]:
+    """The joints that a session ending at ``q_deg`` (joint degrees) leaves where the next one cannot tell their turns
+    from their readings (:func:`ambiguous_after`): name, angle and power-on window of each."""
+    found = []
+    for transmission, spec, q in zip(transmissions, turns, q_deg, strict=True):
+        window = spec.window_deg
+        if window is not None and ambiguous_after(transmission, float(q), spec.turns, window) is not None:
+            found.append((spec.name, float(q), window))
+    return found
 
 
 def window_turns(name: str, transmission: Transmission, reading_deg: float, window: tuple[float, float]) -> int:
