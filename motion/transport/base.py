@@ -67,9 +67,10 @@ try:
 except ImportError:  # (not a POSIX system: pyserial's ports raise OSError alone there)
     termios = None  # type: ignore[assignment]
 from motion.closing import Closing
-from motion.protocol import Command, Message, MultiMotorTorque
+from motion.protocol import Message, MultiMotorTorque
 from motion.protocol.generation import GENERATIONS
-from motion.protocol.table import ADDRESS_STRIDE, MULTI_TORQUE_MOTOR_IDS, ProtocolFamily
+from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily
+from motion.transport.plan import EXPIRED, FILLED, MULTI_KEY, NOT_SENT, OPEN, Plan
 
 if TYPE_CHECKING:
     from motion.transport.identity import Identity
@@ -129,11 +130,8 @@ def port_failure(text: str, exc: BaseException, fd: int | None = None) -> Transp
     return port_lost(text) if port_gone(exc, fd) else TransportError(text)
 
 
-#: Slot states.
-_NOT_SENT: Final = 0
-_OPEN: Final = 1
-_FILLED: Final = 2
-_EXPIRED: Final = 3
+#: Plans a transport keeps (a supervisor's status read rotates over the motors: one shape per motor).
+_PLANS_KEPT: Final = 64
 
 
 @dataclass(frozen=True, slots=True)
@@ -278,8 +276,8 @@ class Transport(ABC, Closing):
         # same shape (see _plan); the rest is the cycle's own state.
         self._outstanding: set[int] = set()
         self._ambiguous: set[int] = set()
-        self._plans: dict[tuple[int, ...], _Plan] = {}
-        self._slots = _Plan.empty()
+        self._plans: dict[tuple[int, ...], Plan] = {}
+        self._slots = Plan.empty()
         self._slot_request: list[Message] = []
         self._slot_state: list[int] = []
         self._slot_message: list[Message | None] = []
@@ -450,7 +448,7 @@ class Transport(ABC, Closing):
         """
         signature = tuple(
             [
-                _MULTI_KEY - request.motor_id // ADDRESS_STRIDE  # (one per bus of an arm on several)
+                MULTI_KEY - request.motor_id // ADDRESS_STRIDE  # (one per bus of an arm on several)
                 if isinstance(request.message, MultiMotorTorque)
                 # _prepare already rejected the messages without a command byte.
                 else request.motor_id << 8 | request.message.command  # type: ignore[attr-defined]
@@ -461,7 +459,7 @@ class Transport(ABC, Closing):
         if plan is None:
             if len(self._plans) >= _PLANS_KEPT:
                 self._plans.clear()
-            plan = self._plans[signature] = _Plan.build(signature, requests, self.motor_counters)
+            plan = self._plans[signature] = Plan.build(signature, requests, self.motor_counters)
         self._slots = plan
         self._slot_state = plan.not_sent.copy()
         self._slot_message = plan.no_messages.copy()
@@ -477,13 +475,13 @@ class Transport(ABC, Closing):
         """Request ``index`` went out: open its slots."""
         plan, state = self._slots, self._slot_state
         if plan.one_each:
-            state[index] = _OPEN
+            state[index] = OPEN
             plan.slot_counters[index].sent += 1
             self._open_slots += 1
             return
         first = plan.first_slot
         for slot in range(first[index], first[index + 1]):
-            state[slot] = _OPEN
+            state[slot] = OPEN
             plan.slot_counters[slot].sent += 1
             self._open_slots += 1
 
@@ -501,9 +499,9 @@ class Transport(ABC, Closing):
         """True when no slot of request ``index`` is still open."""
         plan, state = self._slots, self._slot_state
         if plan.one_each:
-            return state[index] != _OPEN
+            return state[index] != OPEN
         first = plan.first_slot
-        return all(state[slot] != _OPEN for slot in range(first[index], first[index + 1]))
+        return all(state[slot] != OPEN for slot in range(first[index], first[index + 1]))
 
     def _offer(self, motor_id: int, message: Message) -> None:
         """Take in one decoded reply: fill the first open slot with its key, or count it stale."""
@@ -517,7 +515,7 @@ class Transport(ABC, Closing):
             return
         plan, state = self._slots, self._slot_state
         slot = plan.first_slot_of_key.get(key, -1)
-        while slot >= 0 and state[slot] != _OPEN:
+        while slot >= 0 and state[slot] != OPEN:
             slot = plan.slot_next[slot]
         if key in self._outstanding:
             # Presumed the late answer to an expired request; see the module docstring for the ambiguity.
@@ -529,7 +527,7 @@ class Transport(ABC, Closing):
         if slot < 0:
             counters.stale_frames += 1
             return
-        state[slot] = _FILLED
+        state[slot] = FILLED
         self._slot_message[slot] = message
         self._slot_time[slot] = self.clock()
         self._open_slots -= 1
@@ -539,12 +537,12 @@ class Transport(ABC, Closing):
         """Close the still open slots of request ``index`` as timed out and mark their keys outstanding."""
         first = self._slots.first_slot
         for slot in range(first[index], first[index + 1]):
-            if self._slot_state[slot] == _OPEN:
+            if self._slot_state[slot] == OPEN:
                 self._expire_slot(slot)
 
     def _expire_slot(self, slot: int) -> None:
         plan = self._slots
-        self._slot_state[slot] = _EXPIRED
+        self._slot_state[slot] = EXPIRED
         self._open_slots -= 1
         plan.slot_counters[slot].timeouts += 1
         key = plan.slot_key[slot]
@@ -553,105 +551,14 @@ class Transport(ABC, Closing):
 
     def _finish(self) -> list[Reply]:
         state, plan = self._slot_state, self._slots
-        if _OPEN in state or _NOT_SENT in state:
+        if OPEN in state or NOT_SENT in state:
             for slot in range(len(state)):
-                if state[slot] == _OPEN:
+                if state[slot] == OPEN:
                     self._expire_slot(slot)
-                elif state[slot] == _NOT_SENT:
-                    state[slot] = _EXPIRED
+                elif state[slot] == NOT_SENT:
+                    state[slot] = EXPIRED
                     plan.slot_counters[slot].timeouts += 1
                     self.bus_counters.skipped_requests += 1
         return list(
             map(_new_reply, zip(plan.slot_motor, self._slot_request, self._slot_message, self._slot_time, strict=True))
-        )
-
-
-#: Signature entry of a 0x280 request (four slots, motors 1..4; it has no motor id or command byte of its own), less
-#: its bus's index on an arm of several buses (its request's address names the bus).
-_MULTI_KEY: Final = -1
-#: Plans a transport keeps (a supervisor's status read rotates over the motors: one shape per motor).
-_PLANS_KEPT: Final = 64
-
-
-@dataclass(frozen=True, slots=True)
-class _Plan:
-    """The slots of one batch shape: everything about them that does not change from cycle to cycle.
-
-    Attributes:
-        first_slot: per request, its first slot; a last entry, the number of slots.
-        slot_request: per slot, the index of its request.
-        slot_motor: per slot, the motor expected to answer.
-        slot_key: per slot, ``motor id << 8 | command byte``.
-        slot_next: per slot, the next slot with the same key (-1: none): replies fill them first-in, first-out.
-        first_slot_of_key: the first slot of each key.
-        slot_counters: per slot, its motor's counters.
-        one_each: every request has exactly one slot (request i has slot i).
-        not_sent, no_messages, no_times: a cycle's initial slot states, messages and reply times (copied).
-        all_open: every slot open.
-    """
-
-    first_slot: tuple[int, ...]
-    slot_request: tuple[int, ...]
-    slot_motor: tuple[int, ...]
-    slot_key: tuple[int, ...]
-    slot_next: tuple[int, ...]
-    first_slot_of_key: Mapping[int, int]
-    slot_counters: tuple[MotorCounters, ...]
-    one_each: bool
-    not_sent: list[int]
-    no_messages: list[Message | None]
-    no_times: list[float | None]
-    all_open: tuple[int, ...]
-
-    @classmethod
-    def empty(cls) -> _Plan:
-        """The plan of an empty batch."""
-        return cls((0,), (), (), (), (), {}, (), True, [], [], [], ())
-
-    @classmethod
-    def build(
-        cls, signature: tuple[int, ...], requests: Sequence[Request], counters: Callable[[int], MotorCounters]
-    ) -> _Plan:
-        """The plan of the batch ``requests`` whose keys are ``signature`` (see :meth:`Transport._plan`)."""
-        first_slot: list[int] = []
-        slot_request: list[int] = []
-        slot_motor: list[int] = []
-        slot_key: list[int] = []
-        slot_next: list[int] = []
-        first_of_key: dict[int, int] = {}
-        last_of_key: dict[int, int] = {}
-        for index, (request, key) in enumerate(zip(requests, signature, strict=True)):
-            first_slot.append(len(slot_motor))
-            if key <= _MULTI_KEY:  # motors 1..4 of the bus the request's address names
-                base = (_MULTI_KEY - key) * ADDRESS_STRIDE
-                expected = [(base + m, (base + m) << 8 | Command.TORQUE) for m in MULTI_TORQUE_MOTOR_IDS]
-            else:
-                expected = [(request.motor_id, key)]
-            for motor_id, slot_key_ in expected:
-                slot = len(slot_motor)
-                slot_request.append(index)
-                slot_motor.append(motor_id)
-                slot_key.append(slot_key_)
-                slot_next.append(-1)
-                last = last_of_key.get(slot_key_)
-                if last is None:
-                    first_of_key[slot_key_] = slot
-                else:
-                    slot_next[last] = slot
-                last_of_key[slot_key_] = slot
-        first_slot.append(len(slot_motor))
-        n = len(slot_motor)
-        return cls(
-            first_slot=tuple(first_slot),
-            slot_request=tuple(slot_request),
-            slot_motor=tuple(slot_motor),
-            slot_key=tuple(slot_key),
-            slot_next=tuple(slot_next),
-            first_slot_of_key=first_of_key,
-            slot_counters=tuple(counters(motor_id) for motor_id in slot_motor),
-            one_each=n == len(requests),
-            not_sent=[_NOT_SENT] * n,
-            no_messages=[None] * n,
-            no_times=[None] * n,
-            all_open=(_OPEN,) * n,
         )
