@@ -25,7 +25,7 @@ from motion.emulator.drive_v3 import EmulatedDriveV3
 from motion.errors import FaultKind, MotionError, MotionFault
 from motion.homing import HomingError, homed_joints, homing_variant, turns_to_stop
 from motion.transmission import Transmission
-from tests.motion_rig import CONFIGS
+from tests.motion_rig import CONFIGS, skip_if_rate_refused
 from tests.test_cli import (
     HOST_STALL_MS,
     MIN_RATE_HZ,
@@ -279,6 +279,7 @@ def test_cli_home_checks_the_holding_torque_once_the_homed_angle_is_known(
     config.write_text(yaml.safe_dump(data))
     args = ["home", *emulated.bus_args, "shoulder_pitch", "--json"]
     right = cli(*args, "--config", config)
+    skip_if_rate_refused(right)
     assert right.returncode == 0, right.stderr
     verdicts = {v["name"]: v for v in json.loads(right.stdout)["holding"]}
     assert verdicts["shoulder_pitch"]["judged"] and all(v["matches"] for v in verdicts.values()), verdicts
@@ -286,11 +287,13 @@ def test_cli_home_checks_the_holding_torque_once_the_homed_angle_is_known(
     doubled = tmp_path / "doubled.yaml"
     doubled.write_text(yaml.safe_dump(data))
     result = cli(*args, "--config", doubled)
+    skip_if_rate_refused(result)
     assert result.returncode == 2, result.stderr
     assert "holding torque does not match the model: shoulder_pitch (motor 2) holds with" in result.stderr
     printed = json.loads(result.stdout)
     assert printed["command"] == "home" and printed["moved"] is True  # (the seek, nothing after it)
     assert [v["name"] for v in printed["holding"] if not v["matches"]] == ["shoulder_pitch"]
     skipped = cli(*args, "--config", doubled, "--no-holding-check")
+    skip_if_rate_refused(skipped)
     assert skipped.returncode == 0, skipped.stderr
     assert json.loads(skipped.stdout)["holding"] == "skipped: --no-holding-check"
