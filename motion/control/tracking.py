@@ -110,6 +110,7 @@ class ExpectedTracking:
                 f"the tracking models know the drive's position loop and the host's torque loop, not {mode}"
             )
         self.mode = mode
+        self._host_torque, self._drive_loop = mode.traits.host_torque, mode.traits.drive_position_loop  # (per cycle)
         self.n = n
         self.gear_ratio = np.array([abs(t.gear_ratio) for t in transmission.transmissions])
         self.kp = np.asarray(kp_nm_per_deg, dtype=np.float64).copy()
@@ -318,12 +319,12 @@ class ExpectedTracking:
             np.copyto(self._v, self._ref_v)
         else:
             dt = t_s - self._t_s
-            if self.mode.traits.host_torque:
+            if self._host_torque:
                 # The controller's next torque is computed from the measurement before this cycle's replies.
                 np.copyto(self._x_law, self._x)
                 np.copyto(self._v_law, self._v)
             if dt > 0:
-                if self.mode.traits.drive_position_loop:
+                if self._drive_loop:
                     self._position_step(dt)
                 else:
                     self._torque_step(dt)
@@ -342,7 +343,7 @@ class ExpectedTracking:
     ) -> None:
         """The set-points this cycle sent (at ``t_s``, after :meth:`advance`): the reference for the next instant
         and, in position mode, the 0xA4 speed caps (motor side)."""
-        if self.mode.traits.host_torque and self.inertia_kgm2 is not None:
+        if self._host_torque and self.inertia_kgm2 is not None:
             # The mass matrix changes slowly with the pose: evaluated again once a joint moved by INERTIA_STEP_DEG
             # (the arm model's work is most of this method's cost).
             if self._inertia_of is not None and self._moved_beyond(reference_deg):
