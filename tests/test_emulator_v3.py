@@ -583,3 +583,29 @@ def test_the_multi_turn_angle_restarts_within_one_output_turn_unless_the_drive_k
     _one(emulator, FunctionControl(FunctionIndex.SAVE_MULTI_TURN, 1))
     before, after = angle_after_reset(-370.0)  # (in the frame of the restart: a turn and a bit the other way)
     assert before == pytest.approx(-370.0, abs=0.5) and after == before
+
+
+def test_scan_of_a_v3_rs485_line_with_the_default_ids_exits_0(tmp_path: Path) -> None:
+    # issue 31 §1 on the other transport: the ids that do not answer are asked in the line's own generation (each
+    # silent id costs RS485 a whole exchange's timeout: 32 ids at 115200 baud)
+    config = tmp_path / "arm2_rs485_v3.yaml"
+    config.write_text(
+        (ROOT / "configs" / "arm2_rs485.yaml")
+        .read_text()
+        .replace("  transport: rs485\n", "  transport: rs485\n  protocol: v3\n", 1)
+    )
+    link = tmp_path / "rs485"
+    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(config), "--rs485-link", str(link)]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    try:
+        assert process.stdout is not None
+        assert process.stdout.readline().startswith(f"rs485: {link}")
+        assert "emulating motors" in process.stdout.readline()
+        result = _cli("scan", "--config", str(config), "--port", str(link), "--json")
+    finally:
+        process.send_signal(signal.SIGTERM)
+        process.communicate(timeout=10)
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert [(d["motor_id"], d["protocol"]) for d in report["drives"]] == [(1, "v3"), (2, "v3")]
+    assert report["missing"] == []
