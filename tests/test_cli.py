@@ -475,21 +475,23 @@ def test_check_holding_finds_a_torque_constant_and_swapped_motor_ids_before_anyt
 
 
 def test_a_move_planned_to_end_a_whole_motor_turn_from_the_window_warns_and_so_does_the_session_end(
-    can_arm: Emulated, tmp_path: Path
+    tmp_path: Path,
 ) -> None:
     # issue 33 §1: arm2's shoulder (1:9) at 39.9 deg reads 359.1 motor deg, as at -0.1 after a power-up: the move that
     # ends there warns when it is planned, the session's end warns again; the next session continues with --keep-turns
-    fit = rate_that_holds(ARM2, can_arm, tmp_path, 100.0)
-    result = cli("move", "--config", fit, *can_arm.bus_args, "shoulder=39.9", "--no-holding-check")
-    skip_if_rate_refused(result)
-    assert result.returncode == 0, result.stderr
-    assert "joint shoulder is planned to end at 39.90 deg, a whole number of motor turns from" in result.stderr
-    assert "joint shoulder is left at 39." in result.stderr and "a whole number of motor turns from" in result.stderr
-    assert "elbow is" not in result.stderr
-    back = cli("move", "--config", fit, *can_arm.bus_args, "shoulder=0", "--keep-turns", "--no-holding-check")
-    skip_if_rate_refused(back)
-    assert back.returncode == 0, back.stderr
-    assert "whole number of motor turns" not in back.stderr
+    # (drives of its own: the pose it leaves is no other test's business)
+    with running_emulator(tmp_path, ARM2, "--slcan-link") as emulated:
+        fit = rate_that_holds(ARM2, emulated, tmp_path, 100.0)
+        result = cli("move", "--config", fit, *emulated.bus_args, "shoulder=39.9", "--no-holding-check")
+        skip_if_rate_refused(result)
+        assert result.returncode == 0, result.stderr
+        assert "joint shoulder is planned to end at 39.90 deg, a whole number of motor turns from" in result.stderr
+        assert "joint shoulder is left at 39." in result.stderr and "a whole number of motor turns" in result.stderr
+        assert "elbow is" not in result.stderr
+        back = cli("move", "--config", fit, *emulated.bus_args, "shoulder=0", "--keep-turns", "--no-holding-check")
+        skip_if_rate_refused(back)
+        assert back.returncode == 0, back.stderr
+        assert "whole number of motor turns" not in back.stderr
 
 
 def test_a_drive_that_does_not_answer_is_a_communication_error(tmp_path: Path) -> None:
