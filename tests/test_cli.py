@@ -472,6 +472,10 @@ def test_check_holding_finds_a_torque_constant_and_swapped_motor_ids_before_anyt
     skip_if_rate_refused(result)
     assert result.returncode == 0, result.stderr
     assert json.loads(result.stdout)["holding"] == "skipped: --no-holding-check"
+    # back where the module's drives started (5 deg is a power-on window's edge for the tests that connect next)
+    back = cli("move", "--config", fit, *can_arm.bus_args, "shoulder=0", "--no-holding-check")
+    skip_if_rate_refused(back)
+    assert back.returncode == 0, back.stderr
 
 
 def test_a_move_planned_to_end_a_whole_motor_turn_from_the_window_warns_and_so_does_the_session_end(
