@@ -14,10 +14,12 @@ import threading
 import time
 import uuid
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import yaml
+from rosbags.highlevel import AnyReader
 
 from motion.api import Arm
 from motion.cli.moves import _jog_verdict
@@ -193,9 +195,13 @@ def test_the_cli_moves_both_arms_in_real_time_against_the_emulator_on_two_slcan_
             pytest.skip(f"this host holds no rate the moving tests run bimanual.yaml at (rate check: {highest:g} Hz)")
         config = _copy_at(tmp_path, min(round(highest), 250))
         targets = [f"{j.name}={t:g}" for j, t in zip(BIMANUAL.joints, TARGETS, strict=True)]
-        moved = cli("move", "--config", config, *bus, "--speed-scale", "0.5", *targets, "--json")
+        trace = tmp_path / "move.log"
+        moved = cli("move", "--config", config, *bus, "--speed-scale", "0.5", *targets, "--json", "--trace", trace)
         assert moved.returncode == 0, moved.stderr
         assert json.loads(moved.stdout)["arrival"]["arrived"]
+        # the trace: the frames of both buses (each bus's worker thread), each on its bus, both sent and taken in
+        traced = {tuple(line.split()[1::2]) for line in trace.read_text().splitlines()}
+        assert {(b, d) for b in ("left", "right") for d in "TR"} <= traced
         status = cli("status", "--config", config, *bus, "--json")
         assert status.returncode == 0, status.stderr
         joints = json.loads(status.stdout)["joints"]
@@ -272,9 +278,25 @@ def test_emulate_takes_one_link_per_bus(tmp_path: Path, links: list[str], messag
 
 
 def test_a_recording_of_both_arms_names_each_joints_bus(tmp_path: Path) -> None:
-    recording = tmp_path / "run.mcap"
-    moved = cli("move", "--config", CONFIGS / "bimanual.yaml", "--emulate", "--log", recording, "right_base_yaw=10")
+    recording, trace = tmp_path / "run.mcap", tmp_path / "run.log"
+    moved = cli(
+        "move", "--config", CONFIGS / "bimanual.yaml", "--emulate", "--log", recording, "--trace", trace,
+        "right_base_yaw=10",
+    )  # fmt: skip
     assert moved.returncode == 0, moved.stderr
+    # the trace: each frame on its bus's interface (named as the bus), both buses' 0xA4 to their motor 1
+    lines = [line.split() for line in trace.read_text().splitlines()]
+    assert {fields[1] for fields in lines} == {"left", "right"}
+    sent = {(fields[1], fields[2][:6]) for fields in lines if fields[3] == "T"}
+    assert {("left", "141#A4"), ("right", "141#A4")} <= sent
+    # the recording's frames name their bus the same way
+    with AnyReader([recording]) as reader:
+        connections = [c for c in reader.connections if c.topic == "/bus/frames"]
+        frames: list[Any] = [reader.deserialize(raw, c.msgtype) for c, _, raw in reader.messages(connections)]
+    assert len(frames) == len(lines) and {f.bus for f in frames} == {"left", "right"}
+    in_recording = sum(f.bus == "right" and f.arbitration_id == 0x141 and not f.received for f in frames)
+    in_trace = sum(fields[1] == "right" and fields[2].startswith("141#") and fields[3] == "T" for fields in lines)
+    assert in_recording == in_trace > 0
     log = load_log(recording)
     assert [b["name"] for b in log.meta["buses"]] == ["left", "right"]
     assert [(j["name"], j["bus"], j["motor_id"]) for j in log.meta["joints"]] == [

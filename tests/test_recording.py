@@ -249,9 +249,12 @@ def test_the_cdr_shim_encodes_as_the_reference_encoder_does() -> None:
     status["values"] = [{"key": k, "value": v} for k, v in values.items()]
     diagnostics = {"header": {"stamp": stamp, "frame_id": ""}, "status": [status]}
     assert ours == _their_encoding("diagnostic_msgs/msg/DiagnosticArray", diagnostics)
-    for received, ident, data in ((True, 0x141, b"\xa4\x00\x01\x02\x03\x04\x05\x06"), (False, -1, b"\x3e\xa4\x01")):
-        frame = {"stamp": stamp, "received": received, "arbitration_id": ident, "data": data}
-        assert bus_frame(ns, received, ident, data) == _their_encoding("rmd_motion/msg/BusFrame", frame)
+    for received, ident, data, bus in (
+        (True, 0x141, b"\xa4\x00\x01\x02\x03\x04\x05\x06", ""),
+        (False, -1, b"\x3e", "right"),
+    ):
+        frame = {"stamp": stamp, "received": received, "arbitration_id": ident, "data": data, "bus": bus}
+        assert bus_frame(ns, received, ident, data, bus) == _their_encoding("rmd_motion/msg/BusFrame", frame)
     link = LinkTransform("base_link", "shoulder_link", (0.0, 0.1, 0.12), (0.0, 0.0, 0.38268343, 0.92387953))
     transform = {"translation": {"x": 0.0, "y": 0.1, "z": 0.12}}
     transform["rotation"] = {"x": 0.0, "y": 0.0, "z": 0.38268343, "w": 0.92387953}

@@ -220,7 +220,7 @@ def test_bus_trace_across_chunks() -> None:
         trace(*frame)
     trace(10.0, True, None, b"\x3e\x9c")
     assert len(trace) == 8
-    assert [tuple(f) for f in trace][:7] == frames
+    assert [tuple(f) for f in trace][:7] == [(*frame, 0) for frame in frames]
     text = io.StringIO()
     trace.write_candump(text, "vcan 1")
     lines = text.getvalue().splitlines()
@@ -229,6 +229,31 @@ def test_bus_trace_across_chunks() -> None:
     text = io.StringIO()
     trace.write_hex(text)
     assert text.getvalue().splitlines()[-1] == "(10.000000) R 3E 9C"
+
+
+def test_a_bus_trace_keeps_each_frames_bus() -> None:
+    # an arm of several buses: the tap of each bus records its frames as that bus's, and the files name it
+    trace = BusTrace(chunk_frames=2)
+    left, right = trace.on_bus(0), trace.on_bus(1)
+    left(0.5, False, 0x141, b"\xa4")
+    right(0.6, False, 0x141, b"\xa4")
+    right(0.7, True, 0x141, b"\x9c")
+    trace(0.8, True, None, b"\x3e")
+    assert [(f.time_s, f.bus) for f in trace] == [(0.5, 0), (0.6, 1), (0.7, 1), (0.8, 0)]
+    text = io.StringIO()
+    trace.write_candump(text, ["left", "right arm"])
+    assert text.getvalue().splitlines() == [
+        "(0.500000) left 141#A4 T",
+        "(0.600000) right_arm 141#A4 T",
+        "(0.700000) right_arm 141#9C R",
+    ]
+    text = io.StringIO()
+    trace.write_hex(text, ["left", "right"])
+    assert text.getvalue().splitlines()[1:] == [
+        "(0.600000) right T A4",
+        "(0.700000) right R 9C",
+        "(0.800000) left R 3E",
+    ]
 
 
 def test_plot_draws_the_log(position_run: PositionRun, tmp_path: Path) -> None:

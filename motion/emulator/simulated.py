@@ -35,7 +35,7 @@ from motion.errors import DecodeError
 from motion.protocol import CanFrame, WireProtocol
 from motion.protocol.rs485_frame import rs485_frame_time_s
 from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily, split_address
-from motion.transport.base import Request, Transport, probe_in_turn
+from motion.transport.base import FrameTap, Request, Transport, probe_in_turn
 from motion.transport.can_transport import take_in_can_frame
 from motion.transport.detect import expected_answers, generations, probe_frames
 
@@ -378,7 +378,7 @@ class SimulatedBus(Transport):
         for index, (wire, line) in enumerate(zip(self._wires, self._lines, strict=True)):
             sim.submit(wire, line)
             self._sent(index)
-            self._tap(False, wire)
+            self._tap(False, wire, line)
         while self._open_slots:
             arrival = sim.next_arrival(deadline_s)
             if arrival is None:
@@ -408,9 +408,22 @@ class SimulatedBus(Transport):
                 sim.now_s = arrival.time_s
                 self._take_in(arrival, waiting_for=self._motors[index])
 
-    def _tap(self, received: bool, wire: CanFrame | bytes) -> None:
-        tap = self.frame_tap
-        if tap is not None:
+    @property
+    def frame_tap(self) -> FrameTap | None:
+        """Every line's frames (see :data:`FrameTap`); a tap that tells an arm's buses apart (a bus trace) records
+        each line's as its bus's (its ``on_bus(index)``)."""
+        return self._frame_tap
+
+    @frame_tap.setter
+    def frame_tap(self, tap: FrameTap | None) -> None:
+        self._frame_tap = tap
+        per_bus = getattr(tap, "on_bus", None)
+        lines = len(self.simulation.lines) if hasattr(self, "simulation") else 1
+        self._line_taps = [] if tap is None else [per_bus(k) if per_bus else tap for k in range(lines)]
+
+    def _tap(self, received: bool, wire: CanFrame | bytes, line: int = 0) -> None:
+        if self._frame_tap is not None:
+            tap = self._line_taps[line]
             if isinstance(wire, CanFrame):
                 tap(self.simulation.now_s, received, wire.arbitration_id, wire.data)
             else:
@@ -419,7 +432,8 @@ class SimulatedBus(Transport):
     def _take_in(self, arrival: Arrival, waiting_for: int | None = None) -> None:
         wire = arrival.wire
         if isinstance(wire, CanFrame):
-            take_in_can_frame(self, wire, arrival.line * ADDRESS_STRIDE)
+            self._tap(True, wire, arrival.line)
+            take_in_can_frame(self, wire, arrival.line * ADDRESS_STRIDE, tapped=True)
             self._line_took_s[arrival.line] = arrival.time_s - self._started_s
             return
         self._tap(True, wire)

@@ -82,6 +82,11 @@ so that a trace replays onto the configured interface). RS485: one line per writ
 hex (a read may hold part of a frame, or several)::
 
     (1700000000.123456) T 3E A4 01 0C EF 00 68 01 00 00 00 00 00 28 23 00 00 B4
+
+An arm on several buses (``buses:``): one trace of all their frames, each on its bus. CAN: the interface field is
+the bus's name (``(1700000000.123456) left 141#A400680128230000 T``; ``canplayer left=can0 right=can1 -I FILE``
+replays it onto interfaces of your choice); RS485: the bus's name before the direction
+(``(1700000000.123456) left T 3E A4 ...``). The recording's ``/bus/frames`` messages name the bus too.
 """
 
 from __future__ import annotations
@@ -582,12 +587,12 @@ class TelemetrySession(Closing):
                 self.recorder.finish()
             if self._trace_file is not None and self.trace is not None:
                 buses = self.config.buses
+                several = len(buses) > 1  # (an arm on several buses: each frame on its bus, by name)
                 if all(isinstance(bus, CanBusConfig) for bus in buses):
-                    # (an arm on several buses: one trace of all their frames, named by the buses' channels joined)
-                    channel = "+".join(bus.channel for bus in buses if isinstance(bus, CanBusConfig))
-                    self.trace.write_candump(self._trace_file, channel)
+                    channels = [bus.name if several else bus.link for bus in buses]
+                    self.trace.write_candump(self._trace_file, channels)
                 else:
-                    self.trace.write_hex(self._trace_file)
+                    self.trace.write_hex(self._trace_file, [bus.name for bus in buses] if several else ())
             if self._log_file is not None:
                 self.result = log = self._log()
                 trace = self.trace

@@ -21,7 +21,8 @@ topic                          type                               content
                                DiagnosticArray``                  ``t_s``, ``halt_s``, ``kind``, ``joint``,
                                                                   ``action``) and each change of the arm's state (OK)
 ``/bus/frames``                ``rmd_motion/msg/BusFrame``        every frame on the bus (``--trace``), as sent or
-                                                                  taken in; ``arbitration_id`` -1 on RS485
+                                                                  taken in; ``arbitration_id`` -1 on RS485;
+                                                                  ``bus`` its bus's name (an arm of several buses)
 ``/robot_description``         ``std_msgs/msg/String``            the URDF a viewer draws the arm from, once
                                                                   (:class:`kinematics.frames.LinkFrames`)
 ``/tf``                        ``tf2_msgs/msg/TFMessage``         each link's pose in its parent's frame, per cycle
@@ -130,7 +131,8 @@ SCHEMAS: Final = {
         "diagnostic_msgs/KeyValue",
     ),
     "rmd_motion/msg/BusFrame": _definition(
-        "builtin_interfaces/Time stamp\nbool received\nint32 arbitration_id\nuint8[] data", "builtin_interfaces/Time"
+        "builtin_interfaces/Time stamp\nbool received\nint32 arbitration_id\nuint8[] data\nstring bus",
+        "builtin_interfaces/Time",
     ),
     "std_msgs/msg/String": _definition("string data"),
     "tf2_msgs/msg/TFMessage": _definition(
@@ -204,9 +206,9 @@ def diagnostic_array(
     return out.data()
 
 
-def bus_frame(ns: int, received: bool, arbitration_id: int, data: bytes) -> bytes:
-    """An ``rmd_motion/msg/BusFrame``."""
-    return _time(CdrWriter(), ns).octet(received).int32(arbitration_id).octets(data).data()
+def bus_frame(ns: int, received: bool, arbitration_id: int, data: bytes, bus: str = "") -> bytes:
+    """An ``rmd_motion/msg/BusFrame`` (``bus``: its bus's name on an arm of several, else empty)."""
+    return _time(CdrWriter(), ns).octet(received).int32(arbitration_id).octets(data).string(bus).data()
 
 
 def tf_message(ns: int, links: Sequence[LinkPose]) -> bytes:
@@ -282,12 +284,14 @@ def _faults(columns: Any, base_s: float) -> list[_Event]:
     return faults
 
 
-def _frames(frames: Iterable[TracedFrame], base_s: float) -> Iterator[_Event]:
-    """Each traced frame as a ``BusFrame`` at its time, in the trace's (time) order."""
+def _frames(frames: Iterable[TracedFrame], base_s: float, buses: Sequence[str]) -> Iterator[_Event]:
+    """Each traced frame as a ``BusFrame`` at its time, in the trace's (time) order (``buses``: the names of an arm's
+    several buses by index; empty: one bus)."""
     for frame in frames:
         ns = _ns(base_s, frame.time_s)
         ident = -1 if frame.arbitration_id is None else frame.arbitration_id
-        yield ns, "/bus/frames", "rmd_motion/msg/BusFrame", bus_frame(ns, frame.received, ident, frame.data)
+        bus = buses[frame.bus] if buses else ""
+        yield ns, "/bus/frames", "rmd_motion/msg/BusFrame", bus_frame(ns, frame.received, ident, frame.data, bus)
 
 
 def write_mcap(
@@ -314,7 +318,8 @@ def write_mcap(
     following = log.following_error_deg()
     previous_state = ""
     # the faults and the frames, merged in time order, go in among the cycles: the file in time order
-    events = heapq.merge(_faults(columns, base_s), _frames(frames, frames_base_s), key=lambda event: event[0])
+    buses = [str(bus["name"]) for bus in meta.get("buses", ())]  # (an arm of several: each frame names its bus)
+    events = heapq.merge(_faults(columns, base_s), _frames(frames, frames_base_s, buses), key=lambda event: event[0])
     event = next(events, None)
     if robot is not None and robot.urdf is not None:  # (at the first message's time)
         first = _ns(base_s, float(t[0]) if len(t) else 0.0)

@@ -304,16 +304,11 @@ class Buses(Transport):
     def frame_tap(self, tap: FrameTap | None) -> None:
         self._tap = tap
         # (the buses' exchanges run in several threads: their frames reach the tap one at a time)
+        # (a tap that tells the buses apart, a bus trace, gives one per bus: `on_bus(index)`)
         lock = getattr(self, "_tap_lock", None)
-        locked: FrameTap | None = None
-        if tap is not None and lock is not None:
-
-            def locked(time_s: float, received: bool, arbitration_id: int | None, data: bytes) -> None:
-                with lock:
-                    tap(time_s, received, arbitration_id, data)
-
-        for bus in getattr(self, "buses", ()):
-            bus.frame_tap = locked
+        per_bus = getattr(tap, "on_bus", None)
+        for index, bus in enumerate(getattr(self, "buses", ())):
+            bus.frame_tap = None if tap is None or lock is None else _locked(per_bus(index) if per_bus else tap, lock)
 
     def _prepare(self, requests: Sequence[Request]) -> None:
         raise NotImplementedError  # (transact is the buses')
@@ -331,6 +326,16 @@ class Buses(Transport):
         self._stop_workers()
         for bus in self.buses:
             bus.close()
+
+
+def _locked(tap: FrameTap, lock: threading.Lock) -> FrameTap:
+    """``tap`` taking one frame at a time (the buses' exchanges run in several threads)."""
+
+    def locked(time_s: float, received: bool, arbitration_id: int | None, data: bytes) -> None:
+        with lock:
+            tap(time_s, received, arbitration_id, data)
+
+    return locked
 
 
 def several(buses: Sequence[Transport], names: Sequence[str]) -> Transport:

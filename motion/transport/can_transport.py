@@ -19,14 +19,15 @@ from motion.transport.base import Request, Transport
 from motion.transport.can_endpoint import CanEndpoint
 
 
-def take_in_can_frame(transport: Transport, frame: CanFrame, address_base: int = 0) -> None:
-    """Take one received CAN frame into ``transport``: tap it, decode it, offer it (or count why not); the drive's
-    address is ``address_base`` + its motor id (an arm on several buses: ``bus index × ADDRESS_STRIDE``).
+def take_in_can_frame(transport: Transport, frame: CanFrame, address_base: int = 0, *, tapped: bool = False) -> None:
+    """Take one received CAN frame into ``transport``: tap it (unless ``tapped``: the caller did), decode it, offer it
+    (or count why not); the drive's address is ``address_base`` + its motor id (an arm on several buses: ``bus index
+    × ADDRESS_STRIDE``).
 
     Shared by every transport that carries RMD CAN frames (this one and the simulated bus).
     """
     arbitration_id = frame.arbitration_id
-    if transport.frame_tap is not None:
+    if transport.frame_tap is not None and not tapped:
         transport.frame_tap(transport.clock(), True, arbitration_id, frame.data)
     # (a V3 drive's 0x300 id-setting and 0x500 motion replies are not the control loop's: counted as frames of other
     # devices, as 0x280 frames are)
