@@ -89,6 +89,8 @@ class Run:
     signal_peak_nm: np.ndarray
     fault: MotionFault | None
     final_deg: list[float]
+    #: The largest |signal| over the threshold in force per joint (over the bound where a joint is not watched).
+    limit_share_peak: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
 
 def nominal_run(
@@ -103,7 +105,7 @@ def nominal_run(
     not connected yet, where given: an emulated arm of ``config`` observing collisions)."""
     if arm is None:
         arm = Arm(config, emulate=True, observe_collisions=True, initial_deg=initial_deg)
-    peak = np.zeros(len(config.joints))
+    peak, share, limit = np.zeros(len(config.joints)), np.zeros(len(config.joints)), np.zeros(len(config.joints))
     fault = None
     with arm:
         supervisor = arm.supervisor
@@ -113,6 +115,9 @@ def nominal_run(
         def record(*_: object) -> None:
             if watchdog.collision_armed:
                 np.fmax(peak, np.abs(watchdog.collision_signal_nm), out=peak)
+                np.copyto(limit, watchdog.collision_limit_nm)
+                np.copyto(limit, watchdog.collision_bound_nm, where=~np.isfinite(limit))
+                np.fmax(share, np.abs(watchdog.collision_signal_nm) / limit, out=share)
 
         arm.controller.cycle_hooks.append(record)
         start = arm.controller.clock.now()
@@ -125,7 +130,7 @@ def nominal_run(
         duration = arm.controller.clock.now() - start
         final = list(arm.positions().values())
     record()
-    return Run(duration, peak, fault, final)
+    return Run(duration, peak, fault, final, share)
 
 
 @dataclass

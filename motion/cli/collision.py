@@ -2,11 +2,14 @@
 
 The program runs with the observer on and no threshold armed (the other fault sources stay armed); every cycle's
 collision signal (the residual's change over ``safety.collision_window_s``, see :mod:`motion.safety.watchdog`)
-is watched, and each joint's proposed threshold is its largest |signal| times ``--margin``. The proposal is printed
-and, with ``--write``, written into a copy of the configuration. Run the arm's real work (its fastest moves) on the
-real arm: the thresholds hold only for motions like the ones they were calibrated on. ``--emulate`` runs the program
-on the configuration's emulated drives in simulated time instead. The report also gives each joint's largest bound
-(:mod:`motion.safety.collision_bound`): the threshold in force is never below the bound, whatever is configured.
+is watched against the collision bound of that cycle (:mod:`motion.safety.collision_bound`: what a drive within the
+stated model error can show; the threshold in force is never below it). A joint whose signal times ``--margin`` stayed
+within the bound in every cycle is proposed ``bound`` (the bound alone in force: the check follows the motion); any
+other joint the largest |signal| times ``--margin`` among the cycles where that exceeded the bound (a floor under
+the bound where this arm's paths need one). The proposal is printed and, with ``--write``, written into a copy of
+the configuration. Run the arm's real work (its fastest moves) on the real arm: a floor holds only for motions like
+the ones it was calibrated on. ``--emulate`` runs the program on the configuration's emulated drives in simulated time
+instead.
 """
 
 from __future__ import annotations
@@ -23,6 +26,7 @@ from motion.cli.common import EXIT_OK, Interrupts, Session, add_emulate_flag, ad
 from motion.cli.moves import holding_first, run_program, with_arm
 from motion.cli.program import load_program
 from motion.config import ArmConfig, write_joint_values
+from motion.config.joints import BOUND_ALONE
 from motion.config.schema import ControlMode
 from motion.errors import MotionError
 
@@ -39,23 +43,28 @@ def unarmed(config: ArmConfig) -> ArmConfig:
 
 
 def propose(signal_peak_nm: np.ndarray, margin: float) -> np.ndarray:
-    """Thresholds, N·m: the largest |signal| of each joint times ``margin``, rounded up to 0.1 mN·m."""
+    """Thresholds, N·m: ``signal_peak_nm`` (per joint, the largest |signal| of the cycles where ``margin`` times it
+    exceeded the bound; 0 where none did) times ``margin``, rounded up to 0.1 mN·m; 0: the bound alone."""
     return np.ceil(np.asarray(signal_peak_nm, dtype=np.float64) * margin * 1e4) / 1e4
 
 
-def written_thresholds(config: ArmConfig, thresholds: np.ndarray) -> dict[str, float | dict[str, float]]:
-    """What ``--write`` puts in each joint's ``collision_threshold_nm``: the proposal for the configuration's mode,
-    and the other mode's threshold kept where it has one of its own (``{position: N, torque: N}``); else one number
-    (both modes: calibrate in the other mode too before running in it)."""
+def _yaml_threshold(threshold: float) -> float | str:
+    return BOUND_ALONE if threshold == 0.0 else threshold
+
+
+def written_thresholds(config: ArmConfig, thresholds: np.ndarray) -> dict[str, float | str | dict[str, float | str]]:
+    """What ``--write`` puts in each joint's ``collision_threshold_nm``: the proposal for the configuration's mode
+    (``bound`` for 0), and the other mode's threshold kept where it has one of its own (``{position: N, torque: N}``);
+    else one value (both modes: calibrate in the other mode too before running in it)."""
     mode = config.control.mode
     other = ControlMode.POSITION if mode.traits.host_torque else ControlMode.TORQUE  # (the key's other half)
-    values: dict[str, float | dict[str, float]] = {}
+    values: dict[str, float | str | dict[str, float | str]] = {}
     for joint, threshold in zip(config.joints, thresholds, strict=True):
         kept = joint.collision_threshold_in(other)
         if kept is None or kept == float(threshold):
-            values[joint.name] = float(threshold)
+            values[joint.name] = _yaml_threshold(float(threshold))
         else:
-            values[joint.name] = {mode.value: float(threshold), other.value: kept}
+            values[joint.name] = {mode.value: _yaml_threshold(float(threshold)), other.value: _yaml_threshold(kept)}
     return values
 
 
@@ -94,8 +103,11 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
     session = Session.from_args(args)
     config = session.config
     program = load_program(args.program, config)
-    peak = np.zeros(len(config.joints))
-    bound = np.zeros(len(config.joints))  # the largest bound seen: the threshold in force is never below the bound
+    n = len(config.joints)
+    peak = np.zeros(n)
+    bound = np.zeros(n)  # the largest bound seen: the threshold in force is never below the bound
+    beyond = np.zeros(n)  # the largest |signal| of the cycles where the margin times it exceeded the bound
+    signal, over = np.zeros(n), np.zeros(n, dtype=bool)
 
     def body(arm: Arm) -> int:
         supervisor, controller = arm.supervisor, arm.controller
@@ -105,8 +117,11 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
 
         def record(*_: object) -> None:  # a cycle hook: the signal of the cycle before (NaN ignored)
             if watchdog.collision_armed:
-                np.fmax(peak, np.abs(watchdog.collision_signal_nm), out=peak)
+                np.abs(watchdog.collision_signal_nm, out=signal)
+                np.fmax(peak, signal, out=peak)
                 np.fmax(bound, watchdog.collision_bound_nm, out=bound)
+                np.greater(signal * args.margin, watchdog.collision_bound_nm, out=over)
+                np.fmax(beyond, signal, out=beyond, where=over)
 
         holding_first(arm, args)
         controller.cycle_hooks.append(record)
@@ -124,7 +139,7 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
         observe_collisions=True,
         emulate=bool(args.emulate),
     )
-    thresholds = propose(peak, args.margin)
+    thresholds = propose(beyond, args.margin)
     names = config.joint_names
     written = None
     if args.write:
@@ -140,7 +155,8 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
                     {
                         "name": name,
                         "signal_peak_nm": round(float(peak[i]), 6),
-                        "threshold_nm": round(float(thresholds[i]), 6),
+                        "threshold_nm": round(float(thresholds[i]), 6) if thresholds[i] else None,
+                        "bound_alone": not thresholds[i],
                         "bound_peak_nm": round(float(bound[i]), 6),
                         "peak_torque_nm": config.joints[i].peak_torque_nm,
                     }
@@ -154,16 +170,16 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
         (
             name,
             f"{peak[i]:.4f}",
-            f"{thresholds[i]:.4f}",
-            f"{100 * thresholds[i] / config.joints[i].peak_torque_nm:.1f} %",
+            f"{thresholds[i]:.4f}" if thresholds[i] else BOUND_ALONE,
+            f"{100 * thresholds[i] / config.joints[i].peak_torque_nm:.1f} %" if thresholds[i] else "",
             f"{bound[i]:.4f}",
         )
         for i, name in enumerate(names)
     ]
     header = ("joint", "largest |signal| N·m", f"threshold N·m (x{args.margin:g})", "of peak torque")
     print_table((*header, "largest bound N·m"), rows)
-    print("(in force in every cycle: the threshold, or the bound of what a drive within its model error can show")
-    print(" where that is higher; see README, How it works)")
+    print("(in force in every cycle: the bound of what a drive within its model error can show, or the threshold")
+    print(" where that is higher; bound: the margin times the signal stayed within the bound; README, How it works)")
     if written:
         print(
             f"wrote {written} (collision_threshold_nm per joint for {config.control.mode.value} mode, the other"

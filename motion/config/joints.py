@@ -26,6 +26,8 @@ _ACCELERATION_LO, _ACCELERATION_HI = field_range(
 
 #: The keys of a per-mode ``collision_threshold_nm``, in the order of its two numbers.
 _THRESHOLD_MODES = ("position", "torque")
+#: A ``collision_threshold_nm`` of this word: the joint is watched with the collision bound alone in force (kept as 0).
+BOUND_ALONE = "bound"
 
 
 def _emulation(node: Node, rotor_inertia: float, viscous: float, coulomb: float) -> schema.EmulationConfig:
@@ -123,10 +125,19 @@ def _joint(node: Node, mode: schema.ControlMode) -> schema.JointConfig:
     return joint
 
 
+def _to_threshold(value: object) -> float:
+    """One mode's threshold: a number > 0, or ``bound`` (0: the bound alone in force)."""
+    if value == BOUND_ALONE:
+        return 0.0
+    if isinstance(value, str):
+        raise Invalid(f"expected a number (> 0) or {BOUND_ALONE}; found {value!r}")
+    return to_number(value, POSITIVE)
+
+
 def _to_thresholds(value: object) -> tuple[float, float]:
-    """``collision_threshold_nm``: a number (both control modes) or ``{position: N, torque: N}``."""
+    """``collision_threshold_nm``: a number or ``bound`` (both control modes), or ``{position: N, torque: N}``."""
     if not isinstance(value, Mapping):
-        number = to_number(value, POSITIVE)
+        number = _to_threshold(value)
         return number, number
     unknown = sorted(str(k) for k in value if k not in _THRESHOLD_MODES)
     if unknown:
@@ -134,9 +145,11 @@ def _to_thresholds(value: object) -> tuple[float, float]:
     numbers = []
     for mode in _THRESHOLD_MODES:
         if mode not in value:
-            raise Invalid("required key is missing (a number, > 0; or give one number for both modes)", f".{mode}")
+            raise Invalid(
+                f"required key is missing (a number, > 0, or {BOUND_ALONE}; or give one for both modes)", f".{mode}"
+            )
         try:
-            numbers.append(to_number(value[mode], POSITIVE))
+            numbers.append(_to_threshold(value[mode]))
         except Invalid as exc:
             raise Invalid(exc.message, f".{mode}") from None
     return numbers[0], numbers[1]
@@ -146,7 +159,7 @@ def _collision_thresholds(node: Node) -> tuple[float | None, float | None]:
     """The joint's collision thresholds in position and torque mode (None: not watched)."""
     if not node.has("collision_threshold_nm"):
         return None, None
-    expected = "a number, > 0, or {position: N, torque: N}"
+    expected = f"a number, > 0, {BOUND_ALONE}, or {{position: N, torque: N}}"
     return node.read("collision_threshold_nm", expected, _to_thresholds, None)
 
 

@@ -108,11 +108,16 @@ def load_config(path: str | os.PathLike[str]) -> schema.ArmConfig:
     return parse_config(read_yaml(file), source=str(file), base_dir=file.parent)
 
 
+def _yaml_value(value: float | str) -> float | str:
+    """A number as a float, a word (e.g. ``bound``) as it is."""
+    return value if isinstance(value, str) else float(value)
+
+
 def write_joint_values(
     source: str | os.PathLike[str],
     target: str | os.PathLike[str],
     key: str,
-    values: Mapping[str, float | Mapping[str, float]],
+    values: Mapping[str, float | str | Mapping[str, float | str]],
 ) -> schema.ArmConfig:
     """Write a copy of the configuration ``source`` to ``target`` with ``key`` set on the named joints (e.g. the
     proposed ``collision_threshold_nm``), and return the copy validated. The copy is written by the YAML library:
@@ -130,7 +135,9 @@ def write_joint_values(
     for name, value in values.items():
         if name not in joints:
             raise ConfigError(str(source_path), "joints", f"no joint {name!r}")
-        joints[name][key] = float(value) if isinstance(value, int | float) else {k: float(v) for k, v in value.items()}
+        joints[name][key] = _yaml_value(value) if not isinstance(value, Mapping) else {
+            k: _yaml_value(v) for k, v in value.items()
+        }
     model = data.get("model", {})
     if isinstance(model, dict) and "urdf" in model:
         urdf = (source_path.parent / str(model["urdf"])).resolve()

@@ -343,9 +343,9 @@ class JointConfig:
         viscous_friction_nm_per_dps: the joint's viscous friction, joint side, in N·m per deg/s (observer model).
         coulomb_friction_nm: the joint's Coulomb friction, joint side, in N·m (observer model).
         collision_threshold_nm: the collision observer's residual beyond which the arm faults (``collision``) in
-            position mode, N·m (None: the joint is not watched; see ``rmd-motion collision-calibrate``). In YAML one
-            number for both modes or ``{position: N, torque: N}``: position mode's 0xA4 steps put far more into the
-            sampled current than torque mode does.
+            position mode, N·m, where it is above the collision bound (None: the joint is not watched; 0: watched
+            with the bound alone in force, ``bound`` in YAML; see ``rmd-motion collision-calibrate``). In YAML one
+            value for both modes or ``{position: N, torque: N}``.
         collision_threshold_torque_nm: the same in torque mode (None: ``collision_threshold_nm``); set from
             ``collision_threshold_nm`` in YAML.
         power_on_window_deg: where the joint is guaranteed to be when the drives power up, ``(min, max)`` in degrees,

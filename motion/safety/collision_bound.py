@@ -23,7 +23,10 @@ Per joint, over the window, in N·m:
   cycle, the signal moves by the change of that (filtered as the residual) over the window, not by ``X`` itself;
   a step longer or shorter than the one before by a share ``f``
   of the period moves the sample within the response, by up to ``f X`` (at most ``X``), at each end of the
-  window;
+  window. The phase is the same every cycle only as far as the drive's response is linear and its state the same
+  from step to step: a drive whose loops saturate or whose speed and acceleration change along the path moves the
+  sample by up to :data:`STEP_DRIFT` of ``X`` at each end of the window, plus :data:`STEP_FLOOR_STEPS` steps of the
+  current field;
 - **friction at rest**: within :data:`REST_BAND_SMOOTHINGS` smoothing widths of the observer's Coulomb model (plus
   a step of the speed field) of rest, the joint's friction is anything up to its breakaway, ``(1 + ε) F_c``, either
   way (a joint held by stiction takes whatever torque the drive pushes with), and its sampled speed does not say
@@ -67,6 +70,12 @@ _END_ROWS = (_SAMPLING_ROW, _REST_ROW, _PHASE_ROW)  # taken at both ends of the 
 #: The most of ``X`` the sample is off by: an ideal speed loop's brake is ``X``; a real one's overshoot adds to it
 #: (the example arms' drawn drives: up to 1.2).
 STEP_SHARE = 1.25
+#: Position mode: how far the sample moves within the drive's response along a path: a share of ``X`` at each end of
+#: the window, plus current steps (module doc). Drives drawn within the stated bounds on the example arms'
+#: paths (tests/clean_sweep.py, seeds 30 and 11) needed up to 0.004 of ``X`` with 5 current steps, or 0.008 with 2.7:
+#: taken 0.01 and 6.
+STEP_DRIFT = 0.03
+STEP_FLOOR_STEPS = 6.0
 #: A joint counts as at rest for the friction-at-rest row within this many smoothing widths of the observer's
 #: Coulomb model (tanh(3) = 0.995 of the friction), plus one step of the speed field.
 REST_BAND_SMOOTHINGS = 3.0
@@ -135,6 +144,7 @@ class CollisionBound:
         )
         self._speed = 2.0 * observer.gain_per_s * step_rad_s
         self._current = np.abs(controller.transmission.joint_torque_nm(np.full(len(specs), family.current_step_a)))
+        self._drift_floor = STEP_FLOOR_STEPS * self._current
         self._delta = np.zeros((TERM_ROWS, len(specs)))
         #: The latest bound per joint, N·m.
         self.bound_nm = np.zeros(len(specs))
@@ -216,4 +226,9 @@ class CollisionBound:
         np.dot(self._mass, self._speed, out=self._delta[0])
         bound += self._delta[0]
         bound += self._current
+        if self._steps:  # the sample's drift within the drive's response (module doc), at each end of the window
+            np.add(head[_STEP_ROW], start[_STEP_ROW], out=self._delta[0])
+            self._delta[0] *= STEP_DRIFT
+            bound += self._delta[0]
+            bound += self._drift_floor
         return np.maximum(configured, bound, out=out)
