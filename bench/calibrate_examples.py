@@ -1,16 +1,14 @@
-"""The example arms' collision thresholds, as their configurations say they were calibrated: margin 1.5 on the largest
-collision signal of each control mode (``{position: N, torque: N}``) over the demo's waypoint path (position mode) and
-torque move, and each joint alone moved from rest to 80 % of its range, to the other side and back (in both modes),
-all at speed scale 1.0, on the example's emulated drives as configured and on four corners of the drive models the
-checks must bear (every joint's loop tuning at half or twice the factory's, its torque constant, rotor inertia and
-friction at the ends of their stated error: ``tests/drive_models.py``), in simulated time (the same figures on any
-host).
+"""The example arms' collision thresholds, as ``rmd-motion collision-calibrate --margin 1.5`` proposes them, over the
+demo's waypoint path (position mode) and torque move, and each joint alone moved from rest to 80 % of its range, to
+the other side and back (in both modes), all at speed scale 1.0, on the example's emulated drives as configured and on
+four corners of the drive models the checks must bear (every joint's loop tuning at half or twice the factory's, its
+torque constant, rotor inertia and friction at the ends of their stated error: ``tests/drive_models.py``), in
+simulated time (the same figures on any host): per joint and control mode, ``bound`` (the collision bound alone in
+force, ``motion/safety/collision_bound.py``) where 1.5 times the signal stayed within the bound in every cycle, else
+a floor of 1.5 times the largest signal that did not. It also prints each joint's largest signal / bound.
 
     .venv/bin/python bench/calibrate_examples.py --jobs 2              # print them
     .venv/bin/python bench/calibrate_examples.py --jobs 2 --write      # and write them into configs/
-
-The threshold in force never goes below the collision bound (``motion/safety/collision_bound.py``), whatever is
-written; these are the margin above it that the example's own paths need on drives we did not tune for.
 """
 
 from __future__ import annotations
@@ -57,21 +55,23 @@ def _alone(name: str, far_deg: float, other_deg: float) -> Callable[[Arm], objec
 
 
 def peaks(config: ArmConfig) -> tuple[dict[str, np.ndarray], list[str]]:
-    """The largest |collision signal| per joint over the calibration motions, per control mode, and any fault they
-    met."""
+    """Per control mode, the largest |collision signal| per joint over the calibration motions whose margin times
+    left the bound (``{mode}``) and the largest signal / bound (``{mode} share``), and any fault they met."""
     position = without_thresholds(config)
     torque = torque_variant(position)
-    peak = {"position": np.zeros(len(config.joints)), "torque": np.zeros(len(config.joints))}
+    n = len(config.joints)
+    peak = {key: np.zeros(n) for key in ("position", "torque", "position share", "torque share")}
     faults: list[str] = []
     runs = [("position", position, demo_path(1.0)), ("torque", torque, torque_move(1.0))]
     for joint in config.joints:
         motion = _alone(joint.name, SHARE * joint.position_max_deg, SHARE * joint.position_min_deg)
         runs += [("position", position, motion), ("torque", torque, motion)]
     for mode, run_config, motion in runs:
-        run = nominal_run(run_config, motion)
+        run = nominal_run(run_config, motion, margin=MARGIN)
         if run.fault is not None:
             faults.append(str(run.fault))
-        np.fmax(peak[mode], run.signal_peak_nm, out=peak[mode])
+        np.fmax(peak[mode], run.beyond_nm, out=peak[mode])
+        np.fmax(peak[f"{mode} share"], run.limit_share_peak, out=peak[f"{mode} share"])
     return peak, faults
 
 
@@ -86,16 +86,23 @@ def _peaks_on(name_corner: tuple[str, int]) -> tuple[str, int, dict[str, np.ndar
     return name, corner, peak, faults
 
 
+def _yaml(threshold: float) -> str:
+    return "bound" if threshold == 0.0 else f"{threshold:.4g}"
+
+
 def write(path: Path, thresholds: list[tuple[float, float]]) -> None:
-    """Replace the file's ``collision_threshold_nm`` values, in joint order, with ``{position: N, torque: N}``."""
+    """Replace the file's ``collision_threshold_nm`` values, in joint order, with ``{position: N, torque: N}`` (one
+    value where both are the same; ``bound`` for 0)."""
     text = path.read_text()
     values = iter(thresholds)
 
     def value(match: re.Match[str]) -> str:
         position, torque = next(values)
-        return f"{match.group(1)}{{position: {position:.4g}, torque: {torque:.4g}}}"
+        if position == torque:
+            return f"{match.group(1)}{_yaml(position)}"
+        return f"{match.group(1)}{{position: {_yaml(position)}, torque: {_yaml(torque)}}}"
 
-    text, count = re.subn(r"(collision_threshold_nm: )(?:[0-9.]+|\{[^}]*\})", value, text)
+    text, count = re.subn(r"(collision_threshold_nm: )(?:[0-9.]+|bound|\{[^}]*\})", value, text)
     if count != len(thresholds):
         raise SystemExit(f"{path}: {count} collision_threshold_nm keys for {len(thresholds)} joints")
     path.write_text(text)
@@ -111,14 +118,13 @@ def main() -> None:
     with multiprocessing.get_context("spawn").Pool(args.jobs) as pool:
         for name, corner, peak, faults in pool.imap_unordered(_peaks_on, work):
             drives = "configured drives" if corner < 0 else f"corner {CORNERS[corner]}"
-            print(f"{name}, {drives}: position {np.round(peak['position'], 4)}, torque {np.round(peak['torque'], 4)}")
+            shares = f"position {np.round(peak['position share'], 2)}, torque {np.round(peak['torque share'], 2)}"
+            print(f"{name}, {drives}: largest signal / bound: {shares}")
             for fault in faults:
                 print(f"  fault on the way: {fault}")
-            mine = found.setdefault(
-                name, {"position": np.zeros(len(peak["position"])), "torque": np.zeros(len(peak["torque"]))}
-            )
-            for mode in mine:
-                np.fmax(mine[mode], peak[mode], out=mine[mode])
+            mine = found.setdefault(name, {key: np.zeros(len(value)) for key, value in peak.items()})
+            for key in mine:
+                np.fmax(mine[key], peak[key], out=mine[key])
     for name in EXAMPLES:
         path = CONFIGS / name
         config = load_config(path)
@@ -130,8 +136,8 @@ def main() -> None:
         print(f"{name}:")
         for i, joint in enumerate(config.joints):
             print(
-                f"  {joint.name}: largest signal {peak['position'][i]:.4g} N·m in position mode, "
-                f"{peak['torque'][i]:.4g} in torque mode; thresholds {thresholds[i]} (were "
+                f"  {joint.name}: largest signal / bound {peak['position share'][i]:.2f} in position mode, "
+                f"{peak['torque share'][i]:.2f} in torque mode; thresholds {thresholds[i]} (0: bound; were "
                 f"{joint.collision_threshold_nm}, {joint.collision_threshold_in(ControlMode.TORQUE)})"
             )
         if args.write:

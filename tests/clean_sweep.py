@@ -164,11 +164,15 @@ def _step(arm: Arm, step: tuple[str, float, tuple[tuple[float, ...], ...]]) -> M
 
 def calibrated(case: Case, config: ArmConfig) -> ArmConfig:
     """``config`` with thresholds calibrated as ``rmd-motion collision-calibrate --margin`` :data:`CALIBRATION_MARGIN`
-    would on the case's own drives: the largest |signal| of its first step, clean, per joint, times the margin."""
+    would on the case's own drives: per joint, the bound alone, or the margin times the largest |signal| of its
+    first step, clean, whose margin times left the bound."""
     unarmed = without_thresholds(config)
-    run = nominal_run(unarmed, lambda arm: _step(arm, case.steps[0]), arm=_arm(case, unarmed, observe=True))
-    peak = run.signal_peak_nm
-    return with_thresholds(config, list(propose(peak, CALIBRATION_MARGIN)))
+
+    def motion(arm: Arm) -> MotionHandle:
+        return _step(arm, case.steps[0])
+
+    run = nominal_run(unarmed, motion, arm=_arm(case, unarmed, observe=True), margin=CALIBRATION_MARGIN)
+    return with_thresholds(config, list(propose(run.beyond_nm, CALIBRATION_MARGIN)))
 
 
 def detect(case: Case, *, bound_only: bool = False, calibrating: bool = False) -> Trial | None:

@@ -91,6 +91,9 @@ class Run:
     final_deg: list[float]
     #: The largest |signal| over the threshold in force per joint (over the bound where a joint is not watched).
     limit_share_peak: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    #: With a ``margin``: the largest |signal| per joint of the cycles where the margin times it exceeded the bound
+    #: (what ``collision-calibrate`` proposes a floor from; 0: none did).
+    beyond_nm: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
 
 def nominal_run(
@@ -100,12 +103,15 @@ def nominal_run(
     initial_deg: Sequence[float] | None = None,
     settle_s: float = 0.3,
     arm: Arm | None = None,
+    margin: float = 1.0,
 ) -> Run:
     """Run ``motion`` to its end (plus ``settle_s``) with the observer on; the largest |signal| per joint (on ``arm``,
-    not connected yet, where given: an emulated arm of ``config`` observing collisions)."""
+    not connected yet, where given: an emulated arm of ``config`` observing collisions), and the largest of those
+    whose ``margin`` times left the bound."""
     if arm is None:
         arm = Arm(config, emulate=True, observe_collisions=True, initial_deg=initial_deg)
-    peak, share, limit = np.zeros(len(config.joints)), np.zeros(len(config.joints)), np.zeros(len(config.joints))
+    n = len(config.joints)
+    peak, share, limit, beyond, signal = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
     fault = None
     with arm:
         supervisor = arm.supervisor
@@ -114,10 +120,12 @@ def nominal_run(
 
         def record(*_: object) -> None:
             if watchdog.collision_armed:
-                np.fmax(peak, np.abs(watchdog.collision_signal_nm), out=peak)
+                np.abs(watchdog.collision_signal_nm, out=signal)
+                np.fmax(peak, signal, out=peak)
                 np.copyto(limit, watchdog.collision_limit_nm)
                 np.copyto(limit, watchdog.collision_bound_nm, where=~np.isfinite(limit))
-                np.fmax(share, np.abs(watchdog.collision_signal_nm) / limit, out=share)
+                np.fmax(share, signal / limit, out=share)
+                np.fmax(beyond, signal, out=beyond, where=signal * margin > watchdog.collision_bound_nm)
 
         arm.controller.cycle_hooks.append(record)
         start = arm.controller.clock.now()
@@ -130,7 +138,7 @@ def nominal_run(
         duration = arm.controller.clock.now() - start
         final = list(arm.positions().values())
     record()
-    return Run(duration, peak, fault, final, share)
+    return Run(duration, peak, fault, final, share, beyond)
 
 
 @dataclass

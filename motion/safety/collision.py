@@ -8,9 +8,10 @@ What is held against a joint's threshold is the *collision signal*: the residual
 ``collision_window_s`` (with 0, the residual itself). A collision is a torque step, which the residual takes up
 within a few cycles; what the model gets wrong changes slowly along the motion and mostly cancels in the difference.
 What does not cancel is bounded (:mod:`motion.safety.collision_bound`: the model error a drive may have, the steps of
-the reply fields, the current between two samples), and the threshold in force is the joint's configured
-``collision_threshold_nm`` (``rmd-motion collision-calibrate`` proposes it) or that bound, whichever is higher: no
-calibration takes the check below what a drive within the stated bounds can show. A contact that builds up more
+the reply fields, the current between two samples, the drift of position mode's sample), and the threshold in force
+is that bound, or the joint's configured ``collision_threshold_nm`` where that is higher (0, ``bound`` in YAML: the
+bound alone; ``rmd-motion collision-calibrate`` proposes it): no configuration takes the check below what a drive
+within the stated bounds can show. A contact that builds up more
 slowly than the window is left to the following error. The check is armed
 :data:`COLLISION_SETTLE_TIME_CONSTANTS` of the observer plus the window after it (re)starts (loop start, ``clear()``):
 there the drives take up their whole load at once, and any model error of that load is a step of the residual.
