@@ -135,9 +135,9 @@ def write_joint_values(
     for name, value in values.items():
         if name not in joints:
             raise ConfigError(str(source_path), "joints", f"no joint {name!r}")
-        joints[name][key] = _yaml_value(value) if not isinstance(value, Mapping) else {
-            k: _yaml_value(v) for k, v in value.items()
-        }
+        joints[name][key] = (
+            _yaml_value(value) if not isinstance(value, Mapping) else {k: _yaml_value(v) for k, v in value.items()}
+        )
     model = data.get("model", {})
     if isinstance(model, dict) and "urdf" in model:
         urdf = (source_path.parent / str(model["urdf"])).resolve()

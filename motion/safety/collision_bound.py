@@ -26,7 +26,10 @@ Per joint, over the window, in N·m:
   window. The phase is the same every cycle only as far as the drive's response is linear and its state the same
   from step to step: a drive whose loops saturate or whose speed and acceleration change along the path moves the
   sample by up to :data:`STEP_DRIFT` of ``X`` at each end of the window, plus :data:`STEP_FLOOR_STEPS` steps of the
-  current field;
+  current field. These position-mode rows are a model of the drives' response; drives at the corners of the stated
+  bounds (every joint's loop tuning doubled with the rotor inertia 30 % up and the torque constant 20 % down) exceed
+  them by up to :data:`POSITION_MARGIN` (less 7 %), and the sum of every row is taken that many times in position
+  mode;
 - **friction at rest**: within :data:`REST_BAND_SMOOTHINGS` smoothing widths of the observer's Coulomb model (plus
   a step of the speed field) of rest, the joint's friction is anything up to its breakaway, ``(1 + ε) F_c``, either
   way (a joint held by stiction takes whatever torque the drive pushes with), and its sampled speed does not say
@@ -76,6 +79,9 @@ STEP_SHARE = 1.25
 #: taken 0.01 and 6.
 STEP_DRIFT = 0.03
 STEP_FLOOR_STEPS = 6.0
+#: Position mode: the bound is its rows' sum times this (module doc): bench/calibrate_examples.py's corners reached 1.21
+#: of the sum (arm6_v3's wrist_roll on the demo's path, every drive tuned twice the factory's).
+POSITION_MARGIN = 1.3
 #: A joint counts as at rest for the friction-at-rest row within this many smoothing widths of the observer's
 #: Coulomb model (tanh(3) = 0.995 of the friction), plus one step of the speed field.
 REST_BAND_SMOOTHINGS = 3.0
@@ -231,4 +237,5 @@ class CollisionBound:
             self._delta[0] *= STEP_DRIFT
             bound += self._delta[0]
             bound += self._drift_floor
+            bound *= POSITION_MARGIN
         return np.maximum(configured, bound, out=out)
