@@ -1,6 +1,6 @@
 """The example arms' collision check on drives at the corners of the stated bounds: each joint's largest signal / bound
-and what ``rmd-motion collision-calibrate --margin 1.5`` would propose, over the demo's waypoint path (position mode) and torque move, and each joint alone moved from rest to 80 % of its range, to
-the other side and back (in both modes), all at speed scale 1.0, on the example's emulated drives as configured and on
+and what ``rmd-motion collision-calibrate --margin 1.5`` would propose, over the demo's waypoint path (position mode)
+and torque move, and each joint alone moved from rest to 80 % of its range, to the other side and back (in both modes), all at speed scale 1.0, on the example's emulated drives as configured and on
 four corners of the drive models the checks must bear (every joint's loop tuning at half or twice the factory's, its
 torque constant, rotor inertia and friction at the ends of their stated error: ``tests/drive_models.py``), in
 simulated time (the same figures on any host): per joint and control mode, ``bound`` (the collision bound alone in
