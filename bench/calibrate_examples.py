@@ -1,13 +1,14 @@
-"""The example arms' collision check on drives at the corners of the stated bounds: each joint's largest signal / bound
-and what ``rmd-motion collision-calibrate --margin 1.5`` would propose, over the demo's waypoint path (position mode)
-and torque move, and each joint alone moved from rest to 80 % of its range, to the other side and back (in both modes), all at speed scale 1.0, on the example's emulated drives as configured and on
-four corners of the drive models the checks must bear (every joint's loop tuning at half or twice the factory's, its
-torque constant, rotor inertia and friction at the ends of their stated error: ``tests/drive_models.py``), in
-simulated time (the same figures on any host): per joint and control mode, ``bound`` (the collision bound alone in
-force, ``motion/safety/collision_bound.py``) where 1.5 times the signal stayed within the bound in every cycle, else
-a floor of 1.5 times the largest signal that did not. The examples ship ``bound`` on every joint: the signal
-stays below the bound on every corner (2026-11-28: at most 0.93, arm6_v3's wrist_roll in position mode), which the
-margin's proposal would turn into floors where it passes two thirds of it.
+"""The example arms' collision check on drives at the corners of the stated bounds: each joint's largest signal /
+bound and what ``rmd-motion collision-calibrate --margin 1.5`` would propose, over the demo's waypoint path (position
+mode) and torque move, and each joint alone moved from rest to 80 % of its range, to the other side and back (in both
+modes), all at speed scale 1.0, on the example's emulated drives as configured and on four corners of the drive
+models the checks must bear (every joint's loop tuning at half or twice the factory's, its torque constant, rotor
+inertia and friction at the ends of their stated error: ``tests/drive_models.py``), in simulated time (the same
+figures on any host): per joint and control mode, ``bound`` (the collision bound alone in force,
+``motion/safety/collision_bound.py``) where 1.5 times the signal stayed within the bound in every cycle, else a floor
+of 1.5 times the largest signal that did not. The examples ship ``bound`` on every joint: the signal stays below the
+bound on every corner (2026-11-28: at most 0.93, arm6_v3's wrist_roll in position mode), which the margin's proposal
+would turn into floors where it passes two thirds of it.
 
     .venv/bin/python bench/calibrate_examples.py --jobs 2              # print them
     .venv/bin/python bench/calibrate_examples.py --jobs 2 --write      # and write them into configs/

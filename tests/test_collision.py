@@ -242,8 +242,8 @@ def test_model_mismatch_is_no_false_positive(torque_constant: float, friction: f
 
 
 #: arm6's shoulder and elbow in position mode: the share of their peak torque a collision takes to stand out of the
-#: bound within 5 cycles while the demo's path cruises (their bound there: about 3.5 and 1.5 N·m, mostly the drift of the
-#: 0xA4 steps' response at 30 to 60 deg/s, against 15 % of their peak torque, 5.4 and 1.62 N·m)
+#: bound within 5 cycles while the demo's path cruises (their bound there: about 3.5 and 1.5 N·m, mostly the drift of
+#: the 0xA4 steps' response at 30 to 60 deg/s, against 15 % of their peak torque, 5.4 and 1.62 N·m)
 HEAVY_SHARE = 0.25
 
 
