@@ -74,9 +74,9 @@ _END_ROWS = (_SAMPLING_ROW, _REST_ROW, _PHASE_ROW)  # taken at both ends of the 
 #: (the example arms' drawn drives: up to 1.2).
 STEP_SHARE = 1.25
 #: Position mode: how far the sample moves within the drive's response along a path: a share of ``X`` at each end of
-#: the window, plus current steps (module doc). Drives drawn within the stated bounds on the example arms'
-#: paths (tests/clean_sweep.py, seeds 30 and 11) needed up to 0.004 of ``X`` with 5 current steps, or 0.008 with 2.7:
-#: taken 0.01 and 6.
+#: the window, plus current steps (module doc). Drives drawn within the stated bounds on the example arms' paths
+#: (tests/clean_sweep.py, 200 cases each) needed up to 0.004 of ``X`` with 5 current steps (seed 30) and 0.016 with
+#: 3.4 (seed 11): taken 0.03 and 6.
 STEP_DRIFT = 0.03
 STEP_FLOOR_STEPS = 6.0
 #: Position mode: the bound is its rows' sum times this (module doc): bench/calibrate_examples.py's corners reached 1.21
