@@ -5,8 +5,8 @@ collision signal (the residual's change over ``safety.collision_window_s``, see 
 is watched against the collision bound of that cycle (:mod:`motion.safety.collision_bound`: what a drive within the
 stated model error can show; the threshold in force is never below it). A joint whose signal times ``--margin`` stayed
 within the bound in every cycle is proposed ``bound`` (the bound alone in force: the check follows the motion); any
-other joint the largest |signal| times ``--margin`` among the cycles where that exceeded the bound (a floor under
-the bound where this arm's paths need one). The proposal is printed and, with ``--write``, written into a copy of
+other joint the largest |signal| times ``--margin`` among the cycles where that exceeded the bound (a floor below
+which the threshold in force never goes, where this arm's paths need one). The proposal is printed and, with ``--write``, written into a copy of
 the configuration. Run the arm's real work (its fastest moves) on the real arm: a floor holds only for motions like
 the ones it was calibrated on. ``--emulate`` runs the program on the configuration's emulated drives in simulated time
 instead.
