@@ -6,10 +6,10 @@ is watched against the collision bound of that cycle (:mod:`motion.safety.collis
 stated model error can show; the threshold in force is never below it). A joint whose signal times ``--margin`` stayed
 within the bound in every cycle is proposed ``bound`` (the bound alone in force: the check follows the motion); any
 other joint the largest |signal| times ``--margin`` among the cycles where that exceeded the bound (a floor below
-which the threshold in force never goes, where this arm's paths need one). The proposal is printed and, with ``--write``, written into a copy of
-the configuration. Run the arm's real work (its fastest moves) on the real arm: a floor holds only for motions like
-the ones it was calibrated on. ``--emulate`` runs the program on the configuration's emulated drives in simulated time
-instead.
+which the threshold in force never goes, where this arm's paths need one). The proposal is printed and, with
+``--write``, written into a copy of the configuration. Run the arm's real work (its fastest moves) on the real arm: a
+floor holds only for motions like the ones it was calibrated on. ``--emulate`` runs the program on the
+configuration's emulated drives in simulated time instead.
 """
 
 from __future__ import annotations
