@@ -107,7 +107,7 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
     peak = np.zeros(n)
     bound = np.zeros(n)  # the largest bound seen: the threshold in force is never below the bound
     beyond = np.zeros(n)  # the largest |signal| of the cycles where the margin times it exceeded the bound
-    signal, over = np.zeros(n), np.zeros(n, dtype=bool)
+    signal, scaled, over = np.zeros(n), np.zeros(n), np.zeros(n, dtype=bool)  # (the hook allocates nothing)
 
     def body(arm: Arm) -> int:
         supervisor, controller = arm.supervisor, arm.controller
@@ -120,7 +120,8 @@ def calibrate(args: argparse.Namespace, interrupts: Interrupts) -> int:
                 np.abs(watchdog.collision_signal_nm, out=signal)
                 np.fmax(peak, signal, out=peak)
                 np.fmax(bound, watchdog.collision_bound_nm, out=bound)
-                np.greater(signal * args.margin, watchdog.collision_bound_nm, out=over)
+                np.multiply(signal, args.margin, out=scaled)
+                np.greater(scaled, watchdog.collision_bound_nm, out=over)
                 np.fmax(beyond, signal, out=beyond, where=over)
 
         holding_first(arm, args)
