@@ -37,7 +37,7 @@ from motion.control.turns import (
 from motion.errors import ConfigError, TransportError
 from motion.keep import drive_record_for
 from motion.protocol import WireProtocol
-from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily
+from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily, split_address
 from motion.safety import SafetySettings, Supervisor
 from motion.safety.watchdog import CollisionObserver, Watchdog
 from motion.trajectory import JointLimits
@@ -84,24 +84,19 @@ def axis_specs(config: ArmConfig, family: ProtocolFamily = ProtocolFamily.V2) ->
 
 
 def wire_protocol(config: ArmConfig) -> WireProtocol:
-    """The protocol spoken on the configured bus (every bus of the arm).
+    """The protocol spoken on the configured bus: the first bus's (an arm on buses of both transports: see
+    :func:`bus_wires`)."""
+    return config.buses[0].transport
 
-    Raises:
-        ConfigError: the arm's buses are of both transports (one arm's set-points are built for one wire so far).
-    """
-    wires = {bus.transport for bus in config.buses}
-    if len(wires) > 1:
-        raise ConfigError(
-            config.source,
-            "buses",
-            "buses of both transports (can and rs485) in one arm: not supported yet; put every bus of the arm on one",
-        )
-    return wires.pop()
+
+def bus_wires(config: ArmConfig) -> tuple[WireProtocol, ...]:
+    """The wire protocol of each bus of the arm, in the order of ``buses:`` (the bus index of the addresses)."""
+    return tuple(bus.transport for bus in config.buses)
 
 
 def controller_options(config: ArmConfig) -> ControllerOptions:
     """Loop settings from ``control:``."""
-    return ControllerOptions(mode=config.control.mode, rate_hz=config.control.rate_hz, protocol=wire_protocol(config))
+    return ControllerOptions(mode=config.control.mode, rate_hz=config.control.rate_hz, wires=bus_wires(config))
 
 
 def opening_family(config: ArmConfig) -> ProtocolFamily:
@@ -207,7 +202,13 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
     spoken = bus if bus.family is wanted else bus.with_family(wanted)
     if found:
         labels = {j.address: j.drive_label for j in config.joints}
-        described = describe_drives(spoken, sorted(found), wire_protocol(config), labels)
+        wires = bus_wires(config)
+        described = ", ".join(
+            text
+            for wire in dict.fromkeys(wires)  # (each wire's reads for the drives on its buses)
+            if (on := [a for a in sorted(found) if wires[split_address(a)[0]] is wire])
+            and (text := describe_drives(spoken, on, wire, labels))
+        )
         if described:
             logger.info("drives of the %s: %s", spoken.generation.title, described)
     return spoken

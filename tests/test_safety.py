@@ -75,9 +75,8 @@ def _move_and_catch(
     assert supervisor.state is ArmState.MOVING
     first = rig.controller.loop.next_cycle  # the first cycle that can see what is injected now
     if status_read_of is not None:
-        reads, last = supervisor._status_reads, supervisor._round_robin  # the read that went out last
         wanted = Request(status_read_of, rig.controller.family.bare(read))
-        detected_in = next(j for j in range(1, len(reads) + 1) if reads[(last + j) % len(reads)] == wanted)
+        detected_in = supervisor.status_rounds.cycles_until(wanted)
     inject()
     with pytest.raises(MotionFault) as info:
         supervisor.wait(5.0)

@@ -20,7 +20,6 @@ from motion.compose import (
     open_bus,
     opening_family,
     rehearsal_watchdog,
-    wire_protocol,
 )
 from motion.config import ArmConfig
 from motion.config.schema import CanBusConfig, ControlMode, ProtocolSetting
@@ -70,19 +69,8 @@ def emulated_family(config: ArmConfig, protocol: ProtocolFamily | str | None) ->
 
 
 def simulated_lines(config: ArmConfig) -> list[tuple[WireProtocol, int]]:
-    """The lines of ``config``'s simulated time: one per bus, each at its own rate (their frames go out at the same
-    time).
-
-    Raises:
-        ConfigError: several RS485 lines (simulated time models several CAN buses only).
-    """
-    if wire_protocol(config) is not WireProtocol.CAN and len(config.buses) > 1:
-        raise ConfigError(
-            config.source,
-            "buses",
-            "simulated time models several CAN buses; an arm on several RS485 lines runs on emulated drives in "
-            "real time only (rmd-motion emulate --config FILE --rs485-link BUS=PATH for each)",
-        )
+    """The lines of ``config``'s simulated time: one per bus, each at its own rate (their exchanges run at the same
+    time: a CAN bus's frames go out together, an RS485 line's one exchange after the other)."""
     return [
         (WireProtocol.CAN, bus.bitrate or DEFAULT_BITRATE)
         if isinstance(bus, CanBusConfig)
@@ -115,10 +103,10 @@ def emulator_process(
     folder = Path(tempfile.mkdtemp(prefix="rmd-emulated-"))
     several = len(config.buses) > 1
     links = {bus.name: folder / (f"link-{bus.name}" if several else "link") for bus in config.buses}
-    can = wire_protocol(config) is WireProtocol.CAN
     command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(source), "--protocol", protocol.value]
-    for name, link in links.items():
-        command += ["--slcan-link" if can else "--rs485-link", f"{name}={link}" if several else str(link)]
+    for bus, (name, link) in zip(config.buses, links.items(), strict=True):
+        flag = "--slcan-link" if bus.transport is WireProtocol.CAN else "--rs485-link"
+        command += [flag, f"{name}={link}" if several else str(link)]
     if log is not None:
         command += ["--log", os.fspath(log)]
     if latency_ms is not None:
@@ -138,14 +126,32 @@ def emulator_process(
                 error = process.stderr.read() if process.stderr is not None else ""
                 raise TransportError(f"the emulator process did not start: {' '.join(lines)} {error}".strip())
             lines.append(line.strip())
-        paths: object = {name: str(link) for name, link in links.items()} if several else str(*links.values())
-        if can:
-            yield {"interface": "slcan", "channel": paths, "bitrate": DEFAULT_BITRATE, "sleep_after_open": 0}
-        else:
-            yield {"port": paths}
+        yield _link_overrides(config, links)
     finally:
         _end_process(process)
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def _link_overrides(config: ArmConfig, links: Mapping[str, Path]) -> dict[str, object]:
+    """The bus overrides that reach the emulator's pseudo-terminals: each value for the one bus, or a mapping of the
+    buses' names to each one's (a key only for the buses of its transport)."""
+    overrides: dict[str, dict[str, object]] = {}
+    for bus in config.buses:
+        link = str(links[bus.name])
+        if bus.transport is WireProtocol.CAN:
+            mine: dict[str, object] = {
+                "interface": "slcan",
+                "channel": link,
+                "bitrate": DEFAULT_BITRATE,
+                "sleep_after_open": 0,
+            }
+        else:
+            mine = {"port": link}
+        for key, value in mine.items():
+            overrides.setdefault(key, {})[bus.name] = value
+    if len(config.buses) == 1:
+        return {key: value for key, (value,) in ((k, tuple(v.values())) for k, v in overrides.items())}
+    return dict(overrides)
 
 
 def measure_modes(config: ArmConfig, bus: Transport) -> dict[str, RateCheck]:

@@ -52,7 +52,8 @@ class ControllerOptions:
     Attributes:
         mode: position or torque streaming.
         rate_hz: control rate, Hz.
-        protocol: the wire protocol of the bus (decides 0xA4 layout and the use of 0x280).
+        wires: the wire protocol of each bus, by the bus index of the drives' addresses (each bus's decides the 0xA4
+            speed cap's ceiling, the use of 0x280 and how many status reads its cycle carries).
         speed_headroom: 0xA4 max speed = planned motor speed × headroom + floor, so that the drive's own position
             loop (which lags the stream by speed / its gain) can catch up during the move; never above the joint's
             velocity limit (a stale or jumping set-point cannot drive a joint past it).
@@ -67,7 +68,7 @@ class ControllerOptions:
 
     mode: ControlMode = ControlMode.POSITION
     rate_hz: float = 200.0
-    protocol: WireProtocol = WireProtocol.CAN
+    wires: tuple[WireProtocol, ...] = (WireProtocol.CAN,)
     speed_headroom: float = 1.5
     speed_floor_share: float = 0.1
     catch_up_share: float = 0.1
@@ -150,7 +151,7 @@ class Controller(MotionCommands, LoopRunning):
             BuilderSettings(
                 self.specs,
                 family,
-                options.protocol,
+                options.wires,
                 velocity_limit,
                 options.speed_headroom,
                 options.speed_floor_share,
@@ -222,9 +223,10 @@ class Controller(MotionCommands, LoopRunning):
         q = self.axes.positions()
         self.follower = Follower(self.planner, q)
         self.reference = State.at_rest(q)
-        if self.options.protocol is WireProtocol.RS485:
+        if WireProtocol.RS485 in self.options.wires:
             # An RS485 exchange takes as long as a set-point's: no room in a cycle's batch (on CAN the reads ride at
-            # the end of the first cycles' batches, a quarter of a millisecond each, and connecting takes no longer).
+            # the end of the first cycles' batches, a quarter of a millisecond each, and connecting takes no longer;
+            # an arm with an RS485 line among its buses reads them all now).
             self.tracking.read_now(self.bus, self.clock.now() + timeout_s)
         self.tracking.reset(q, self.axes.qd_dps)
         self._publish(0, now, False)  # what was read, before the first cycle

@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Final
 
@@ -45,6 +45,7 @@ from motion.control.clock import is_simulated
 from motion.control.controller import Controller
 from motion.errors import ConfigError, DrivesSilent
 from motion.protocol import Command, WireProtocol
+from motion.protocol.table import split_address
 from motion.transport.base import Reply, Request
 
 #: The fewest exchanges measured in real time (a few dozen: about 0.1 s of bus time for six joints at 1 Mbit/s) ...
@@ -77,7 +78,7 @@ FLAG_AGE_S: Final = 0.05
 
 
 def status_reads_per_cycle(drives: int, period_s: float, protocol: WireProtocol) -> int:
-    """How many of the round-robin status reads (two per drive: 0x9A and the restart read) each cycle carries: on
+    """How many of a bus's round-robin status reads (two per drive: 0x9A and the restart read) each cycle carries: on
     CAN, enough that every drive's are at most :data:`FLAG_AGE_S` old (each read is one more frame, and a slow loop's
     bus has room for them; at 250 Hz with six drives, one); on RS485 one (each read is an exchange of its own on the
     half-duplex line: the flags are ``2 × drives`` cycles old there)."""
@@ -86,6 +87,58 @@ def status_reads_per_cycle(drives: int, period_s: float, protocol: WireProtocol)
         return 1
     cycles = max(1, math.floor(FLAG_AGE_S / period_s + 1e-9))  # the most cycles between two reads of one drive's
     return min(reads, math.ceil(reads / cycles))
+
+
+class StatusRounds:
+    """The round-robin status reads of an arm, each bus's in turn on its own: every cycle carries the next
+    :func:`status_reads_per_cycle` of each bus's (each bus's by its own wire: an RS485 line one, a CAN bus enough
+    for :data:`FLAG_AGE_S`), so that a cycle's reads spread over the buses by what each can carry.
+
+    Args:
+        reads: per drive (by address), its status reads in the order they go out.
+        period_s: the control period, s.
+        wires: each bus's wire protocol, by the bus index of the addresses.
+    """
+
+    def __init__(
+        self, reads: Sequence[tuple[int, Sequence[Request]]], period_s: float, wires: Sequence[WireProtocol]
+    ) -> None:
+        per_bus: dict[int, list[Request]] = {}
+        drives: dict[int, int] = {}
+        for address, requests in reads:
+            bus = split_address(address)[0]
+            per_bus.setdefault(bus, []).extend(requests)
+            drives[bus] = drives.get(bus, 0) + 1
+        #: Per bus: its reads in turn, and how many of them each cycle carries.
+        self.rounds = [
+            (per_bus[bus], status_reads_per_cycle(drives[bus], period_s, wires[bus])) for bus in sorted(per_bus)
+        ]
+        self._last = [-1] * len(self.rounds)  # the index of each bus's read that went out last
+        #: How many reads each cycle carries, over every bus.
+        self.per_cycle = sum(count for _, count in self.rounds)
+
+    def next(self) -> tuple[Request, ...]:
+        """The next cycle's reads (each bus's next ones in turn)."""
+        out: list[Request] = []
+        last = self._last
+        for k, (reads, count) in enumerate(self.rounds):
+            size = len(reads)
+            first = last[k] + 1
+            out.extend(reads[(first + j) % size] for j in range(count))
+            last[k] = (last[k] + count) % size
+        return tuple(out)
+
+    def cycles_until(self, request: Request) -> int:
+        """In how many cycles ``request`` goes out (1: the next cycle's reads carry it).
+
+        Raises:
+            ValueError: not one of the reads.
+        """
+        for k, (reads, count) in enumerate(self.rounds):
+            if request in reads:
+                distance = (reads.index(request) - self._last[k] - 1) % len(reads) + 1
+                return -(-distance // count)
+        raise ValueError(f"{request} is not one of the status reads")
 
 
 #: A drive that answers none of this many exchanges in a row does not answer (the check fails); fewer misses count as
@@ -253,8 +306,9 @@ def measure_rate(
     family = controller.family
     bare = family.bare
     batch = [Request(i, bare(Command.READ_STATUS_2)) for i in ids] + controller.angle_reads
-    status = [Request(i, bare(c)) for i in ids for c in (Command.READ_STATUS_1, family.restart_read)]
-    batch += status[: status_reads_per_cycle(len(ids), controller.period_s, controller.options.protocol)]
+    reads_of = (Command.READ_STATUS_1, family.restart_read)
+    status = [(i, [Request(i, bare(c)) for c in reads_of]) for i in ids]
+    batch += StatusRounds(status, controller.period_s, controller.options.wires).next()
     clock, bus = controller.clock, controller.bus
     # What a cycle's set-points take on the wire beyond the reads that stand in for them (measured: the reads; the
     # difference: the wire's speed), for transports that know it.

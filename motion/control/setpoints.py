@@ -76,7 +76,7 @@ class BuilderSettings:
     Attributes:
         specs: the axes, in joint order.
         family: the drives' capabilities.
-        wire: the bus's wire protocol.
+        wires: each bus's wire protocol, by the bus index of the drives' addresses.
         velocity_limit_dps: each joint's velocity limit, motor side, deg/s.
         speed_headroom: position mode: the 0xA4 cap is the planned motor speed times this, plus the floor.
         speed_floor_share: position mode: the floor, as a share of the velocity limit.
@@ -89,7 +89,7 @@ class BuilderSettings:
 
     specs: tuple[AxisSpec, ...]
     family: DriveFamily
-    wire: WireProtocol
+    wires: tuple[WireProtocol, ...]
     velocity_limit_dps: FloatArray
     speed_headroom: float
     speed_floor_share: float
@@ -122,9 +122,11 @@ class PositionSetpoints:
         self._settings = settings
         self.speed_floor_dps = settings.velocity_limit_dps * settings.speed_floor_share
         self.speed_limit_dps = settings.velocity_limit_dps
-        drive_gear = np.array([s.drive_gear_ratio for s in settings.specs], dtype=np.float64)
-        ceiling = settings.family.speed_ceiling_dps(settings.wire)
-        self._ceiling_dps = np.minimum(ceiling * drive_gear, self.speed_limit_dps).tolist()
+        family, wires = settings.family, settings.wires
+        ceiling = np.array(
+            [family.speed_ceiling_dps(wires[split_address(s.motor_id)[0]]) * s.drive_gear_ratio for s in settings.specs]
+        )  # (each by its bus's wire)
+        self._ceiling_dps = np.minimum(ceiling, self.speed_limit_dps).tolist()
         self._axes: tuple[tuple[int, float, float, float, float, float], ...] = ()
 
     def set_frame(self, transmission: ArmTransmission, axes: AxisStates) -> None:
@@ -177,11 +179,12 @@ class TorqueSetpoints:
         self._settings = settings
         specs, family = settings.specs, settings.family
         self._ids = ids = [s.motor_id for s in specs]  # (the drives' addresses: bus index × stride + motor id)
-        usable = settings.wire is WireProtocol.CAN and settings.multi_motor_frame and family.multi_torque_frame
-        #: One 0x280 frame per bus whose motors 1..4 are all joints of the arm: (the address of that bus's motor 1,
-        #: the joints of the frame's four currents in the frame's order).
+        usable = settings.multi_motor_frame and family.multi_torque_frame
+        can = [wire is WireProtocol.CAN for wire in settings.wires]
+        #: One 0x280 frame per CAN bus whose motors 1..4 are all joints of the arm: (the address of that bus's motor
+        #: 1, the joints of the frame's four currents in the frame's order).
         self._frames: list[tuple[int, list[int]]] = []
-        for bus in sorted({split_address(a)[0] for a in ids}) if usable else ():
+        for bus in sorted({split_address(a)[0] for a in ids if can[split_address(a)[0]]}) if usable else ():
             addresses = [bus * ADDRESS_STRIDE + m for m in MULTI_TORQUE_MOTOR_IDS]
             if all(a in ids for a in addresses):
                 self._frames.append((addresses[0], [ids.index(a) for a in addresses]))

@@ -282,9 +282,10 @@ class SimulatedBus(Transport):
         self.names = tuple(names)
         self._line_took_s = [0.0] * len(simulation.lines)  # each line's share of the last exchange, s
         self._started_s = simulation.now_s
-        self._can = simulation.protocol is WireProtocol.CAN
-        if len(simulation.lines) > 1 and any(line.protocol is not WireProtocol.CAN for line in simulation.lines):
-            raise ValueError("several lines in simulated time: CAN buses only so far (an RS485 line is one at a time)")
+        #: Per line, whether it is a CAN bus (else an RS485 line).
+        self._line_can = [line.protocol is WireProtocol.CAN for line in simulation.lines]
+        self._can = all(self._line_can)
+        self._one_line = len(simulation.lines) == 1
         self._encode_can = self.generation.encode_can_request
         self._encode_rs485 = self.generation.encode_rs485_request
         self._decode_rs485 = self.generation.decode_rs485_reply
@@ -295,7 +296,7 @@ class SimulatedBus(Transport):
     def probe_families(self, ids: Sequence[int], window_s: float) -> dict[int, ProtocolFamily] | None:
         """See :meth:`Transport.probe_families`: on CAN at the frame level over the simulated wire; on RS485 a status
         read in each generation's framing in turn (as :class:`~motion.transport.rs485_transport.Rs485Transport`)."""
-        if not self._can:
+        if not self._can:  # (an RS485 line among the lines: each drive asked in turn)
             return probe_in_turn(self, ids, window_s, lambda family: SimulatedBus(self.simulation, family))
         sim = self.simulation
         sim.arrived_by(sim.now_s)  # what was sent before is nobody's answer
@@ -336,22 +337,23 @@ class SimulatedBus(Transport):
         sim, busy = self.simulation, [0.0] * len(self.simulation.lines)
         for request in requests:
             line, motor_id = split_address(request.motor_id)
-            encode = self._encode_can if self._can else self._encode_rs485
+            encode = self._encode_can if self._line_can[line] else self._encode_rs485
             busy[line] += sim.wire_time_s(encode(request.message, motor_id), line)
         return max(busy)  # (the lines carry their frames at the same time)
 
     def describe(self) -> str:
-        """``"simulated can"`` or ``"simulated rs485"``."""
-        return f"simulated {self.simulation.protocol.value.lower()}"
+        """``"simulated can"``, ``"simulated rs485"`` (``"simulated can + rs485"``: lines of both)."""
+        return "simulated " + " + ".join(dict.fromkeys(line.protocol.value.lower() for line in self.simulation.lines))
 
     def _prepare(self, requests: Sequence[Request]) -> None:
         wires, lines, motors = self._wires, self._lines, self._motors
         wires.clear()
         lines.clear()
         motors.clear()
+        line_can = self._line_can
         for request in requests:
             line, motor_id = split_address(request.motor_id)  # (one line: the motor id itself)
-            if self._can:
+            if line_can[line]:
                 wires.append(self._encode_can(request.message, motor_id))
             else:
                 wires.append(self._encode_rs485(request.message, motor_id))
@@ -361,8 +363,10 @@ class SimulatedBus(Transport):
     def _exchange(self, deadline_s: float) -> None:
         if self._can:
             self._exchange_can(deadline_s)
-        else:
+        elif self._one_line:
             self._exchange_rs485(deadline_s)
+        else:
+            self._exchange_lines(deadline_s)
 
     def bus_times_s(self) -> Mapping[str, float] | None:
         """See :meth:`Transport.bus_times_s`: each line's time from the exchange's start to its last reply."""
@@ -408,6 +412,58 @@ class SimulatedBus(Transport):
                 sim.now_s = arrival.time_s
                 self._take_in(arrival, waiting_for=self._motors[index])
 
+    def _exchange_lines(self, deadline_s: float) -> None:
+        """Lines of both transports, or several RS485 lines, at the same time: a CAN bus's frames go out at once, an
+        RS485 line's requests one after the other (the next when the one before is answered or its share of what
+        is left of the cycle has passed, as :meth:`_exchange_rs485` on one line)."""
+        sim = self.simulation
+        for stale in sim.arrived_by(sim.now_s):  # a previous cycle's replies
+            self._take_in(stale)
+        self._started_s = sim.now_s
+        waiting: dict[int, deque[int]] = {}  # per RS485 line, its requests not sent yet
+        for index, (wire, line) in enumerate(zip(self._wires, self._lines, strict=True)):
+            if self._line_can[line]:
+                sim.submit(wire, line)
+                self._sent(index)
+                self._tap(False, wire, line)
+            else:
+                waiting.setdefault(line, deque()).append(index)
+        current: dict[int, tuple[int, float]] = {}  # per RS485 line, its request on the wire and that one's end
+        for line, queue in waiting.items():
+            self._send_next(line, queue, current, deadline_s)
+        while self._open_slots or current:
+            limit = min([deadline_s, *(end for _, end in current.values())])
+            arrival = sim.next_arrival(limit)
+            if arrival is None:
+                sim.sleep_until(limit)
+                if limit >= deadline_s:
+                    return
+                for line, (index, end) in list(current.items()):
+                    if end <= sim.now_s:
+                        self._expire(index)
+                        self._send_next(line, waiting[line], current, deadline_s)
+                continue
+            sim.now_s = arrival.time_s
+            on_wire = current.get(arrival.line)
+            self._take_in(arrival, waiting_for=None if on_wire is None else self._motors[on_wire[0]])
+            if on_wire is not None and self._answered(on_wire[0]):
+                self._send_next(arrival.line, waiting[arrival.line], current, deadline_s)
+
+    def _send_next(
+        self, line: int, waiting: deque[int], current: dict[int, tuple[int, float]], deadline_s: float
+    ) -> None:
+        """Send RS485 line ``line``'s next request, with its share of the time left (none left: the line is done)."""
+        current.pop(line, None)
+        now = self.simulation.now_s
+        if not waiting or now >= deadline_s:
+            return
+        index = waiting.popleft()
+        wire = self._wires[index]
+        self.simulation.submit(wire, line)
+        self._sent(index)
+        self._tap(False, wire, line)
+        current[line] = (index, now + (deadline_s - now) / (len(waiting) + 1))
+
     @property
     def frame_tap(self) -> FrameTap | None:
         """Every line's frames (see :data:`FrameTap`); a tap that tells an arm's buses apart (a bus trace) records
@@ -436,7 +492,8 @@ class SimulatedBus(Transport):
             take_in_can_frame(self, wire, arrival.line * ADDRESS_STRIDE, tapped=True)
             self._line_took_s[arrival.line] = arrival.time_s - self._started_s
             return
-        self._tap(True, wire)
+        line = arrival.line
+        self._tap(True, wire, line)
         try:
             motor_id, message = self._decode_rs485(wire)
             if motor_id is None:  # a V3 id-setting reply on 0xCD: not the control loop's
@@ -446,7 +503,8 @@ class SimulatedBus(Transport):
             # On a half-duplex line only the addressed drive talks: corrupt bytes count against it.
             self.motor_counters(arrival.motor_id if waiting_for is None else waiting_for).bad_frames += 1
             return
-        self._offer(motor_id, message)
+        self._line_took_s[line] = arrival.time_s - self._started_s
+        self._offer(line * ADDRESS_STRIDE + motor_id, message)
 
     def _close(self) -> None:
         """Nothing to release."""

@@ -30,7 +30,6 @@ process exit send 0x81 to every axis before the bus is released.
 from __future__ import annotations
 
 import atexit
-import itertools
 import logging
 import threading
 import weakref
@@ -38,10 +37,9 @@ from collections.abc import Callable, Sequence
 
 from motion.control.controller import Controller, Feedforward
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
-from motion.control.ratecheck import status_reads_per_cycle
+from motion.control.ratecheck import StatusRounds
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command
-from motion.protocol.table import split_address
 from motion.safety.clearing import Clearing
 from motion.safety.collision import CollisionObserver
 from motion.safety.context import SafetyContext
@@ -140,15 +138,13 @@ class Supervisor:
         # 0x9A (flags, voltage, temperature) and 0x92 (the multi-turn angle: a drive that restarted) in turn
         # (the V3 family: 0x9A and 0xB1, its runtime, which starts again when the drive restarted)
         reads_of = (Command.READ_STATUS_1, family.restart_read)
-        # an arm on several buses takes its buses in turn, so that each cycle's reads spread over them (one bus
-        # carrying them all would make its cycle the longer one)
-        per_bus: dict[int, list[Request]] = {}
-        for i in ids:
-            per_bus.setdefault(split_address(i)[0], []).extend(Request(i, family.bare(c)) for c in reads_of)
-        self._status_reads = [r for turn in itertools.zip_longest(*per_bus.values()) for r in turn if r is not None]
-        self._round_robin = 0  # a counter of its own: the cycle index k jumps over skipped cycles
-        #: How many of them each cycle carries (CAN: every drive's flags at most FLAG_AGE_S old).
-        self.status_reads_per_cycle = status_reads_per_cycle(len(ids), controller.period_s, controller.options.protocol)
+        # each bus's in turn on its own (each cycle's reads spread over the buses: one bus carrying them all would
+        # make its cycle the longer one; an RS485 line carries one a cycle)
+        status = [(i, [Request(i, family.bare(c)) for c in reads_of]) for i in ids]
+        #: The round-robin status reads.
+        self.status_rounds = StatusRounds(status, controller.period_s, controller.options.wires)
+        #: How many of them each cycle carries, over every bus (CAN: every drive's flags at most FLAG_AGE_S old).
+        self.status_reads_per_cycle = self.status_rounds.per_cycle
         self._finalizer = weakref.finalize(self, emergency_stop, controller, ids, family.bare)
         atexit.register(self._finalizer)
 
@@ -389,12 +385,7 @@ class Supervisor:
             self.machine.fire(ArmEvent.DONE)
 
     def _next_status_reads(self) -> tuple[Request, ...]:
-        """0x9A or 0x92 for the next drives in turn, :attr:`status_reads_per_cycle` of them: every drive's flags and
-        multi-turn angle are at most ``2 n_axes / status_reads_per_cycle`` cycles old."""
-        reads, count = self._status_reads, len(self._status_reads)
-        if self.status_reads_per_cycle == 1:
-            self._round_robin = (self._round_robin + 1) % count
-            return (reads[self._round_robin],)
-        first = self._round_robin + 1
-        self._round_robin = (self._round_robin + self.status_reads_per_cycle) % count
-        return tuple(reads[(first + j) % count] for j in range(self.status_reads_per_cycle))
+        """0x9A or 0x92 for the next drives in turn, :attr:`status_reads_per_cycle` of them over the buses: every
+        drive's flags and multi-turn angle are at most ``2 × its bus's drives / its bus's reads per cycle`` cycles
+        old."""
+        return self.status_rounds.next()

@@ -1,0 +1,164 @@
+"""An arm whose buses are of both transports, or several RS485 lines (issue 35: "each a full bus section, CAN or
+RS485"): bimanual.yaml with its right arm on an RS485 line. One trajectory over both, each bus's exchange at the
+same time (the CAN bus's frames at once, the RS485 line's one after the other), each bus's status reads by what its
+wire carries, 0x280 on the CAN bus only, and one safety domain."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from motion.api import Arm
+from motion.config import ArmConfig, ControlMode, load_config
+from motion.config.schema import HaltPolicy
+from motion.control.ratecheck import RateError
+from motion.emulator.faults import InjectedFault
+from motion.protocol import Command
+from motion.safety import ArmState
+from motion.transport.buses import Buses
+from tests.motion_rig import Rig, emulated_arm, logged_requests, received
+from tests.test_buses import TARGETS, fault_halts_every_axis, setpoint_arrivals
+from tests.test_cli import cli
+
+CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+#: Six V2 drives on an RS485 line at 115200 baud (the older family's fastest) hold a few tens of Hz.
+RATE_HZ = 25.0
+
+
+def _mixed(tmp_path: Path, *, right: str = "rs485", left: str = "can") -> Path:
+    """bimanual.yaml (and its URDF) in ``tmp_path`` at :data:`RATE_HZ` with each arm's bus of the transport named,
+    a quarter of a second for a reply (the real-time test on a busy host)."""
+    shutil.copy(CONFIGS / "bimanual.urdf", tmp_path / "bimanual.urdf")
+    data = yaml.safe_load((CONFIGS / "bimanual.yaml").read_text())
+    for name, transport in (("left", left), ("right", right)):
+        if transport == "rs485":
+            data["buses"][name] = {"transport": "rs485", "port": f"/dev/ttyUSB-{name}", "baudrate": 115200}
+    data["control"]["rate_hz"] = RATE_HZ
+    data["safety"]["reply_timeout_ms"] = 250
+    path = tmp_path / "mixed.yaml"
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    return path
+
+
+def _config(tmp_path: Path, **transports: str) -> ArmConfig:
+    return load_config(_mixed(tmp_path, **transports))
+
+
+def _arrivals(rig: Rig, references: list[np.ndarray]) -> list[int]:
+    """The cycle at which each joint's reference reached its target for good."""
+    reference = np.array(references)
+    arrived = [int(np.argmax(np.abs(reference[:, i] - TARGETS[i]) < 1e-9)) for i in range(len(TARGETS))]
+    assert all(np.abs(reference[a:, i] - TARGETS[i]).max() < 1e-9 for i, a in enumerate(arrived))
+    return arrived
+
+
+@pytest.mark.parametrize(
+    "transports", [{"right": "rs485"}, {"left": "rs485", "right": "rs485"}], ids=["can+rs485", "two rs485"]
+)
+def test_an_arm_on_a_can_bus_and_an_rs485_line_moves_as_one(tmp_path: Path, transports: dict[str, str]) -> None:
+    config = _config(tmp_path, **transports)
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        # each bus's status reads by its wire: the RS485 line one a cycle, the CAN bus all twelve of its drives'
+        # (each at most 50 ms old at 25 Hz)
+        per_cycle = [count for _, count in supervisor.status_rounds.rounds]
+        assert per_cycle == [1 if transports.get(side, "can") == "rs485" else 12 for side in ("left", "right")]
+        references: list[np.ndarray] = []
+        rig.controller.cycle_hooks.append(lambda c, _start, _replies: references.append(c.reference.position.copy()))
+        supervisor.move_to(TARGETS, 1.0)
+        assert supervisor.wait(30.0)
+        arrived = _arrivals(rig, references)
+        assert max(arrived) - min(arrived) <= 1 and min(arrived) >= 15, arrived  # (a real move: 0.8 s at 25 Hz)
+        np.testing.assert_allclose(
+            rig.controller.snapshot.position_deg, TARGETS, atol=config.control.goal_tolerance_deg
+        )
+    # every drive got its 0xA4 stream on its own bus (the right arm's in RS485 framing on the second line)
+    lines: dict[int, set[str]] = {}
+    for text in rig.frame_log.read_text().splitlines():
+        fields = text.split(maxsplit=3)
+        if len(fields) == 4 and fields[1] == "IN":
+            lines.setdefault(0 if fields[2].endswith(("can", "rs485")) else 1, set()).add(fields[2])
+    assert lines[1] == {"sim-rs485-1"}
+    assert set(received(rig, Command.MULTI_TURN_POSITION_SPEED)) == {j.address for j in config.joints}
+
+
+def test_each_cycle_runs_the_can_bus_and_the_rs485_line_at_the_same_time(tmp_path: Path) -> None:
+    # simulated wire time: the CAN bus's six 0xA4 are on their drives long before the RS485 line's last one; the
+    # line's last 0xA4 of each cycle reaches its drive within the cycle, not after the CAN bus's batch
+    config = _config(tmp_path)
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
+        assert rig.supervisor is not None
+        rig.supervisor.move_to(TARGETS, 1.0)
+        rig.sleep(1.0)
+    first = {key: min(times) for key, times in setpoint_arrivals(rig).items()}
+    cycles = sorted({cycle for cycle, bus in first if bus == 1 and (cycle, 0) in first})
+    assert len(cycles) > 20
+    # each cycle's first set-point on each bus goes out at the cycle's start: the line does not wait for the bus
+    skew = [abs(first[(c, 1)] - first[(c, 0)]) for c in cycles]
+    assert max(skew) < 3e-3, max(skew)  # (one RS485 0xA4 takes 1.6 ms at 115200 baud; a CAN frame 0.13 ms)
+
+
+def test_torque_mode_sends_0x280_on_the_can_bus_and_0xa1_on_the_rs485_line(tmp_path: Path) -> None:
+    config = _config(tmp_path)
+    config = dataclasses.replace(config, control=dataclasses.replace(config.control, mode=ControlMode.TORQUE))
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
+        # (holding the pose: the example's torque-mode gains are tuned for 250 Hz, not this line's 25 Hz)
+        assert rig.supervisor is not None
+        rig.sleep(1.0)
+        assert rig.supervisor.state is ArmState.READY and not rig.supervisor.faults
+    multi = [t for t, address, message in logged_requests(rig) if address is None]
+    torque = {
+        address for _, address, message in logged_requests(rig) if getattr(message, "command", None) == Command.TORQUE
+    }
+    assert len(multi) >= RATE_HZ * 0.8  # the CAN bus's motors 1..4: one frame a cycle
+    assert torque == {5, 6, 101, 102, 103, 104, 105, 106}  # the left's beyond 4, every drive of the line
+
+
+@pytest.mark.parametrize(
+    ("kind", "address", "value", "limit_c", "expected"),
+    [
+        # the line's elbow: its temperature in every motion reply, above our limit (the line's 0x9A flags come round
+        # once in twelve cycles; the drive's own protection stopping it is seen as a following error before)
+        (InjectedFault.OVER_TEMPERATURE, 103, 90.0, 85.0, "temperature"),
+        (InjectedFault.SILENT, 105, None, 100.0, "no_reply"),  # the line's wrist_pitch falls silent
+        # the CAN bus's shoulder: its drive's flag (0x9A, every drive's each cycle at 25 Hz), our limit above it
+        (InjectedFault.OVER_TEMPERATURE, 2, 90.0, 100.0, "drive_over_temperature"),
+    ],
+)
+def test_a_fault_on_either_transport_halts_all_twelve_axes_in_its_detection_cycle(
+    tmp_path: Path, kind: InjectedFault, address: int, value: float | None, limit_c: float, expected: str
+) -> None:
+    config = _config(tmp_path)
+    joints = tuple(dataclasses.replace(j, temperature_limit_c=limit_c) for j in config.joints)
+    # (the drives' own halt, 0x81, on every fault: what each drive received tells the cycle it was halted in)
+    control = dataclasses.replace(config.control, halt_policy=HaltPolicy.STOP)
+    safety = dataclasses.replace(config.safety, reply_timeout_ms=20)
+    config = dataclasses.replace(config, joints=joints, control=control, safety=safety)
+    fault_halts_every_axis(config, tmp_path, kind, address, value, expected, after_s=0.6)
+
+
+def test_the_cli_moves_an_arm_on_both_transports_in_simulated_time(tmp_path: Path) -> None:
+    moved = cli("move", "--config", _mixed(tmp_path), "--emulate", "left_elbow_pitch=20", "right_elbow_pitch=-20")
+    assert moved.returncode == 0, moved.stderr
+    assert "right_elbow_pitch=-20.00" in moved.stdout and "left_elbow_pitch=20.00" in moved.stdout
+
+
+def test_the_api_emulates_both_transports_in_real_time_on_a_slcan_and_an_rs485_pty(tmp_path: Path) -> None:
+    # Arm(emulate="realtime"): `rmd-motion emulate --slcan-link left=... --rs485-link right=...`, the overrides a
+    # mapping per bus of each one's keys (the rate check's refusal on a busy host is a skip)
+    try:
+        with Arm.from_config(_mixed(tmp_path), emulate="realtime") as arm:
+            assert arm.bus is not None and isinstance(arm.bus, Buses)
+            assert [b.describe().split(" ")[0] for b in arm.bus.buses] == ["can", "rs485"]
+            arm.move_to({"left_elbow_pitch": 20.0, "right_elbow_pitch": -20.0}, speed_scale=0.5)
+            q = arm.positions()
+    except RateError as exc:
+        pytest.skip(f"this host does not hold the mixed arm at {RATE_HZ:g} Hz just now: {exc}")
+    tolerance = load_config(_mixed(tmp_path)).control.goal_tolerance_deg + 0.01
+    assert abs(q["left_elbow_pitch"] - 20.0) < tolerance and abs(q["right_elbow_pitch"] + 20.0) < tolerance
