@@ -144,8 +144,8 @@ class Attachment(ABC, Closing, Generic[W, R]):
         """A reply in hex for the frame log."""
 
     @abstractmethod
-    def _transmit(self, wire: W) -> bool:
-        """Send a reply to the host; False if it could not be delivered."""
+    def _transmit_all(self, wires: list[W]) -> list[bool]:
+        """Send the replies due now to the host, in order; whether each was delivered."""
 
     @abstractmethod
     def _close_io(self) -> None:
@@ -190,20 +190,23 @@ class Attachment(ABC, Closing, Generic[W, R]):
         )
         self._log("BAD", wire, f"{type(error).__name__}: {error}" if isinstance(error, DecodeError) else error)
 
-    def _accept(self, exchange: Exchange[W], wire: str, request_time_s: float, arrival_s: float) -> None:
-        """Log a decoded request and schedule its replies."""
-        target = f"motor {exchange.motor_id}" if exchange.motor_id is not None else "motors 1-4"
-        self._log("IN", wire, f"{target}: {exchange.request}")
-        for note in exchange.notes:
-            self._log("NOTE", wire, note)
+    def _accept(self, exchange: Exchange[W], request: W, arrival_s: float) -> None:
+        """Log a decoded request (the text only where a frame log is written) and schedule its replies."""
+        if self._frame_log is not None:
+            wire = self._wire_text(request)
+            target = f"motor {exchange.motor_id}" if exchange.motor_id is not None else "motors 1-4"
+            self._log("IN", wire, f"{target}: {exchange.request}")
+            for note in exchange.notes:
+                self._log("NOTE", wire, note)
         if not exchange.replies:
             self.stats.unanswered += 1
-        request_end = self._bus.occupy(arrival_s, request_time_s) if self.timing.bus_time else arrival_s
+        request_end = self._bus.occupy(arrival_s, self._wire_time(request)) if self.timing.bus_time else arrival_s
         for outgoing in exchange.replies:
             self._schedule(outgoing, request_end + self.timing.reply_delay_s() + outgoing.delay_s)
 
     def _flush(self) -> None:
         now = time.monotonic()
+        due: list[Outgoing[W]] = []
         while self._pending and self._pending[0].due_s <= now:
             pending = heapq.heappop(self._pending)
             outgoing = pending.outgoing
@@ -212,15 +215,23 @@ class Attachment(ABC, Closing, Generic[W, R]):
                 end = self._bus.occupy(pending.due_s, self._wire_time(outgoing.wire))
                 heapq.heappush(self._pending, _Pending(end, pending.seq, False, outgoing))
                 continue
-            wire = self._wire_text(outgoing.wire)
-            if not self._transmit(outgoing.wire):
+            due.append(outgoing)
+        if not due:
+            return
+        for outgoing, delivered in zip(due, self._transmit_all([o.wire for o in due]), strict=True):
+            if not delivered:
                 self.stats.undelivered += 1
-                self._log("NOTE", wire, f"motor {outgoing.motor_id}: reply not delivered (client not listening)")
+                if self._frame_log is not None:
+                    note = f"motor {outgoing.motor_id}: reply not delivered (client not listening)"
+                    self._log("NOTE", self._wire_text(outgoing.wire), note)
                 continue
             self.stats.replies += 1
-            damage = f" [corrupted: {outgoing.corruption.value}]" if outgoing.corruption is not None else ""
             self.stats.corrupted += outgoing.corruption is not None
-            self._log("OUT", wire, f"motor {outgoing.motor_id}: {outgoing.message}{damage}")
+            if self._frame_log is not None:  # (the text only where it is written: a message's repr is not free)
+                damage = f" [corrupted: {outgoing.corruption.value}]" if outgoing.corruption is not None else ""
+                self._log(
+                    "OUT", self._wire_text(outgoing.wire), f"motor {outgoing.motor_id}: {outgoing.message}{damage}"
+                )
 
     def close(self) -> None:
         """Stop the thread and release the bus; safe to call twice.
@@ -254,7 +265,7 @@ class _CanAttachment(Attachment[CanFrame, CanFrame]):
         except DecodeError as exc:
             self._bad(_can_text(item), exc)
             return
-        self._accept(exchange, _can_text(item), self._wire_time(item), now_s)
+        self._accept(exchange, item, now_s)
 
     def _unsolicited(self, now_s: float) -> None:
         """V3 drives' replies without requests (0xB6), due by now (the loop wakes every tick)."""
@@ -318,9 +329,10 @@ class VirtualCanAttachment(_CanAttachment):
             received = self._endpoint.recv(0.0)  # drain what else is queued without waiting
         return frames
 
-    def _transmit(self, wire: CanFrame) -> bool:
-        self._endpoint.send(wire)
-        return True
+    def _transmit_all(self, wires: list[CanFrame]) -> list[bool]:
+        for wire in wires:
+            self._endpoint.send(wire)
+        return [True] * len(wires)
 
     def _close_io(self) -> None:
         self._endpoint.close()
@@ -344,6 +356,13 @@ class _OnPty:
     def _write(self, data: bytes) -> bool:
         """Write to the client; False if it did not fit (nobody reads)."""
         return self._pty.write(data) == 0
+
+    def _write_all(self, chunks: list[bytes | None]) -> list[bool]:
+        """Write the chunks to the client in one write (one system call for the replies due at once; None: a chunk
+        that cannot be delivered); whether each was delivered (a write is delivered or dropped whole)."""
+        data = b"".join(chunk for chunk in chunks if chunk)
+        written = self._write(data) if data else True
+        return [written and chunk is not None for chunk in chunks]
 
     def _close_io(self) -> None:
         self._pty.close()
@@ -402,11 +421,10 @@ class SlcanAttachment(_OnPty, _CanAttachment):
                 out.append(CanFrame(frame.arbitration_id, frame.data))
         return out
 
-    def _transmit(self, wire: CanFrame) -> bool:
-        if not self.device.is_open:
-            return False
-        line = self.device.to_host(wire, time.monotonic())
-        return self._write(line) if line else True
+    def _transmit_all(self, wires: list[CanFrame]) -> list[bool]:
+        # (a closed channel delivers nothing; with auto-poll off the adapter queues the line: delivered, no bytes)
+        device, now = self.device, time.monotonic()
+        return self._write_all([device.to_host(wire, now) if device.is_open else None for wire in wires])
 
 
 class Rs485Attachment(_OnPty, Attachment[bytes, bytes]):
@@ -479,7 +497,7 @@ class Rs485Attachment(_OnPty, Attachment[bytes, bytes]):
         except DecodeError as exc:
             self._bad(raw.hex(" "), exc)
             return
-        self._accept(exchange, raw.hex(" "), rs485_frame_time_s(len(raw), self.baud), now_s)
+        self._accept(exchange, raw, now_s)
 
     def _wire_time(self, wire: bytes) -> float:
         return rs485_frame_time_s(len(wire), self.baud)
@@ -487,5 +505,5 @@ class Rs485Attachment(_OnPty, Attachment[bytes, bytes]):
     def _wire_text(self, wire: bytes) -> str:
         return wire.hex(" ")
 
-    def _transmit(self, wire: bytes) -> bool:
-        return self._write(wire)
+    def _transmit_all(self, wires: list[bytes]) -> list[bool]:
+        return self._write_all(list(wires))

@@ -54,7 +54,7 @@ _MAX_LINE: Final = 64
 _TIMESTAMP_MODULO_MS: Final = 60_000
 _STANDARD_ID_MAX: Final = 0x7FF
 _EXTENDED_ID_MAX: Final = 0x1FFFFFFF
-_HEX: Final = frozenset(string.hexdigits)
+_HEX_DIGITS: Final = string.hexdigits
 
 
 @dataclass(frozen=True, slots=True)
@@ -75,7 +75,7 @@ class SlcanFrame:
 
 
 def _is_hex(text: str) -> bool:
-    return bool(text) and all(c in _HEX for c in text)
+    return bool(text) and not text.strip(_HEX_DIGITS)
 
 
 def _btr_bitrate(btr: str) -> int | None:
@@ -115,21 +115,28 @@ class SlcanDevice:
         """Process bytes the host wrote; return ``(bytes to send back, frames to put on the bus)``."""
         out = bytearray()
         frames: list[SlcanFrame] = []
-        for byte in data:
-            if byte == OK[0]:
+        if b"\n" in data:  # some terminals send CR LF
+            data = data.replace(b"\n", b"")
+        *ended, rest = data.split(OK)
+        for chunk in ended:  # each ended by a CR
+            if self._overlong:
+                self._overlong = False  # already answered BELL; the CR only ends the garbage
+            elif len(self._line) + len(chunk) > _MAX_LINE:
+                self.errors += 1
+                out += BELL  # (and the CR ends the garbage)
+            else:
+                self._line += chunk
                 line = self._line.decode("ascii", errors="replace")
+                out += self._command(line, frames)
+            self._line.clear()
+        if rest and not self._overlong:
+            if len(self._line) + len(rest) > _MAX_LINE:
                 self._line.clear()
-                if self._overlong:
-                    self._overlong = False  # already answered BELL; the CR only ends the garbage
-                else:
-                    out += self._command(line, frames)
-            elif byte != ord("\n") and not self._overlong:  # some terminals send CR LF
-                self._line.append(byte)
-                if len(self._line) > _MAX_LINE:
-                    self._line.clear()
-                    self._overlong = True
-                    self.errors += 1
-                    out += BELL
+                self._overlong = True
+                self.errors += 1
+                out += BELL
+            else:
+                self._line += rest
         return bytes(out), frames
 
     def to_host(self, frame: CanFrame, now_s: float) -> bytes:
