@@ -175,6 +175,12 @@ def test_send_frame_writes_the_line_python_can_writes(pty_bus: tuple[int, SlcanS
         bus.send_frame(0x800, b"", 0.1)
     with pytest.raises(ValueError, match="9 bytes"):
         bus.send_frame(0x141, bytes(9), 0.1)
+    # a batch: the same lines, in one write (a cycle's frames in one system call); a bad frame writes none of it
+    bus.send_frames(frames, 0.1)
+    assert _read_bytes(master, len(expected)) == expected
+    with pytest.raises(ValueError, match="0x800"):
+        bus.send_frames([frames[0], (0x800, b"")], 0.1)
+    assert _read_bytes(master, 1, timeout_s=0.1) == b""
 
 
 def test_endpoint_uses_the_shim_while_python_can_lacks_the_fix() -> None:

@@ -10,6 +10,7 @@ import io
 import os
 import select
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import can
@@ -78,6 +79,7 @@ class CanEndpoint(Closing):
         # The slcan shim carries standard data frames without a can.Message (see slcan_shim): the loop's frames.
         self._recv_frame = getattr(self._bus, "recv_frame", None)
         self._send_frame = getattr(self._bus, "send_frame", None)
+        self._send_frames = getattr(self._bus, "send_frames", None)
 
     def send(self, frame: CanFrame, timeout_s: float | None = None) -> None:
         """Send one frame.
@@ -92,6 +94,27 @@ class CanEndpoint(Closing):
                 return
             message = can.Message(arbitration_id=frame.arbitration_id, data=frame.data, is_extended_id=False)
             self._bus.send(message, timeout=timeout_s)
+        except (can.CanError, OSError, ValueError) as exc:
+            raise self._failure("send", exc) from exc
+
+    @property
+    def writes_batches(self) -> bool:
+        """Whether :meth:`send_batch` writes a batch at once (the slcan shim: its lines in one write)."""
+        return self._send_frames is not None
+
+    def send_batch(self, frames: Sequence[CanFrame], timeout_s: float | None = None) -> None:
+        """Send frames in order, in one write where :attr:`writes_batches` (else one by one).
+
+        Raises:
+            PortLost: the port is gone (:func:`~motion.transport.base.port_gone`).
+            TransportError: the interface refused a frame (bus off, buffer full).
+        """
+        if self._send_frames is None:
+            for frame in frames:
+                self.send(frame, timeout_s)
+            return
+        try:
+            self._send_frames([(frame.arbitration_id, frame.data) for frame in frames], timeout_s)
         except (can.CanError, OSError, ValueError) as exc:
             raise self._failure("send", exc) from exc
 

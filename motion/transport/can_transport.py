@@ -120,6 +120,10 @@ class CanTransport(Transport):
     ) -> None:
         super().__init__(clock=clock, family=family)
         self._endpoint: CanPort = port
+        # a port that writes a cycle's batch at once (CanEndpoint over the slcan shim): its send_batch
+        self._send_batch: Callable[[Sequence[CanFrame], float | None], None] | None = (
+            getattr(port, "send_batch", None) if getattr(port, "writes_batches", False) else None
+        )
         self._owns_port = owns_port
         self._frames: list[CanFrame] = []
 
@@ -170,11 +174,19 @@ class CanTransport(Transport):
         send_timeout_s = max(deadline_s - clock(), SEND_TIMEOUT_MIN_S)
         send, tap, sent = endpoint.send, self.frame_tap, 0
         try:
-            for frame in self._frames:
-                send(frame, send_timeout_s)
-                sent += 1
+            if self._send_batch is not None:  # (the batch in one write: if it fails, none counts as sent)
+                self._send_batch(self._frames, send_timeout_s)
+                sent = len(self._frames)
                 if tap is not None:
-                    tap(clock(), False, frame.arbitration_id, frame.data)
+                    now = clock()
+                    for frame in self._frames:
+                        tap(now, False, frame.arbitration_id, frame.data)
+            else:
+                for frame in self._frames:
+                    send(frame, send_timeout_s)
+                    sent += 1
+                    if tap is not None:
+                        tap(clock(), False, frame.arbitration_id, frame.data)
         finally:
             self._sent_first(sent)  # the requests that went out, also when a send failed
         while self._open_slots:

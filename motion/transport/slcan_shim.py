@@ -25,7 +25,9 @@ python-can's own ``slcanBus`` (our code, written for this project; only ``_read`
 - :meth:`SlcanShimBus.recv_frame` and :meth:`SlcanShimBus.send_frame` carry a standard data frame as
   ``(arbitration id, data)`` without a ``can.Message`` on the way (python-can's ``BusABC.recv`` also formats a log
   call for every frame): the same line python-can writes, the same frame it parses; every other line goes through
-  python-can's own parser. The control loop's frames take this path (issue 12: a cycle reads one frame per drive).
+  python-can's own parser. The control loop's frames take this path (issue 12: a cycle reads one frame per drive);
+  :meth:`SlcanShimBus.send_frames` writes a cycle's batch of lines in one write (one system call and one drain, where
+  python-can would make one of each per frame).
 
 :class:`motion.transport.can_endpoint.CanEndpoint` uses it for ``interface: slcan`` only while
 :func:`needs_shim` says the installed python-can lacks the fix. **Exit plan**: once a python-can release carries
@@ -43,6 +45,7 @@ import re
 import select
 import time
 from binascii import hexlify
+from collections.abc import Sequence
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any, Final
 
@@ -261,6 +264,24 @@ class SlcanShimBus(slcanBus):
         self._queue.put_nowait(line)
         return self.recv(0.0)
 
+    def send_frames(self, frames: Sequence[tuple[int, bytes]], timeout: float | None) -> None:
+        """Send standard data frames, their lines in one write (one system call and one drain for a cycle's batch:
+        an adapter takes the lines as they come, whether in one USB transfer or several).
+
+        Raises:
+            can.CanOperationError: the port failed or the write timed out.
+            ValueError: an id beyond 11 bits or more than 8 bytes (no standard frame; nothing was written).
+        """
+        lines = []
+        for arbitration_id, data in frames:
+            if not 0 <= arbitration_id <= 0x7FF or len(data) > 8:
+                raise ValueError(
+                    f"a standard data frame has an id 0..0x7FF and 0..8 bytes, got 0x{arbitration_id:X}, "
+                    f"{len(data)} bytes"
+                )
+            lines.append(b"t%03X%d%s\r" % (arbitration_id, len(data), hexlify(data).upper()))
+        self._write_drained(b"".join(lines), timeout)
+
     def send_frame(self, arbitration_id: int, data: bytes, timeout: float | None) -> None:
         """Send a standard data frame: the line python-can's ``send`` writes for it, written and drained as it does.
 
@@ -272,11 +293,14 @@ class SlcanShimBus(slcanBus):
             raise ValueError(
                 f"a standard data frame has an id 0..0x7FF and 0..8 bytes, got 0x{arbitration_id:X}, {len(data)} bytes"
             )
+        self._write_drained(b"t%03X%d%s\r" % (arbitration_id, len(data), hexlify(data).upper()), timeout)
+
+    def _write_drained(self, lines: bytes, timeout: float | None) -> None:
         port = self.serialPortOrig
         try:
             if timeout != port.write_timeout:
                 port.write_timeout = timeout
-            port.write(b"t%03X%d%s\r" % (arbitration_id, len(data), hexlify(data).upper()))
+            port.write(lines)
             port.flush()
         except PORT_ERRORS as exc:
             raise can.CanOperationError(f"Could not write to serial device: {exc}") from exc
