@@ -58,6 +58,8 @@ from motion.transport.base import PORT_ERRORS
 LAST_RELEASE_WITHOUT_FIX: Final = (4, 6, 1)
 
 _LINE_END: Final = re.compile(rb"[\r\a]")
+#: The adapter's acknowledgements of a frame it sent (``z``: standard, ``Z``: extended), one per frame written.
+_TRANSMIT_ACKS: Final = frozenset(("z\r", "Z\r"))
 #: The longest line an slcan adapter sends, bytes: an extended CAN FD frame (``D`` or ``B``, 8 digits of id, the length
 #: code, 64 data bytes in 128 digits) with a 4-digit time stamp, and its ``\r``. Anything longer is junk.
 MAX_LINE_BYTES: Final = 1 + 8 + 1 + 2 * 64 + 4 + 1
@@ -250,7 +252,7 @@ class SlcanShimBus(slcanBus):
         if self._filters is not None or self._queue.qsize():
             return self.recv(timeout)
         line = self._read(timeout)
-        if line is None:
+        if line is None or line in _TRANSMIT_ACKS:  # (python-can's parser makes nothing of an acknowledgement either)
             return None
         match = _STANDARD_DATA.fullmatch(line)
         if match is not None:
