@@ -143,10 +143,25 @@ def test_a_fault_on_either_transport_halts_all_twelve_axes_in_its_detection_cycl
     fault_halts_every_axis(config, tmp_path, kind, address, value, expected, after_s=0.6)
 
 
-def test_the_cli_moves_an_arm_on_both_transports_in_simulated_time(tmp_path: Path) -> None:
-    moved = cli("move", "--config", _mixed(tmp_path), "--emulate", "left_elbow_pitch=20", "right_elbow_pitch=-20")
+def test_the_cli_moves_an_arm_on_both_transports_in_simulated_time_and_traces_each_bus_in_its_form(
+    tmp_path: Path,
+) -> None:
+    trace = tmp_path / "run.log"
+    moved = cli(
+        "move", "--config", _mixed(tmp_path), "--emulate", "--trace", trace,
+        "left_elbow_pitch=20", "right_elbow_pitch=-20",
+    )  # fmt: skip
     assert moved.returncode == 0, moved.stderr
     assert "right_elbow_pitch=-20.00" in moved.stdout and "left_elbow_pitch=20.00" in moved.stdout
+    # the CAN bus's frames as candump lines (their identifiers), the line's as RS485 hex lines, each named by its bus
+    lines = [line.split() for line in trace.read_text().splitlines()]
+    left = [fields for fields in lines if fields[1] == "left"]
+    right = [fields for fields in lines if fields[1] == "right"]
+    assert len(left) + len(right) == len(lines) and left and right
+    assert any(fields[2].startswith("141#A4") and fields[3] == "T" for fields in left)
+    assert all("#" in fields[2] and fields[-1] in ("T", "R") for fields in left)
+    assert any(fields[2:5] == ["T", "3E", "A4"] for fields in right)
+    assert all(fields[2] in ("T", "R") and fields[3] == "3E" for fields in right)
 
 
 def test_the_api_emulates_both_transports_in_real_time_on_a_slcan_and_an_rs485_pty(tmp_path: Path) -> None:

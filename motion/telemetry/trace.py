@@ -128,13 +128,18 @@ class BusTrace:
 
     def write_hex(self, file: TextIO, buses: Sequence[str] = ()) -> None:
         """Write every frame as ``(UNIX_TIME) T|R HEX BYTES`` (the RS485 trace); with ``buses`` (names by index: an
-        arm of several), ``(UNIX_TIME) BUS T|R HEX BYTES``."""
+        arm of several), ``(UNIX_TIME) BUS T|R HEX BYTES``. A CAN bus's frame among them (an arm on buses of both
+        transports) is a candump line, ``(UNIX_TIME) BUS ID#DATA T|R``, as :meth:`write_candump` writes it."""
         offset = self.unix_offset_s
         names = [_word(name) + " " for name in buses]
         for frame in self:
             direction = "R" if frame.received else "T"
             bus = names[frame.bus] if names else ""
-            file.write(f"({frame.time_s + offset:.6f}) {bus}{direction} {frame.data.hex(' ').upper()}\n")
+            if frame.arbitration_id is not None:
+                line = f"{frame.arbitration_id:03X}#{frame.data.hex().upper()} {direction}"
+            else:
+                line = f"{direction} {frame.data.hex(' ').upper()}"
+            file.write(f"({frame.time_s + offset:.6f}) {bus}{line}\n")
 
 
 def _word(name: str) -> str:
