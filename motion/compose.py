@@ -83,12 +83,6 @@ def axis_specs(config: ArmConfig, family: ProtocolFamily = ProtocolFamily.V2) ->
     )
 
 
-def wire_protocol(config: ArmConfig) -> WireProtocol:
-    """The protocol spoken on the configured bus: the first bus's (an arm on buses of both transports: see
-    :func:`bus_wires`)."""
-    return config.buses[0].transport
-
-
 def bus_wires(config: ArmConfig) -> tuple[WireProtocol, ...]:
     """The wire protocol of each bus of the arm, in the order of ``buses:`` (the bus index of the addresses)."""
     return tuple(bus.transport for bus in config.buses)

@@ -14,12 +14,16 @@ import pytest
 import yaml
 
 from motion.api import Arm
+from motion.api.emulation import simulated_lines
 from motion.config import ArmConfig, ControlMode, load_config
 from motion.config.schema import HaltPolicy
 from motion.control.ratecheck import RateError
-from motion.emulator.faults import InjectedFault
-from motion.protocol import Command
+from motion.emulator.arm import arm_emulator
+from motion.emulator.faults import Fault, InjectedFault
+from motion.emulator.simulated import SimulatedBus, Simulation
+from motion.protocol import Bare, Command
 from motion.safety import ArmState
+from motion.transport import Request
 from motion.transport.buses import Buses
 from tests.motion_rig import Rig, emulated_arm, logged_requests, received
 from tests.test_buses import TARGETS, fault_halts_every_axis, setpoint_arrivals
@@ -177,3 +181,33 @@ def test_the_api_emulates_both_transports_in_real_time_on_a_slcan_and_an_rs485_p
         pytest.skip(f"this host does not hold the mixed arm at {RATE_HZ:g} Hz just now: {exc}")
     tolerance = load_config(_mixed(tmp_path)).control.goal_tolerance_deg + 0.01
     assert abs(q["left_elbow_pitch"] - 20.0) < tolerance and abs(q["right_elbow_pitch"] + 20.0) < tolerance
+
+
+def test_each_lines_time_is_its_own_and_a_line_missing_a_reply_took_the_whole_exchange(tmp_path: Path) -> None:
+    # what the rate check names the limiting bus by: the RS485 line's six exchanges one after the other take far
+    # longer than the CAN bus's six frames at once; a line whose drive is silent took until the deadline
+    config = _config(tmp_path)
+    emulator, _ = arm_emulator(config)
+    simulation = Simulation(emulator, lines=simulated_lines(config))
+    reads = [Request(j.address, Bare(Command.READ_STATUS_2)) for j in config.joints]
+    with SimulatedBus(simulation, names=("left", "right")) as bus:
+        assert all(r.ok for r in bus.transact(reads, simulation.now_s + 0.05))
+        healthy = bus.bus_times_s()
+        assert healthy is not None and 0.0 < healthy["left"] < 0.002 < healthy["right"] < 0.02, healthy
+        now = simulation.now_s
+        emulator.add_fault(Fault(InjectedFault.SILENT, 106, start_s=now, end_s=now + 60.0))  # (the line's last)
+        replies = bus.transact(reads, now + 0.05)
+        whole = simulation.now_s - now  # (the silent drive's share of the cycle, then the rest of the line)
+        assert [r.motor_id for r in replies if not r.ok] == [106]
+        silent = bus.bus_times_s()
+        assert silent is not None and silent["right"] == pytest.approx(whole) and whole > healthy["right"] + 0.005
+        assert silent["left"] == pytest.approx(healthy["left"])
+
+
+def test_the_rate_check_of_an_arm_on_both_transports_names_the_rs485_line(tmp_path: Path) -> None:
+    with Arm.from_config(_mixed(tmp_path), emulate=True) as arm:
+        check = arm.rate_check
+    assert check is not None
+    times = dict(check.by_bus_p99_s)
+    assert times["right"] > 2 * times["left"] > 0.0, times  # (six exchanges in turn at 115200 baud)
+    assert "bus right limits" in check.summary()

@@ -22,12 +22,14 @@ from motion.api import Arm
 from motion.compose import build_controller, check_rate, feedforward_for, rehearsal_watchdog
 from motion.config import ArmConfig
 from motion.config.schema import ControlMode
-from motion.control.ratecheck import MAX_SAMPLES, MIN_SAMPLES, RateCheck, RateError, measure_rate
+from motion.control.ratecheck import MAX_SAMPLES, MIN_SAMPLES, RateCheck, RateError, StatusRounds, measure_rate
 from motion.emulator import Fault, FrameLog, InjectedFault, TimingModel
 from motion.emulator.arm import arm_emulator
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.errors import ConfigError, FaultKind, MotionFault
-from motion.transport import Reply
+from motion.protocol import Bare, Command, WireProtocol
+from motion.protocol.table import ADDRESS_STRIDE
+from motion.transport import Reply, Request
 from tests.motion_rig import CONFIGS, arm_config, skip_if_rate_refused
 from tests.test_cli import TORQUE_MIN_RATE_HZ
 
@@ -237,3 +239,33 @@ def test_cli_move_at_a_rate_the_bus_cannot_hold_exits_2_before_moving(tmp_path: 
         reached = float(result.stdout.split("shoulder=")[1].split()[0])
         # just done: the drive's own loop still settling (1.03 deg past it once, at the lower rate a loaded host holds)
         assert abs(reached - 5.0) < 2.0, result.stdout
+
+
+@pytest.mark.parametrize(
+    ("drives", "period_s", "wires", "per_bus"),
+    [
+        ((6,), 0.004, (WireProtocol.CAN,), [1]),  # 12 reads, each drive's within 50 ms: one a cycle at 250 Hz
+        ((6,), 0.02, (WireProtocol.CAN,), [6]),  # at 50 Hz, half of them each cycle
+        ((6, 6), 0.01, (WireProtocol.CAN, WireProtocol.RS485), [3, 1]),  # the line: one a cycle whatever the rate
+        ((2, 5, 3), 0.0125, (WireProtocol.RS485, WireProtocol.CAN, WireProtocol.CAN), [1, 3, 2]),
+    ],
+)
+def test_each_bus_takes_its_status_reads_round_by_its_own_count(
+    drives: tuple[int, ...], period_s: float, wires: tuple[WireProtocol, ...], per_bus: list[int]
+) -> None:
+    reads_of = (Command.READ_STATUS_1, Command.READ_MULTI_TURN_ANGLE)
+    addresses = [bus * ADDRESS_STRIDE + m for bus, count in enumerate(drives) for m in range(1, count + 1)]
+    rounds = StatusRounds([(a, [Request(a, Bare(c)) for c in reads_of]) for a in addresses], period_s, wires)
+    assert [count for _, count in rounds.rounds] == per_bus and rounds.per_cycle == sum(per_bus)
+    every = [Request(a, Bare(c)) for a in addresses for c in reads_of]
+    promised = {request: rounds.cycles_until(request) for request in every}  # before the first cycle
+    went: dict[Request, int] = {}
+    for cycle in range(1, 2 * max(drives) + 1):
+        batch = rounds.next()
+        # each bus's own count of its own reads, every cycle
+        assert [sum(r.motor_id // ADDRESS_STRIDE == bus for r in batch) for bus in range(len(drives))] == per_bus
+        for request in batch:
+            went.setdefault(request, cycle)
+    assert went == promised  # every read came round, in the cycle cycles_until said
+    with pytest.raises(ValueError, match="not one of the status reads"):
+        rounds.cycles_until(Request(99, Bare(Command.READ_STATUS_1)))

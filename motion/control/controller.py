@@ -38,6 +38,7 @@ from motion.protocol import (
     MultiTurnAngle,
     WireProtocol,
 )
+from motion.protocol.table import split_address
 from motion.trajectory import Follower, JointLimits, Path, Planner, State
 from motion.transmission import ArmTransmission, FloatArray
 from motion.transport.base import Reply, Request, Transport
@@ -87,6 +88,9 @@ class Controller(MotionCommands, LoopRunning):
         options: loop settings.
         feedforward: torque feed-forward for torque mode (None = zero).
         clock: time source (a ManualClock makes runs deterministic).
+
+    Raises:
+        ValueError: ``options.wires`` names no wire for a bus the axes' addresses are on.
     """
 
     def __init__(
@@ -101,6 +105,12 @@ class Controller(MotionCommands, LoopRunning):
         clock: Clock | None = None,
     ) -> None:
         self.specs = tuple(specs)
+        buses = max(split_address(s.motor_id)[0] for s in self.specs) + 1 if self.specs else 1
+        if len(options.wires) < buses:
+            raise ValueError(
+                f"ControllerOptions.wires: {len(options.wires)} wire(s) for axes on {buses} buses (one per bus, by the "
+                "bus index of their addresses)"
+            )
         #: The joint <-> motor mapping of the configuration; :attr:`transmission` adds the turn offsets to it.
         self.base_transmission = transmission
         #: Whole motor turns per joint between this controller's frame and the drive's (:meth:`set_turns`).

@@ -38,6 +38,7 @@ from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily, split_address
 from motion.transport.base import FrameTap, Request, Transport, probe_in_turn
 from motion.transport.can_transport import take_in_can_frame
 from motion.transport.detect import expected_answers, generations, probe_frames
+from motion.transport.plan import FILLED
 
 #: Default CAN bit rate, bit/s (RMD drives run at 1 Mbit/s).
 DEFAULT_BITRATE: Final = 1_000_000
@@ -361,15 +362,26 @@ class SimulatedBus(Transport):
             motors.append(request.motor_id)
 
     def _exchange(self, deadline_s: float) -> None:
+        self._started_s = self.simulation.now_s
+        timed = len(self.names) > 1  # (each line's time, for the rate check's figure per bus)
+        if timed:
+            self._line_took_s[:] = [0.0] * len(self._line_took_s)
         if self._can:
             self._exchange_can(deadline_s)
         elif self._one_line:
             self._exchange_rs485(deadline_s)
         else:
             self._exchange_lines(deadline_s)
+        if timed:  # a line whose replies did not all come took the whole exchange (as a bus's worker in real time)
+            plan, state, took = self._slots, self._slot_state, self._line_took_s
+            first, whole = plan.first_slot, self.simulation.now_s - self._started_s
+            for index, line in enumerate(self._lines):
+                if any(state[slot] != FILLED for slot in range(first[index], first[index + 1])):
+                    took[line] = whole
 
     def bus_times_s(self) -> Mapping[str, float] | None:
-        """See :meth:`Transport.bus_times_s`: each line's time from the exchange's start to its last reply."""
+        """See :meth:`Transport.bus_times_s`: each line's time from the exchange's start to its last reply, or to the
+        exchange's end where one of its replies did not come."""
         if len(self.names) < 2:
             return None
         return dict(zip(self.names, self._line_took_s, strict=False))
@@ -378,7 +390,6 @@ class SimulatedBus(Transport):
         sim = self.simulation
         for stale in sim.arrived_by(sim.now_s):  # a previous cycle's replies
             self._take_in(stale)
-        self._started_s = sim.now_s
         for index, (wire, line) in enumerate(zip(self._wires, self._lines, strict=True)):
             sim.submit(wire, line)
             self._sent(index)
@@ -419,7 +430,6 @@ class SimulatedBus(Transport):
         sim = self.simulation
         for stale in sim.arrived_by(sim.now_s):  # a previous cycle's replies
             self._take_in(stale)
-        self._started_s = sim.now_s
         waiting: dict[int, deque[int]] = {}  # per RS485 line, its requests not sent yet
         for index, (wire, line) in enumerate(zip(self._wires, self._lines, strict=True)):
             if self._line_can[line]:
@@ -490,7 +500,8 @@ class SimulatedBus(Transport):
         if isinstance(wire, CanFrame):
             self._tap(True, wire, arrival.line)
             take_in_can_frame(self, wire, arrival.line * ADDRESS_STRIDE, tapped=True)
-            self._line_took_s[arrival.line] = arrival.time_s - self._started_s
+            took = self._line_took_s
+            took[arrival.line] = max(took[arrival.line], arrival.time_s - self._started_s)
             return
         line = arrival.line
         self._tap(True, wire, line)
@@ -503,7 +514,8 @@ class SimulatedBus(Transport):
             # On a half-duplex line only the addressed drive talks: corrupt bytes count against it.
             self.motor_counters(arrival.motor_id if waiting_for is None else waiting_for).bad_frames += 1
             return
-        self._line_took_s[line] = arrival.time_s - self._started_s
+        took = self._line_took_s
+        took[line] = max(took[line], arrival.time_s - self._started_s)
         self._offer(line * ADDRESS_STRIDE + motor_id, message)
 
     def _close(self) -> None:
