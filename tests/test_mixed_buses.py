@@ -100,12 +100,17 @@ def test_each_cycle_runs_the_can_bus_and_the_rs485_line_at_the_same_time(tmp_pat
         assert rig.supervisor is not None
         rig.supervisor.move_to(TARGETS, 1.0)
         rig.sleep(1.0)
-    first = {key: min(times) for key, times in setpoint_arrivals(rig).items()}
+    arrivals = setpoint_arrivals(rig)
+    first = {key: min(times) for key, times in arrivals.items()}
     cycles = sorted({cycle for cycle, bus in first if bus == 1 and (cycle, 0) in first})
     assert len(cycles) > 20
     # each cycle's first set-point on each bus goes out at the cycle's start: the line does not wait for the bus
     skew = [abs(first[(c, 1)] - first[(c, 0)]) for c in cycles]
     assert max(skew) < 3e-3, max(skew)  # (one RS485 0xA4 takes 1.6 ms at 115200 baud; a CAN frame 0.13 ms)
+    # the line's six, one after the other, all within the cycle; the CAN bus's six long before the line's last
+    period = 1.0 / RATE_HZ
+    assert all(len(arrivals[(c, 1)]) == 6 and max(arrivals[(c, 1)]) - first[(c, 0)] < period for c in cycles)
+    assert all(max(arrivals[(c, 0)]) < max(arrivals[(c, 1)]) - 5e-3 for c in cycles)
 
 
 def test_torque_mode_sends_0x280_on_the_can_bus_and_0xa1_on_the_rs485_line(tmp_path: Path) -> None:
