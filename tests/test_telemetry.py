@@ -248,10 +248,10 @@ def test_a_bus_trace_keeps_each_frames_bus() -> None:
         "(0.700000) right_arm 141#9C R",
     ]
     text = io.StringIO()
-    trace.write_hex(text, ["left", "right"])
+    trace.write_hex(text, ["left", "right"])  # (buses of both transports: the CAN frames as candump lines among them)
     assert text.getvalue().splitlines()[1:] == [
-        "(0.600000) right T A4",
-        "(0.700000) right R 9C",
+        "(0.600000) right 141#A4 T",
+        "(0.700000) right 141#9C R",
         "(0.800000) left R 3E",
     ]
 
