@@ -196,12 +196,11 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
     spoken = bus if bus.family is wanted else bus.with_family(wanted)
     if found:
         labels = {j.address: j.drive_label for j in config.joints}
-        wires = bus_wires(config)
+        on_wire: dict[WireProtocol, list[int]] = {}  # (each wire's identity reads for the drives on its buses)
+        for address in sorted(found):
+            on_wire.setdefault(config.buses[split_address(address)[0]].transport, []).append(address)
         described = ", ".join(
-            text
-            for wire in dict.fromkeys(wires)  # (each wire's reads for the drives on its buses)
-            if (on := [a for a in sorted(found) if wires[split_address(a)[0]] is wire])
-            and (text := describe_drives(spoken, on, wire, labels))
+            text for wire, on in on_wire.items() if (text := describe_drives(spoken, on, wire, labels))
         )
         if described:
             logger.info("drives of the %s: %s", spoken.generation.title, described)

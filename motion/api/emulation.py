@@ -135,22 +135,23 @@ def emulator_process(
 def _link_overrides(config: ArmConfig, links: Mapping[str, Path]) -> dict[str, object]:
     """The bus overrides that reach the emulator's pseudo-terminals: each value for the one bus, or a mapping of the
     buses' names to each one's (a key only for the buses of its transport)."""
+    per_bus = {
+        bus.name: {
+            "interface": "slcan",
+            "channel": str(links[bus.name]),
+            "bitrate": DEFAULT_BITRATE,
+            "sleep_after_open": 0,
+        }
+        if bus.transport is WireProtocol.CAN
+        else {"port": str(links[bus.name])}
+        for bus in config.buses
+    }
+    if len(per_bus) == 1:
+        return dict(*per_bus.values())
     overrides: dict[str, dict[str, object]] = {}
-    for bus in config.buses:
-        link = str(links[bus.name])
-        if bus.transport is WireProtocol.CAN:
-            mine: dict[str, object] = {
-                "interface": "slcan",
-                "channel": link,
-                "bitrate": DEFAULT_BITRATE,
-                "sleep_after_open": 0,
-            }
-        else:
-            mine = {"port": link}
+    for name, mine in per_bus.items():
         for key, value in mine.items():
-            overrides.setdefault(key, {})[bus.name] = value
-    if len(config.buses) == 1:
-        return {key: value for key, (value,) in ((k, tuple(v.values())) for k, v in overrides.items())}
+            overrides.setdefault(key, {})[name] = value
     return dict(overrides)
 
 

@@ -117,6 +117,14 @@ class StatusRounds:
         #: How many reads each cycle carries, over every bus.
         self.per_cycle = sum(count for _, count in self.rounds)
 
+    @classmethod
+    def of(cls, controller: Controller) -> StatusRounds:
+        """The status reads of ``controller``'s drives: 0x9A (flags, voltage, temperature) and the family's restart
+        read (0x92, whose multi-turn angle jumps when a drive restarted; V3: 0xB1, its runtime, which starts again)."""
+        bare, reads_of = controller.family.bare, (Command.READ_STATUS_1, controller.family.restart_read)
+        reads = [(i, [Request(i, bare(c)) for c in reads_of]) for i in controller.ids]
+        return cls(reads, controller.period_s, controller.options.wires)
+
     def next(self) -> tuple[Request, ...]:
         """The next cycle's reads (each bus's next ones in turn)."""
         out: list[Request] = []
@@ -303,12 +311,9 @@ def measure_rate(
         raise ValueError(f"margin: {margin!r} must be >= 1")
     ids = controller.ids
     # A cycle's frames: one motion read per joint as the set-points, the family's angle reads, its status reads.
-    family = controller.family
-    bare = family.bare
+    bare = controller.family.bare
     batch = [Request(i, bare(Command.READ_STATUS_2)) for i in ids] + controller.angle_reads
-    reads_of = (Command.READ_STATUS_1, family.restart_read)
-    status = [(i, [Request(i, bare(c)) for c in reads_of]) for i in ids]
-    batch += StatusRounds(status, controller.period_s, controller.options.wires).next()
+    batch += StatusRounds.of(controller).next()
     clock, bus = controller.clock, controller.bus
     # What a cycle's set-points take on the wire beyond the reads that stand in for them (measured: the reads; the
     # difference: the wire's speed), for transports that know it.

@@ -39,7 +39,6 @@ from motion.control.controller import Controller, Feedforward
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.ratecheck import StatusRounds
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
-from motion.protocol import Command
 from motion.safety.clearing import Clearing
 from motion.safety.collision import CollisionObserver
 from motion.safety.context import SafetyContext
@@ -135,14 +134,10 @@ class Supervisor:
         self._clear_request = threading.Event()
         self._clear_done = threading.Event()
         self._clear_result: MotionFault | None = None
-        # 0x9A (flags, voltage, temperature) and 0x92 (the multi-turn angle: a drive that restarted) in turn
-        # (the V3 family: 0x9A and 0xB1, its runtime, which starts again when the drive restarted)
-        reads_of = (Command.READ_STATUS_1, family.restart_read)
-        # each bus's in turn on its own (each cycle's reads spread over the buses: one bus carrying them all would
-        # make its cycle the longer one; an RS485 line carries one a cycle)
-        status = [(i, [Request(i, family.bare(c)) for c in reads_of]) for i in ids]
-        #: The round-robin status reads.
-        self.status_rounds = StatusRounds(status, controller.period_s, controller.options.wires)
+        #: The round-robin status reads (0x9A and the restart read), each bus's in turn on its own (each cycle's
+        #: reads spread over the buses: one bus carrying them all would make its cycle the longer one; an RS485
+        #: line carries one a cycle).
+        self.status_rounds = StatusRounds.of(controller)
         #: How many of them each cycle carries, over every bus (CAN: every drive's flags at most FLAG_AGE_S old).
         self.status_reads_per_cycle = self.status_rounds.per_cycle
         self._finalizer = weakref.finalize(self, emergency_stop, controller, ids, family.bare)

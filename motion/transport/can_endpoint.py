@@ -6,11 +6,12 @@ emulated drives to an in-process ``virtual`` bus. Frames are :class:`motion.prot
 
 from __future__ import annotations
 
+import functools
 import io
 import os
 import select
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import can
@@ -79,7 +80,11 @@ class CanEndpoint(Closing):
         # The slcan shim carries standard data frames without a can.Message (see slcan_shim): the loop's frames.
         self._recv_frame = getattr(self._bus, "recv_frame", None)
         self._send_frame = getattr(self._bus, "send_frame", None)
-        self._send_frames = getattr(self._bus, "send_frames", None)
+        send_frames = getattr(self._bus, "send_frames", None)
+        #: Send a cycle's batch in one write (the slcan shim), or None where the bus sends frame by frame.
+        self.send_batch: Callable[[Sequence[CanFrame], float | None], None] | None = (
+            None if send_frames is None else functools.partial(self._send_lines, send_frames)
+        )
 
     def send(self, frame: CanFrame, timeout_s: float | None = None) -> None:
         """Send one frame.
@@ -97,24 +102,20 @@ class CanEndpoint(Closing):
         except (can.CanError, OSError, ValueError) as exc:
             raise self._failure("send", exc) from exc
 
-    @property
-    def writes_batches(self) -> bool:
-        """Whether :meth:`send_batch` writes a batch at once (the slcan shim: its lines in one write)."""
-        return self._send_frames is not None
-
-    def send_batch(self, frames: Sequence[CanFrame], timeout_s: float | None = None) -> None:
-        """Send frames in order, in one write where :attr:`writes_batches` (else one by one).
+    def _send_lines(
+        self,
+        send_frames: Callable[[Sequence[tuple[int, bytes]], float | None], None],
+        frames: Sequence[CanFrame],
+        timeout_s: float | None,
+    ) -> None:
+        """:attr:`send_batch` (the slcan shim's lines in one write).
 
         Raises:
             PortLost: the port is gone (:func:`~motion.transport.base.port_gone`).
-            TransportError: the interface refused a frame (bus off, buffer full).
+            TransportError: the interface refused the batch (nothing of it counts as sent).
         """
-        if self._send_frames is None:
-            for frame in frames:
-                self.send(frame, timeout_s)
-            return
         try:
-            self._send_frames([(frame.arbitration_id, frame.data) for frame in frames], timeout_s)
+            send_frames([(frame.arbitration_id, frame.data) for frame in frames], timeout_s)
         except (can.CanError, OSError, ValueError) as exc:
             raise self._failure("send", exc) from exc
 

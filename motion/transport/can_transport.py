@@ -121,9 +121,7 @@ class CanTransport(Transport):
         super().__init__(clock=clock, family=family)
         self._endpoint: CanPort = port
         # a port that writes a cycle's batch at once (CanEndpoint over the slcan shim): its send_batch
-        self._send_batch: Callable[[Sequence[CanFrame], float | None], None] | None = (
-            getattr(port, "send_batch", None) if getattr(port, "writes_batches", False) else None
-        )
+        self._send_batch: Callable[[Sequence[CanFrame], float | None], None] | None = getattr(port, "send_batch", None)
         self._owns_port = owns_port
         self._frames: list[CanFrame] = []
 

@@ -282,7 +282,14 @@ class SlcanShimBus(slcanBus):
                     f"{len(data)} bytes"
                 )
             lines.append(b"t%03X%d%s\r" % (arbitration_id, len(data), hexlify(data).upper()))
-        self._write_drained(b"".join(lines), timeout)
+        port = self.serialPortOrig
+        try:
+            if timeout != port.write_timeout:
+                port.write_timeout = timeout
+            port.write(b"".join(lines))
+            port.flush()
+        except PORT_ERRORS as exc:
+            raise can.CanOperationError(f"Could not write to serial device: {exc}") from exc
 
     def send_frame(self, arbitration_id: int, data: bytes, timeout: float | None) -> None:
         """Send a standard data frame: the line python-can's ``send`` writes for it, written and drained as it does.
@@ -291,18 +298,4 @@ class SlcanShimBus(slcanBus):
             can.CanOperationError: the port failed or the write timed out.
             ValueError: an id beyond 11 bits or more than 8 bytes (no standard frame).
         """
-        if not 0 <= arbitration_id <= 0x7FF or len(data) > 8:
-            raise ValueError(
-                f"a standard data frame has an id 0..0x7FF and 0..8 bytes, got 0x{arbitration_id:X}, {len(data)} bytes"
-            )
-        self._write_drained(b"t%03X%d%s\r" % (arbitration_id, len(data), hexlify(data).upper()), timeout)
-
-    def _write_drained(self, lines: bytes, timeout: float | None) -> None:
-        port = self.serialPortOrig
-        try:
-            if timeout != port.write_timeout:
-                port.write_timeout = timeout
-            port.write(lines)
-            port.flush()
-        except PORT_ERRORS as exc:
-            raise can.CanOperationError(f"Could not write to serial device: {exc}") from exc
+        self.send_frames(((arbitration_id, data),), timeout)
