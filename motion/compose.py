@@ -37,6 +37,7 @@ from motion.control.turns import (
 from motion.errors import ConfigError, TransportError
 from motion.keep import drive_record_for
 from motion.protocol import WireProtocol
+from motion.protocol.generation import GENERATIONS
 from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily, split_address
 from motion.safety import SafetySettings, Supervisor
 from motion.safety.watchdog import CollisionObserver, Watchdog
@@ -65,10 +66,13 @@ def joint_limits(config: ArmConfig) -> JointLimits:
     )
 
 
-def axis_specs(config: ArmConfig, family: ProtocolFamily = ProtocolFamily.V2) -> tuple[AxisSpec, ...]:
-    """The controller's view of every joint, for drives of ``family``: a drive that reports its output shaft (V3)
-    has the joint's whole reduction inside (the actuator's output is the joint; :mod:`motion.control.family`)."""
-    output_shaft = FAMILIES[family].output_shaft
+def axis_specs(
+    config: ArmConfig, family: ProtocolFamily | Sequence[ProtocolFamily] = ProtocolFamily.V2
+) -> tuple[AxisSpec, ...]:
+    """The controller's view of every joint, for drives of ``family`` (a sequence: each bus's, in the order of
+    ``buses:``): a drive that reports its output shaft (V3) has the joint's whole reduction inside (the actuator's
+    output is the joint; :mod:`motion.control.family`)."""
+    families = [family] * len(config.buses) if isinstance(family, str) else list(family)
     return tuple(
         AxisSpec(
             j.name,
@@ -76,7 +80,7 @@ def axis_specs(config: ArmConfig, family: ProtocolFamily = ProtocolFamily.V2) ->
             j.encoder_bits,
             j.kp_nm_per_deg,
             j.kd_nm_per_dps,
-            drive_gear_ratio=j.gear_ratio if output_shaft else 1.0,
+            drive_gear_ratio=j.gear_ratio if FAMILIES[families[j.bus_index]].output_shaft else 1.0,
             label=j.drive_label,
         )
         for j in config.joints
@@ -93,23 +97,14 @@ def controller_options(config: ArmConfig) -> ControllerOptions:
     return ControllerOptions(mode=config.control.mode, rate_hz=config.control.rate_hz, wires=bus_wires(config))
 
 
-def opening_family(config: ArmConfig) -> ProtocolFamily:
-    """The generation a bus opens in before :func:`negotiate_family` asks the drives: the one ``bus.protocol`` names;
-    with ``auto`` the older, unless the RS485 baud rate is one only V3 drives run at. An arm on several buses opens
-    them all in one: the one their settings name, else the one their baud rates tell, else the older.
-
-    Raises:
-        ConfigError: the buses name both generations (one arm's drives speak one so far).
-    """
-    named = {ProtocolFamily(b.protocol.value) for b in config.buses if b.protocol is not ProtocolSetting.AUTO}
-    if len(named) > 1:
-        raise ConfigError(
-            config.source, "buses", "the buses name both protocol generations: one arm's drives speak one so far"
-        )
-    if named:
-        return named.pop()
-    told = {_opening(bus) for bus in config.buses}
-    return told.pop() if len(told) == 1 else ProtocolFamily.V2
+def opening_families(config: ArmConfig) -> tuple[ProtocolFamily, ...]:
+    """The generation each bus opens in (in the order of ``buses:``) before :func:`negotiate_family` asks the
+    drives: the one its ``protocol`` names; with ``auto`` the older, unless its RS485 baud rate is one only V3 drives
+    run at."""
+    return tuple(
+        _opening(bus) if bus.protocol is ProtocolSetting.AUTO else ProtocolFamily(bus.protocol.value)
+        for bus in config.buses
+    )
 
 
 def _opening(bus: BusConfig) -> ProtocolFamily:
@@ -120,19 +115,17 @@ def _opening(bus: BusConfig) -> ProtocolFamily:
 
 
 def open_bus(config: ArmConfig, **overrides: object) -> Transport:
-    """Open the configured bus (every bus of an arm on several, as one :class:`~motion.transport.buses.Buses`),
-    speaking the configured protocol generation (``auto``: the older one until :func:`negotiate_family`);
+    """Open the configured bus (every bus of an arm on several, as one :class:`~motion.transport.buses.Buses`), each
+    speaking its configured protocol generation (``auto``: :func:`opening_families`, until :func:`negotiate_family`);
     ``overrides`` replace configured values (e.g. ``channel=`` of an emulator): a value for every bus, or a mapping of
     bus names to each one's (``channel={"left": ..., "right": ...}``).
 
     Raises:
         TransportError: a bus or port could not be opened (those opened before are closed again).
-        ConfigError: the buses name both protocol generations.
     """
-    family = opening_family(config)
     opened: list[Transport] = []
     try:
-        for bus in config.buses:
+        for bus, family in zip(config.buses, opening_families(config), strict=True):
             mine = {
                 key: value[bus.name] if isinstance(value, Mapping) else value
                 for key, value in overrides.items()
@@ -154,18 +147,20 @@ GENERATION_CHECK_ATTEMPTS = 3
 
 
 def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
-    """The transport that speaks to the configured drives in their protocol generation (issue 17): ``bus`` itself,
-    or one over the same link in the other generation (:meth:`Transport.with_family`, which takes the link over).
+    """The transport that speaks to the configured drives in their protocol generation (issue 17), each bus in its
+    own drives' (an arm on several buses may have drives of one generation on one bus, of the other on another):
+    ``bus`` itself, or one over the same links in the generations found (:meth:`Transport.with_families`, which takes
+    the links over).
 
     The configured drives are asked for their status: on CAN (a real bus or a simulated one) once at the frame level,
     their reply ids telling the generation (:mod:`motion.transport.detect`); on RS485 in each generation's framing in
     turn (a drive stays silent to the other framing, whose checksums fail). Drives that do not answer are left to the
-    connect's own reads (which name them). ``bus.protocol: auto`` follows what answered (nothing: the older family);
-    ``v2`` / ``v3`` are checked against it.
+    connect's own reads (which name them). A bus's ``protocol: auto`` follows what answered on it (nothing: the
+    generation it opened in, :func:`opening_families`); ``v2`` / ``v3`` are checked against it.
 
     Raises:
         TransportError: drives of both generations on one bus (each named), or drives that answer in the other
-            generation than ``bus.protocol`` says.
+            generation than their bus's ``protocol`` says.
     """
     ids = [j.address for j in config.joints]
     found: dict[int, ProtocolFamily] = {}
@@ -174,36 +169,34 @@ def negotiate_family(bus: Transport, config: ArmConfig) -> Transport:
         found.update(answers or {})
         if answers is None or len(found) == len(ids):  # (None: this transport cannot tell)
             break
-    answered = set(found.values())
-    if len(answered) > 1:
-        where = "one bus" if len(config.buses) == 1 else "one arm"
-        raise TransportError(
-            f"drives of both protocol generations on {where} ({_families_text(found, config)}): refused"
-        )
-    detected = answered.pop() if answered else None
+    wanted: list[ProtocolFamily] = []
     for index, bus_config in enumerate(config.buses):
+        here = {j.address: found[j.address] for j in config.joints_on(index) if j.address in found}
+        on_bus = set(here.values())
+        where = f"bus {bus_config.name}" if bus_config.name else "one bus"
+        if len(on_bus) > 1:
+            raise TransportError(
+                f"drives of both protocol generations on {where} ({_families_text(here, config)}): refused"
+            )
         setting = bus_config.protocol
-        on_bus = {found[j.address] for j in config.joints_on(index) if j.address in found}
         if setting is not ProtocolSetting.AUTO and on_bus and on_bus != {ProtocolFamily(setting.value)}:
             key = f"buses.{bus_config.name}.protocol" if bus_config.name else "bus.protocol"
             (told,) = on_bus
             raise TransportError(
                 f"{key} is {setting.value}, but the drives answer in the {told.value} protocol "
-                f"({_families_text(found, config)}): set {key} to {told.value} or auto"
+                f"({_families_text(here, config)}): set {key} to {told.value} or auto"
             )
-    named = {ProtocolFamily(b.protocol.value) for b in config.buses if b.protocol is not ProtocolSetting.AUTO}
-    wanted = detected or (named.pop() if named else ProtocolFamily.V2)
-    spoken = bus if bus.family is wanted else bus.with_family(wanted)
+        wanted.append(on_bus.pop() if on_bus else bus.families[index])
+    spoken = bus.with_families(wanted)
     if found:
         labels = {j.address: j.drive_label for j in config.joints}
-        on_wire: dict[WireProtocol, list[int]] = {}  # (each wire's identity reads for the drives on its buses)
+        groups: dict[tuple[WireProtocol, ProtocolFamily], list[int]] = {}  # (identity reads per wire and generation)
         for address in sorted(found):
-            on_wire.setdefault(config.buses[split_address(address)[0]].transport, []).append(address)
-        described = ", ".join(
-            text for wire, on in on_wire.items() if (text := describe_drives(spoken, on, wire, labels))
-        )
-        if described:
-            logger.info("drives of the %s: %s", spoken.generation.title, described)
+            index = split_address(address)[0]
+            groups.setdefault((config.buses[index].transport, wanted[index]), []).append(address)
+        for (wire, family), on in groups.items():
+            if described := describe_drives(spoken, on, wire, labels):
+                logger.info("drives of the %s: %s", GENERATIONS[family].title, described)
     return spoken
 
 
@@ -218,13 +211,14 @@ def describe_drives(
     bus: Transport, ids: Sequence[int], wire: WireProtocol, labels: Mapping[int, str] | None = None
 ) -> str:
     """``"motor 1 X8S2V10 firmware 20240528, ..."``: what each drive tells of its model and firmware, as read now
-    (a drive that does not answer is named so) and kept in ``bus.identities``; empty where the generation has no such
-    read on ``wire``. ``labels`` name the drives by address (``"motor 1 on bus left"``).
+    (a drive that does not answer is named so) and kept in ``bus.identities``; empty where their generation (of
+    ``ids``, all of one: ``bus.family_of``) has no such read on ``wire``. ``labels`` name the drives by address
+    (``"motor 1 on bus left"``).
 
     Raises:
         TransportError: the bus failed.
     """
-    if not bus.generation.identity_reads[wire]:
+    if not ids or not GENERATIONS[bus.family_of(ids[0])].identity_reads[wire]:
         return ""
     told = read_identities(bus, ids, wire, GENERATION_CHECK_WINDOW_S)
     bus.identities.update(told)
@@ -309,7 +303,7 @@ def build_controller(
     """A controller for ``config`` on ``bus`` (call ``read_positions()`` before moving). In torque mode with a
     feed-forward, the tracking model learns the joints' inertia from the arm's model."""
     controller = Controller(
-        axis_specs(config, bus.family),
+        axis_specs(config, bus.families),
         config.transmission(),
         joint_limits(config),
         bus,
@@ -385,15 +379,15 @@ def build_supervisor(config: ArmConfig, controller: Controller, *, observe: bool
     Raises:
         ConfigError: a joint has ``brake: true`` but its drive's generation has no brake commands.
     """
-    braked = [j.address for j in config.joints if j.brake]
-    if braked and not controller.family.brakes:
-        i, joint = next((i, j) for i, j in enumerate(config.joints) if j.brake)
-        raise ConfigError(
-            config.source,
-            f"joints[{i}].brake",
-            f"{joint.name} has a brake, but the drives answer in the {controller.family.family.value} protocol, which "
-            "has no brake commands (0x77 / 0x78 are the V3 driver's)",
-        )
+    for i, joint in enumerate(config.joints):
+        family = controller.family_of(joint.address)
+        if joint.brake and not family.brakes:
+            raise ConfigError(
+                config.source,
+                f"joints[{i}].brake",
+                f"{joint.name} has a brake, but its drive answers in the {family.family.value} protocol, which has no "
+                "brake commands (0x77 / 0x78 are the V3 driver's)",
+            )
     return Supervisor(
         controller,
         safety_settings(config),
@@ -411,7 +405,7 @@ def drive_setup(config: ArmConfig, controller: Controller) -> DriveSetup:
     record, now = drive_record_for(controller.bus)
     return DriveSetup(
         controller.bus,
-        controller.family,
+        controller.families,
         ids,
         braked,
         session_link_timeout_ms(config),
@@ -470,8 +464,8 @@ def resolve_frames(
         stayed_powered=stayed_powered,
         # drives that report their output shaft (V3): the reading is the joint's (the joints about to be homed aside)
         output_turns=[
-            _output_turn(s.drive_gear_ratio) if controller.family.output_shaft and s.name not in provisional else None
-            for s in controller.specs
+            _output_turn(s.drive_gear_ratio) if f.output_shaft and s.name not in provisional else None
+            for s, f in zip(controller.specs, controller.families, strict=True)
         ],
         limits=[(j.position_min_deg, j.position_max_deg) for j in config.joints],
     )

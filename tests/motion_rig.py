@@ -27,7 +27,7 @@ from motion.compose import (
     feedforward_for,
     negotiate_family,
     open_bus,
-    opening_family,
+    opening_families,
 )
 from motion.config import ArmConfig, load_config
 from motion.config.schema import CanBusConfig, ControlMode
@@ -66,7 +66,8 @@ class Rig:
     cycle_starts: list[float]
     supervisor: Supervisor | None = None
     log_start_s: float = 0.0
-    family: ProtocolFamily = ProtocolFamily.V2
+    #: The drives' generation (a tuple: each bus's).
+    family: ProtocolFamily | tuple[ProtocolFamily, ...] = ProtocolFamily.V2
     #: The in-process attachments of a real-time rig, by bus (none in simulated time).
     attachments: tuple[Attachment[Any, Any], ...] = ()
 
@@ -99,13 +100,14 @@ def emulated_arm(
     supervised: bool = False,
     observe: bool = False,
     latency_s: float | None = None,
-    family: ProtocolFamily | None = None,
+    family: ProtocolFamily | tuple[ProtocolFamily, ...] | None = None,
 ) -> Iterator[Rig]:
     """Run ``config`` on emulated drives over ``attachment`` (``sim``: the simulated bus of the configured protocol,
     in simulated time; or in real time on an in-process attachment: virtual | slcan | rs485); the controller is
     started, under a safety :class:`Supervisor` if ``supervised`` (with the collision observer where the configuration
     sets thresholds, or ``observe``). ``latency_s``: the drives' reply latency in simulated time (default the
-    emulator's). ``family``: the drives' protocol generation (default :data:`DEFAULT_FAMILY`), told at connect.
+    emulator's). ``family``: the drives' protocol generation (default :data:`DEFAULT_FAMILY`; a tuple: each bus's),
+    told at connect.
     """
     family = DEFAULT_FAMILY if family is None else family
     emulator, plant = arm_emulator(config, family=family)
@@ -126,7 +128,7 @@ def emulated_arm(
             simulation = Simulation(emulator, timing=timing, lines=lines)
             log = stack.enter_context(FrameLog(log_path, clock=simulation.now))
             simulation.frame_log = log
-            bus: Transport = stack.enter_context(SimulatedBus(simulation, opening_family(config)))
+            bus: Transport = stack.enter_context(SimulatedBus(simulation, opening_families(config)))
             clock = SimulatedClock(simulation)
         else:
             log = stack.enter_context(FrameLog(log_path))
@@ -153,7 +155,7 @@ def emulated_arm(
         spoken = negotiate_family(bus, config) if family is not ProtocolFamily.V2 else bus
         if spoken is not bus:
             bus = stack.enter_context(spoken)
-        assert bus.family is family
+        assert bus.families == (family if isinstance(family, tuple) else (family,) * len(bus.families))
         ff = feedforward_for(config) if use_feedforward else None
         controller = build_controller(config, bus, feedforward=ff, clock=clock)
         controller.read_positions()
@@ -182,13 +184,12 @@ def logged_requests(rig: Rig) -> Iterator[tuple[float, int | None, Message]]:
 
 
 def requests_in_log(
-    text: str, family: ProtocolFamily = ProtocolFamily.V2
+    text: str, family: ProtocolFamily | tuple[ProtocolFamily, ...] = ProtocolFamily.V2
 ) -> Iterator[tuple[float, int | None, Message]]:
     """Every request in a frame log's ``text`` (:mod:`motion.emulator.framelog`): (seconds since the log opened,
-    motor id or None for 0x280, message). A last line not written out yet (a log being written) is left out."""
-    v3 = family is ProtocolFamily.V3
-    decode_can = frames_v3.decode_can_request if v3 else can_frame.decode_request
-    decode_rs485 = frames_v3.decode_rs485_request if v3 else rs485_frame.decode_request
+    motor id or None for 0x280, message), each decoded in its bus's generation (``family``: a tuple, each bus's). A
+    last line not written out yet (a log being written) is left out."""
+    families = family if isinstance(family, tuple) else (family,)
     for line in text.splitlines(keepends=True):
         fields = line.split(maxsplit=3)
         if len(fields) < 4 or fields[1] != "IN" or not line.endswith("\n"):
@@ -197,6 +198,9 @@ def requests_in_log(
         # an arm on several buses: the channel's suffix is the bus ("sim-can-1", "slcan-1"), the drive its address
         suffix = fields[2].rsplit("-", 1)[-1]
         base = int(suffix) * ADDRESS_STRIDE if "-" in fields[2] and suffix.isdigit() else 0
+        v3 = families[base // ADDRESS_STRIDE if len(families) > 1 else 0] is ProtocolFamily.V3
+        decode_can = frames_v3.decode_can_request if v3 else can_frame.decode_request
+        decode_rs485 = frames_v3.decode_rs485_request if v3 else rs485_frame.decode_request
         if ":" in wire:
             ident, data = wire.split(":")
             request = decode_can(int(ident, 16), bytes.fromhex(data))
@@ -227,7 +231,8 @@ def commanded_positions(rig: Rig) -> np.ndarray:
     column = {j.address: i for i, j in enumerate(config.joints)}
     transmissions = [j.transmission() for j in config.joints]
     # a V3 drive takes output-shaft angles (motor degrees / its reduction)
-    drive_gear = [j.gear_ratio if rig.family is ProtocolFamily.V3 else 1.0 for j in config.joints]
+    families = rig.family if isinstance(rig.family, tuple) else (rig.family,) * len(config.buses)
+    drive_gear = [j.gear_ratio if families[j.bus_index] is ProtocolFamily.V3 else 1.0 for j in config.joints]
     per_joint: list[list[float]] = [[] for _ in config.joints]
     for _, motor_id, message in logged_requests(rig):
         if isinstance(message, MultiTurnPositionSpeed) and motor_id in column:

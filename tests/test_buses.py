@@ -18,7 +18,6 @@ from typing import Any
 
 import numpy as np
 import pytest
-import yaml
 from rosbags.highlevel import AnyReader
 
 from motion.api import Arm
@@ -148,10 +147,12 @@ def fault_halts_every_axis(
     expected: str,
     *,
     after_s: float = 0.4,
+    family: tuple[ProtocolFamily, ...] | None = None,
 ) -> None:
-    """Inject ``kind`` on drive ``address`` ``after_s`` into a move of every joint (in simulated time): the fault is
-    ``expected``, named on its joint, and every axis on every bus received its halt in the detection cycle."""
-    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
+    """Inject ``kind`` on drive ``address`` ``after_s`` into a move of every joint (in simulated time; ``family``:
+    each bus's drives' generation): the fault is ``expected``, named on its joint, and every axis on every bus
+    received its halt in the detection cycle."""
+    with emulated_arm(config, "sim", tmp_path, supervised=True, family=family) as rig:
         supervisor = rig.supervisor
         assert supervisor is not None
         supervisor.move_to(TARGETS, 0.5)
@@ -335,21 +336,6 @@ def test_a_recording_of_both_arms_names_each_joints_bus(tmp_path: Path) -> None:
     assert log.meta["channel"] == "left=can0, right=can1"
     final = log.columns["q_deg"][-1]
     assert abs(final[6] - 10.0) < BIMANUAL.control.goal_tolerance_deg + 0.01  # right_base_yaw, the 7th joint
-
-
-def test_buses_that_name_both_protocol_generations_are_refused_naming_it(tmp_path: Path) -> None:
-    # (buses of both transports, or several RS485 lines, run: tests/test_mixed_buses.py)
-    data = yaml.safe_load((CONFIGS / "arm2.yaml").read_text())
-    del data["bus"]
-    data["buses"] = {
-        "a": {"transport": "can", "interface": "virtual", "channel": "x", "protocol": "v2"},
-        "b": {"transport": "can", "interface": "virtual", "channel": "y", "protocol": "v3"},
-    }
-    data["joints"][1]["bus"], data["joints"][0]["bus"] = "b", "a"
-    path = tmp_path / "arm.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
-    result = cli("move", "--config", path, "--emulate", "shoulder=10")
-    assert result.returncode == 2 and "the buses name both protocol generations" in result.stderr, result.stderr
 
 
 def test_jog_of_a_joint_on_the_second_bus_names_its_drive_there() -> None:

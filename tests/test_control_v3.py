@@ -102,7 +102,7 @@ def test_a_move_on_v3_drives_detected_at_connect_reaches_its_target_with_the_ses
             "motor 2 EMUX8V3 firmware 20240528" in caplog.text
         )
         assert arm.bus is not None and arm.bus.family is V3  # told by the reply ids (bus.protocol: auto)
-        assert arm.controller is not None and arm.controller.family.family is V3
+        assert arm.controller is not None and arm.controller.families[0].family is V3
         drives = [v3_drive(arm, i) for i in (1, 2)]
         for drive in drives:  # 5 periods of 4 ms, at least 20 ms; the drive tracks 0xA4 directly
             assert drive.communication_timeout_ms == 20
@@ -228,7 +228,7 @@ def test_rs485_baud_rates_are_each_generations() -> None:
 
 
 def test_brakes_on_drives_without_brake_commands_are_refused() -> None:
-    with pytest.raises(ConfigError, match=r"joints\[1\]\.brake: elbow has a brake, but the drives answer in the v2"):
+    with pytest.raises(ConfigError, match=r"joints\[1\]\.brake: elbow has a brake, but its drive answers in the v2"):
         Arm(arm2(brake="elbow"), emulate=True).connect()
 
 
@@ -280,7 +280,7 @@ def test_the_emulated_protocol_must_agree_with_the_configured_one() -> None:
         Arm(arm2(protocol="v2"), emulate=True, emulated_protocol="v3")
     with pytest.raises(ConfigError, match="'v4' is not one of v2, v3"):
         Arm(arm2(), emulate=True, emulated_protocol="v4")
-    assert Arm(arm2(protocol="v3"), emulate=True).emulated_family is V3
+    assert Arm(arm2(protocol="v3"), emulate=True).emulated_families == (V3,)
 
 
 def test_link_timeout_is_validated() -> None:

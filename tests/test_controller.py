@@ -108,7 +108,7 @@ def test_a_v3_drives_speed_cap_is_its_joints_velocity_limit_in_output_degrees() 
     config = load_config(CONFIGS / "arm6_v3.yaml")
     with Arm(config, emulate=True) as arm:
         controller = arm.controller
-        assert controller is not None and controller.family.output_shaft
+        assert controller is not None and all(f.output_shaft for f in controller.families)
         limits = [j.velocity_limit_dps for j in config.joints]
         for scale in (1.0, 1e3):
             ref = State(np.zeros(len(limits)), scale * np.array(limits), np.zeros(len(limits)))

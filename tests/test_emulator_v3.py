@@ -303,7 +303,7 @@ def test_emulate_serves_v3_drives_on_an_slcan_link_in_its_own_process(tmp_path: 
     [
         (["--ids", "1", "--virtual-channel", "c", "--brakes", "1"], "--brakes needs --protocol v3"),
         (["--ids", "1", "--virtual-channel", "c", "--protocol", "v3", "--brakes", "2"], "brakes [2]"),
-        (["--ids", "1", "--virtual-channel", "c", "--protocol", "v4"], "invalid choice: 'v4'"),
+        (["--ids", "1", "--virtual-channel", "c", "--protocol", "v4"], "'v4': expected v2, v3, or BUS=v2|v3"),
     ],
 )
 def test_emulate_refuses_what_v3_emulation_lacks(args: list[str], message: str) -> None:

@@ -622,8 +622,7 @@ def test_the_explorer_sees_starved_drives(monkeypatch: pytest.MonkeyPatch) -> No
 def test_the_explorer_sees_brakes_locked_in_motion(monkeypatch: pytest.MonkeyPatch) -> None:
     # the brakes locked with the halt, moving or not
     def lock_at_once(self: HaltGuard) -> list[Any]:
-        lock = self._bare(CommandV3.LOCK_BRAKE)
-        return [*(self._reads[i] for i in self.ids), *(Request(i, lock) for i in self.braked_ids)]
+        return [*(self._reads[i] for i in self.ids), *(self._ask(i, CommandV3.LOCK_BRAKE) for i in self.braked_ids)]
 
     monkeypatch.setattr(HaltGuard, "requests", lock_at_once)
     outcome = fault_explorer.run(REGRESSIONS[1])
@@ -673,7 +672,7 @@ def test_records_keep_the_first_and_the_latest() -> None:
 def test_a_joint_dithering_on_its_limit_while_halted_is_one_excursion() -> None:
     # (review) a joint resting on its limit, its reading a count either side of it, was a new excursion (an ERROR
     # line, a record, its halt re-sent and its rest forgotten) at every crossing
-    guard = HaltGuard([1], [], FAMILIES[ProtocolFamily.V2].bare)
+    guard = HaltGuard([1], [], lambda i, code: Request(i, FAMILIES[ProtocolFamily.V2].bare(code)))
     guard.begin(Command.MOTOR_STOP)
     state = MotorState(Command.READ_STATUS_2, 30, 0.0, 0, 0)
     axes = type("Axes", (), {"q_deg": np.zeros(1), "qd_dps": np.zeros(1), "iq_a": np.zeros(1)})()
@@ -718,7 +717,7 @@ def test_on_rs485_a_silent_drive_goes_last_in_every_halted_cycle(tmp_path: Path)
 def _restless_after(events: list[tuple[float, float, str]]) -> float | None:
     """A halted two-joint guard fed joint 0's readings ``(t, speed, how)`` every 10 ms (``how``: "seen", "silent" or
     "outside": read beyond its limits, its halt owed again); when joint 0 was reported restless (None: never)."""
-    guard = HaltGuard([1, 2], [], lambda code: Bare(Command(code)))
+    guard = HaltGuard([1, 2], [], lambda i, code: Request(i, Bare(Command(code))))
     guard.begin(Command.MOTOR_STOP)
     axes = types.SimpleNamespace(q_deg=np.zeros(2), qd_dps=np.zeros(2), iq_a=np.zeros(2))
     state = MotorState(Command.READ_STATUS_2, 30, 0.0, 0, 0)

@@ -5,6 +5,8 @@ wire carries, 0x280 on the CAN bus only, and one safety domain."""
 
 from __future__ import annotations
 
+import argparse
+import contextlib
 import dataclasses
 import shutil
 from pathlib import Path
@@ -18,9 +20,12 @@ from motion.api.emulation import simulated_lines
 from motion.config import ArmConfig, ControlMode, load_config
 from motion.config.schema import HaltPolicy
 from motion.control.ratecheck import RateError
+from motion.emulator import Emulator
 from motion.emulator.arm import arm_emulator
+from motion.emulator.cli import _attachments, _links, add_emulate_arguments
 from motion.emulator.faults import Fault, InjectedFault
 from motion.emulator.simulated import SimulatedBus, Simulation
+from motion.emulator.timing import TimingModel
 from motion.protocol import Bare, Command
 from motion.safety import ArmState
 from motion.transport import Request
@@ -216,3 +221,21 @@ def test_the_rate_check_of_an_arm_on_both_transports_names_the_rs485_line(tmp_pa
     times = dict(check.by_bus_p99_s)
     assert times["right"] > 2 * times["left"] > 0.0, times  # (six exchanges in turn at 115200 baud)
     assert "bus right limits" in check.summary()
+
+
+def test_the_emulator_times_each_rs485_line_at_its_own_configured_baud_rate(tmp_path: Path) -> None:
+    # `rmd-motion emulate --config FILE --bus-time`: each line's frames take the time of its bus's baudrate (the
+    # configuration's, by line), unless --baud names one for every line
+    parser = argparse.ArgumentParser()
+    add_emulate_arguments(parser)
+    links = [f"--rs485-link=left={tmp_path / 'l'}", f"--rs485-link=right={tmp_path / 'r'}"]
+    buses = [("left", "rs485"), ("right", "rs485")]
+    for given, expected in (([], [57600, 115200]), (["--baud", "19200"], [19200, 19200])):
+        args = parser.parse_args(["--ids", "1", *links, "--bus-time", *given])
+        args.line_bauds = {0: 57600, 1: 115200}
+        emulator = Emulator([1, 101])
+        with contextlib.ExitStack() as stack:
+            made = [
+                stack.enter_context(a) for a in _attachments(args, emulator, TimingModel(), None, _links(args, buses))
+            ]
+            assert [a.baud for a in made] == expected

@@ -75,7 +75,7 @@ def _move_and_catch(
     assert supervisor.state is ArmState.MOVING
     first = rig.controller.loop.next_cycle  # the first cycle that can see what is injected now
     if status_read_of is not None:
-        wanted = Request(status_read_of, rig.controller.family.bare(read))
+        wanted = rig.controller.bare_request(status_read_of, read)
         detected_in = supervisor.status_rounds.cycles_until(wanted)
     inject()
     with pytest.raises(MotionFault) as info:

@@ -22,7 +22,7 @@ against them).
 from __future__ import annotations
 
 from motion.api.arm import Arm
-from motion.api.emulation import emulated_family, emulator_process, measure_modes, realtime_capacity
+from motion.api.emulation import emulated_families, emulator_process, measure_modes, realtime_capacity
 from motion.api.status import ArmStatus, JointStatus, MotionHandle
 from motion.view import ViewOptions  # the options of Arm(view=...): `from motion import ViewOptions` comes here
 
@@ -32,7 +32,7 @@ __all__ = [
     "JointStatus",
     "MotionHandle",
     "ViewOptions",
-    "emulated_family",
+    "emulated_families",
     "emulator_process",
     "measure_modes",
     "realtime_capacity",

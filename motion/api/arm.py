@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from motion.api.arguments import emulation_of, joint_targets, seconds, start_pose_of, waypoint_rows
-from motion.api.emulation import emulated_family, emulator_process, simulated_lines
+from motion.api.emulation import emulated_families, emulator_process, simulated_lines
 from motion.api.status import ArmStatus, MotionHandle, arm_status
 from motion.api.summary import RunSummary
 from motion.compose import (
@@ -25,7 +25,7 @@ from motion.compose import (
     identify_position_loops,
     negotiate_family,
     open_bus,
-    opening_family,
+    opening_families,
     resolve_frames,
 )
 from motion.config import ArmConfig, load_config_or_example
@@ -129,8 +129,9 @@ class Arm:
         #: The live page while connected with ``view=`` (see :mod:`motion.view`; ``view.url`` says where).
         self.view: LiveView | None = None
         self._start_pose = start_pose_of(config, start_pose, emulate, initial_deg)
-        #: The emulated drives' protocol generation (the controller tells it at connect as with real drives).
-        self.emulated_family = emulated_family(config, emulated_protocol)
+        #: The emulated drives' protocol generation on each bus (the controller tells it at connect as with real
+        #: drives).
+        self.emulated_families = emulated_families(config, emulated_protocol)
         if forget_turns and keep_turns:
             raise ValueError("forget_turns and keep_turns: the drives either were powered up since or stayed powered")
         self._forget_turns = forget_turns
@@ -400,10 +401,13 @@ class Arm:
         powered (``--keep-turns``). (A V3 drive's reading is absolute: never.)"""
         controller = self.controller
         assert controller is not None
-        if controller.family.output_shaft:
+        absolute = {s.name for s, f in zip(controller.specs, controller.families, strict=True) if f.output_shaft}
+        if len(absolute) == len(controller.specs):
             return
         q = controller.snapshot.position_deg if q_deg is None else q_deg
         for name, angle, window in ambiguous_joints(controller.base_transmission.transmissions, self.turns, q):
+            if name in absolute:
+                continue
             logger.warning(
                 "joint %s %s %.2f deg, a whole number of motor turns from its power_on_window_deg [%g, %g]: after a "
                 "power cycle there a session cannot tell from its reading whether the drives were powered up meanwhile "
@@ -444,7 +448,7 @@ class Arm:
 
         initial = self._start_pose if self._start_pose is not None else self._initial
         self.emulator, self.plant = arm_emulator(
-            self.config, initial_deg=initial, faults=self._faults, family=self.emulated_family
+            self.config, initial_deg=initial, faults=self._faults, family=self.emulated_families
         )
         if self._start_pose is not None:
             self.emulator.power_cycle()  # powered up there: each drive counts its turns from this pose
@@ -455,7 +459,7 @@ class Arm:
         self.simulation = simulation
         # the bus opens in the configured generation (auto: the older) and is told the drives' at connect
         names = [bus.name for bus in self.config.buses]
-        return SimulatedBus(simulation, opening_family(self.config), names=names), SimulatedClock(simulation)
+        return SimulatedBus(simulation, opening_families(self.config), names=names), SimulatedClock(simulation)
 
     def _start_emulator_process(self) -> None:
         if self._initial is not None:
@@ -467,7 +471,7 @@ class Arm:
                 log=self._emulator_log,
                 faults=self._faults,
                 start_pose=pose,
-                protocol=self.emulated_family,
+                protocol=self.emulated_families,
             )
         )
 

@@ -112,7 +112,7 @@ def check_holding(arm: Arm) -> list[HoldingVerdict]:
         total += transmission.joint_torque_nm(controller.snapshot.iq_a)
     measured = total / SAMPLES
     model = gravity_torque(build_arm(arm.config), controller.snapshot.position_deg)
-    step_nm = np.abs(transmission.joint_torque_nm(np.full(len(arm.names), controller.family.current_step_a)))
+    step_nm = np.abs(transmission.joint_torque_nm(np.array([f.current_step_a for f in controller.families])))
     joints = arm.config.joints
     breakaway = np.array([(1.0 + MODEL_ERROR[2]) * j.coulomb_friction_nm for j in joints])
     floor = breakaway + CURRENT_STEPS * step_nm

@@ -18,7 +18,7 @@ from motion.compose import (
     feedforward_for,
     negotiate_family,
     open_bus,
-    opening_family,
+    opening_families,
     rehearsal_watchdog,
 )
 from motion.config import ArmConfig
@@ -43,15 +43,16 @@ def _end_process(process: subprocess.Popen[str]) -> None:
         process.communicate()
 
 
-def emulated_family(config: ArmConfig, protocol: ProtocolFamily | str | None) -> ProtocolFamily:
-    """The generation emulated drives speak: ``protocol``, else the one the bus opens in
-    (:func:`motion.compose.opening_family`: the configured one; with ``auto`` the older, or V3 at a V3-only baud rate).
+def emulated_families(config: ArmConfig, protocol: ProtocolFamily | str | None) -> tuple[ProtocolFamily, ...]:
+    """The generation the emulated drives of each bus speak (in the order of ``buses:``): ``protocol`` on every bus,
+    else the one each bus opens in (:func:`motion.compose.opening_families`: the configured one; with ``auto`` the
+    older, or V3 at a V3-only baud rate).
 
     Raises:
-        ConfigError: an unknown generation, or one that contradicts ``bus.protocol``.
+        ConfigError: an unknown generation, or one that contradicts a bus's ``protocol``.
     """
     if protocol is None:
-        return opening_family(config)
+        return opening_families(config)
     try:
         family = ProtocolFamily(protocol)
     except ValueError:
@@ -65,7 +66,7 @@ def emulated_family(config: ArmConfig, protocol: ProtocolFamily | str | None) ->
                 "<emulated_protocol>",
                 f"{key} is {setting.value}: the emulated drives cannot speak {family.value} (use auto)",
             )
-    return family
+    return (family,) * len(config.buses)
 
 
 def simulated_lines(config: ArmConfig) -> list[tuple[WireProtocol, int]]:
@@ -87,11 +88,11 @@ def emulator_process(
     latency_ms: float | None = None,
     faults: Sequence[Fault] = (),
     start_pose: Mapping[str, float] | None = None,
-    protocol: ProtocolFamily = ProtocolFamily.V2,
+    protocol: ProtocolFamily | Sequence[ProtocolFamily] | None = None,
 ) -> Iterator[dict[str, object]]:
     """The drives of ``config``'s file, emulated in real time in a process of their own (``rmd-motion emulate``) on
-    a slcan (CAN) or RS485 pseudo-terminal, speaking ``protocol``; yields the bus overrides that reach them. Ended on
-    exit.
+    a slcan (CAN) or RS485 pseudo-terminal per bus, speaking ``protocol`` (a sequence: each bus's; None: each bus's
+    configured one, :func:`emulated_families`); yields the bus overrides that reach them. Ended on exit.
 
     Raises:
         MotionError: the configuration was not read from a file.
@@ -103,7 +104,16 @@ def emulator_process(
     folder = Path(tempfile.mkdtemp(prefix="rmd-emulated-"))
     several = len(config.buses) > 1
     links = {bus.name: folder / (f"link-{bus.name}" if several else "link") for bus in config.buses}
-    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(source), "--protocol", protocol.value]
+    command = [sys.executable, "-m", "motion.cli", "emulate", "--config", str(source)]
+    if protocol is not None:  # (the process speaks each bus's configured one unless told one for all, or each bus's)
+        families = [protocol] * len(config.buses) if isinstance(protocol, str) else list(protocol)
+        if len(set(families)) == 1:
+            command += ["--protocol", ProtocolFamily(families[0]).value]
+        else:
+            command += [
+                f"--protocol={bus.name}={ProtocolFamily(f).value}"
+                for bus, f in zip(config.buses, families, strict=True)
+            ]
     for bus, (name, link) in zip(config.buses, links.items(), strict=True):
         flag = "--slcan-link" if bus.transport is WireProtocol.CAN else "--rs485-link"
         command += [flag, f"{name}={link}" if several else str(link)]
@@ -171,7 +181,9 @@ def measure_modes(config: ArmConfig, bus: Transport) -> dict[str, RateCheck]:
     return checks
 
 
-def realtime_capacity(config: ArmConfig, drives: ProtocolFamily = ProtocolFamily.V2) -> dict[str, RateCheck]:
+def realtime_capacity(
+    config: ArmConfig, drives: ProtocolFamily | Sequence[ProtocolFamily] = ProtocolFamily.V2
+) -> dict[str, RateCheck]:
     """What this host holds in real time for ``config``'s joints, per mode, against its drives emulated in a process
     of their own speaking ``drives`` (the demo's honest real-time figure).
 

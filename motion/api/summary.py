@@ -43,7 +43,7 @@ class RunSummary:
         n = len(config.joints)
         self.names = config.joint_names
         self._limit_a = np.array([j.current_limit_a for j in config.joints])
-        step_a = supervisor.controller.family.current_step_a
+        step_a = np.array([f.current_step_a for f in supervisor.controller.families])
         margin = np.maximum((1.0 - AT_LIMIT_SHARE) * self._limit_a, AT_LIMIT_STEPS * step_a)
         self._at_limit_a = self._limit_a - margin  # position mode: a measured current at the limit
         self._torque = config.control.mode.traits.host_torque

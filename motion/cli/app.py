@@ -33,9 +33,11 @@ from motion.cli.common import (
     view_options,
 )
 from motion.cli.protocol_demo import protocol_demo
+from motion.compose import opening_families
 from motion.config import ArmConfig, load_config_or_example
+from motion.config.schema import CanBusConfig
 from motion.emulator import Emulator, Fault
-from motion.emulator.cli import EmulatorFactory, add_emulate_arguments, parse_ids, run_emulate
+from motion.emulator.cli import EmulatorFactory, add_emulate_arguments, parse_ids, protocols_of, run_emulate
 from motion.errors import (
     ConfigError,
     DecodeError,
@@ -65,12 +67,14 @@ EMULATED_HOLD_SPEED_SHARE: Final = 0.1
 
 
 def arm_emulator_factory(
-    config: ArmConfig, start_pose: Mapping[str, float] | None = None, family: ProtocolFamily = ProtocolFamily.V2
+    config: ArmConfig,
+    start_pose: Mapping[str, float] | None = None,
+    family: ProtocolFamily | Sequence[ProtocolFamily] = ProtocolFamily.V2,
 ) -> EmulatorFactory:
-    """Drives of ``config`` speaking ``family``, coupled through its Pinocchio model, holding the start pose (as if
-    braked; V3 joints with a brake are held by it): each joint at 0 deg (or the limit nearest to it), or, with
-    ``start_pose``, the joints named there, where the drives power up (their multi-turn angles restart from the
-    single-turn readings).
+    """Drives of ``config`` speaking ``family`` (a sequence: each bus's), coupled through its Pinocchio model, holding
+    the start pose (as if braked; V3 joints with a brake are held by it): each joint at 0 deg (or the limit nearest to
+    it), or, with ``start_pose``, the joints named there, where the drives power up (their multi-turn angles restart
+    from the single-turn readings).
 
     Without the hold, the emulated arm would fall under gravity from the moment the emulator starts until a host
     takes control; a real arm rests on its brakes or its stops instead.
@@ -101,12 +105,16 @@ def emulate(args: argparse.Namespace, interrupts: Interrupts) -> int:
             raise UsageError("--start-pose needs --config (the joints it names)")
         return run_emulate(args, None)
     config = load_config_or_example(args.config)
-    if args.protocol is None:  # the configuration's generation, where it names one (auto: the older, as before)
-        configured = {b.protocol.value for b in config.buses} & {f.value for f in ProtocolFamily}
-        args.protocol = configured.pop() if len(configured) == 1 else ProtocolFamily.V2.value
-    family = ProtocolFamily(args.protocol)
+    # each bus's generation: --protocol's, else the configuration's (auto: the one the bus opens in)
+    try:
+        names = [b.name for b in config.buses]
+        families = protocols_of(args.protocol, names, opening_families(config))
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
+    args.protocol = None if len(set(families)) > 1 else [("", families[0])]  # (the drive options' checks: one)
+    args.line_bauds = {k: b.baudrate for k, b in enumerate(config.buses) if not isinstance(b, CanBusConfig)}
     buses = [(b.name, b.transport.value.lower()) for b in config.buses] if len(config.buses) > 1 else []
-    return run_emulate(args, arm_emulator_factory(config, parse_pose(config, args.start_pose), family), buses)
+    return run_emulate(args, arm_emulator_factory(config, parse_pose(config, args.start_pose), families), buses)
 
 
 # ---------------------------------------------------------------------------------------------------- demo, plot

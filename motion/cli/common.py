@@ -195,10 +195,11 @@ class Session:
         except TransportError:
             bus.close()
             raise
-        if spoken.family not in speaks:
+        unspoken = [f for f in spoken.families if f not in speaks]
+        if unspoken:
             spoken.close()
             raise TransportError(
-                f"the drives answer in the {spoken.generation.title}: this command speaks "
+                f"the drives answer in the {GENERATIONS[unspoken[0]].title}: this command speaks "
                 f"the {' and '.join(GENERATIONS[f].title for f in speaks)} alone; status, stop, off, hold, clear, "
                 "pid get, accel get, check, move, run, demo and scan speak theirs"
             )
@@ -477,9 +478,13 @@ def speed_scale_arg(text: str) -> float:
 
 
 def exchange(
-    bus: Transport, requests: Sequence[Request], names: Mapping[int, str], expect: type[Message]
+    bus: Transport,
+    requests: Sequence[Request],
+    names: Mapping[int, str],
+    expect: type[Message] | tuple[type[Message], ...],
 ) -> dict[int, Any]:
-    """One batch of one-off requests (one per motor); every motor must answer with an ``expect`` message.
+    """One batch of one-off requests (one per motor); every motor must answer with an ``expect`` message (one of them:
+    each generation's).
 
     Returns:
         The replies by motor id.
@@ -495,7 +500,8 @@ def exchange(
     ]
     if missing:
         raise TransportError(
-            f"no {expect.__name__} reply from {', '.join(missing)} on {bus.describe()} "
+            f"no {expect.__name__ if isinstance(expect, type) else expect[0].__name__} reply from {', '.join(missing)} "
+            f"on {bus.describe()} "
             f"within {REPLY_TIMEOUT_S * 1000:g} ms: is the drive powered, on this bus and at this id?"
         )
     return got

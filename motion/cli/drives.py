@@ -33,7 +33,7 @@ from motion.compose import build_controller, drive_setup, resolve_frames
 from motion.config import JointConfig
 from motion.control.drive_record import DriveRecord
 from motion.control.drivesetup import LINK_TIMEOUT
-from motion.control.family import FAMILIES
+from motion.control.family import BARE_TYPES, FAMILIES, STATE_TYPES, STATUS_TYPES
 from motion.control.ratecheck import RateError
 from motion.control.tracking import PositionLoopFit
 from motion.control.turns import CONTINUITY_MOTOR_DEG, joint_angle
@@ -98,6 +98,19 @@ def _ask(
     return exchange(bus, _requests(joints, message), session.names, expect)
 
 
+def _ask_bare(
+    bus: Transport,
+    session: Session,
+    joints: Sequence[JointConfig],
+    code: int,
+    expect: tuple[type[Message], ...] = BARE_TYPES,
+) -> dict[int, Any]:
+    """The request without data for ``code`` to every joint of ``joints``, each in its drive's generation (its
+    bus's); each must answer with one of ``expect`` (by motor id)."""
+    requests = [Request(j.address, FAMILIES[bus.family_of(j.address)].bare(code)) for j in joints]
+    return exchange(bus, requests, session.names, expect)
+
+
 def _ask_once(
     session: Session, joints: Sequence[JointConfig], message: Message, expect: type[Message]
 ) -> dict[int, Any]:
@@ -130,9 +143,8 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
         turns = resolve_frames(controller, config, records=records, stayed_powered=args.keep_turns)
         controller.read_positions()
         save_turn_records(config, bus.describe(), controller, (j.source for j in turns), [j.power_on for j in turns])
-        family = controller.family
-        status1: dict[int, Status1 | Status1V3] = _ask(
-            bus, session, config.joints, family.bare(Command.READ_STATUS_1), family.status_type
+        status1: dict[int, Status1 | Status1V3] = _ask_bare(
+            bus, session, config.joints, Command.READ_STATUS_1, STATUS_TYPES
         )
         where = bus.describe()
         record, _ = drive_record_for(bus)
@@ -193,8 +205,7 @@ def _halt(args: argparse.Namespace, code: Command) -> int:
     session = Session.from_args(args)
     joints = session.config.joints
     with session.open_bus(speaks=EVERY_GENERATION) as bus:  # the same byte in both generations
-        message = FAMILIES[bus.family].bare(code)
-        _ask(bus, session, joints, message, type(message))
+        _ask_bare(bus, session, joints, code)
     print(f"{code.name.lower().replace('_', ' ')} (0x{code:02X}) acknowledged by {', '.join(map(_label, joints))}")
     return EXIT_OK
 
@@ -215,13 +226,14 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
     session = Session.from_args(args)
     joints = session.config.joints
     with session.open_bus(speaks=EVERY_GENERATION) as bus:
-        family = FAMILIES[bus.family]
-        if family.link_protection:
-            _refuse_hold_under_protection(bus, joints)
+        families = {j.address: FAMILIES[bus.family_of(j.address)] for j in joints}
+        protected = [j for j in joints if families[j.address].link_protection]
+        if protected:
+            _refuse_hold_under_protection(bus, protected)
         # (a V3 drive reads and takes output-shaft degrees: motor degrees / its reduction)
-        gear = {j.address: j.gear_ratio if family.output_shaft else 1.0 for j in joints}
-        angles: dict[int, MultiTurnAngle] = _ask(
-            bus, session, joints, family.bare(Command.READ_MULTI_TURN_ANGLE), MultiTurnAngle
+        gear = {j.address: j.gear_ratio if families[j.address].output_shaft else 1.0 for j in joints}
+        angles: dict[int, MultiTurnAngle] = _ask_bare(
+            bus, session, joints, Command.READ_MULTI_TURN_ANGLE, (MultiTurnAngle,)
         )
         requests = [
             Request(
@@ -233,7 +245,7 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
             )
             for j in joints
         ]
-        exchange(bus, requests, session.names, family.state_type)
+        exchange(bus, requests, session.names, STATE_TYPES)
         records = load_turn_records(session.config, bus.describe())
 
     def joint_deg(joint: JointConfig) -> str:
@@ -274,9 +286,12 @@ def clear(args: argparse.Namespace, interrupts: Interrupts) -> int:
     session = Session.from_args(args)
     joints = session.config.joints
     with session.open_bus(speaks=EVERY_GENERATION) as bus:
-        family = FAMILIES[bus.family]
-        request = family.bare(Command.CLEAR_ERRORS if family.clears_errors else Command.READ_STATUS_1)
-        replies: dict[int, Status1 | Status1V3] = _ask(bus, session, joints, request, family.status_type)
+        requests = [
+            Request(j.address, f.bare(Command.CLEAR_ERRORS if f.clears_errors else Command.READ_STATUS_1))
+            for j in joints
+            for f in (FAMILIES[bus.family_of(j.address)],)
+        ]
+        replies: dict[int, Status1 | Status1V3] = exchange(bus, requests, session.names, STATUS_TYPES)
     left = {j.name: flag_names(replies[j.address].errors) for j in joints if replies[j.address].errors}
     for joint in joints:
         print(f"{_label(joint)}: {', '.join(left.get(joint.name, [])) or 'clear'}")
@@ -372,16 +387,23 @@ def _print_parameters(
     values: dict[int, dict[str, float]] = {j.address: {} for j in joints}
     by_id = {j.address: j for j in joints}
     with session.open_bus(speaks=EVERY_GENERATION) as bus:
-        for request, expect, columns in reads[bus.family]:
-            for motor_id, reply in _ask(bus, session, joints, request, expect).items():
-                values[motor_id].update(columns(reply, by_id[motor_id]))
+        by_family: dict[ProtocolFamily, list[JointConfig]] = {}  # (an arm's buses may have drives of both)
+        for joint in joints:
+            by_family.setdefault(bus.family_of(joint.address), []).append(joint)
+        for family, group in by_family.items():
+            for request, expect, columns in reads[family]:
+                for motor_id, reply in _ask(bus, session, group, request, expect).items():
+                    values[motor_id].update(columns(reply, by_id[motor_id]))
     if args.json:
         print_json({j.name: values[j.address] for j in joints})
     else:
-        names = list(values[joints[0].address]) if joints else []
+        names = list(dict.fromkeys(c for j in joints for c in values[j.address]))  # (each generation's columns)
         print_table(
             ("joint", "motor", *names),
-            [(j.name, j.motor_id, *(f"{values[j.address][c]:g}" for c in names)) for j in joints],
+            [
+                (j.name, j.motor_id, *(f"{values[j.address][c]:g}" if c in values[j.address] else "-" for c in names))
+                for j in joints
+            ],
         )
     return EXIT_OK
 
@@ -432,7 +454,7 @@ def restore(args: argparse.Namespace, interrupts: Interrupts) -> int:
     session = Session.from_args(args)
     with session.open_bus(speaks=EVERY_GENERATION) as bus:
         setup = drive_setup(session.config, build_controller(session.config, bus))
-        if not (setup.family.planning_accelerations or setup.family.link_protection):
+        if not setup.sets_drives:
             print(
                 f"the drives on {bus.describe()} speak the older protocol: rmd-motion's sessions change none of "
                 "their settings"

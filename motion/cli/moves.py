@@ -146,25 +146,27 @@ def undelivered_halt(arm: Arm) -> PortLost | None:
     if bus is None or bus.lost is None:
         return None
     # (while homing or connecting there is no supervisor: the drives' settings are those a session sets)
-    family = FAMILIES[bus.family]
-    timeout_ms = session_link_timeout_ms(arm.config) if family.link_protection else 0
+    protected = {FAMILIES[f].link_protection for f in bus.families}  # (an arm's buses may have drives of both)
+    timeout_ms = session_link_timeout_ms(arm.config) if True in protected else 0
+    fallback = []
     if timeout_ms:
-        fallback = (
+        fallback.append(
             f"drives with driver V3 stop by themselves after safety.link_timeout_ms = {timeout_ms} ms "
             "without a frame (their link-loss protection); make sure they did, with the hardware E-stop (cut the "
             "motor power) if not"
         )
-    elif family.link_protection:
-        fallback = (
+    elif True in protected:
+        fallback.append(
             "the drives' link-loss protection is off (safety.link_timeout_ms: 0): they keep their last command until "
             "their power is cut: use the hardware E-stop now"
         )
-    else:
-        fallback = (
+    if False in protected:
+        fallback.append(
             "drives of the older generation keep executing their last command (a set-point is held, a torque or "
             "speed is kept) until their power is cut: use the hardware E-stop now"
         )
-    return PortLost(f"the bus was lost ({bus.lost}): the halt could not be delivered to the drives; {fallback}")
+    told = "; ".join(fallback)
+    return PortLost(f"the bus was lost ({bus.lost}): the halt could not be delivered to the drives; {told}")
 
 
 def with_arm(

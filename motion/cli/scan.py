@@ -133,7 +133,7 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
             if again:
                 found.update(_scan_ids(part, again, wire, SCAN_RETRY_STRETCH))
             answered.update({base + i: scanned for i, scanned in found.items()})
-        where, family = bus.describe(), bus.family
+        where, families = bus.describe(), bus.families
     names = session.names
     drives: list[dict[str, object]] = []
     rows: list[tuple[object, ...]] = []
@@ -167,14 +167,17 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
         print_table(
             ("id", *(("bus",) if several else ()), "joint", "protocol", "voltage", "temp", "flags", "model"), rows
         )
-    other = [a for a, scanned in sorted(answered.items()) if scanned.family is not family]
-    if other:
-        speaks = GENERATIONS[answered[other[0]].family].title
-        told = ", ".join(_drive(config, a) for a in other)
-        warn(
-            f"motor(s) {told} speak the {speaks}, not the configuration's "
-            f"(bus.protocol: {family.value}): one arm's drives speak one generation"
-        )
+    for index, bus_config in enumerate(config.buses):
+        family = families[index]
+        other = [a for a, s in sorted(answered.items()) if split_address(a)[0] == index and s.family is not family]
+        if other:
+            speaks = GENERATIONS[answered[other[0]].family].title
+            told = ", ".join(_drive(config, a) for a in other)
+            key = f"buses.{bus_config.name}.protocol" if several else "bus.protocol"
+            warn(
+                f"motor(s) {told} speak the {speaks}, not the configuration's ({key}: {family.value}): one bus's "
+                "drives speak one generation"
+            )
     if missing:
         warn(f"communication error: configured joint(s) not answering: {', '.join(missing)}")
         return EXIT_COMMUNICATION

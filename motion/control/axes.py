@@ -9,7 +9,7 @@ degrees and no encoder (the V3 family) are read with 0x92 in every cycle instead
 
 from __future__ import annotations
 
-from collections.abc import Iterable, MutableSequence, Sequence
+from collections.abc import Iterable, Mapping, MutableSequence, Sequence
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -67,21 +67,28 @@ class AxisStates:
         specs: the axes, in joint order.
         transmission: the joint <-> motor mapping, same order.
         family: the drives' protocol family: whether the angle comes from the encoder of every motion reply (tracked
-            across wraps) or from a 0x92 read in every cycle (motion replies in whole degrees).
+            across wraps) or from a 0x92 read in every cycle (motion replies in whole degrees); a sequence: each
+            axis' (an arm whose buses have drives of both families).
     """
 
     def __init__(
         self,
         specs: Sequence[AxisSpec],
         transmission: ArmTransmission,
-        family: DriveFamily = FAMILIES[ProtocolFamily.V2],
+        family: DriveFamily | Sequence[DriveFamily] = FAMILIES[ProtocolFamily.V2],
     ) -> None:
         n = len(specs)
-        self._angle_every_cycle = family.angle_every_cycle
-        self._state_type = family.state_type
+        families = [family] * n if isinstance(family, DriveFamily) else list(family)
+        reads_angle = [f.angle_every_cycle for f in families]
         self.specs = tuple(specs)
         self.transmission = transmission
         self.index = {spec.motor_id: i for i, spec in enumerate(specs)}
+        # Which absorb: the encoder's, the 0x92 read's, or both, each over its own axes (mixed families).
+        self._angle_every_cycle = all(reads_angle)
+        self._mixed = any(reads_angle) and not all(reads_angle)
+        self._state_type = next((f.state_type for f in families if f.angle_every_cycle), families[0].state_type)
+        self._encoder_index = {k: i for k, i in self.index.items() if not reads_angle[i]}
+        self._angle_index = {k: i for k, i in self.index.items() if reads_angle[i]}
         # The encoder fields are uint16: wider encoders report their top 16 bits (docs/protocol.md).
         self.counts_per_rev = np.array([float(1 << min(s.encoder_bits, ENCODER_FIELD_BITS)) for s in specs])
         # Per axis, for absorb: counts per revolution, and the joint's motor -> joint conversions.
@@ -127,17 +134,23 @@ class AxisStates:
         then marks those axes (and only those, unless ``keep_fresh``). Where the family reads the angle in every
         cycle, a :class:`MultiTurnAngle` sets it. Anything else is ignored.
         """
-        if self._angle_every_cycle:
-            self._absorb_read_angles(replies, keep_fresh)
-            return
-        self._absorb_states(replies, keep_fresh)
+        if self._mixed:  # (each of the two over its axes; a sequence of replies, read twice)
+            replies = replies if isinstance(replies, Sequence) else list(replies)
+            self._absorb_states(replies, keep_fresh, self._encoder_index)
+            self._absorb_read_angles(replies, True, self._angle_index)
+        elif self._angle_every_cycle:
+            self._absorb_read_angles(replies, keep_fresh, self.index)
+        else:
+            self._absorb_states(replies, keep_fresh, self.index)
 
-    def _absorb_states(self, replies: Iterable[tuple[int, object, object, float | None]], keep_fresh: bool) -> None:
-        """:meth:`absorb` for drives whose motion replies carry the encoder, in Python."""
+    def _absorb_states(
+        self, replies: Iterable[tuple[int, object, object, float | None]], keep_fresh: bool, index: Mapping[int, int]
+    ) -> None:
+        """:meth:`absorb` for drives whose motion replies carry the encoder (the axes of ``index``), in Python."""
         # The control cycle's hot path: the arrays' cells and the per-axis terms are looked up once, and the
         # arithmetic is done in Python floats and ints (a numpy scalar costs several times as much per operation),
         # with the same operations in the same order as the arrays would do them, so the results are the same float64s.
-        index, terms = self.index, self._terms
+        terms = self._terms
         encoders, motor_degs, speeds, iqs, temperatures, last_reply_s, q_deg, qd_dps, fresh = self._cells
         if not keep_fresh:
             fresh[:] = self._none_fresh
@@ -165,11 +178,11 @@ class AxisStates:
             qd_dps[i] = joint_rate(speed_dps)
 
     def _absorb_read_angles(
-        self, replies: Iterable[tuple[int, object, object, float | None]], keep_fresh: bool
+        self, replies: Iterable[tuple[int, object, object, float | None]], keep_fresh: bool, index: Mapping[int, int]
     ) -> None:
-        """:meth:`absorb` for drives whose motion replies carry whole degrees: the angle from 0x92, the rest from the
-        motion reply, both in the drive's (output-shaft) units converted to the motor's."""
-        index, terms, state_type = self.index, self._drive_terms, self._state_type
+        """:meth:`absorb` for drives whose motion replies carry whole degrees (the axes of ``index``): the angle from
+        0x92, the rest from the motion reply, both in the drive's (output-shaft) units converted to the motor's."""
+        terms, state_type = self._drive_terms, self._state_type
         _encoders, motor_degs, speeds, iqs, temperatures, last_reply_s, q_deg, qd_dps, fresh = self._cells
         if not keep_fresh:
             fresh[:] = self._none_fresh

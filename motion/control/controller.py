@@ -23,7 +23,7 @@ from motion.config.schema import ControlMode
 from motion.control.axes import AxisSpec, AxisStates
 from motion.control.clock import Clock, MonotonicClock
 from motion.control.commands import CommandQueue, MotionCommands, planning_limits
-from motion.control.family import FAMILIES
+from motion.control.family import FAMILIES, STATE_TYPES, DriveFamily
 from motion.control.running import LoopRunning
 from motion.control.scheduler import FixedRateLoop
 from motion.control.setpoints import BuilderSettings, Feedforward, Setpoints, TorqueSetpoints, setpoint_builder
@@ -128,18 +128,25 @@ class Controller(MotionCommands, LoopRunning):
         self.kp = np.array([s.kp_nm_per_deg for s in self.specs])
         self.kd = np.array([s.kd_nm_per_dps for s in self.specs])
         self.ids = tuple(s.motor_id for s in self.specs)
-        #: What the drives' protocol family changes in control (:mod:`motion.control.family`).
-        self.family = family = FAMILIES[bus.family]
+        #: What each axis' drive's protocol family changes in control (:mod:`motion.control.family`), joint order
+        #: (the drives of an arm's buses may be of both families, one per bus).
+        self.families = families = tuple(FAMILIES[bus.family_of(i)] for i in self.ids)
+        self._family_of = dict(zip(self.ids, families, strict=True))
         #: Where each joint should be at the latest measurement (the drives' or the PD loop's lag modelled).
         self.tracking = ExpectedTracking(
-            options.mode, transmission, self.kp, self.kd, self.ids, read_drives=family.reads_loop_settings
+            options.mode,
+            transmission,
+            self.kp,
+            self.kd,
+            self.ids,
+            read_drives=[f.reads_loop_settings for f in families],
         )
-        # The fine angle read in every cycle's batch, for families whose motion replies lack it (empty: none).
-        self._angle_reads = (
-            [Request(i, family.bare(Command.READ_MULTI_TURN_ANGLE)) for i in self.ids]
-            if family.angle_every_cycle
-            else []
-        )
+        # The fine angle read in every cycle's batch, for the axes whose motion replies lack it (empty: none).
+        self._angle_reads = [
+            self.bare_request(i, Command.READ_MULTI_TURN_ANGLE)
+            for i, f in zip(self.ids, families, strict=True)
+            if f.angle_every_cycle
+        ]
         self.commands = CommandQueue()
         self._stop_loop = False
         #: The set-points of the latest cycle (updated in place).
@@ -160,7 +167,7 @@ class Controller(MotionCommands, LoopRunning):
             options.mode,
             BuilderSettings(
                 self.specs,
-                family,
+                families,
                 options.wires,
                 velocity_limit,
                 options.speed_headroom,
@@ -180,8 +187,17 @@ class Controller(MotionCommands, LoopRunning):
     def _set_frame(self, transmission: ArmTransmission) -> None:
         """Use ``transmission`` for every angle read and every target sent (before :meth:`read_positions`)."""
         self.transmission = transmission
-        self.axes = AxisStates(self.specs, transmission, self.family)
+        self.axes = AxisStates(self.specs, transmission, self.families)
         self.builder.set_frame(transmission, self.axes)
+
+    def family_of(self, address: int) -> DriveFamily:
+        """The family of the drive at ``address`` (one of :attr:`ids`)."""
+        return self._family_of[address]
+
+    def bare_request(self, address: int, code: int) -> Request:
+        """The request without data for ``code`` (0x80, 0x81, 0x92, 0x9A, 0x9C, ...) to the drive at ``address``,
+        in its family's protocol."""
+        return Request(address, self._family_of[address].bare(code))
 
     @property
     def angle_reads(self) -> list[Request]:
@@ -211,15 +227,13 @@ class Controller(MotionCommands, LoopRunning):
         Raises:
             TransportError: a drive did not answer both requests by ``timeout_s``.
         """
-        family = self.family
-        reads = (family.bare(Command.READ_MULTI_TURN_ANGLE), family.bare(Command.READ_STATUS_2))
-        replies = read_every_drive(self, reads, timeout_s)
+        replies = read_every_drive(self, (Command.READ_MULTI_TURN_ANGLE, Command.READ_STATUS_2), timeout_s)
         angles: dict[int, float] = {}
         states: dict[int, Message] = {}
         for reply in replies:
             if isinstance(reply.message, MultiTurnAngle):
                 angles[reply.motor_id] = reply.message.angle_deg
-            elif isinstance(reply.message, family.state_type):
+            elif isinstance(reply.message, STATE_TYPES):
                 states[reply.motor_id] = reply.message
         if len(angles.keys() & states.keys()) < len(self.specs):
             raise silent_drives(self, "start-up reads", angles.keys() & states.keys(), self.bus.junk_note())

@@ -68,7 +68,7 @@ class DriveSetup:
 
     Args:
         bus: the transport.
-        family: the drives' family.
+        family: the drives' family; a sequence: each one's (of ``ids``, an arm whose buses have drives of both).
         ids: every joint's motor id.
         braked_ids: the ids of joints with a holding brake.
         link_timeout_ms: the communication-loss time the drives need, ms (0: the protection off).
@@ -83,7 +83,7 @@ class DriveSetup:
     def __init__(
         self,
         bus: Transport,
-        family: DriveFamily,
+        family: DriveFamily | Sequence[DriveFamily],
         ids: Sequence[int],
         braked_ids: Sequence[int],
         link_timeout_ms: int,
@@ -92,15 +92,20 @@ class DriveSetup:
         now: Callable[[], float] = time.time,
         labels: Mapping[int, str] | None = None,
     ) -> None:
-        if braked_ids and not family.brakes:
-            raise ConfigError(
-                "<configuration>", "joints[].brake", f"the {family.family.value} drives have no brake commands"
-            )
+        families = [family] * len(ids) if isinstance(family, DriveFamily) else list(family)
+        #: Each drive's family, by motor id.
+        self.families = dict(zip(ids, families, strict=True))
+        unbraked = [i for i in braked_ids if not self.families[i].brakes]
+        if unbraked:
+            told = self.families[unbraked[0]].family.value
+            raise ConfigError("<configuration>", "joints[].brake", f"the {told} drives have no brake commands")
         self.bus = bus
-        self.family = family
         self.ids = tuple(ids)
         self.braked_ids = tuple(braked_ids)
-        self.link_timeout_ms = link_timeout_ms if family.link_protection else 0
+        # the drives with planning accelerations to zero, and those with the communication-loss protection
+        self._planning = [i for i in self.ids if self.families[i].planning_accelerations]
+        self._protected = [i for i in self.ids if self.families[i].link_protection]
+        self.link_timeout_ms = link_timeout_ms if self._protected else 0
         self.record = record if record is not None else DriveRecord(None)
         self._now = now
         self._labels = dict(labels or {})
@@ -117,15 +122,20 @@ class DriveSetup:
         """
         self.recognise_drives()
         writes: list[_Write] = []
-        if self.family.planning_accelerations:
+        if self._planning:
             writes += self._acceleration_writes(deadline_s)
-        if self.family.link_protection:
+        if self._protected:
             writes += self._link_timeout_writes(deadline_s)
         if writes:
             self._write_rom(writes, deadline_s, "session settings")
-        if self.family.planning_accelerations or self.family.link_protection:
+        if self.sets_drives:
             logger.info("drive settings: %d ROM write(s) this session (%s)", self.rom_writes, self.bus.describe())
         self.release_brakes(deadline_s)
+
+    @property
+    def sets_drives(self) -> bool:
+        """Whether the session sets anything on its drives (planning accelerations, the communication-loss time)."""
+        return bool(self._planning or self._protected)
 
     def _key(self, motor_id: int) -> str:
         return DriveRecord.key(self.bus.describe(), motor_id)
@@ -160,8 +170,11 @@ class DriveSetup:
 
     def _acceleration_writes(self, deadline_s: float) -> list[_Write]:
         """0x43 of 0 for each planning acceleration that is not 0 (what it held first is recorded once written)."""
-        indexes = self.family.planning_accelerations
-        reads = [Request(i, AccelerationRead(index)) for i in self.ids for index in indexes]
+        reads = [
+            Request(i, AccelerationRead(index))
+            for i in self._planning
+            for index in self.families[i].planning_accelerations
+        ]
         writes = []
         for reply in self._ask(reads, deadline_s, "planning acceleration read (0x42)"):
             message = reply.message
@@ -184,7 +197,7 @@ class DriveSetup:
         Raises:
             DrivesSilent: a drive did not answer (without ``silent``).
         """
-        reads = [Request(i, BareV3(CommandV3.READ_RUNTIME)) for i in self.ids]
+        reads = [Request(i, BareV3(CommandV3.READ_RUNTIME)) for i in self._protected]
         now, writes = self._now(), []
         needed = self.link_timeout_ms if needed_ms is None else needed_ms
         if silent is None:
@@ -234,7 +247,7 @@ class DriveSetup:
         Raises:
             TransportError: a drive did not answer.
         """
-        if self.family.link_protection and self.link_timeout_ms:
+        if self.link_timeout_ms:
             # (every drive that answers is suspended, also when another does not: a drive left out would stop in the
             # quiet time; the explorer found one drive's dropped reply leave four others protected, and tripping)
             # the reads wait for a silent drive until their deadline while the others' protection runs: half the
@@ -261,14 +274,14 @@ class DriveSetup:
         done = []
         for motor_id in self.ids:
             key, written = self._key(motor_id), []
-            for index in self.family.planning_accelerations:
+            for index in self.families[motor_id].planning_accelerations:
                 name = _ORIGINAL_ACCELERATION.format(int(index))
                 value = self.record.get(key, name)
                 if value is not None:
                     request = Request(motor_id, PlanningAcceleration(CommandV3.WRITE_ACCELERATION, index, int(value)))
                     writes.append((request, [(key, name, None)]))
                     written.append(f"{index.name.lower()} {value} deg/s²")
-            if self.family.link_protection:
+            if self.families[motor_id].link_protection:
                 writes.append((Request(motor_id, CommunicationTimeout(0)), [(key, LINK_TIMEOUT, None)]))
                 written.append("communication-loss protection off")
             if written:
@@ -279,7 +292,7 @@ class DriveSetup:
 
     def brake_requests(self, code: int) -> list[Request]:
         """0x77 (release) or 0x78 (lock) to every braked joint."""
-        return [Request(i, self.family.bare(code)) for i in self.braked_ids]
+        return [Request(i, self.families[i].bare(code)) for i in self.braked_ids]
 
     def release_brakes(self, deadline_s: float) -> None:
         """0x77 to every braked joint (before the loop commands them)."""

@@ -1,8 +1,8 @@
 """What a drive's protocol family changes in control (issue 17), declared once per family.
 
-The controller, the axis states, the watchdog and the supervisor look the bus's family up once
-(``FAMILIES[bus.family]``) and follow what its :class:`DriveFamily` says; no other control code asks which family a
-bus speaks.
+The controller looks each joint's drive's family up once (``FAMILIES[bus.family_of(address)]``: its bus's; an arm's
+buses may have drives of both families) and it, the axis states, the watchdog and the supervisor follow what each
+joint's :class:`DriveFamily` says; no other control code asks which family a bus speaks.
 
 The V3 family differs in what control needs in these ways (V4.2 document; decisions in ``docs/protocol.md``):
 

@@ -121,8 +121,11 @@ class StatusRounds:
     def of(cls, controller: Controller) -> StatusRounds:
         """The status reads of ``controller``'s drives: 0x9A (flags, voltage, temperature) and the family's restart
         read (0x92, whose multi-turn angle jumps when a drive restarted; V3: 0xB1, its runtime, which starts again)."""
-        bare, reads_of = controller.family.bare, (Command.READ_STATUS_1, controller.family.restart_read)
-        reads = [(i, [Request(i, bare(c)) for c in reads_of]) for i in controller.ids]
+        ask = controller.bare_request
+        reads = [
+            (i, [ask(i, Command.READ_STATUS_1), ask(i, family.restart_read)])
+            for i, family in zip(controller.ids, controller.families, strict=True)
+        ]
         return cls(reads, controller.period_s, controller.options.wires)
 
     def next(self) -> tuple[Request, ...]:
@@ -311,8 +314,7 @@ def measure_rate(
         raise ValueError(f"margin: {margin!r} must be >= 1")
     ids = controller.ids
     # A cycle's frames: one motion read per joint as the set-points, the family's angle reads, its status reads.
-    bare = controller.family.bare
-    batch = [Request(i, bare(Command.READ_STATUS_2)) for i in ids] + controller.angle_reads
+    batch = [controller.bare_request(i, Command.READ_STATUS_2) for i in ids] + controller.angle_reads
     batch += StatusRounds.of(controller).next()
     clock, bus = controller.clock, controller.bus
     # What a cycle's set-points take on the wire beyond the reads that stand in for them (measured: the reads; the

@@ -75,7 +75,7 @@ class BuilderSettings:
 
     Attributes:
         specs: the axes, in joint order.
-        family: the drives' capabilities.
+        families: each axis' drive's capabilities (its family's), in joint order.
         wires: each bus's wire protocol, by the bus index of the drives' addresses.
         velocity_limit_dps: each joint's velocity limit, motor side, deg/s.
         speed_headroom: position mode: the 0xA4 cap is the planned motor speed times this, plus the floor.
@@ -88,7 +88,7 @@ class BuilderSettings:
     """
 
     specs: tuple[AxisSpec, ...]
-    family: DriveFamily
+    families: tuple[DriveFamily, ...]
     wires: tuple[WireProtocol, ...]
     velocity_limit_dps: FloatArray
     speed_headroom: float
@@ -122,10 +122,13 @@ class PositionSetpoints:
         self._settings = settings
         self.speed_floor_dps = settings.velocity_limit_dps * settings.speed_floor_share
         self.speed_limit_dps = settings.velocity_limit_dps
-        family, wires = settings.family, settings.wires
+        wires = settings.wires
         ceiling = np.array(
-            [family.speed_ceiling_dps(wires[split_address(s.motor_id)[0]]) * s.drive_gear_ratio for s in settings.specs]
-        )  # (each by its bus's wire)
+            [
+                family.speed_ceiling_dps(wires[split_address(s.motor_id)[0]]) * s.drive_gear_ratio
+                for s, family in zip(settings.specs, settings.families, strict=True)
+            ]
+        )  # (each by its family and its bus's wire)
         self._ceiling_dps = np.minimum(ceiling, self.speed_limit_dps).tolist()
         self._axes: tuple[tuple[int, float, float, float, float, float], ...] = ()
 
@@ -177,10 +180,13 @@ class TorqueSetpoints:
 
     def __init__(self, settings: BuilderSettings) -> None:
         self._settings = settings
-        specs, family = settings.specs, settings.family
+        specs = settings.specs
         self._ids = ids = [s.motor_id for s in specs]  # (the drives' addresses: bus index × stride + motor id)
-        usable = settings.multi_motor_frame and family.multi_torque_frame
+        usable = settings.multi_motor_frame
+        # (a bus where 0x280 carries the four currents: CAN, and drives of a family whose 0x280 does)
         can = [wire is WireProtocol.CAN for wire in settings.wires]
+        for a, family in zip(ids, settings.families, strict=True):
+            can[split_address(a)[0]] &= family.multi_torque_frame
         #: One 0x280 frame per CAN bus whose motors 1..4 are all joints of the arm: (the address of that bus's motor
         #: 1, the joints of the frame's four currents in the frame's order).
         self._frames: list[tuple[int, list[int]]] = []

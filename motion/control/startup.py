@@ -11,9 +11,9 @@ from collections.abc import Collection, Sequence
 from typing import TYPE_CHECKING, Final
 
 from motion.errors import DrivesSilent
-from motion.protocol import Command, Message, MultiTurnAngle
+from motion.protocol import Command, MultiTurnAngle
 from motion.protocol.v3.messages import CommandV3, Runtime
-from motion.transport.base import Reply, Request
+from motion.transport.base import Reply
 
 if TYPE_CHECKING:
     from motion.control.controller import Controller
@@ -22,15 +22,18 @@ if TYPE_CHECKING:
 READ_ATTEMPTS: Final = 3
 
 
-def read_every_drive(controller: Controller, reads: Sequence[Message], timeout_s: float) -> list[Reply]:
-    """``reads`` to every drive of ``controller`` (before its loop runs), asked again of a drive that missed any of
-    them, up to :data:`READ_ATTEMPTS` times in all (a frame lost, a host that stalled longer than ``timeout_s``: a drive
-    that answers the next time is no communication error); the replies, the latest of each drive that answered every
+def read_every_drive(
+    controller: Controller, reads: Sequence[int], timeout_s: float, ids: Sequence[int] | None = None
+) -> list[Reply]:
+    """The reads of commands ``reads`` (each drive's family's request without data) to every drive of ``controller``
+    (or those of ``ids``; before its loop runs), asked again of a drive that missed any of them, up to
+    :data:`READ_ATTEMPTS` times in all (a frame lost, a host that stalled longer than ``timeout_s``: a drive that
+    answers the next time is no communication error); the replies, the latest of each drive that answered every
     read."""
-    pending: list[int] = list(controller.ids)
+    pending: list[int] = list(controller.ids if ids is None else ids)
     taken: dict[int, list[Reply]] = {}
     for _ in range(READ_ATTEMPTS):
-        requests = [Request(motor_id, message) for motor_id in pending for message in reads]
+        requests = [controller.bare_request(motor_id, code) for motor_id in pending for code in reads]
         replies = controller.bus.transact(requests, controller.clock.now() + timeout_s)
         answered: dict[int, list[Reply]] = {}
         for reply in replies:
@@ -64,7 +67,7 @@ def read_angles(controller: Controller, timeout_s: float = 0.2) -> dict[int, flo
     Raises:
         TransportError: a drive did not answer by ``timeout_s``.
     """
-    replies = read_every_drive(controller, (controller.family.bare(Command.READ_MULTI_TURN_ANGLE),), timeout_s)
+    replies = read_every_drive(controller, (Command.READ_MULTI_TURN_ANGLE,), timeout_s)
     gear = {s.motor_id: s.drive_gear_ratio for s in controller.specs}
     angles = {
         r.motor_id: r.message.angle_deg * gear[r.motor_id]
@@ -77,16 +80,17 @@ def read_angles(controller: Controller, timeout_s: float = 0.2) -> dict[int, flo
 
 
 def read_runtimes(controller: Controller, timeout_s: float = 0.2) -> dict[int, float]:
-    """Every drive's runtime (time since its power-on, 0xB1), s, by motor id, where the family tells it (empty where
-    not: the older drives).
+    """Every drive's runtime (time since its power-on, 0xB1), s, by motor id, of the drives whose family tells it
+    (none of the older drives).
 
     Raises:
         TransportError: a drive did not answer by ``timeout_s``.
     """
-    if not controller.family.tells_runtime:
+    telling = [i for i, f in zip(controller.ids, controller.families, strict=True) if f.tells_runtime]
+    if not telling:
         return {}
-    replies = read_every_drive(controller, (controller.family.bare(CommandV3.READ_RUNTIME),), timeout_s)
+    replies = read_every_drive(controller, (CommandV3.READ_RUNTIME,), timeout_s, telling)
     runtimes = {r.motor_id: r.message.runtime_ms / 1000.0 for r in replies if isinstance(r.message, Runtime)}
-    if len(runtimes) < len(controller.specs):
-        raise silent_drives(controller, "runtime read (0xB1)", runtimes)
+    if len(runtimes) < len(telling):
+        raise silent_drives(controller, "runtime read (0xB1)", runtimes.keys() | (set(controller.ids) - set(telling)))
     return runtimes

@@ -85,7 +85,7 @@ class ExpectedTracking:
         kd_nm_per_dps: torque mode: the PD damping per joint.
         ids: the motor ids, in joint order.
         read_drives: read each drive's loop settings (0x30, 0x33) in the first cycles; False keeps the prior until an
-            identification is offered (drives of a family without those shapes).
+            identification is offered (drives of a family without those shapes); a sequence: per joint.
 
     Attributes:
         expected_deg: where each joint should be at the latest cycle's measurement, deg (read-only between cycles).
@@ -102,7 +102,7 @@ class ExpectedTracking:
         kd_nm_per_dps: FloatArray,
         ids: Sequence[int],
         *,
-        read_drives: bool = True,
+        read_drives: bool | Sequence[bool] = True,
     ) -> None:
         n = len(transmission)
         if mode.traits.drive_position_loop == mode.traits.host_torque:
@@ -133,7 +133,8 @@ class ExpectedTracking:
         self.identified = [False] * n
         self._joint_of = {motor_id: j for j, motor_id in enumerate(ids)}
         self._reads = [[Request(i, Bare(c)) for c in _READS] for i in ids]
-        self._unread = list(range(n)) if read_drives else []
+        reading = [read_drives] * n if isinstance(read_drives, bool) else list(read_drives)
+        self._unread = [j for j in range(n) if reading[j]]
         self._read_turn = 0
         self._attempts = [0] * n
         self._gains: list[PidGains | None] = [None] * n

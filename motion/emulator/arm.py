@@ -68,9 +68,10 @@ def emulator_for(
     plant: Plant | None = None,
     load_inertia_kgm2: Mapping[str, float] | None = None,
     faults: Iterable[Fault] = (),
-    family: ProtocolFamily = ProtocolFamily.V2,
+    family: ProtocolFamily | Sequence[ProtocolFamily] = ProtocolFamily.V2,
 ) -> Emulator:
-    """Emulated drives matching ``config``, speaking ``family`` (V3: the joints with ``brake`` have one).
+    """Emulated drives matching ``config``, speaking ``family`` (a sequence: each bus's, in the order of ``buses:``;
+    V3: the joints with ``brake`` have one).
 
     Args:
         config: the arm.
@@ -95,7 +96,8 @@ def emulator_for(
     stops = {j.address: hard_stops(j) for j in config.joints if j.homing is not None}
     # The emulator's own rule (only its V3 drives have brakes), not control's FAMILIES[family].brakes, which says the
     # same from a layer above the emulator.
-    braked = [j.address for j in config.joints if j.brake] if family is ProtocolFamily.V3 else []
+    families = [family] * len(config.buses) if isinstance(family, str) else list(family)
+    braked = [j.address for j in config.joints if j.brake and families[j.bus_index] is ProtocolFamily.V3]
     return Emulator(
         models.keys(), model=models, load=loads, plant=plant, faults=faults, stops=stops, family=family, brakes=braked
     )
@@ -115,7 +117,7 @@ def arm_emulator(
     *,
     initial_deg: Sequence[float] | None = None,
     faults: Iterable[Fault] = (),
-    family: ProtocolFamily = ProtocolFamily.V2,
+    family: ProtocolFamily | Sequence[ProtocolFamily] = ProtocolFamily.V2,
 ) -> tuple[Emulator, ArmPlant]:
     """Emulated drives of ``config`` coupled through the arm's rigid-body dynamics (forward dynamics with gravity).
 
@@ -126,7 +128,7 @@ def arm_emulator(
         config: the arm.
         initial_deg: joint angles at start, degrees, configuration order (default all zero).
         faults: faults to schedule on the emulated drives.
-        family: the drives' protocol generation.
+        family: the drives' protocol generation (a sequence: each bus's).
 
     Returns:
         The emulator (attach it to a bus) and its plant (to read the true joint angles).

@@ -456,7 +456,7 @@ class Rs485Attachment(_OnPty, Attachment[bytes, bytes]):
         self._pty = PseudoTerminal(link)
         super().__init__(emulator, "rs485" + (f"-{line}" if line else ""), timing or TimingModel(), frame_log, line)
         self.baud = baud
-        self.parser = emulator.generation.rs485_parser()
+        self.parser = emulator.generations[line].rs485_parser()
         self._gap_s = max(_RS485_MIN_GAP_S, rs485_frame_time_s(_RS485_GAP_BYTES, baud))
         self._last_rx_s = 0.0
         self._start()

@@ -24,7 +24,7 @@ import signal
 import sys
 import threading
 import types
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from typing import Any, TypeVar
 
 from motion.emulator.attach import (
@@ -196,9 +196,9 @@ def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = Fal
     timing.add_argument(
         "--baud",
         type=int,
-        default=DEFAULT_RS485_BAUD,
         choices=RS485_BAUDS,
-        help="RS485 baud rate for --bus-time (default %(default)d)",
+        help=f"RS485 baud rate for --bus-time, of every line (default: with --config each RS485 bus's baudrate; else "
+        f"{DEFAULT_RS485_BAUD})",
     )
     parser.add_argument(
         "--fault",
@@ -229,10 +229,12 @@ def add_emulate_arguments(parser: argparse.ArgumentParser, *, config: bool = Fal
     )
     parser.add_argument(
         "--protocol",
-        choices=[f.value for f in ProtocolFamily],
+        action="append",
+        type=_protocol_arg,
+        metavar="[BUS=]v2|v3",
         help="the drives' protocol generation: v2 (the CAN v2.3 / RS485 v1.62 documents) or v3 (driver V3, "
-        "V4.2 document: replies on 0x240+id, RS485 frames with a CRC16) (default: with --config, its bus.protocol "
-        "where that names one; else v2)",
+        "V4.2 document: replies on 0x240+id, RS485 frames with a CRC16); BUS=v2|v3 for one bus of an arm on several "
+        "(repeatable) (default: with --config, each bus's protocol where that names one, auto the older; else v2)",
     )
     parser.add_argument(
         "--brakes",
@@ -254,8 +256,8 @@ def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -
     Raises:
         ValueError: conflicting options, or drives or faults the emulator rejects (ConfigError is one).
     """
-    family = ProtocolFamily(args.protocol or ProtocolFamily.V2.value)
-    if args.baud not in RS485_BAUDRATES[family]:
+    family = protocol_of(args.protocol)
+    if args.baud is not None and args.baud not in RS485_BAUDRATES[family]:
         allowed = ", ".join(map(str, RS485_BAUDRATES[family]))
         raise ValueError(f"--baud {args.baud}: {family.value} drives run at {allowed} baud")
     if args.brakes and getattr(args, "config", None) is not None:
@@ -275,6 +277,55 @@ def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -
     if factory is None:
         raise ValueError("--config needs the arm's model: run it as `rmd-motion emulate --config FILE`")
     return factory(tuple(args.fault))
+
+
+def _protocol_arg(text: str) -> tuple[str, ProtocolFamily]:
+    """``v3`` -> ``("", v3)``; ``right=v3`` -> ``("right", v3)``."""
+    name, _, value = text.rpartition("=")
+    try:
+        return name, ProtocolFamily(value)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected v2, v3, or BUS=v2|v3") from None
+
+
+def protocol_of(given: Sequence[tuple[str, ProtocolFamily]] | None) -> ProtocolFamily:
+    """The one generation of ``--protocol`` (v2 where it is not given).
+
+    Raises:
+        ValueError: given more than once, or for a bus (``BUS=``: with ``--config`` of an arm on several buses).
+    """
+    if not given:
+        return ProtocolFamily.V2
+    if len(given) > 1 or given[0][0]:
+        raise ValueError(
+            "--protocol BUS=v2|v3 (or given more than once) applies to --config of an arm on several buses"
+        )
+    return given[0][1]
+
+
+def protocols_of(
+    given: Sequence[tuple[str, ProtocolFamily]] | None, buses: Sequence[str], configured: Sequence[ProtocolFamily]
+) -> tuple[ProtocolFamily, ...]:
+    """Each bus's generation (``buses`` by name; ``configured``: each one's own, where ``--protocol`` names none):
+    one ``--protocol`` for every bus, or ``BUS=`` for each it names.
+
+    Raises:
+        ValueError: a bus unknown or named twice, or a plain value besides named ones.
+    """
+    families = list(configured)
+    named: set[str] = set()
+    for name, family in given or ():
+        if not name:
+            if len(given or ()) > 1:
+                raise ValueError("--protocol: one value for every bus, or BUS=v2|v3 for each bus it names; not both")
+            return (family,) * len(buses)
+        if name not in buses:
+            raise ValueError(f"--protocol {name}={family.value}: no bus {name!r}; the buses are {', '.join(buses)}")
+        if name in named:
+            raise ValueError(f"--protocol: bus {name} is named twice")
+        named.add(name)
+        families[buses.index(name)] = family
+    return tuple(families)
 
 
 def emulator_clock(emulator: Emulator) -> Callable[[], float]:
@@ -339,11 +390,13 @@ def _attachments(
         yield VirtualCanAttachment(
             emulator, args.virtual_channel, bitrate=args.bitrate, timing=timing, frame_log=frame_log
         )
+    bauds: Mapping[int, int] = getattr(args, "line_bauds", {})  # (each RS485 bus's of --config, by line)
     for option, line, _name, path in links:
         if option == "--slcan-link":
             yield SlcanAttachment(emulator, path, timing=timing, frame_log=frame_log, line=line)
         else:
-            yield Rs485Attachment(emulator, path, baud=args.baud, timing=timing, frame_log=frame_log, line=line)
+            baud = args.baud or bauds.get(line, DEFAULT_RS485_BAUD)
+            yield Rs485Attachment(emulator, path, baud=baud, timing=timing, frame_log=frame_log, line=line)
 
 
 def run_emulate(

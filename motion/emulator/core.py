@@ -17,7 +17,7 @@ import math
 import random
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Final, Generic, TypeVar
 
@@ -101,12 +101,13 @@ class Emulator:
         stops: hard stops per motor id: the lowest and highest position of its joint in the plant's coordinate
             (motor angle / gear ratio, rad; ``-inf`` / ``inf`` where there is none). The joint cannot pass them.
         family: the protocol generation the drives speak: ``v2`` (:class:`EmulatedDrive`) or ``v3``
-            (:class:`~motion.emulator.drive_v3.EmulatedDriveV3`, with its brakes and communication-loss protection).
+            (:class:`~motion.emulator.drive_v3.EmulatedDriveV3`, with its brakes and communication-loss protection);
+            a sequence: each line's (bus index -> generation), one for every line a drive is on.
         brakes: V3 family: the ids of the drives whose joint has a holding brake.
 
     Raises:
-        ValueError: an id outside 1..32 or given twice, a fault on a drive that is not emulated, a bad step, or a
-            plant of the wrong size.
+        ValueError: an id outside 1..32 or given twice, a fault on a drive that is not emulated, a bad step, a plant
+            of the wrong size, or no generation for a line.
     """
 
     def __init__(
@@ -120,7 +121,7 @@ class Emulator:
         step_s: float = DEFAULT_STEP_S,
         seed: int = 0,
         stops: Mapping[int, tuple[float, float]] | None = None,
-        family: ProtocolFamily = ProtocolFamily.V2,
+        family: ProtocolFamily | Sequence[ProtocolFamily] = ProtocolFamily.V2,
         brakes: Iterable[int] = (),
     ) -> None:
         id_list = [_check_address(i) for i in ids]
@@ -140,19 +141,33 @@ class Emulator:
         self.plant: Plant = plant or IndependentLoads(loads, [m.rotor_inertia_kgm2 * m.gear_ratio**2 for m in models])
         if self.plant.size != len(self.ids):
             raise ValueError(f"plant has {self.plant.size} joints for {len(self.ids)} drives")
-        self.family = ProtocolFamily(family)
-        #: The drives' wire protocol (their side of it: requests decoded, replies encoded).
+        per_line = [family] if isinstance(family, str) else list(family)
+        if isinstance(family, str):
+            per_line *= max(self.line_ids) + 1
+        if len(per_line) <= max(self.line_ids):
+            raise ValueError(f"protocol generations {per_line}: one for each line 0..{max(self.line_ids)} expected")
+        #: The protocol generation of each line's drives (by line index).
+        self.families: tuple[ProtocolFamily, ...] = tuple(ProtocolFamily(f) for f in per_line)
+        #: The first line's generation (the only one of a single bus).
+        self.family = self.families[min(self.line_ids)]
+        #: Each line's wire protocol (the drives' side of it: requests decoded, replies encoded).
+        self.generations = tuple(GENERATIONS[f] for f in self.families)
+        #: The first line's (see :attr:`family`).
         self.generation = GENERATIONS[self.family]
-        self._encode_can = _can_encoder(self.generation.encode_can_reply)
-        self._encode_rs485 = _rs485_encoder(self.generation.encode_rs485_reply, _CORRUPT_RS485[self.family])
+        self._encode_can = [_can_encoder(g.encode_can_reply) for g in self.generations]
+        self._encode_rs485 = [
+            _rs485_encoder(g.encode_rs485_reply, _CORRUPT_RS485[f])
+            for g, f in zip(self.generations, self.families, strict=True)
+        ]
         braked = set(brakes)
-        if braked - set(self.ids) or (braked and self.family is not ProtocolFamily.V3):
-            raise ValueError(f"brakes {sorted(braked)}: expected ids of emulated V3 drives {list(self.ids)}")
+        v3 = {a for a in self.ids if self.families[split_address(a)[0]] is ProtocolFamily.V3}
+        if braked - v3:
+            raise ValueError(f"brakes {sorted(braked)}: expected ids of emulated V3 drives {sorted(v3)}")
         self.drives: dict[int, EmulatedDrive] = {}
         for i, m, ld in zip(self.ids, models, loads, strict=True):
             tuned = m.rotor_inertia_kgm2 + ld.inertia_kgm2 / m.gear_ratio**2
             wire_id = split_address(i)[1]  # (a drive knows its id on its own bus only)
-            if self.family is ProtocolFamily.V3:
+            if i in v3:
                 self.drives[i] = EmulatedDriveV3(wire_id, m, tuned, brake=i in braked)
             else:
                 self.drives[i] = EmulatedDrive(wire_id, m, tuned)
@@ -382,12 +397,15 @@ class Emulator:
         of it), in ascending drive address."""
         with self._lock:
             now = self.time_s if at_s is None else max(self.time_s, at_s)
-            return [
-                Outgoing(self.ids[n], self._encode_can(message, drive.motor_id, None), message)
-                for n, drive in self._v3
-                if line is None or self.ids[n] // ADDRESS_STRIDE == line
-                for message in drive.active_replies_due(now)
-            ]
+            due: list[Outgoing[CanFrame]] = []
+            for n, drive in self._v3:
+                address = self.ids[n]
+                if line is None or address // ADDRESS_STRIDE == line:
+                    encode = self._encode_can[address // ADDRESS_STRIDE]
+                    due.extend(
+                        Outgoing(address, encode(m, drive.motor_id, None), m) for m in drive.active_replies_due(now)
+                    )
+            return due
 
     # --- requests -------------------------------------------------------------------------------------------------
 
@@ -398,8 +416,8 @@ class Emulator:
         Raises:
             DecodeError: the frame breaks the family's CAN protocol (id, length, command, field, reserved byte).
         """
-        motor_id, message = self.generation.decode_can_request(frame.arbitration_id, frame.data)
-        return self._dispatch(line, motor_id, message, WireProtocol.CAN, self._encode_can)
+        motor_id, message = self.generations[line].decode_can_request(frame.arbitration_id, frame.data)
+        return self._dispatch(line, motor_id, message, WireProtocol.CAN, self._encode_can[line])
 
     def handle_rs485(self, raw: bytes, line: int = 0) -> Exchange[bytes]:
         """Execute an RS485 request frame that came on line ``line`` (V3: id 0xCD reaches every drive of it).
@@ -407,8 +425,8 @@ class Emulator:
         Raises:
             DecodeError: the frame breaks the family's RS485 protocol (length, head, checksum, id, command, field).
         """
-        motor_id, message = self.generation.decode_rs485_request(raw)
-        return self._dispatch(line, motor_id, message, WireProtocol.RS485, self._encode_rs485)
+        motor_id, message = self.generations[line].decode_rs485_request(raw)
+        return self._dispatch(line, motor_id, message, WireProtocol.RS485, self._encode_rs485[line])
 
     def _dispatch(
         self,
@@ -421,7 +439,9 @@ class Emulator:
         """Each drive of bus ``line`` the request reaches (``motor_id``, or its share of a frame for several
         drives) executes it and answers; the exchange names drives by their addresses."""
         targets = (
-            self.generation.spread(request, self.line_ids.get(line, ())) if motor_id is None else [(motor_id, request)]
+            self.generations[line].spread(request, self.line_ids.get(line, ()))
+            if motor_id is None
+            else [(motor_id, request)]
         )
         base = line * ADDRESS_STRIDE
         replies: list[Outgoing[W]] = []
@@ -457,8 +477,8 @@ class Emulator:
             EncodeError: the request cannot be encoded.
             DecodeError: a reply was corrupted by a fault.
         """
-        generation = self.generation
         line, wire_id = split_address(motor_id)
+        generation = self.generations[line]
         replies: list[tuple[tuple[int | None, Message], Outgoing[CanFrame] | Outgoing[bytes]]]
         if transport is WireProtocol.CAN:
             sent = self.handle_can(generation.encode_can_request(message, wire_id), line)

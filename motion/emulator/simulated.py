@@ -33,6 +33,7 @@ from motion.emulator.framelog import FrameLog
 from motion.emulator.timing import TimingModel, can_frame_bits
 from motion.errors import DecodeError
 from motion.protocol import CanFrame, WireProtocol
+from motion.protocol.generation import GENERATIONS
 from motion.protocol.rs485_frame import rs485_frame_time_s
 from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily, split_address
 from motion.transport.base import FrameTap, Request, Transport, probe_in_turn
@@ -272,12 +273,29 @@ class SimulatedBus(Transport):
     """The transport of a :class:`Simulation`: the same slots, matching and counters as the real backends.
 
     Its clock is the simulation's (pass ``simulation`` as the controller's clock too).
+
+    Args:
+        simulation: the simulated lines and drives.
+        family: the protocol generation it speaks on every line; a sequence: each line's; None: each line's drives'.
+        names: the lines' names (an arm's buses).
     """
 
     def __init__(
-        self, simulation: Simulation, family: ProtocolFamily | None = None, *, names: Sequence[str] = ()
+        self,
+        simulation: Simulation,
+        family: ProtocolFamily | Sequence[ProtocolFamily] | None = None,
+        *,
+        names: Sequence[str] = (),
     ) -> None:
-        super().__init__(clock=simulation.now, family=simulation.emulator.family if family is None else family)
+        count, emulated = len(simulation.lines), simulation.emulator.families
+        if family is None:
+            per_line = [emulated[k] if k < len(emulated) else emulated[0] for k in range(count)]
+        else:
+            per_line = [family] * count if isinstance(family, str) else list(family)
+            if len(per_line) != count:
+                raise ValueError(f"protocol generations {per_line}: one for each of the {count} lines expected")
+        super().__init__(clock=simulation.now, family=per_line[0])
+        self.families = tuple(ProtocolFamily(f) for f in per_line)
         self.simulation = simulation
         #: The lines' names (an arm's buses), for the rate check's figures per bus; empty: not told.
         self.names = tuple(names)
@@ -287,9 +305,12 @@ class SimulatedBus(Transport):
         self._line_can = [line.protocol is WireProtocol.CAN for line in simulation.lines]
         self._can = all(self._line_can)
         self._one_line = len(simulation.lines) == 1
-        self._encode_can = self.generation.encode_can_request
-        self._encode_rs485 = self.generation.encode_rs485_request
-        self._decode_rs485 = self.generation.decode_rs485_reply
+        #: Each line's codec (its generation's).
+        self._generations = [GENERATIONS[f] for f in self.families]
+        self._encoders = [
+            g.encode_can_request if can else g.encode_rs485_request
+            for g, can in zip(self._generations, self._line_can, strict=True)
+        ]
         self._wires: list[CanFrame | bytes] = []
         self._lines: list[int] = []
         self._motors: list[int] = []
@@ -329,7 +350,11 @@ class SimulatedBus(Transport):
 
     def with_family(self, family: ProtocolFamily) -> SimulatedBus:
         """See :meth:`Transport.with_family`."""
-        bus = SimulatedBus(self.simulation, family, names=self.names)
+        return self.with_families([family] * len(self.families))
+
+    def with_families(self, families: Sequence[ProtocolFamily]) -> SimulatedBus:
+        """See :meth:`Transport.with_families`: each line's generation."""
+        bus = SimulatedBus(self.simulation, families, names=self.names)
         bus.frame_tap = self.frame_tap
         return bus
 
@@ -338,8 +363,7 @@ class SimulatedBus(Transport):
         sim, busy = self.simulation, [0.0] * len(self.simulation.lines)
         for request in requests:
             line, motor_id = split_address(request.motor_id)
-            encode = self._encode_can if self._line_can[line] else self._encode_rs485
-            busy[line] += sim.wire_time_s(encode(request.message, motor_id), line)
+            busy[line] += sim.wire_time_s(self._encoders[line](request.message, motor_id), line)
         return max(busy)  # (the lines carry their frames at the same time)
 
     def describe(self) -> str:
@@ -351,13 +375,10 @@ class SimulatedBus(Transport):
         wires.clear()
         lines.clear()
         motors.clear()
-        line_can = self._line_can
+        encoders = self._encoders
         for request in requests:
             line, motor_id = split_address(request.motor_id)  # (one line: the motor id itself)
-            if line_can[line]:
-                wires.append(self._encode_can(request.message, motor_id))
-            else:
-                wires.append(self._encode_rs485(request.message, motor_id))
+            wires.append(encoders[line](request.message, motor_id))
             lines.append(line)
             motors.append(request.motor_id)
 
@@ -499,14 +520,16 @@ class SimulatedBus(Transport):
         wire = arrival.wire
         if isinstance(wire, CanFrame):
             self._tap(True, wire, arrival.line)
-            take_in_can_frame(self, wire, arrival.line * ADDRESS_STRIDE, tapped=True)
+            take_in_can_frame(
+                self, wire, arrival.line * ADDRESS_STRIDE, tapped=True, generation=self._generations[arrival.line]
+            )
             took = self._line_took_s
             took[arrival.line] = max(took[arrival.line], arrival.time_s - self._started_s)
             return
         line = arrival.line
         self._tap(True, wire, line)
         try:
-            motor_id, message = self._decode_rs485(wire)
+            motor_id, message = self._generations[line].decode_rs485_reply(wire)
             if motor_id is None:  # a V3 id-setting reply on 0xCD: not the control loop's
                 self.bus_counters.unknown_id_frames += 1
                 return

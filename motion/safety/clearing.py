@@ -20,7 +20,7 @@ from motion.protocol.v3.messages import CommandV3
 from motion.safety.context import SafetyContext, SafetyPart
 from motion.safety.states import ArmEvent, ArmState
 from motion.trajectory import State
-from motion.transport import Reply, Request
+from motion.transport import Reply
 
 logger = logging.getLogger("motion.safety")
 
@@ -49,11 +49,13 @@ class Clearing(SafetyPart):
         super().__init__(context)
         self.drives = drives
         self._end_window_s = end_window_s
-        family = context.controller.family
-        ids = context.guard.ids
-        self._state_reads = [Request(i, family.bare(Command.READ_STATUS_2)) for i in ids]
-        clear = Command.CLEAR_ERRORS if family.clears_errors else Command.READ_STATUS_1
-        self._clear_requests = [Request(i, family.bare(clear)) for i in ids]
+        controller = context.controller
+        ids, ask = context.guard.ids, controller.bare_request
+        self._state_reads = [ask(i, Command.READ_STATUS_2) for i in ids]
+        self._clear_requests = [
+            ask(i, Command.CLEAR_ERRORS if controller.family_of(i).clears_errors else Command.READ_STATUS_1)
+            for i in ids
+        ]
 
     def run(self, state: ArmState, deadline_s: float) -> MotionFault | None:
         """Clear the arm faulted in ``state``; returns None when it is READY, else the ``clear_failed`` fault naming
@@ -102,11 +104,11 @@ class Clearing(SafetyPart):
             self.drives.release_brakes(deadline_s)
         except TransportError:
             controller = self.controller
-            lock = controller.family.bare(CommandV3.LOCK_BRAKE)
             guard.locked.clear()  # each counts as locked again once its drive acknowledges the lock
             try:
                 replies = controller.bus.transact(
-                    [Request(i, lock) for i in guard.braked_ids], controller.clock.now() + self._end_window_s
+                    [controller.bare_request(i, CommandV3.LOCK_BRAKE) for i in guard.braked_ids],
+                    controller.clock.now() + self._end_window_s,
                 )
                 guard.take(replies, controller.axes, self.watchdog.within, controller.clock.now())
             except TransportError as exc:

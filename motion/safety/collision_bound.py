@@ -137,19 +137,20 @@ class CollisionBound:
     the bound where that is higher."""
 
     def __init__(self, controller: Controller, observer: CollisionObserver) -> None:
-        family, specs = controller.family, controller.specs
+        families, specs = controller.families, controller.specs
         transmissions = controller.transmission.transmissions
         self._observer = observer
         self._error = np.array((*MODEL_ERROR, 0.0, STEP_SHARE, 0.0, 0.0), dtype=np.float64)[:, None]
         # the speed field's step in joint rad/s, times 2 K_O (through |M| at each step)
         step_rad_s = np.array(
             [
-                math.radians(abs(t.joint_rate(family.speed_step_dps * s.drive_gear_ratio)))
-                for s, t in zip(specs, transmissions, strict=True)
+                math.radians(abs(t.joint_rate(f.speed_step_dps * s.drive_gear_ratio)))
+                for s, t, f in zip(specs, transmissions, families, strict=True)
             ]
         )
         self._speed = 2.0 * observer.gain_per_s * step_rad_s
-        self._current = np.abs(controller.transmission.joint_torque_nm(np.full(len(specs), family.current_step_a)))
+        steps_a = np.array([f.current_step_a for f in families])
+        self._current = np.abs(controller.transmission.joint_torque_nm(steps_a))
         self._drift_floor = STEP_FLOOR_STEPS * self._current
         self._delta = np.zeros((TERM_ROWS, len(specs)))
         #: The latest bound per joint, N·m.
@@ -158,7 +159,7 @@ class CollisionBound:
         # and a from the reference), filtered as the residual; the terms of the latest step, all rows
         self._controller = controller
         self._steps = controller.options.mode.traits.drive_position_loop
-        self._gain_factor = 1.0 if family.reads_loop_settings else UNREAD_GAIN_FACTOR
+        self._gain_factor = np.array([1.0 if f.reads_loop_settings else UNREAD_GAIN_FACTOR for f in families])
         self._x = np.zeros(len(specs))
         self._gain = np.zeros(len(specs))
         self._mass = np.zeros((len(specs), len(specs)))

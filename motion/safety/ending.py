@@ -8,15 +8,13 @@ to.
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 
 from motion.control.controller import Controller
 from motion.control.drivesetup import DriveSetup
-from motion.protocol import Command, Message
+from motion.protocol import Command
 from motion.safety.halted import HaltGuard
 from motion.safety.states import ArmEvent, ArmState, StateMachine
 from motion.safety.watchdog import Watchdog
-from motion.transport import Request
 
 logger = logging.getLogger("motion.safety")
 
@@ -85,9 +83,9 @@ class SessionEnd:
         owed = guard.unacknowledged
         order = sorted(guard.ids, key=lambda i: (i in owed, i))
         until = clock.now() + SETUP_WINDOW_S
-        bare = controller.family.bare
+        ask = controller.bare_request
         try:
-            replies = bus.transact([Request(i, bare(guard.codes[i])) for i in order], clock.now() + self._window_s)
+            replies = bus.transact([ask(i, guard.codes[i]) for i in order], clock.now() + self._window_s)
             controller.absorb(replies)
             guard.take(replies, controller.axes, self.watchdog.within, clock.now())
             # Late acknowledgements (a loaded host, a slow drive): halted cycles, each a short exchange that reads
@@ -125,12 +123,12 @@ class SessionEnd:
             logger.error("brakes not locked (%s): not seen at rest after the halt; their drives hold them", names)
 
 
-def emergency_stop(controller: Controller, ids: tuple[int, ...], bare: Callable[[int], Message]) -> None:
+def emergency_stop(controller: Controller, ids: tuple[int, ...]) -> None:
     """Garbage collection / process exit: end the loop, then 0x81 to every axis (best effort, never raises)."""
     try:
         controller.shutdown(1.0)
         if not controller.bus.closed:
-            requests = [Request(i, bare(Command.MOTOR_STOP)) for i in ids]
+            requests = [controller.bare_request(i, Command.MOTOR_STOP) for i in ids]
             controller.bus.transact(requests, controller.clock.now() + 0.02)
     except Exception as exc:  # at exit there is nobody to raise to; leave a trace
         logger.error("emergency stop failed: %s: %s", type(exc).__name__, exc)

@@ -31,7 +31,7 @@ from typing import Final
 
 from motion.control.axes import AxisStates
 from motion.control.family import BARE_TYPES, STATE_TYPES
-from motion.protocol import Command, Message
+from motion.protocol import Command
 from motion.protocol.v3.messages import CommandV3
 from motion.transport import Reply, Request
 
@@ -76,14 +76,15 @@ class HaltGuard:
     Args:
         ids: every joint's motor id, in joint order.
         braked_ids: the ids of joints with a holding brake.
-        bare: the family's request without data for a command (``DriveFamily.bare``).
+        ask: the request without data for a command to a drive, in its family's protocol (motor id, command ->
+            request: ``Controller.bare_request``).
     """
 
-    def __init__(self, ids: Sequence[int], braked_ids: Sequence[int], bare: Callable[[int], Message]) -> None:
+    def __init__(self, ids: Sequence[int], braked_ids: Sequence[int], ask: Callable[[int, int], Request]) -> None:
         self.ids = tuple(ids)
         self.index = {motor_id: i for i, motor_id in enumerate(self.ids)}
         self.braked_ids = tuple(braked_ids)
-        self._bare = bare
+        self._ask = ask
         n = len(self.ids)
         #: The halt command in force (0x81, or 0x80 under ``halt_policy: off``).
         self.code = Command.MOTOR_STOP
@@ -105,20 +106,19 @@ class HaltGuard:
         self._turn = 0
         self._now = math.nan
         self._silent: set[int] = set()  # drives whose latest reply is missing
-        self._reads = {motor_id: Request(motor_id, bare(Command.READ_STATUS_2)) for motor_id in self.ids}
+        self._reads = {motor_id: ask(motor_id, Command.READ_STATUS_2) for motor_id in self.ids}
         # (the halted cycle's requests, built once: the reads of every drive, each drive's halt as its code says,
         # each braked joint's lock)
         self._read_batch = [self._reads[motor_id] for motor_id in self.ids]
-        self._halts = {motor_id: Request(motor_id, bare(self.codes[motor_id])) for motor_id in self.ids}
-        lock = bare(CommandV3.LOCK_BRAKE) if self.braked_ids else None
-        self._locks = {motor_id: Request(motor_id, lock) for motor_id in self.braked_ids if lock is not None}
+        self._halts = {motor_id: ask(motor_id, self.codes[motor_id]) for motor_id in self.ids}
+        self._locks = {motor_id: ask(motor_id, CommandV3.LOCK_BRAKE) for motor_id in self.braked_ids}
 
     def begin(self, code: Command) -> None:
         """A halt with ``code`` goes out to every drive now: none is known to be halted."""
         self.code = code
         braked = self.braked_ids
         self.codes = {i: Command.MOTOR_STOP if i in braked else code for i in self.ids}
-        self._halts = {i: Request(i, self._bare(c)) for i, c in self.codes.items()}
+        self._halts = {i: self._ask(i, c) for i, c in self.codes.items()}
         self.unacknowledged = set(self.ids)
         for i in range(len(self.ids)):
             self._forget(i)
@@ -274,7 +274,7 @@ class HaltGuard:
     def _set_code(self, motor_id: int, code: Command) -> None:
         """The drive's halt from now on is ``code``."""
         self.codes[motor_id] = code
-        self._halts[motor_id] = Request(motor_id, self._bare(code))
+        self._halts[motor_id] = self._ask(motor_id, code)
 
     def _restless(self, i: int, qd: float) -> bool:
         """Whether joint ``i`` has just moved faster than :data:`SWING_DPS` for :data:`RESTLESS_S` (once a run), by

@@ -86,10 +86,9 @@ class Supervisor:
         drives: DriveSetup | None = None,
     ) -> None:
         self.controller = controller
-        family = controller.family
         self.ids = ids = tuple(s.motor_id for s in controller.specs)
         self.drives = drives = drives or DriveSetup(
-            controller.bus, family, list(ids), (), link_timeout_ms(controller.period_s, None)
+            controller.bus, controller.families, list(ids), (), link_timeout_ms(controller.period_s, None)
         )
         self.settings = settings
         self.watchdog = watchdog = Watchdog(controller, settings, observer)
@@ -103,7 +102,7 @@ class Supervisor:
         machine.on_change = log.publish
         self.faults, self.halts, self.lost_frames = log.faults, log.halts, log.lost_frames
         #: The halted state's bookkeeping (:mod:`motion.safety.halted`).
-        self.guard = guard = HaltGuard(ids, drives.braked_ids, family.bare)
+        self.guard = guard = HaltGuard(ids, drives.braked_ids, controller.bare_request)
         reads = self._next_status_reads
         context = SafetyContext(controller, settings, machine, guard, watchdog, log)
         #: The reaction to a fault, and the cycles of HOLDING, COMPLYING and HALT_PENDING.
@@ -140,7 +139,7 @@ class Supervisor:
         self.status_rounds = StatusRounds.of(controller)
         #: How many of them each cycle carries, over every bus (CAN: every drive's flags at most FLAG_AGE_S old).
         self.status_reads_per_cycle = self.status_rounds.per_cycle
-        self._finalizer = weakref.finalize(self, emergency_stop, controller, ids, family.bare)
+        self._finalizer = weakref.finalize(self, emergency_stop, controller, ids)
         atexit.register(self._finalizer)
 
     # ------------------------------------------------------------------------------------------------ API

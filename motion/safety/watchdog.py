@@ -139,7 +139,7 @@ class Watchdog:
         self._overruns_seen = 0
         self._overrun_streak = 0
         # The family's restart sign: the 0x92 angle against the tracked encoder, or the runtime going back (0xB1).
-        self._angle_shows_restart = not controller.family.angle_every_cycle
+        self._angle_shows_restart = [not f.angle_every_cycle for f in controller.families]
         self._runtime_ms = [-1] * n
         self._runtime_s = [math.nan] * n  # when it was read
         # ... and the fine angle read in every cycle (motor deg, and when: NaN before the first), for a jump no speed
@@ -156,9 +156,10 @@ class Watchdog:
         self._error = np.zeros(n)
         self._slip = np.zeros(n)
         self._following_limit = np.zeros(n)
-        self._lag_error = FOLLOWING_LAG_ERROR[
-            controller.options.mode.traits.drive_position_loop, controller.family.reads_loop_settings
-        ]
+        drive_loop = controller.options.mode.traits.drive_position_loop
+        self._lag_error = np.array(
+            [FOLLOWING_LAG_ERROR[drive_loop, f.reads_loop_settings] for f in controller.families]
+        )
         # torque mode: what a drive within the stated model error adds (see _advance_sensitivity)
         self._torque_mode = controller.options.mode.traits.host_torque
         self._kp = np.array([s.kp_nm_per_deg for s in specs], dtype=np.float64)
@@ -492,7 +493,7 @@ class Watchdog:
         """
         if isinstance(message, Runtime):
             self._check_runtime(i, message, now_s)
-        elif self._angle_shows_restart:
+        elif self._angle_shows_restart[i]:
             self._check_frame(i, message)
         else:
             self._check_angle_jump(i, message, now_s)
@@ -573,7 +574,7 @@ class Watchdog:
             )
 
     def _check_status(self, i: int, status: Status1 | Status1V3) -> None:
-        family = self.controller.family
+        family = self.controller.families[i]
         errors = int(status.errors)
         if errors & family.over_temperature:
             raise self._fault(

@@ -469,16 +469,18 @@ class Recorder:
         # (an arm on several buses: a drive's address splits into its bus, named as in the metadata's "buses", and
         # its motor id on that bus)
         names = self.bus_names
+        protocols = sorted({f.family.value for f in controller.families})
         joints = [
             {"name": s.name, "motor_id": split_address(s.motor_id)[1], "torque_nm_per_a": float(k)}
             | ({"bus": names[split_address(s.motor_id)[0]]} if len(names) > 1 else {})
-            for s, k in zip(controller.specs, per_amp, strict=True)
+            | ({"protocol": f.family.value} if len(protocols) > 1 else {})
+            for s, k, f in zip(controller.specs, per_amp, controller.families, strict=True)
         ]
         return _schema_meta(controller.options.mode.value, controller.options.rate_hz, joints) | {
             "simulated": not isinstance(controller.clock, MonotonicClock),
             "t0_s": self.t0_s,
             "t0_wall_unix_s": self.t0_wall_unix_s,
-            "protocol": controller.family.family.value,
+            "protocol": "+".join(protocols),  # ("v2+v3": each joint's is in its entry)
             "loop": dataclasses.asdict(controller.loop.statistics()),
             "counters": {str(mid): dataclasses.asdict(c) for mid, c in sorted(controller.bus.counters.items())},
         }

@@ -233,7 +233,8 @@ def probe_in_turn(
     for family in (bus.family, *(f for f in ProtocolFamily if f is not bus.family)):
         if not silent:
             break
-        speaker = bus if family is bus.family else sibling(family)
+        # (a transport of lines in different generations asks in each through a sibling speaking it on every line)
+        speaker = bus if bus.families == (family,) * len(bus.families) else sibling(family)
         request = speaker.generation.status_read
         replies = speaker.transact([Request(i, request) for i in silent], speaker.clock() + window_s)
         found.update((r.motor_id, family) for r in replies if r.message is not None)
@@ -256,10 +257,14 @@ class Transport(ABC, Closing):
         self, *, clock: Callable[[], float] = time.monotonic, family: ProtocolFamily = ProtocolFamily.V2
     ) -> None:
         self.clock = clock
-        #: The protocol generation the drives on this bus speak (their frames are encoded and decoded with it).
+        #: The protocol generation the drives on this bus speak (their frames are encoded and decoded with it); of
+        #: an arm's several buses, the first one's (:attr:`families`: each one's).
         self.family = ProtocolFamily(family)
         #: Its wire protocol: the codec the backends encode and decode with.
         self.generation = GENERATIONS[self.family]
+        #: The generation of each bus, by bus index (the address's, ``motion.protocol.table.split_address``): one
+        #: bus, its :attr:`family`.
+        self.families: tuple[ProtocolFamily, ...] = (self.family,)
         #: What the drives told of themselves at connect, by motor id (:mod:`motion.transport.identity`).
         self.identities: dict[int, Identity] = {}
         self.bus_counters = BusCounters()
@@ -371,6 +376,11 @@ class Transport(ABC, Closing):
         """
         return None
 
+    def family_of(self, address: int) -> ProtocolFamily:
+        """The generation the drive at ``address`` speaks (its bus's)."""
+        families = self.families
+        return families[address // ADDRESS_STRIDE] if len(families) > 1 else families[0]
+
     def with_family(self, family: ProtocolFamily) -> Transport:
         """A transport over the same link speaking ``family``, which takes the link over (closing it closes the
         link; this one then no longer does).
@@ -379,6 +389,20 @@ class Transport(ABC, Closing):
             TransportError: this transport cannot hand its link over.
         """
         raise TransportError(f"{self.describe()} cannot switch to the {ProtocolFamily(family).value} protocol family")
+
+    def with_families(self, families: Sequence[ProtocolFamily]) -> Transport:
+        """A transport over the same links speaking ``families[k]`` on bus ``k`` (itself where they are what it
+        speaks; else it takes the links over, as :meth:`with_family`).
+
+        Raises:
+            TransportError: this transport cannot hand its link over, or speaks one generation on all its buses.
+        """
+        wanted = tuple(ProtocolFamily(f) for f in families)
+        if wanted == self.families:
+            return self
+        if len(set(wanted)) == 1 and len(wanted) == len(self.families):
+            return self.with_family(wanted[0])
+        raise TransportError(f"{self.describe()} speaks one protocol generation on all its buses, not {wanted}")
 
     def close(self) -> None:
         """Run the close hooks, then release the bus or port; safe to call more than once. A port that cannot be

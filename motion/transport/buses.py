@@ -100,26 +100,23 @@ class Buses(Transport):
     """Several buses of one arm as one transport (see the module docstring).
 
     Args:
-        buses: the transports, in the order of the configuration's ``buses:`` (index = the address's bus index); all
-            of one protocol generation and one clock.
+        buses: the transports, in the order of the configuration's ``buses:`` (index = the address's bus index), of
+            one clock; each speaks its own drives' protocol generation (:attr:`families`).
         names: the buses' names, for messages.
         parallel: the buses' exchanges at the same time (a worker thread per bus beyond the first); False: one after
             the other in the calling thread (``bench/buses_bench.py`` measures the difference).
 
     Raises:
-        TransportError: fewer than two buses, or buses of different generations.
+        TransportError: fewer than two buses.
     """
 
     def __init__(self, buses: Sequence[Transport], names: Sequence[str], *, parallel: bool = True) -> None:
         if len(buses) < 2 or len(names) != len(buses):
             raise TransportError(f"several buses take two or more transports, each named; got {len(buses)}")
-        families = {bus.family for bus in buses}
-        if len(families) > 1:
-            told = ", ".join(f"{n}: {b.family.value}" for n, b in zip(names, buses, strict=True))
-            raise TransportError(f"the buses of one arm speak one protocol generation; found {told}")
         self.buses = tuple(buses)
         self.names = tuple(names)
         super().__init__(clock=buses[0].clock, family=buses[0].family)
+        self.families = tuple(bus.family for bus in buses)
         self.parallel = parallel
         self._workers = (
             [_Worker(bus, name) for bus, name in zip(self.buses[1:], self.names[1:], strict=True)] if parallel else []
@@ -286,8 +283,18 @@ class Buses(Transport):
 
     def with_family(self, family: ProtocolFamily) -> Buses:
         """See :meth:`Transport.with_family`: every bus switches (each takes its link over)."""
+        return self.with_families([family] * len(self.buses))
+
+    def with_families(self, families: Sequence[ProtocolFamily]) -> Buses:
+        """See :meth:`Transport.with_families`: each bus that speaks another generation switches (taking its link
+        over); the others carry on."""
+        if len(families) != len(self.buses):
+            raise TransportError(f"{len(families)} protocol generations for {len(self.buses)} buses")
+        if tuple(families) == self.families:
+            return self
         self._stop_workers()
-        buses = Buses([bus.with_family(family) for bus in self.buses], self.names, parallel=self.parallel)
+        switched = [bus if bus.family is f else bus.with_family(f) for bus, f in zip(self.buses, families, strict=True)]
+        buses = Buses(switched, self.names, parallel=self.parallel)
         buses.frame_tap = self.frame_tap
         buses.identities.update(self.identities)
         self._closed = True  # (its buses are the new transport's now)

@@ -14,15 +14,23 @@ from typing import Any, Final, Protocol
 
 from motion.errors import DecodeError
 from motion.protocol import CanFrame
+from motion.protocol.generation import Generation
 from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, ProtocolFamily
 from motion.transport.base import Request, Transport
 from motion.transport.can_endpoint import CanEndpoint
 
 
-def take_in_can_frame(transport: Transport, frame: CanFrame, address_base: int = 0, *, tapped: bool = False) -> None:
-    """Take one received CAN frame into ``transport``: tap it (unless ``tapped``: the caller did), decode it, offer it
-    (or count why not); the drive's address is ``address_base`` + its motor id (an arm on several buses: ``bus index
-    × ADDRESS_STRIDE``).
+def take_in_can_frame(
+    transport: Transport,
+    frame: CanFrame,
+    address_base: int = 0,
+    *,
+    tapped: bool = False,
+    generation: Generation | None = None,
+) -> None:
+    """Take one received CAN frame into ``transport``: tap it (unless ``tapped``: the caller did), decode it (with
+    ``generation``, default the transport's), offer it (or count why not); the drive's address is ``address_base`` +
+    its motor id (an arm on several buses: ``bus index × ADDRESS_STRIDE``).
 
     Shared by every transport that carries RMD CAN frames (this one and the simulated bus).
     """
@@ -31,7 +39,8 @@ def take_in_can_frame(transport: Transport, frame: CanFrame, address_base: int =
         transport.frame_tap(transport.clock(), True, arbitration_id, frame.data)
     # (a V3 drive's 0x300 id-setting and 0x500 motion replies are not the control loop's: counted as frames of other
     # devices, as 0x280 frames are)
-    generation = transport.generation
+    if generation is None:
+        generation = transport.generation
     motor_id = arbitration_id - generation.can_reply_base
     if not _FIRST_MOTOR_ID <= motor_id <= _LAST_MOTOR_ID:
         # Other devices may share the bus; their frames are not drive replies.

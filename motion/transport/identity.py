@@ -7,6 +7,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 
 from motion.protocol import Message, ProductInfo
+from motion.protocol.generation import GENERATIONS
 from motion.protocol.table import WireProtocol
 from motion.protocol.v3.messages import MotionRanges, MotorModel, VersionDate
 from motion.protocol.v3.motion_frame import motion_ranges
@@ -46,16 +47,17 @@ class Identity:
 
 
 def read_identities(bus: Transport, ids: Sequence[int], wire: WireProtocol, window_s: float) -> dict[int, Identity]:
-    """Each of ``ids`` that answered its generation's identity reads (``Generation.identity_reads`` on ``wire``)
-    within ``window_s``, with what they told (none where the generation has no such read on ``wire``).
+    """Each of ``ids`` that answered its generation's identity reads (``Generation.identity_reads`` on ``wire``, of
+    its bus's generation: ``bus.family_of``) within ``window_s``, with what they told (none where the generation has
+    no such read on ``wire``).
 
     Raises:
         TransportError: the bus failed.
     """
-    reads = bus.generation.identity_reads[wire]
-    if not reads or not ids:
+    requests = [Request(i, m) for i in ids for m in GENERATIONS[bus.family_of(i)].identity_reads[wire]]
+    if not requests:
         return {}
-    replies = bus.transact([Request(i, m) for i in ids for m in reads], bus.clock() + window_s)
+    replies = bus.transact(requests, bus.clock() + window_s)
     told: dict[int, dict[type[Message], Message]] = {}
     for reply in replies:
         if reply.message is not None:
