@@ -38,7 +38,7 @@ from motion.errors import ConfigError, TransportError
 from motion.keep import drive_record_for
 from motion.protocol import WireProtocol
 from motion.protocol.generation import GENERATIONS
-from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily, split_address
+from motion.protocol.table import ADDRESS_STRIDE, RS485_BAUDRATES, ProtocolFamily, split_address
 from motion.safety import SafetySettings, Supervisor
 from motion.safety.watchdog import CollisionObserver, Watchdog
 from motion.trajectory import JointLimits
@@ -99,10 +99,13 @@ def controller_options(config: ArmConfig) -> ControllerOptions:
 
 def opening_families(config: ArmConfig) -> tuple[ProtocolFamily, ...]:
     """The generation each bus opens in (in the order of ``buses:``) before :func:`negotiate_family` asks the
-    drives: the one its ``protocol`` names; with ``auto`` the older, unless its RS485 baud rate is one only V3 drives
-    run at."""
+    drives: the one its ``protocol`` names; with ``auto`` the one the other buses name (where they name one), else
+    the older, unless its RS485 baud rate is one only V3 drives run at."""
+    named = {ProtocolFamily(b.protocol.value) for b in config.buses if b.protocol is not ProtocolSetting.AUTO}
     return tuple(
-        _opening(bus) if bus.protocol is ProtocolSetting.AUTO else ProtocolFamily(bus.protocol.value)
+        (named.copy().pop() if len(named) == 1 else _opening(bus))
+        if bus.protocol is ProtocolSetting.AUTO
+        else ProtocolFamily(bus.protocol.value)
         for bus in config.buses
     )
 
@@ -303,7 +306,7 @@ def build_controller(
     """A controller for ``config`` on ``bus`` (call ``read_positions()`` before moving). In torque mode with a
     feed-forward, the tracking model learns the joints' inertia from the arm's model."""
     controller = Controller(
-        axis_specs(config, bus.families),
+        axis_specs(config, [bus.family_of(k * ADDRESS_STRIDE) for k in range(len(config.buses))]),
         config.transmission(),
         joint_limits(config),
         bus,

@@ -158,7 +158,8 @@ def fault_halts_every_axis(
         supervisor.move_to(TARGETS, 0.5)
         rig.sleep(after_s)
         now = rig.emulator.time_s
-        rig.emulator.add_fault(Fault(kind, address, start_s=now, end_s=now + 60.0, value=value))
+        end_s = None if kind is InjectedFault.POWER_CYCLE else now + 60.0  # (a power cycle is one instant)
+        rig.emulator.add_fault(Fault(kind, address, start_s=now, end_s=end_s, value=value))
         with pytest.raises(MotionFault) as info:
             supervisor.wait(10.0)
         assert info.value.kind == expected

@@ -395,18 +395,25 @@ def test_active_replies_come_from_v3_drives_in_another_process(tmp_path: Path) -
 
 def test_scan_names_each_drives_generation_firmware_and_model(tmp_path: Path) -> None:
     link = tmp_path / "slcan"
-    arm2 = str(ROOT / "configs" / "arm2.yaml")
+    arm2 = str(ROOT / "configs" / "arm2.yaml")  # (bus.protocol: auto)
+    set_v2 = tmp_path / "arm2_v2.yaml"
+    text = (ROOT / "configs" / "arm2.yaml").read_text()
+    set_v2.write_text(text.replace("  bitrate: 1000000\n", "  bitrate: 1000000\n  protocol: v2\n", 1))
+    scan = ("scan", "--interface", "slcan", "--channel", str(link), "--ids", "1-3", "--json")
     with v3_drives(link):
-        result = _cli(
-            "scan", "--config", arm2, "--interface", "slcan", "--channel", str(link), "--ids", "1-3", "--json"
-        )
+        result = _cli(*scan, "--config", arm2)
+        told = _cli(*scan, "--config", str(set_v2))
     assert result.returncode == 0, result.stderr
     drives = json.loads(result.stdout)["drives"]
     assert [(d["motor_id"], d["protocol"], d["model"]) for d in drives] == [
         (1, "v3", "EMUX8V3 firmware 20240528"),
         (2, "v3", "EMUX8V3 firmware 20240528"),
     ]
-    assert "speak the V3-driver protocol (V4.2), not the configuration's (bus.protocol: v2)" in result.stderr
+    assert "not the configuration's" not in result.stderr  # (auto: whichever the drives speak)
+    assert told.returncode == 0, told.stderr
+    assert "speak the V3-driver protocol (V4.2), not the configuration's (bus.protocol: v2): set it to v3 or auto" in (
+        told.stderr
+    )
 
 
 def _scan_arm6_v3_emulated(tmp_path: Path, *emulate_args: str) -> subprocess.CompletedProcess[str]:

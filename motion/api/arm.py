@@ -115,7 +115,7 @@ class Arm:
         home: Sequence[str] = (),
         start_pose: Mapping[str, float] | None = None,
         view: bool | ViewOptions = False,
-        emulated_protocol: ProtocolFamily | str | None = None,
+        emulated_protocol: ProtocolFamily | str | Sequence[ProtocolFamily | str] | None = None,
         bus: Transport | None = None,
     ) -> None:
         if bus is not None:

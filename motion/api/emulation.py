@@ -43,21 +43,30 @@ def _end_process(process: subprocess.Popen[str]) -> None:
         process.communicate()
 
 
-def emulated_families(config: ArmConfig, protocol: ProtocolFamily | str | None) -> tuple[ProtocolFamily, ...]:
-    """The generation the emulated drives of each bus speak (in the order of ``buses:``): ``protocol`` on every bus,
-    else the one each bus opens in (:func:`motion.compose.opening_families`: the configured one; with ``auto`` the
-    older, or V3 at a V3-only baud rate).
+def emulated_families(
+    config: ArmConfig, protocol: ProtocolFamily | str | Sequence[ProtocolFamily | str] | None
+) -> tuple[ProtocolFamily, ...]:
+    """The generation the emulated drives of each bus speak (in the order of ``buses:``): ``protocol`` on every bus
+    (a sequence: each bus's), else the one each bus opens in (:func:`motion.compose.opening_families`: the configured
+    one; with ``auto`` the one the other buses name, else the older, or V3 at a V3-only baud rate).
 
     Raises:
-        ConfigError: an unknown generation, or one that contradicts a bus's ``protocol``.
+        ConfigError: an unknown generation, one per bus of another count than the buses', or one that contradicts a
+            bus's ``protocol``.
     """
     if protocol is None:
         return opening_families(config)
-    try:
-        family = ProtocolFamily(protocol)
-    except ValueError:
-        raise ConfigError(config.source, "<emulated_protocol>", f"{protocol!r} is not one of v2, v3") from None
-    for bus in config.buses:
+    given = [protocol] * len(config.buses) if isinstance(protocol, str) else list(protocol)
+    if len(given) != len(config.buses):
+        raise ConfigError(
+            config.source, "<emulated_protocol>", f"{len(given)} generations for {len(config.buses)} buses"
+        )
+    families = []
+    for bus, value in zip(config.buses, given, strict=True):
+        try:
+            family = ProtocolFamily(value)
+        except ValueError:
+            raise ConfigError(config.source, "<emulated_protocol>", f"{value!r} is not one of v2, v3") from None
         setting = bus.protocol
         if setting is not ProtocolSetting.AUTO and setting.value != family.value:
             key = f"buses.{bus.name}.protocol" if bus.name else "bus.protocol"
@@ -66,7 +75,8 @@ def emulated_families(config: ArmConfig, protocol: ProtocolFamily | str | None) 
                 "<emulated_protocol>",
                 f"{key} is {setting.value}: the emulated drives cannot speak {family.value} (use auto)",
             )
-    return (family,) * len(config.buses)
+        families.append(family)
+    return tuple(families)
 
 
 def simulated_lines(config: ArmConfig) -> list[tuple[WireProtocol, int]]:

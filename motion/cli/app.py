@@ -112,6 +112,7 @@ def emulate(args: argparse.Namespace, interrupts: Interrupts) -> int:
     except ValueError as exc:
         raise UsageError(str(exc)) from None
     args.protocol = None if len(set(families)) > 1 else [("", families[0])]  # (the drive options' checks: one)
+    args.line_families = [f for f, b in zip(families, config.buses, strict=True) if not isinstance(b, CanBusConfig)]
     args.line_bauds = {k: b.baudrate for k, b in enumerate(config.buses) if not isinstance(b, CanBusConfig)}
     buses = [(b.name, b.transport.value.lower()) for b in config.buses] if len(config.buses) > 1 else []
     return run_emulate(args, arm_emulator_factory(config, parse_pose(config, args.start_pose), families), buses)

@@ -195,11 +195,14 @@ class Session:
         except TransportError:
             bus.close()
             raise
-        unspoken = [f for f in spoken.families if f not in speaks]
+        unspoken = [(k, f) for k, f in enumerate(spoken.families) if f not in speaks]
         if unspoken:
             spoken.close()
+            index, family = unspoken[0]
+            name = self.config.buses[index].name
+            where = f"on bus {name} " if name and len(self.config.buses) > 1 else ""
             raise TransportError(
-                f"the drives answer in the {GENERATIONS[unspoken[0]].title}: this command speaks "
+                f"the drives {where}answer in the {GENERATIONS[family].title}: this command speaks "
                 f"the {' and '.join(GENERATIONS[f].title for f in speaks)} alone; status, stop, off, hold, clear, "
                 "pid get, accel get, check, move, run, demo and scan speak theirs"
             )
@@ -500,7 +503,8 @@ def exchange(
     ]
     if missing:
         raise TransportError(
-            f"no {expect.__name__ if isinstance(expect, type) else expect[0].__name__} reply from {', '.join(missing)} "
+            f"no {expect.__name__ if isinstance(expect, type) else ' or '.join(e.__name__ for e in expect)} reply from "
+            f"{', '.join(missing)} "
             f"on {bus.describe()} "
             f"within {REPLY_TIMEOUT_S * 1000:g} ms: is the drive powered, on this bus and at this id?"
         )

@@ -33,7 +33,7 @@ from motion.compose import build_controller, drive_setup, resolve_frames
 from motion.config import JointConfig
 from motion.control.drive_record import DriveRecord
 from motion.control.drivesetup import LINK_TIMEOUT
-from motion.control.family import BARE_TYPES, FAMILIES, STATE_TYPES, STATUS_TYPES
+from motion.control.family import FAMILIES, DriveFamily
 from motion.control.ratecheck import RateError
 from motion.control.tracking import PositionLoopFit
 from motion.control.turns import CONTINUITY_MOTOR_DEG, joint_angle
@@ -103,12 +103,17 @@ def _ask_bare(
     session: Session,
     joints: Sequence[JointConfig],
     code: int,
-    expect: tuple[type[Message], ...] = BARE_TYPES,
+    expect: Callable[[DriveFamily], type[Message]] | None = None,
 ) -> dict[int, Any]:
     """The request without data for ``code`` to every joint of ``joints``, each in its drive's generation (its
-    bus's); each must answer with one of ``expect`` (by motor id)."""
+    bus's); each must answer with its generation's ``expect`` (default: the request's echo), by motor id."""
     requests = [Request(j.address, FAMILIES[bus.family_of(j.address)].bare(code)) for j in joints]
-    return exchange(bus, requests, session.names, expect)
+    return exchange(bus, requests, session.names, _expected(bus, expect or (lambda f: type(f.bare(code)))))
+
+
+def _expected(bus: Transport, pick: Callable[[DriveFamily], type[Message]]) -> tuple[type[Message], ...]:
+    """The reply types ``pick`` names for the generations ``bus`` speaks (one where it speaks one)."""
+    return tuple(dict.fromkeys(pick(FAMILIES[f]) for f in bus.families))
 
 
 def _ask_once(
@@ -144,7 +149,7 @@ def status(args: argparse.Namespace, interrupts: Interrupts) -> int:
         controller.read_positions()
         save_turn_records(config, bus.describe(), controller, (j.source for j in turns), [j.power_on for j in turns])
         status1: dict[int, Status1 | Status1V3] = _ask_bare(
-            bus, session, config.joints, Command.READ_STATUS_1, STATUS_TYPES
+            bus, session, config.joints, Command.READ_STATUS_1, lambda f: f.status_type
         )
         where = bus.describe()
         record, _ = drive_record_for(bus)
@@ -233,7 +238,7 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
         # (a V3 drive reads and takes output-shaft degrees: motor degrees / its reduction)
         gear = {j.address: j.gear_ratio if families[j.address].output_shaft else 1.0 for j in joints}
         angles: dict[int, MultiTurnAngle] = _ask_bare(
-            bus, session, joints, Command.READ_MULTI_TURN_ANGLE, (MultiTurnAngle,)
+            bus, session, joints, Command.READ_MULTI_TURN_ANGLE, lambda _: MultiTurnAngle
         )
         requests = [
             Request(
@@ -245,7 +250,7 @@ def hold(args: argparse.Namespace, interrupts: Interrupts) -> int:
             )
             for j in joints
         ]
-        exchange(bus, requests, session.names, STATE_TYPES)
+        exchange(bus, requests, session.names, _expected(bus, lambda f: f.state_type))
         records = load_turn_records(session.config, bus.describe())
 
     def joint_deg(joint: JointConfig) -> str:
@@ -291,7 +296,9 @@ def clear(args: argparse.Namespace, interrupts: Interrupts) -> int:
             for j in joints
             for f in (FAMILIES[bus.family_of(j.address)],)
         ]
-        replies: dict[int, Status1 | Status1V3] = exchange(bus, requests, session.names, STATUS_TYPES)
+        replies: dict[int, Status1 | Status1V3] = exchange(
+            bus, requests, session.names, _expected(bus, lambda f: f.status_type)
+        )
     left = {j.name: flag_names(replies[j.address].errors) for j in joints if replies[j.address].errors}
     for joint in joints:
         print(f"{_label(joint)}: {', '.join(left.get(joint.name, [])) or 'clear'}")

@@ -20,6 +20,7 @@ from motion.cli.common import (
     warn,
 )
 from motion.config import ArmConfig, JointConfig
+from motion.config.schema import ProtocolSetting
 from motion.control.family import STATUS_TYPES
 from motion.protocol import Status1
 from motion.protocol.generation import GENERATIONS
@@ -133,7 +134,7 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
             if again:
                 found.update(_scan_ids(part, again, wire, SCAN_RETRY_STRETCH))
             answered.update({base + i: scanned for i, scanned in found.items()})
-        where, families = bus.describe(), bus.families
+        where = bus.describe()
     names = session.names
     drives: list[dict[str, object]] = []
     rows: list[tuple[object, ...]] = []
@@ -168,15 +169,20 @@ def scan(args: argparse.Namespace, interrupts: Interrupts) -> int:
             ("id", *(("bus",) if several else ()), "joint", "protocol", "voltage", "temp", "flags", "model"), rows
         )
     for index, bus_config in enumerate(config.buses):
-        family = families[index]
-        other = [a for a, s in sorted(answered.items()) if split_address(a)[0] == index and s.family is not family]
+        here = {a: s.family for a, s in sorted(answered.items()) if split_address(a)[0] == index}
+        key = f"buses.{bus_config.name}.protocol" if several else "bus.protocol"
+        if len(set(here.values())) > 1:
+            told = ", ".join(f"{_drive(config, a)}: {f.value}" for a, f in here.items())
+            warn(f"drives of both protocol generations on {f'bus {bus_config.name}' if several else 'the bus'} "
+                 f"({told}): a bus's drives speak one (connecting refuses it)")  # fmt: skip
+            continue
+        setting = bus_config.protocol
+        other = [a for a, f in here.items() if setting is not ProtocolSetting.AUTO and f.value != setting.value]
         if other:
-            speaks = GENERATIONS[answered[other[0]].family].title
-            told = ", ".join(_drive(config, a) for a in other)
-            key = f"buses.{bus_config.name}.protocol" if several else "bus.protocol"
+            speaks = GENERATIONS[here[other[0]]].title
             warn(
-                f"motor(s) {told} speak the {speaks}, not the configuration's ({key}: {family.value}): one bus's "
-                "drives speak one generation"
+                f"motor(s) {', '.join(_drive(config, a) for a in other)} speak the {speaks}, not the configuration's "
+                f"({key}: {setting.value}): set it to {here[other[0]].value} or auto"
             )
     if missing:
         warn(f"communication error: configured joint(s) not answering: {', '.join(missing)}")

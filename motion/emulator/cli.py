@@ -257,9 +257,13 @@ def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -
         ValueError: conflicting options, or drives or faults the emulator rejects (ConfigError is one).
     """
     family = protocol_of(args.protocol)
-    if args.baud is not None and args.baud not in RS485_BAUDRATES[family]:
-        allowed = ", ".join(map(str, RS485_BAUDRATES[family]))
-        raise ValueError(f"--baud {args.baud}: {family.value} drives run at {allowed} baud")
+    # (--config: each RS485 line's generation; --baud applies to every line)
+    given: Sequence[ProtocolFamily] | None = getattr(args, "line_families", None)
+    families = (family,) if given is None else given
+    for each in dict.fromkeys(families):
+        if args.baud is not None and args.baud not in RS485_BAUDRATES[each]:
+            allowed = ", ".join(map(str, RS485_BAUDRATES[each]))
+            raise ValueError(f"--baud {args.baud}: {each.value} drives run at {allowed} baud")
     if args.brakes and getattr(args, "config", None) is not None:
         raise ValueError("--brakes applies to --ids only: with --config each joint's brake is configured (brake: true)")
     if args.brakes and family is not ProtocolFamily.V3:
@@ -271,9 +275,9 @@ def _build_emulator(args: argparse.Namespace, factory: EmulatorFactory | None) -
         )
         seed = _DEFAULT_SEED if args.seed is None else args.seed
         return Emulator(args.ids, model=model, faults=args.fault, seed=seed, family=family, brakes=args.brakes)
-    given = [option for name, option in _DRIVE_OPTIONS.items() if getattr(args, name) is not None]
-    if given:
-        raise ValueError(f"{', '.join(given)} apply to --ids only: with --config each joint's drive is configured")
+    options = [option for name, option in _DRIVE_OPTIONS.items() if getattr(args, name) is not None]
+    if options:
+        raise ValueError(f"{', '.join(options)} apply to --ids only: with --config each joint's drive is configured")
     if factory is None:
         raise ValueError("--config needs the arm's model: run it as `rmd-motion emulate --config FILE`")
     return factory(tuple(args.fault))

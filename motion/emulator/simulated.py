@@ -353,7 +353,9 @@ class SimulatedBus(Transport):
         return self.with_families([family] * len(self.families))
 
     def with_families(self, families: Sequence[ProtocolFamily]) -> SimulatedBus:
-        """See :meth:`Transport.with_families`: each line's generation."""
+        """See :meth:`Transport.with_families`: each line's generation (itself where they are its own)."""
+        if tuple(families) == self.families:
+            return self
         bus = SimulatedBus(self.simulation, families, names=self.names)
         bus.frame_tap = self.frame_tap
         return bus

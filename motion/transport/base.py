@@ -402,7 +402,8 @@ class Transport(ABC, Closing):
             return self
         if len(set(wanted)) == 1 and len(wanted) == len(self.families):
             return self.with_family(wanted[0])
-        raise TransportError(f"{self.describe()} speaks one protocol generation on all its buses, not {wanted}")
+        told = ", ".join(f.value for f in wanted)
+        raise TransportError(f"{self.describe()} speaks one protocol generation on all its buses, not {told}")
 
     def close(self) -> None:
         """Run the close hooks, then release the bus or port; safe to call more than once. A port that cannot be
