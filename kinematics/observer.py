@@ -82,6 +82,7 @@ class MomentumObserver:
         self._friction = np.zeros(n)
         self._out = np.zeros(n)
         self._explained = np.zeros(n)  # the rate of change of p the model explained at the previous step
+        self._rate_out = np.zeros(n)
         self._v_previous = np.zeros(n)
         # the filtered error terms (model order): motor torque, rotor inertial torque, friction torque, half the motor
         # torque's change over the step (what the trapezoid rule may miss of it); their
@@ -125,6 +126,12 @@ class MomentumObserver:
         half change of the motor torque per step, bounds what the trapezoid rule misses of a torque that changes
         monotonically between two samples."""
         return self._terms_out
+
+    @property
+    def momentum_rate_nm(self) -> FloatArray:
+        """The rate of change of the momentum ``M q̇`` the model explains at the latest step (motor, gravity,
+        Coriolis and friction torques), N·m, configuration order (the observer's array)."""
+        return self._rate_out
 
     @property
     def mass_kgm2(self) -> FloatArray:
@@ -224,6 +231,7 @@ class MomentumObserver:
         self._v_previous[:] = v
         np.take(r, self._to_config, out=self._out)
         np.take(self._terms, self._to_config, axis=1, out=self._terms_out)
+        np.take(work, self._to_config, out=self._rate_out)
         return self._out
 
 

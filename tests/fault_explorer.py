@@ -47,7 +47,7 @@ import numpy as np
 
 from motion import Arm
 from motion.config import ArmConfig, load_config
-from motion.config.schema import ControlMode, HaltPolicy
+from motion.config.schema import ControlMode, HaltPolicy, ProtocolSetting
 from motion.emulator import Fault, InjectedFault, parse_fault
 from motion.emulator.drive import RunState
 from motion.emulator.timing import TimingModel
@@ -59,6 +59,10 @@ from motion.safety.halted import SWING_DPS
 from tests.drive_models import DriveDraw, draw_drives, with_drives
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
+#: bimanual.yaml with its left bus's drives of the older generation and its right bus's of driver V3
+#: (``buses.left.protocol: v2``, ``buses.right.protocol: v3``), explored in position mode
+#: (the example's torque gains are tuned for 250 Hz, more than V3's frames on the right bus hold).
+MIXED = "bimanual.yaml+v3"
 #: The example arms explored, and the control rate of their position-mode runs (torque mode keeps the example's rate,
 #: to which its gains are tuned).
 ARMS: dict[str, float] = {
@@ -68,6 +72,7 @@ ARMS: dict[str, float] = {
     "arm6_v3.yaml": 100.0,
     "bench1.yaml": 100.0,
     "bimanual.yaml": 100.0,  # (two buses: a fault on either halts both)
+    MIXED: 100.0,  # (the right arm's drives of driver V3, the left's of the older generation)
 }
 POLICIES = (HaltPolicy.STOP, HaltPolicy.OFF, HaltPolicy.HOLD)
 #: How long the arm is faulted (or a joint undisturbed) before its joints are held to the invariants, s: the drives'
@@ -160,7 +165,7 @@ class Outcome:
 
 def config_of(schedule: Schedule) -> ArmConfig:
     """The schedule's arm configuration: the example with its policy, mode, rate and emulated drives."""
-    config = load_config(CONFIGS / schedule.arm)
+    config = load_arm(schedule.arm)
     if schedule.drives is not None:
         config = with_drives(config, schedule.drives)
     rate = ARMS[schedule.arm] if schedule.mode is ControlMode.POSITION else config.control.rate_hz
@@ -172,12 +177,22 @@ def config_of(schedule: Schedule) -> ArmConfig:
     return dataclasses.replace(config, control=control)
 
 
+def load_arm(arm: str) -> ArmConfig:
+    """The example configuration ``arm`` names (:data:`MIXED`: bimanual.yaml with drives of both generations)."""
+    if arm != MIXED:
+        return load_config(CONFIGS / arm)
+    config = load_config(CONFIGS / "bimanual.yaml")
+    left, right = config.buses
+    left = dataclasses.replace(left, protocol=ProtocolSetting.V2)
+    return dataclasses.replace(config, buses=(left, dataclasses.replace(right, protocol=ProtocolSetting.V3)))
+
+
 def draw(rng: random.Random) -> Schedule:
     """A random schedule."""
     arm = rng.choice(sorted(ARMS))
-    config = load_config(CONFIGS / arm)
+    config = load_arm(arm)
     ids = [j.address for j in config.joints]  # (an arm on several buses: a fault names its drive by address)
-    tuned = all(j.kp_nm_per_deg > 0 for j in config.joints)  # torque mode needs the joints' gains
+    tuned = all(j.kp_nm_per_deg > 0 for j in config.joints) and arm != MIXED  # torque mode needs the joints' gains
     mode = ControlMode.TORQUE if tuned and rng.random() < 0.25 else ControlMode.POSITION
     faults = tuple(_draw_fault(rng, rng.choice(ids)) for _ in range(rng.choice((1, 1, 2, 2, 3))))
     actions: list[tuple[float, str, tuple[float, ...]]] = [(0.0, "move", target_pose(rng, config))]

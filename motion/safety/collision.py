@@ -52,6 +52,11 @@ class CollisionObserver(Protocol):
         ...
 
     @property
+    def momentum_rate_nm(self) -> FloatArray:
+        """The rate of change of the momentum the model explains at the latest step, N·m per joint."""
+        ...
+
+    @property
     def mass_kgm2(self) -> FloatArray:
         """M(q) at the latest step, kg·m² (joints × joints)."""
         ...

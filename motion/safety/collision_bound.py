@@ -41,8 +41,16 @@ Per joint, over the window, in N·m:
   with M at the step, every joint's speed through M's row (``|M| s``: a shoulder's speed step reaches the wrist's
   momentum); the current field's step puts at most one step's torque into the change.
 
+- **sampling instant**: a drive answers with its state as of its own latest loop step, so the instant its reply
+  sampled is up to :data:`SAMPLE_INSTANT_S` before the request's arrival, and where the arrival moves (the reply
+  jitter, the host) it moves between steps: the measured momentum's change is then off the interval's by up to
+  ``ṗ × SAMPLE_INSTANT_S``, which puts ``K_O |ṗ| SAMPLE_INSTANT_S`` into the residual (``ṗ``: the momentum's rate of
+  change the model explains), decaying as the residual does (the instants stay within their span: their errors
+  telescope), at each end of the window.
+
 The timing: the observer steps over the measured interval between the exchanges that sampled the drives (a late
-cycle is a longer step, not an error); the frames' positions in their batch are the same every cycle.
+cycle is a longer step, not an error); the frames' positions in their batch are the same every cycle, the drive's
+sample within its loop step is the row above.
 """
 
 from __future__ import annotations
@@ -63,13 +71,15 @@ if TYPE_CHECKING:
 MODEL_ERROR = (0.2, 0.3, 0.5)
 #: Rows of the window's error terms: the observer's motor, rotor-inertial, friction torque (scaled by the model
 #: error) and sampling bound (taken at both ends of the window), and the position-mode steps' ``X`` (its change).
-TERM_ROWS = 7
+TERM_ROWS = 8
 _OBSERVER_ROWS = 4
 _SAMPLING_ROW = 3
 _STEP_ROW = 4
 _REST_ROW = 5
 _PHASE_ROW = 6
-_END_ROWS = (_SAMPLING_ROW, _REST_ROW, _PHASE_ROW)  # taken at both ends of the window (the others: their change)
+_INSTANT_ROW = 7
+#: taken at both ends of the window (the others: their change)
+_END_ROWS = (_SAMPLING_ROW, _REST_ROW, _PHASE_ROW, _INSTANT_ROW)
 #: The most of ``X`` the sample is off by: an ideal speed loop's brake is ``X``; a real one's overshoot adds to it
 #: (the example arms' drawn drives: up to 1.2).
 STEP_SHARE = 1.25
@@ -88,6 +98,10 @@ REST_BAND_SMOOTHINGS = 3.0
 #: Where the drives' loop settings are not read, their angle-loop gain may be this many times the tracking model's
 #: prior (the tuning drawn in the tests: half to twice the factory's).
 UNREAD_GAIN_FACTOR = 2.0
+#: How far before a request's arrival the state a drive answers with may have been sampled: its loop step, s. Taken
+#: as the emulated drives' integration step (``motion.emulator.core.DEFAULT_STEP_S``, 2 kHz); a drive whose loops
+#: sample its state more often is within it.
+SAMPLE_INSTANT_S = 0.5e-3
 #: Times closer than this count as the same instant (simulated time's sums of periods), s.
 _SAME_S = 1e-6
 
@@ -140,7 +154,7 @@ class CollisionBound:
         families, specs = controller.families, controller.specs
         transmissions = controller.transmission.transmissions
         self._observer = observer
-        self._error = np.array((*MODEL_ERROR, 0.0, STEP_SHARE, 0.0, 0.0), dtype=np.float64)[:, None]
+        self._error = np.array((*MODEL_ERROR, 0.0, STEP_SHARE, 0.0, 0.0, 0.0), dtype=np.float64)[:, None]
         # the speed field's step in joint rad/s, times 2 K_O (through |M| at each step)
         step_rad_s = np.array(
             [
@@ -165,6 +179,7 @@ class CollisionBound:
         self._mass = np.zeros((len(specs), len(specs)))
         self._dt_before = 0.0
         self._period_s = controller.period_s
+        self._instant_gain = observer.gain_per_s * SAMPLE_INSTANT_S
         # friction at rest: the band of measured joint speeds, deg/s, and the breakaway bound, N·m
         self._rest_band_dps = np.degrees(step_rad_s) + REST_BAND_SMOOTHINGS * observer.coulomb_smoothing_dps
         self._breakaway_nm = (1.0 + MODEL_ERROR[2]) * observer.coulomb_nm
@@ -188,6 +203,12 @@ class CollisionBound:
         np.less_equal(x, self._rest_band_dps, out=at_rest)
         np.multiply(self._breakaway_nm, at_rest, out=x)
         self._filter(_REST_ROW, share)
+        # the sampling instant: K_O |ṗ| SAMPLE_INSTANT_S now, or what an earlier step's has decayed to
+        instant = terms[_INSTANT_ROW]
+        instant *= 1.0 - share
+        np.abs(self._observer.momentum_rate_nm, out=x)
+        x *= self._instant_gain
+        np.maximum(instant, x, out=instant)
         if self._steps:
             gain, reference = self._gain, controller.reference
             np.abs(reference.velocity, out=gain)
