@@ -157,16 +157,18 @@ def test_a_fault_on_either_transport_halts_all_twelve_axes_in_its_detection_cycl
     fault_halts_every_axis(config, tmp_path, kind, address, value, expected, after_s=0.6)
 
 
+def move_both_elbows(config: Path, *options: str | Path) -> None:
+    """``rmd-motion move --emulate`` of both arms' elbows (20 and -20 deg) with ``options``: both arrive."""
+    moved = cli("move", "--config", config, "--emulate", *options, "left_elbow_pitch=20", "right_elbow_pitch=-20")
+    assert moved.returncode == 0, moved.stderr
+    assert "right_elbow_pitch=-20.00" in moved.stdout and "left_elbow_pitch=20.00" in moved.stdout
+
+
 def test_the_cli_moves_an_arm_on_both_transports_in_simulated_time_and_traces_each_bus_in_its_form(
     tmp_path: Path,
 ) -> None:
     trace = tmp_path / "run.log"
-    moved = cli(
-        "move", "--config", _mixed(tmp_path), "--emulate", "--trace", trace,
-        "left_elbow_pitch=20", "right_elbow_pitch=-20",
-    )  # fmt: skip
-    assert moved.returncode == 0, moved.stderr
-    assert "right_elbow_pitch=-20.00" in moved.stdout and "left_elbow_pitch=20.00" in moved.stdout
+    move_both_elbows(_mixed(tmp_path), "--trace", trace)
     # the CAN bus's frames as candump lines (their identifiers), the line's as RS485 hex lines, each named by its bus
     lines = [line.split() for line in trace.read_text().splitlines()]
     left = [fields for fields in lines if fields[1] == "left"]

@@ -42,6 +42,7 @@ from motion.telemetry import load_log
 from tests.motion_rig import emulated_arm, logged_requests, received
 from tests.test_buses import TARGETS, fault_halts_every_axis
 from tests.test_cli import cli
+from tests.test_mixed_buses import move_both_elbows
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 V2, V3 = ProtocolFamily.V2, ProtocolFamily.V3
@@ -183,12 +184,7 @@ def test_drives_of_both_generations_on_one_bus_are_refused_naming_the_bus(tmp_pa
 
 def test_the_cli_moves_and_records_an_arm_of_both_generations(tmp_path: Path) -> None:
     recording = tmp_path / "run.mcap"
-    moved = cli(
-        "move", "--config", _mixed(tmp_path), "--emulate", "--log", recording,
-        "left_elbow_pitch=20", "right_elbow_pitch=-20",
-    )  # fmt: skip
-    assert moved.returncode == 0, moved.stderr
-    assert "right_elbow_pitch=-20.00" in moved.stdout and "left_elbow_pitch=20.00" in moved.stdout
+    move_both_elbows(_mixed(tmp_path), "--log", recording)
     meta = load_log(recording).meta
     assert meta["protocol"] == "v2+v3"
     assert [j["protocol"] for j in meta["joints"]] == ["v2"] * 6 + ["v3"] * 6
