@@ -252,6 +252,19 @@ def test_arm6_in_torque_mode_follows_long_paths_on_drives_within_the_bounds(k: i
     assert outcome.following_ratio.max() < 0.6, outcome.following_ratio
 
 
+def test_a_base_sped_up_by_the_arm_folding_in_is_within_the_torque_mode_allowance() -> None:
+    # seed 41's case 1547: arm6_v3 in torque mode, the base on a drive 19 % weak; while the shoulder and elbow fold the
+    # arm in at 40-100 deg/s the base (cruising at 108 deg/s) speeds up to 180 deg/s against its PD's braking: the
+    # velocity-product torques undamp its deviation (∂(C q̇)/∂q̇ = Ṁ < 0), and it ran 10.54 deg from the model against a
+    # limit of 10.48 while the deviation's model took the PD's damping alone
+    case = clean_sweep.drawn(41, 1547)
+    assert case.arm == "arm6_v3.yaml" and case.mode is ControlMode.TORQUE
+    outcome = clean_sweep.run(case)
+    assert outcome.refused is None and outcome.cycles > 2000
+    assert outcome.fault is None, str(outcome.fault)
+    assert outcome.following_ratio.max() < 0.9, outcome.following_ratio
+
+
 @pytest.mark.parametrize("k", [134, 1718, 415])
 def test_a_drives_sampling_instant_moving_within_its_loop_step_is_no_collision(k: int) -> None:
     # cases of seed 41 (bench/clean_sweep.py --seed 41 --first K --count 1): arm6's elbow in torque mode (134, 1718)

@@ -170,6 +170,11 @@ class Watchdog:
         self._minv = np.diagonal(controller.tracking.mass_inverse)  # a view: the model updates M⁻¹ in place
         self._sensitivity = np.zeros((3, n))  # d(angle)/d(torque constant): deg, deg/s, deg/s²
         self._sensitivity_s = math.nan
+        # the model arm's inertia about each joint, as last evaluated, when, and its rate of change, kg·m²(/s)
+        self._inertia_before = np.full(n, math.nan)
+        self._inertia_s = math.nan
+        self._inertia_rate = np.zeros(n)
+        self._damping = np.zeros(n)
         self._speed_slack = np.zeros(n)
         self._moving = np.zeros(n, dtype=bool)
         self._behind = np.zeros(n, dtype=bool)
@@ -435,8 +440,9 @@ class Watchdog:
 
         A drive whose torque constant is off by ε delivers ``(1 + ε) τ`` for every torque ``τ`` asked of it: the joint
         then moves by ``ε s`` from the model (and its speed by ``ε ṡ``), where ``s`` (the sensitivity to the torque
-        constant) is the motion the torque asked for makes through the PD loop, ``M s̈ = τ − Kp s − Kd ṡ`` (M⁻¹'s
-        diagonal at the model's pose; the torque held over each step, as the drives hold it). Static, that is the
+        constant) is the motion the torque asked for makes through the PD loop, ``M s̈ = τ − Kp s − (Kd + Ṁ) ṡ`` (M⁻¹'s
+        diagonal at the model's pose, ``Ṁ`` the rate of change of M's diagonal: :meth:`_track_inertia_rate`; the
+        torque held over each step, as the drives hold it). Static, that is the
         share of the gravity feed-forward the PD must hold up; moving, it rings as the loop does (a lightly damped
         loop, such as a base joint stretched out, swings by several times the static figure, and a weaker drive turns
         back cycles after the model). The friction's share of the Coulomb figure adds through the PD's stiffness."""
@@ -450,12 +456,29 @@ class Watchdog:
             position += self._share
             np.multiply(acceleration, dt, out=self._share)
             speed += self._share
+        self._track_inertia_rate(now_s)
         np.multiply(self._kp, position, out=acceleration)
-        np.multiply(self._kd, speed, out=self._share)
+        np.multiply(self._damping, speed, out=self._share)
         acceleration += self._share
         np.subtract(self.controller.torque_nm, acceleration, out=acceleration)
         acceleration *= self._minv
         acceleration *= _DEG_PER_RAD
+
+    def _track_inertia_rate(self, now_s: float) -> None:
+        """The damping the deviation sees: the PD's, plus the rate of change of the arm's inertia about each joint
+        (the velocity-product torques' share of a joint's own speed: ``∂(C q̇)ᵢ/∂q̇ᵢ = Ṁᵢᵢ``; an arm folding in
+        while its base turns speeds the base up, an undamping of its deviation), from the model's evaluations."""
+        inertia = self.controller.tracking.inertia_kgm2
+        if inertia is not None:
+            diagonal = np.diagonal(inertia)
+            if not np.array_equal(diagonal, self._inertia_before):
+                if math.isfinite(self._inertia_s) and now_s > self._inertia_s:
+                    np.subtract(diagonal, self._inertia_before, out=self._inertia_rate)
+                    self._inertia_rate /= now_s - self._inertia_s
+                np.copyto(self._inertia_before, diagonal)
+                self._inertia_s = now_s
+        np.multiply(self._inertia_rate, math.pi / 180.0, out=self._damping)
+        self._damping += self._kd
 
     def _slip_share(
         self, speed_dps: FloatArray, previous_dps: FloatArray, qd: FloatArray, out: FloatArray, slack: FloatArray | None
