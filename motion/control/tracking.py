@@ -142,6 +142,8 @@ class ExpectedTracking:
         self._offered: list[tuple[tuple[int, int | None], PositionLoop] | None] = [None] * n
         # Torque mode: joint inertia (None until given: the model then expects the reference) and fed-forward share.
         self.inertia_kgm2: FloatArray | None = None
+        #: How many times :attr:`inertia_kgm2` was evaluated (a reader tells a new evaluation by it).
+        self.inertia_evaluations = 0
         self.inertia_feedforward = False
         self._inertia_of: Callable[[FloatArray], FloatArray] | None = None
         self._bias_of: Callable[[FloatArray, FloatArray], FloatArray] | None = None
@@ -216,6 +218,7 @@ class ExpectedTracking:
         else:
             np.copyto(self.inertia_kgm2, inertia)
         np.copyto(self._mass_inv, np.linalg.inv(self.inertia_kgm2))  # once per evaluation, not per cycle
+        self.inertia_evaluations += 1
 
     # ------------------------------------------------------------------------------------------------ drive reads
 

@@ -173,8 +173,9 @@ class Watchdog:
         # the model arm's inertia about each joint, as last evaluated, when, and its rate of change, kg·m²(/s)
         self._inertia_before = np.full(n, math.nan)
         self._inertia_s = math.nan
+        self._inertia_seen = -1  # the model's evaluation the rate is from
         self._inertia_rate = np.zeros(n)
-        self._damping = np.zeros(n)
+        self._damping = self._kd.copy()
         self._speed_slack = np.zeros(n)
         self._moving = np.zeros(n, dtype=bool)
         self._behind = np.zeros(n, dtype=bool)
@@ -468,17 +469,17 @@ class Watchdog:
         """The damping the deviation sees: the PD's, plus the rate of change of the arm's inertia about each joint
         (the velocity-product torques' share of a joint's own speed: ``∂(C q̇)ᵢ/∂q̇ᵢ = Ṁᵢᵢ``; an arm folding in
         while its base turns speeds the base up, an undamping of its deviation), from the model's evaluations."""
-        inertia = self.controller.tracking.inertia_kgm2
-        if inertia is not None:
-            diagonal = np.diagonal(inertia)
-            if not np.array_equal(diagonal, self._inertia_before):
-                if math.isfinite(self._inertia_s) and now_s > self._inertia_s:
-                    np.subtract(diagonal, self._inertia_before, out=self._inertia_rate)
-                    self._inertia_rate /= now_s - self._inertia_s
-                np.copyto(self._inertia_before, diagonal)
-                self._inertia_s = now_s
-        np.multiply(self._inertia_rate, math.pi / 180.0, out=self._damping)
-        self._damping += self._kd
+        tracking = self.controller.tracking
+        if tracking.inertia_evaluations != self._inertia_seen and tracking.inertia_kgm2 is not None:
+            self._inertia_seen = tracking.inertia_evaluations
+            diagonal = np.diagonal(tracking.inertia_kgm2)
+            if math.isfinite(self._inertia_s) and now_s > self._inertia_s:
+                np.subtract(diagonal, self._inertia_before, out=self._inertia_rate)
+                self._inertia_rate /= now_s - self._inertia_s
+            np.copyto(self._inertia_before, diagonal)
+            self._inertia_s = now_s
+            np.multiply(self._inertia_rate, math.pi / 180.0, out=self._damping)
+            self._damping += self._kd
 
     def _slip_share(
         self, speed_dps: FloatArray, previous_dps: FloatArray, qd: FloatArray, out: FloatArray, slack: FloatArray | None
