@@ -374,3 +374,37 @@ def test_a_script_without_a_main_guard_opens_one_view(tmp_path: Path) -> None:
     assert result.returncode == 0, result.stderr
     assert result.stdout.count("view http://127.0.0.1:") == 1
     assert result.stdout.splitlines()[-1] == "done"
+
+
+def test_a_picture_held_back_reaches_the_page_once_the_loop_pauses() -> None:
+    # simulated time stops while the program does not wait: the move's last pictures, dropped while the page was
+    # behind (or held back by the view's rate), would otherwise leave the page showing an older pose for good
+    with Arm(load_config(ARM6), emulate=True, view=ViewOptions(port=0)) as arm:
+        view = arm.view
+        assert view is not None
+        feed = view._feed
+
+        class Behind:
+            def sendmsg(self, parts: object) -> int:
+                raise BlockingIOError  # the page's socket is full
+
+        view._feed = Behind()  # type: ignore[assignment]
+        try:
+            arm.move_to({"shoulder_pitch": 10.0})
+            dropped = view.dropped
+            assert dropped > 0 and view._sent is not view._latest, (dropped, view.updates)
+            time.sleep(0.3)  # the latest picture tried (a drop, where the view's rate had held it back) ...
+            tried = view.dropped
+            assert tried <= dropped + 1
+            time.sleep(0.3)  # ... and tried again while the page is behind: not counted again
+            assert view.dropped == tried
+        finally:
+            view._feed = feed
+        end = time.monotonic() + 10.0
+        while view._sent is not view._latest:
+            assert time.monotonic() < end, "the latest picture never went out"
+            time.sleep(0.02)
+        sent = view._sent
+        assert sent is not None
+        position = sent.joints[JOINT_ROWS.index("position_deg")]
+        np.testing.assert_allclose(position, list(arm.positions().values()), atol=1e-9)

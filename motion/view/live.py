@@ -137,16 +137,34 @@ class LiveView:
         self._fault: object = None
         self._fault_text = b""
         self._closing = False
+        # the latest snapshot published, when (wall clock), and the latest sent: a picture the rate or a full socket
+        # held back is sent once the loop pauses (simulated time stops while the program does not wait)
+        self._sending = threading.Lock()
+        self._latest: CycleSnapshot | None = None
+        self._latest_wall_s = 0.0
+        self._sent: CycleSnapshot | None = None
+        self._tried: CycleSnapshot | None = None
         self._thread = threading.Thread(target=self._receive, name="rmd-motion view", daemon=True)
         self._thread.start()
+        self._flusher = threading.Thread(target=self._flush, name="rmd-motion view flush", daemon=True)
+        self._flusher.start()
 
     def publish(self, snapshot: CycleSnapshot) -> None:
         """Called by the loop after each cycle: send the snapshot when :data:`VIEW_RATE_HZ` allows or the state
-        changed; never waits."""
-        state = snapshot.state
-        if snapshot.time_s < self._next_s and state == self._state:
+        changed (one held back is sent once the loop pauses: :meth:`_flush`); never waits for the page."""
+        self._latest = snapshot
+        self._latest_wall_s = time.monotonic()
+        if snapshot.time_s < self._next_s and snapshot.state == self._state:
             return
         self._next_s = snapshot.time_s + self._period_s
+        with self._sending:
+            self._send(snapshot)
+
+    def _send(self, snapshot: CycleSnapshot) -> None:
+        """One snapshot to the page's process (under ``_sending``; one tried before is not counted again when the page
+        is still behind)."""
+        again, self._tried = snapshot is self._tried, snapshot
+        state = snapshot.state
         try:
             if state != self._state:
                 self._state_text = state.encode()
@@ -159,12 +177,25 @@ class LiveView:
             # one datagram gathered from its parts (the joint rows straight from the snapshot's array: no copy)
             self._feed.sendmsg((self._header, self._state_text, self._fault_text, snapshot.joints.data))
             self.updates += 1
+            self._sent = snapshot
         except OSError:  # full (the page is behind) or gone: a view misses a picture, the arm goes on
-            self.dropped += 1
+            self.dropped += not again
         except Exception:  # the view must never take the loop down: it says so (once) and goes on
             self.failures += 1
             if self.failures == 1:
                 logger.exception("the view could not be sent a cycle (further failures are counted, not logged)")
+
+    def _flush(self) -> None:
+        """While the view is open: the latest snapshot, where the loop has published none for a period since it and it
+        was not sent (the rate held it back, or the page was behind), goes to the page now."""
+        while not self._closing:
+            time.sleep(self._period_s)
+            latest = self._latest
+            if latest is None or latest is self._sent or time.monotonic() - self._latest_wall_s < self._period_s:
+                continue
+            with self._sending:
+                if latest is self._latest and latest is not self._sent:
+                    self._send(latest)
 
     def wait_for_client(self, timeout_s: float) -> bool:
         """Wait until a browser has the page open (or ``timeout_s`` passed); returns whether one has."""
@@ -195,8 +226,9 @@ class LiveView:
         with contextlib.suppress(OSError):
             self._conn.send(None)
         self._end_process()
-        if self._thread.is_alive() and self._thread is not threading.current_thread():
-            self._thread.join(2.0)
+        for thread in (self._thread, self._flusher):
+            if thread.is_alive() and thread is not threading.current_thread():
+                thread.join(2.0)
         self._conn.close()
         self._feed.close()
 
