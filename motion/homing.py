@@ -12,7 +12,9 @@ The drive's single-turn encoder is absolute within a motor turn; what a power-up
 2. After :data:`SETTLE_S` of holding, the joint moves toward its stop at ``homing.speed_dps`` for at most
    ``homing.max_travel_deg`` and ``homing.timeout_s``. The stop is reached when the measured torque current rises
    ``homing.current_limit_a`` above what moving freely took (a slow average: gravity changes along the way), or the
-   joint falls :data:`STALL_DEG` behind its reference; a cycle hook watches every cycle.
+   joint falls :data:`STALL_DEG` behind its reference *and* has slowed below :data:`STALL_SPEED_SHARE` of the seek's
+   speed (a joint late by the host's or the bus's delays still moves at that speed: no stop); a cycle hook watches
+   every cycle.
 3. The reference stops at the full limits, and the joint backs off by ``homing.back_off_deg``, and at least to
    :data:`LIMIT_CLEARANCE_DEG` inside its limits. The angle measured at the stop, in the controller's provisional
    frame, differs from ``stop_deg`` by whole motor turns plus what the stop yields: the nearest whole number of turns
@@ -44,6 +46,9 @@ logger = logging.getLogger("motion.homing")
 
 #: A joint that falls this far behind its reference while seeking has reached its stop, degrees.
 STALL_DEG: Final = 1.0
+#: ... once it has slowed below this share of the seek's speed (a joint against its stop has stopped; one behind its
+#: reference because the measurement is late, on a loaded host or a slow bus, still moves at the seek's speed).
+STALL_SPEED_SHARE: Final = 0.5
 #: Time constant of the average current while moving freely toward the stop, s.
 FREE_CURRENT_TAU_S: Final = 0.25
 #: The arm holds this long under the homing loop before a seek starts (the drives take up their loads), s.
@@ -150,11 +155,12 @@ def turns_to_stop(name: str, transmission: Transmission, found_deg: float, stop_
 class _StopWatch:
     """A cycle hook: the first cycle in which joint ``index`` pressed against something — its torque current
     :attr:`current_limit_a` above the current it took to move freely (a slow average: gravity changes along the way),
-    or :data:`STALL_DEG` behind its reference."""
+    or :data:`STALL_DEG` behind its reference and slower than :data:`STALL_SPEED_SHARE` of ``seek_dps``."""
 
-    def __init__(self, index: int, current_limit_a: float, period_s: float) -> None:
+    def __init__(self, index: int, current_limit_a: float, period_s: float, seek_dps: float) -> None:
         self.index = index
         self.current_limit_a = current_limit_a
+        self._stalled_dps = STALL_SPEED_SHARE * abs(seek_dps)
         self._alpha = min(1.0, period_s / FREE_CURRENT_TAU_S)
         self.free_a: float | None = None  # the average current while moving freely
         self.found: tuple[float, float, float] | None = None  # (time, angle, current)
@@ -166,7 +172,8 @@ class _StopWatch:
         q, iq = float(axes.q_deg[i]), float(axes.iq_a[i])
         free = iq if self.free_a is None else self.free_a
         lag = abs(float(controller.reference.position[i]) - q)
-        if abs(iq - free) >= self.current_limit_a or lag >= STALL_DEG:
+        stalled = lag >= STALL_DEG and abs(float(axes.qd_dps[i])) < self._stalled_dps
+        if abs(iq - free) >= self.current_limit_a or stalled:
             self.found = (start_s, q, iq - free)
         else:
             self.free_a = free + self._alpha * (iq - free)
@@ -193,7 +200,7 @@ def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Cal
     target[index] += toward * travel
     settled = clock.now() + SETTLE_S
     _run_until(supervisor, pause, lambda: clock.now() >= settled)
-    watch = _StopWatch(index, homing.current_limit_a, period)
+    watch = _StopWatch(index, homing.current_limit_a, period, homing.speed_dps)
     controller.cycle_hooks.append(watch)
     began = clock.now()
     try:
@@ -282,6 +289,7 @@ def corrected_turns(turns: Sequence[int], index_of: Callable[[str], int], result
 __all__ = [
     "REMAINDER_SHARE_MAX",
     "STALL_DEG",
+    "STALL_SPEED_SHARE",
     "HomingError",
     "HomingResult",
     "corrected_turns",

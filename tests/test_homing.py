@@ -23,7 +23,7 @@ from motion.config import ArmConfig, load_config
 from motion.control.turns import TurnError
 from motion.emulator.drive_v3 import EmulatedDriveV3
 from motion.errors import FaultKind, MotionError, MotionFault
-from motion.homing import HomingError, homed_joints, homing_variant, turns_to_stop
+from motion.homing import STALL_DEG, HomingError, _StopWatch, homed_joints, homing_variant, turns_to_stop
 from motion.transmission import Transmission
 from tests.motion_rig import CONFIGS, skip_if_rate_refused
 from tests.test_cli import (
@@ -297,3 +297,23 @@ def test_cli_home_checks_the_holding_torque_once_the_homed_angle_is_known(
     skip_if_rate_refused(skipped)
     assert skipped.returncode == 0, skipped.stderr
     assert json.loads(skipped.stdout)["holding"] == "skipped: --no-holding-check"
+
+
+def test_a_seeking_joint_late_behind_its_reference_but_moving_is_no_stop() -> None:
+    # under host load the measurement falls behind the reference by more than STALL_DEG while the joint still moves
+    # at the seek's speed (the test command under slow-host found a "stop" at -61 deg, 64 deg short of it): only a
+    # joint that has also slowed down has pressed against something
+    with Arm(load_config(ARM6), emulate=True) as arm:
+        controller = arm.controller
+        assert controller is not None
+        i, seek_dps = 1, 10.0
+        watch = _StopWatch(i, 100.0, controller.period_s, seek_dps)  # (a current rule that never fires here)
+        axes, reference = controller.axes, controller.reference.position
+        reference[i] = float(axes.q_deg[i]) - 5.0 * STALL_DEG  # the reference far ahead
+        axes.qd_dps[i] = -seek_dps  # ... and the joint moving after it at the seek's speed
+        watch(controller, 0.0, [])
+        assert watch.found is None
+        axes.qd_dps[i] = -0.4 * seek_dps  # slowed down against the stop
+        watch(controller, 0.1, [])
+        found = vars(watch)["found"]  # (read again: the call changed it)
+        assert found is not None and found[0] == 0.1
