@@ -33,7 +33,7 @@ from motion.protocol import (
 from motion.protocol.table import ProtocolFamily
 from motion.transport import CanTransport, Request, open_transport
 from motion.transport.can_endpoint import CanEndpoint
-from tests.test_transport_peers import MARGIN_S, Script, ScriptedDrives, assert_balanced, status2, tag_of
+from tests.test_transport_peers import MARGIN_S, LateHost, Script, ScriptedDrives, assert_balanced, status2, tag_of
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -137,6 +137,19 @@ def test_missing_reply_is_reported_explicitly_by_the_deadline(channel: str) -> N
         assert [r.ok for r in replies] == [True, False, True]
         assert replies[1].motor_id == 2 and replies[1].message is None and replies[1].received_s is None
         assert transport.counters[2].timeouts == 1 and transport.counters[2].replied == 0
+        assert_balanced(transport)
+
+
+def test_replies_that_came_while_the_host_was_descheduled_are_taken_not_missed(channel: str) -> None:
+    # After each request the host sleeps past the deadline while the drive answers: the replies are in the receive
+    # queue when it looks again, answers in time (the host was late, not the drives). Before: all three missed.
+    late = LateHost()
+    with rig(channel, clock=late.clock) as (transport, _):
+        transport.frame_tap = late.tap
+        replies = transport.transact([status2(1), status2(2), status2(3)], late.clock() + 0.5)
+        assert [r.ok for r in replies] == [True, True, True]
+        assert [tag_of(r.message) for r in replies] == [1, 1, 1]
+        assert all(c.timeouts == 0 for c in transport.counters.values())
         assert_balanced(transport)
 
 

@@ -30,6 +30,24 @@ PayloadT = TypeVar("PayloadT")
 MARGIN_S = 0.25
 
 
+class LateHost:
+    """A host that is descheduled right after each request goes out (``slow-host``'s busy loops do it at random): the
+    transport's ``clock`` and ``frame_tap``. Each outgoing frame is followed by a pause in which the drives answer,
+    after which the clock is past any deadline of the cycle."""
+
+    def __init__(self, pause_s: float = 0.05) -> None:
+        self.pause_s = pause_s
+        self.offset_s = 0.0
+
+    def clock(self) -> float:
+        return time.monotonic() + self.offset_s
+
+    def tap(self, _time_s: float, incoming: bool, _ident: int | None, _data: bytes) -> None:
+        if not incoming:
+            time.sleep(self.pause_s)
+            self.offset_s += 3600.0
+
+
 def status2(motor_id: int) -> Request:
     """A 0x9C read request (replied with a tagged MotorState)."""
     return Request(motor_id, Bare(Command.READ_STATUS_2))

@@ -25,7 +25,7 @@ from motion.protocol import (
 from motion.protocol.table import RS485_MAX_DATA_BYTES
 from motion.transport import Request, Rs485Transport, open_transport
 from tests.junk_flood import JunkFlood
-from tests.test_transport_peers import MARGIN_S, Script, ScriptedDrives, assert_balanced, status2, tag_of
+from tests.test_transport_peers import MARGIN_S, LateHost, Script, ScriptedDrives, assert_balanced, status2, tag_of
 
 
 class PtyDrives(ScriptedDrives[bytes]):
@@ -193,6 +193,22 @@ def test_duplicate_reply_is_stale(pty: Pty) -> None:
         assert transport.counters[1].stale_frames == 3
         assert transport.counters[1].replied == 3
         assert transport.bus_counters.bad_frames == 0
+
+
+def test_a_reply_that_came_while_the_host_was_descheduled_is_taken_not_missed(pty: Pty) -> None:
+    # The first request goes out, the host sleeps past the deadline while drive 1 answers: its reply is in the port
+    # when the host looks again, an answer in time (the host was late, not the drive); the second request's turn came
+    # after the deadline, so it is not sent (and is no reply). Before: both counted as missed replies.
+    late = LateHost()
+    with rig(pty, clock=late.clock) as (transport, drives):
+        transport.frame_tap = late.tap
+        replies = transport.transact([status2(1), status2(2)], late.clock() + 0.5)
+        assert [r.ok for r in replies] == [True, False]
+        assert tag_of(replies[0].message) == 1
+        assert (transport.counters[1].replied, transport.counters[1].timeouts) == (1, 0)
+        assert transport.bus_counters.skipped_requests == 1
+        assert drives.requests == [(1, status2(1).message)]
+        assert_balanced(transport)
 
 
 def test_requests_after_the_deadline_are_not_sent(pty: Pty) -> None:

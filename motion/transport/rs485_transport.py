@@ -8,8 +8,10 @@ RS485 is half duplex: one request, its reply, then the next request. For each re
    most one frame);
 2. writes the request;
 3. waits for the reply until the request's window ends, taking in every frame the parser finds (a frame from
-   another motor or with another command is stale, never matched to this request); at the end of the window an
-   incomplete frame is given up on (``next_frame(flush=True)``) and the request expires.
+   another motor or with another command is stale, never matched to this request); at the end of the window it
+   takes in what the port holds once more (a reply that came while a busy host kept this thread from reading is the
+   drive's answer in time, not a miss), an incomplete frame is given up on (``next_frame(flush=True)``) and the
+   request expires.
 
 Per-request timeout rule: request *i* of *n* gets an equal share of the time left until the deadline,
 ``window_end = now + (deadline_s - now) / (n - i)``, measured just before it is sent. Time a prompt reply leaves
@@ -192,8 +194,12 @@ class Rs485Transport(Transport):
         while not self._answered(index):
             remaining_s = window_end_s - clock()
             if remaining_s <= 0.0:
+                # what the port holds now came while this thread was not looking (a host that descheduled it past
+                # the window): the drive answered, the host was late; take it before giving up on the request
+                parser.feed(self._read())
                 self._take_frames(flush=True)
-                self._expire(index)
+                if not self._answered(index):
+                    self._expire(index)
                 return
             try:
                 ready = select.select(self._fds, (), (), remaining_s)[0]
