@@ -11,11 +11,13 @@ caught it then; below 1: the signal's rise or the detector, not the bound, was s
     .venv/bin/python bench/detection_reach.py --seed 41 --cases 3,13,17
     .venv/bin/python bench/clean_sweep.py --seed 41 --count 400 --jobs 1 > sweep.txt
     .venv/bin/python bench/detection_reach.py --seed 41 --from-sweep sweep.txt   # every late case of that run
+    .venv/bin/python bench/detection_reach.py --seed 41 --from-sweep sweep.txt --detect   # ... and its trial again
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import re
 import sys
 from pathlib import Path
@@ -80,11 +82,22 @@ def reach(seed: int, k: int) -> str:
     )
 
 
+def detected(seed: int, k: int) -> str:
+    """The case's collision trial again (``tests.clean_sweep.detect``): the cycles it took to detect, with this code."""
+    trial = clean_sweep.detect(clean_sweep.drawn(seed, k))
+    if trial is None:
+        return "no collision check"
+    latency = trial.latency_cycles if trial.isolated else None
+    in_time = latency is not None and latency <= clean_sweep.DETECTION_CYCLES
+    return f"detected in {latency} cycles ({'in time' if in_time else 'late'}): {trial.fault}"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seed", type=int, default=30, help="seed of the draw (default 30)")
     parser.add_argument("--cases", default="", help="case indices, comma separated")
     parser.add_argument("--from-sweep", type=Path, help="the output of bench/clean_sweep.py: its late cases")
+    parser.add_argument("--detect", action="store_true", help="also play each case's collision trial again")
     args = parser.parse_args()
     ks = [int(x) for x in args.cases.split(",") if x.strip()]
     if args.from_sweep is not None:
@@ -94,15 +107,22 @@ def main() -> None:
                 ks.append(int(found.group(1)))
     if not ks:
         parser.error("name cases with --cases or --from-sweep")
-    beyond = 0
+    beyond = in_time = 0
     for k in ks:
         line = reach(args.seed, k)
         beyond += "beyond reach" in line
+        if args.detect:
+            again = detected(args.seed, k)
+            in_time += "(in time)" in again
+            line += f"\n  again: {again}"
         print(line, flush=True)
     print(f"\n{len(ks)} cases: {beyond} beyond the bound's reach in every cycle of the span, {len(ks) - beyond} not")
+    if args.detect:
+        print(f"played again: {in_time} detected within {clean_sweep.DETECTION_CYCLES} cycles")
     print(f"(position-mode bound factor {cb.POSITION_MARGIN}, step drift {cb.STEP_DRIFT} of X at each end)")
 
 
 if __name__ == "__main__":
     np.seterr(all="ignore")
+    logging.disable(logging.CRITICAL)
     main()
