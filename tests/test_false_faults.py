@@ -309,3 +309,14 @@ def test_a_collision_in_a_drawn_case_is_detected_within_five_cycles() -> None:
     trial = clean_sweep.detect(clean_sweep.drawn(30, 4))
     assert trial is not None and trial.isolated and trial.halted, trial
     assert trial.latency_cycles is not None and trial.latency_cycles <= clean_sweep.DETECTION_CYCLES, trial
+
+
+def test_a_collision_after_the_moves_last_set_point_is_detected_within_five_cycles() -> None:
+    # seed 41's case 197: arm6 in position mode at 250 Hz, 15 % of wrist_pitch's peak torque 1.16 s into a move that
+    # has ended by then; the trial waited for the motion to end, so no cycle ran after the onset and the sweep counted
+    # it undetected
+    case = clean_sweep.drawn(41, 197)
+    assert case.arm == "arm6.yaml" and case.mode is ControlMode.POSITION and case.collision is not None
+    trial = clean_sweep.detect(case)
+    assert trial is not None and trial.isolated and trial.halted, trial
+    assert trial.latency_cycles is not None and trial.latency_cycles <= clean_sweep.DETECTION_CYCLES, trial
