@@ -45,7 +45,7 @@ from tests.motion_rig import (
     received,
     skip_if_rate_refused,
 )
-from tests.test_cli import cli
+from tests.test_cli import cli, host_stall_misses
 
 ROOT = Path(__file__).resolve().parent.parent
 CONFIGS = ROOT / "configs"
@@ -248,12 +248,14 @@ def test_the_cli_moves_both_arms_in_real_time_against_the_emulator_on_two_slcan_
 
 
 def _copy_at(tmp_path: Path, rate_hz: float) -> Path:
-    """bimanual.yaml (and its URDF) in ``tmp_path`` at ``rate_hz``, with a quarter of a second for a reply (a busy
-    host; silence is asserted in simulated time above)."""
+    """bimanual.yaml (and its URDF) in ``tmp_path`` at ``rate_hz``, with a quarter of a second for a reply and its
+    cycles of missed replies (a busy host; silence is asserted in simulated time above)."""
     shutil.copy(CONFIGS / "bimanual.urdf", tmp_path / "bimanual.urdf")
     text = (CONFIGS / "bimanual.yaml").read_text()
     text = text.replace("rate_hz: 250", f"rate_hz: {rate_hz:g}").replace("reply_timeout_ms: 5", "reply_timeout_ms: 250")
-    assert f"rate_hz: {rate_hz:g}" in text and "reply_timeout_ms: 250" in text
+    misses = f"max_missed_replies: {host_stall_misses(rate_hz)}"
+    text = text.replace("max_missed_replies: 2", misses)
+    assert f"rate_hz: {rate_hz:g}" in text and "reply_timeout_ms: 250" in text and misses in text
     path = tmp_path / "bimanual.yaml"
     path.write_text(text)
     return path

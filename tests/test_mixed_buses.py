@@ -32,7 +32,7 @@ from motion.transport import Request
 from motion.transport.buses import Buses
 from tests.motion_rig import Rig, emulated_arm, logged_requests, received
 from tests.test_buses import TARGETS, fault_halts_every_axis, setpoint_arrivals
-from tests.test_cli import cli
+from tests.test_cli import cli, host_stall_misses
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
 #: Six V2 drives on an RS485 line at 115200 baud (the older family's fastest) hold a few tens of Hz.
@@ -183,15 +183,19 @@ def test_the_cli_moves_an_arm_on_both_transports_in_simulated_time_and_traces_ea
 def test_the_api_emulates_both_transports_in_real_time_on_a_slcan_and_an_rs485_pty(tmp_path: Path) -> None:
     # Arm(emulate="realtime"): `rmd-motion emulate --slcan-link left=... --rs485-link right=...`, the overrides a
     # mapping per bus of each one's keys (the rate check's refusal on a busy host is a skip)
+    path = _mixed(tmp_path)
+    data = yaml.safe_load(path.read_text())
+    data["safety"]["max_missed_replies"] = host_stall_misses(RATE_HZ)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
     try:
-        with Arm.from_config(_mixed(tmp_path), emulate="realtime") as arm:
+        with Arm.from_config(path, emulate="realtime") as arm:
             assert arm.bus is not None and isinstance(arm.bus, Buses)
             assert [b.describe().split(" ")[0] for b in arm.bus.buses] == ["can", "rs485"]
             arm.move_to({"left_elbow_pitch": 20.0, "right_elbow_pitch": -20.0}, speed_scale=0.5)
             q = arm.positions()
     except RateError as exc:
         pytest.skip(f"this host does not hold the mixed arm at {RATE_HZ:g} Hz just now: {exc}")
-    tolerance = load_config(_mixed(tmp_path)).control.goal_tolerance_deg + 0.01
+    tolerance = load_config(path).control.goal_tolerance_deg + 0.01
     assert abs(q["left_elbow_pitch"] - 20.0) < tolerance and abs(q["right_elbow_pitch"] + 20.0) < tolerance
 
 

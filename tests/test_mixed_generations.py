@@ -41,7 +41,7 @@ from motion.safety import ArmState
 from motion.telemetry import load_log
 from tests.motion_rig import emulated_arm, logged_requests, received
 from tests.test_buses import TARGETS, fault_halts_every_axis
-from tests.test_cli import cli
+from tests.test_cli import cli, host_stall_misses
 from tests.test_mixed_buses import move_both_elbows
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -196,6 +196,7 @@ def test_the_api_runs_both_generations_against_the_emulator_process_in_real_time
     data = yaml.safe_load(path.read_text())
     data["control"]["rate_hz"] = 50
     data["safety"]["reply_timeout_ms"] = 250
+    data["safety"]["max_missed_replies"] = host_stall_misses(50)
     path.write_text(yaml.safe_dump(data, sort_keys=False))
     try:
         with Arm.from_config(path, emulate="realtime") as arm:
