@@ -2,8 +2,10 @@
 
 A cycle drains the receive queue (whatever is there is a previous cycle's and counts as stale), sends every
 request back to back (the bus arbitrates, drives answer in parallel), then receives until every expected reply
-is matched or the deadline passes. Replies are matched by arbitration id (``0x140 + motor id``) and DATA[0]
-(the command byte the drive echoes); see :mod:`motion.transport.base` for the matching and stale rule.
+is matched or the deadline passes, and takes in what the receive queue holds then (a reply that came while a busy
+host kept the thread from reading is an answer in time, not a miss). Replies are matched by arbitration id
+(``0x140 + motor id``) and DATA[0] (the command byte the drive echoes); see :mod:`motion.transport.base` for the
+matching and stale rule.
 """
 
 from __future__ import annotations
