@@ -30,7 +30,17 @@ from motion.safety import collision_bound as cb
 from tests import clean_sweep
 from tests.collision_trials import STEP_SHARE
 
-ROW_NAMES = ("torque constant", "rotor inertia", "friction", "sampling", "0xA4 steps", "rest", "phase", "instant")
+ROW_NAMES = (
+    "torque constant",
+    "rotor inertia",
+    "friction",
+    "sampling",
+    "0xA4 steps",
+    "rest",
+    "phase",
+    "instant",
+    "saturated",
+)
 _LATE = re.compile(r"^case (\d+) \(.*\): a collision on ")
 
 

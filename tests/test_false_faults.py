@@ -304,6 +304,37 @@ def test_a_clean_case_that_faulted_before_runs_clean(k: int) -> None:
     assert outcome.cycles > 0
 
 
+def test_a_drive_pinned_at_its_current_limit_by_each_step_is_no_collision() -> None:
+    # seed 41's case 199: arm6_v3 in position mode at 62.5 Hz, elbow_pitch's drive tuned twice the factory's: each
+    # 0xA4 step's push pins its current at the configured limit (10.8 N·m) when the drive samples it, the joint's speed
+    # swings 0 to -18 deg/s between samples while it tracks within 0.13 deg; the mean current was anywhere in the
+    # limit's span, and the check faulted "collision elbow_pitch +5.11 N·m (threshold 4.09)"
+    case = clean_sweep.drawn(41, 199)
+    assert case.arm == "arm6_v3.yaml" and case.mode is ControlMode.POSITION and case.rate_hz == 62.5
+    config = clean_sweep.config_of(case)
+    elbow = [j.name for j in config.joints].index("elbow_pitch")
+    arm = clean_sweep._arm(case, config)
+    pinned, limits = 0, 0.0
+    with arm:
+        controller, watchdog = arm.controller, arm.supervisor.watchdog  # type: ignore[union-attr]
+        assert controller is not None
+        limit_a = controller.transmission.transmissions[elbow].current_limit_a
+        limit_nm = float(controller.tracking.torque_limit_nm[elbow])
+
+        def count(*_: object) -> None:
+            nonlocal pinned, limits
+            if abs(controller.axes.iq_a[elbow]) >= limit_a - 0.01 and watchdog.collision_armed:
+                pinned += 1
+                limits = max(limits, float(watchdog.collision_limit_nm[elbow]))
+
+        controller.cycle_hooks.append(count)
+        for step in case.steps:
+            clean_sweep._step(arm, step).wait()
+        assert arm.supervisor.fault is None  # type: ignore[union-attr]
+    assert pinned > 20  # the drive sampled at its limit in many cycles ...
+    assert limits > 2 * limit_nm  # ... and the threshold in force then took the limit's span, both ends
+
+
 def test_a_collision_in_a_drawn_case_is_detected_within_five_cycles() -> None:
     # case 4 of the sweep: arm6, torque mode, drawn drives; 15 % of elbow_pitch's peak torque 0.385 s into its move
     trial = clean_sweep.detect(clean_sweep.drawn(30, 4))

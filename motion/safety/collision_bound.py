@@ -30,6 +30,12 @@ Per joint, over the window, in N·m:
   bounds (every joint's loop tuning doubled with the rotor inertia 30 % up and the torque constant 20 % down) exceed
   them by up to :data:`POSITION_MARGIN` (less 7 %), and the sum of every row is taken that many times in position
   mode;
+- **saturated current**: in position mode a sample at the drive's current limit (within a step of the configured
+  ``current_limit_a``) says only that the current between it and its neighbours stayed within the limit ``L``: a
+  drive pinned there by each step's push and let off before the next sample (a stiff loop on a heavy joint at a low
+  rate) has a mean anywhere in ``±L``, so the trapezoid is off by up to ``2 L`` (filtered, at each end of the window).
+  While a joint's drive samples at its limit the check on that joint is as good as blind: a drive without headroom
+  cannot push back at a contact either, and the following error takes it (the joint falls behind);
 - **friction at rest**: within :data:`REST_BAND_SMOOTHINGS` smoothing widths of the observer's Coulomb model (plus
   a step of the speed field) of rest, the joint's friction is anything up to its breakaway, ``(1 + ε) F_c``, either
   way (a joint held by stiction takes whatever torque the drive pushes with), and its sampled speed does not say
@@ -71,15 +77,16 @@ if TYPE_CHECKING:
 MODEL_ERROR = (0.2, 0.3, 0.5)
 #: Rows of the window's error terms: the observer's motor, rotor-inertial, friction torque (scaled by the model
 #: error) and sampling bound (taken at both ends of the window), and the position-mode steps' ``X`` (its change).
-TERM_ROWS = 8
+TERM_ROWS = 9
 _OBSERVER_ROWS = 4
 _SAMPLING_ROW = 3
 _STEP_ROW = 4
 _REST_ROW = 5
 _PHASE_ROW = 6
 _INSTANT_ROW = 7
+_SATURATED_ROW = 8
 #: taken at both ends of the window (the others: their change)
-_END_ROWS = (_SAMPLING_ROW, _REST_ROW, _PHASE_ROW, _INSTANT_ROW)
+_END_ROWS = (_SAMPLING_ROW, _REST_ROW, _PHASE_ROW, _INSTANT_ROW, _SATURATED_ROW)
 #: The most of ``X`` the sample is off by: an ideal speed loop's brake is ``X``; a real one's overshoot adds to it
 #: (the example arms' drawn drives: up to 1.2).
 STEP_SHARE = 1.25
@@ -154,7 +161,7 @@ class CollisionBound:
         families, specs = controller.families, controller.specs
         transmissions = controller.transmission.transmissions
         self._observer = observer
-        self._error = np.array((*MODEL_ERROR, 0.0, STEP_SHARE, 0.0, 0.0, 0.0), dtype=np.float64)[:, None]
+        self._error = np.array((*MODEL_ERROR, 0.0, STEP_SHARE, 0.0, 0.0, 0.0, 0.0), dtype=np.float64)[:, None]
         # the speed field's step in joint rad/s, times 2 K_O (through |M| at each step)
         step_rad_s = np.array(
             [
@@ -166,6 +173,11 @@ class CollisionBound:
         steps_a = np.array([f.current_step_a for f in families])
         self._current = np.abs(controller.transmission.joint_torque_nm(steps_a))
         self._drift_floor = STEP_FLOOR_STEPS * self._current
+        # a sample at the current limit (within a step of it), A, and the swing the mean may then have, N·m
+        limits_a = np.array([t.current_limit_a for t in transmissions])
+        self._saturated_a = limits_a - steps_a
+        self._swing_nm = 2.0 * np.abs(controller.transmission.joint_torque_nm(limits_a))
+        self._saturated = np.zeros(len(specs), dtype=bool)
         self._delta = np.zeros((TERM_ROWS, len(specs)))
         #: The latest bound per joint, N·m.
         self.bound_nm = np.zeros(len(specs))
@@ -224,6 +236,10 @@ class CollisionBound:
             self._filter(_STEP_ROW, share)
             np.copyto(x, gain)
             self._filter(_PHASE_ROW, share)
+            np.abs(controller.axes.iq_a, out=x)
+            np.greater_equal(x, self._saturated_a, out=self._saturated)
+            np.multiply(self._swing_nm, self._saturated, out=x)
+            self._filter(_SATURATED_ROW, share)
         self._dt_before = dt_s
         return terms
 
