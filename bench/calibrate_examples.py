@@ -59,11 +59,14 @@ def _alone(name: str, far_deg: float, other_deg: float) -> Callable[[Arm], objec
 
 def peaks(config: ArmConfig) -> tuple[dict[str, np.ndarray], list[str]]:
     """Per control mode, the largest |collision signal| per joint over the calibration motions whose margin times
-    left the bound (``{mode}``) and the largest signal / bound (``{mode} share``), and any fault they met."""
+    left the bound (``{mode}``), the largest signal / bound (``{mode} share``) and the largest |signal| (``{mode}
+    signal``: against 15 % of the joint's peak torque, what a collision the check must see within 5 cycles puts in
+    it), and any fault they met."""
     position = without_thresholds(config)
     torque = torque_variant(position)
     n = len(config.joints)
-    peak = {key: np.zeros(n) for key in ("position", "torque", "position share", "torque share")}
+    keys = ("position", "torque", "position share", "torque share", "position signal", "torque signal")
+    peak = {key: np.zeros(n) for key in keys}
     faults: list[str] = []
     runs = [("position", position, demo_path(1.0)), ("torque", torque, torque_move(1.0))]
     for joint in config.joints:
@@ -75,6 +78,7 @@ def peaks(config: ArmConfig) -> tuple[dict[str, np.ndarray], list[str]]:
             faults.append(str(run.fault))
         np.fmax(peak[mode], run.beyond_nm, out=peak[mode])
         np.fmax(peak[f"{mode} share"], run.limit_share_peak, out=peak[f"{mode} share"])
+        np.fmax(peak[f"{mode} signal"], run.signal_peak_nm, out=peak[f"{mode} signal"])
     return peak, faults
 
 
@@ -123,6 +127,8 @@ def main() -> None:
             drives = "configured drives" if corner < 0 else f"corner {CORNERS[corner]}"
             shares = f"position {np.round(peak['position share'], 2)}, torque {np.round(peak['torque share'], 2)}"
             print(f"{name}, {drives}: largest signal / bound: {shares}")
+            signals = f"position {np.round(peak['position signal'], 2)}, torque {np.round(peak['torque signal'], 2)}"
+            print(f"  largest |signal|, N·m: {signals}")
             for fault in faults:
                 print(f"  fault on the way: {fault}")
             mine = found.setdefault(name, {key: np.zeros(len(value)) for key, value in peak.items()})
