@@ -76,7 +76,8 @@ if TYPE_CHECKING:
 #: drive's torque constant, its rotor inertia, the joint's friction (viscous and Coulomb).
 MODEL_ERROR = (0.2, 0.3, 0.5)
 #: Rows of the window's error terms: the observer's motor, rotor-inertial, friction torque (scaled by the model
-#: error) and sampling bound (taken at both ends of the window), and the position-mode steps' ``X`` (its change).
+#: error) and sampling bound (taken at both ends of the window), the position-mode steps' ``X`` (its change), friction
+#: at rest, the steps' phase, the sampling instant and a current pinned at its limit (those four at both ends).
 TERM_ROWS = 9
 _OBSERVER_ROWS = 4
 _SAMPLING_ROW = 3
