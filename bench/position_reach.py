@@ -28,17 +28,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from bench.calibrate_examples import CORNERS
 from motion.api import Arm
 from motion.config import ArmConfig, load_config
 from tests.collision_trials import STEP_SHARE, with_thresholds
 from tests.drive_models import DriveDraw, JointDraw, with_drives
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
-DRIVES = {
-    "configured": None,
-    "tuning x2": JointDraw(2.0, 0.8, 1.3, 1.5),
-    "tuning x0.5": JointDraw(0.5, 1.2, 0.7, 0.5),
-}
+#: The example's drives, and two of bench/calibrate_examples.py's corners.
+DRIVES: dict[str, JointDraw | None] = {"configured": None, "tuning x2": CORNERS[0], "tuning x0.5": CORNERS[3]}
 HEAVY = ("shoulder_pitch", "elbow_pitch")
 SHARE = 0.8
 

@@ -318,12 +318,14 @@ def test_a_drive_pinned_at_its_current_limit_by_each_step_is_no_collision() -> N
     with arm:
         controller, watchdog = arm.controller, arm.supervisor.watchdog  # type: ignore[union-attr]
         assert controller is not None
-        limit_a = controller.transmission.transmissions[elbow].current_limit_a
+        pinned_a = (
+            controller.transmission.transmissions[elbow].current_limit_a - controller.families[elbow].current_step_a
+        )
         limit_nm = float(controller.tracking.torque_limit_nm[elbow])
 
         def count(*_: object) -> None:
             nonlocal pinned, limits
-            if abs(controller.axes.iq_a[elbow]) >= limit_a - 0.01 and watchdog.collision_armed:
+            if abs(controller.axes.iq_a[elbow]) >= pinned_a and watchdog.collision_armed:
                 pinned += 1
                 limits = max(limits, float(watchdog.collision_limit_nm[elbow]))
 

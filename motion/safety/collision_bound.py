@@ -175,9 +175,8 @@ class CollisionBound:
         self._current = np.abs(controller.transmission.joint_torque_nm(steps_a))
         self._drift_floor = STEP_FLOOR_STEPS * self._current
         # a sample at the current limit (within a step of it), A, and the swing the mean may then have, N·m
-        limits_a = np.array([t.current_limit_a for t in transmissions])
-        self._saturated_a = limits_a - steps_a
-        self._swing_nm = 2.0 * np.abs(controller.transmission.joint_torque_nm(limits_a))
+        self._saturated_a = np.array([t.current_limit_a for t in transmissions]) - steps_a
+        self._swing_nm = 2.0 * controller.tracking.torque_limit_nm
         self._saturated = np.zeros(len(specs), dtype=bool)
         self._delta = np.zeros((TERM_ROWS, len(specs)))
         #: The latest bound per joint, N·m.
