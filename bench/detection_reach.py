@@ -4,7 +4,8 @@ For each case named (``tests.clean_sweep.drawn(seed, k)``), play its first step 
 the example's thresholds and, over the control cycles the collision of ``bench/clean_sweep.py`` would have had to be
 detected in (its onset and the :data:`tests.clean_sweep.DETECTION_CYCLES` after it), print the smallest threshold in
 force on the collided joint as a share of the collision's torque (15 % of the joint's peak), and what the bound's
-rows were at that cycle. A share above 1 in every one of those cycles: the collision was smaller than what a drive
+rows were at that cycle (and the speed field's steps' row, ``2 K_O |M| s``: the field's step ``s`` through
+the joint's row of M). A share above 1 in every one of those cycles: the collision was smaller than what a drive
 within the stated model error may show on that path at that instant, so no threshold the bound allows could have
 caught it then; below 1: the signal's rise or the detector, not the bound, was slow.
 
@@ -52,7 +53,7 @@ def reach(seed: int, k: int) -> str:
     config = clean_sweep.config_of(case)
     torque = STEP_SHARE * config.joints[joint].peak_torque_nm
     arm = clean_sweep._arm(case, config)
-    seen: list[tuple[int, float, float, np.ndarray]] = []
+    seen: list[tuple[int, float, float, np.ndarray, float]] = []
     with arm:
         supervisor, controller = arm.supervisor, arm.controller
         assert supervisor is not None and controller is not None
@@ -69,6 +70,7 @@ def reach(seed: int, k: int) -> str:
                     float(check.limit_nm[joint]),
                     float(check.signal_nm[joint]),
                     bound.terms[:, joint].copy(),
+                    float(bound._mass[joint] @ bound._speed),  # the speed field's steps through |M| (its row)
                 )
             )
 
@@ -81,14 +83,14 @@ def reach(seed: int, k: int) -> str:
         qd = controller.reference.velocity[joint]
     if not span:
         return f"case {k}: no cycles after the onset"
-    cycle, limit, signal, terms = min(span, key=lambda s: s[1])
+    cycle, limit, signal, terms, field = min(span, key=lambda s: s[1])
     rows = ", ".join(f"{name} {value:.3g}" for name, value in zip(ROW_NAMES, terms, strict=True) if abs(value) > 1e-9)
     verdict = "beyond reach" if limit > torque else "within reach"
     return (
         f"case {k} ({case.arm} {case.mode.value} {case.rate_hz:g} Hz, {config.joints[joint].name}): smallest "
         f"threshold in force / collision {limit / torque:.2f} ({limit:.3g} of {torque:.3g} N·m, cycle "
         f"{cycle - first} after the onset; clean signal {signal:.3g}; reference {qd:.0f} deg/s after): {verdict}; "
-        f"the rows' latest terms: {rows}"
+        f"the speed field's steps' row {field:.3g} N·m; the rows' latest terms: {rows}"
     )
 
 
