@@ -70,7 +70,7 @@ def reach(seed: int, k: int) -> str:
                     float(check.limit_nm[joint]),
                     float(check.signal_nm[joint]),
                     bound.terms[:, joint].copy(),
-                    float(bound._mass[joint] @ bound._speed),  # the speed field's steps through |M| (its row)
+                    float(bound.field_nm[joint]),
                 )
             )
 

@@ -181,6 +181,8 @@ class CollisionBound:
         self._delta = np.zeros((TERM_ROWS, len(specs)))
         #: The latest bound per joint, N·m.
         self.bound_nm = np.zeros(len(specs))
+        #: Its speed field's row at the latest step (``2 K_O |M| s``, every joint's step through the joint's row), N·m.
+        self.field_nm = np.zeros(len(specs))
         # position mode: the steps' X = |M| (k |v| + |a|) per joint (M from the observer, k from the tracking model, v
         # and a from the reference), filtered as the residual; the terms of the latest step, all rows
         self._controller = controller
@@ -267,8 +269,8 @@ class CollisionBound:
             bound += head[row]
             if window.window_s:
                 bound += start[row]
-        np.dot(self._mass, self._speed, out=self._delta[0])
-        bound += self._delta[0]
+        np.dot(self._mass, self._speed, out=self.field_nm)
+        bound += self.field_nm
         bound += self._current
         if self._steps:  # the sample's drift within the drive's response (module doc), at each end of the window
             np.add(head[_STEP_ROW], start[_STEP_ROW], out=self._delta[0])
