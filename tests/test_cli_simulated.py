@@ -4,17 +4,22 @@ real-time runs against ``rmd-motion emulate`` in another process are in ``tests/
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from motion.api import Arm
 from motion.cli import main
-from motion.cli.moves import _jog_verdict
+from motion.cli.common import Interrupts, Session
+from motion.cli.moves import _jog_verdict, hold_for, with_arm
 from motion.compose import axis_specs
 from motion.config import load_config, read_yaml
 from motion.config.examples import example_names, resolve_program
+from motion.emulator import Fault, InjectedFault
+from motion.errors import MotionFault
 from motion.telemetry import load_log
 from tests.motion_rig import CONFIGS
 
@@ -208,3 +213,27 @@ def test_the_jog_verdict_says_which_drives_turned_and_what_to_watch() -> None:
         shoulder, 45.0, [(specs[1], 45.0), (specs[2], 20.0)], 5.0
     )
     assert "the drive did not follow" in _jog_verdict(shoulder, 45.0, [(specs[1], 20.0)], 5.0)
+
+
+@pytest.mark.parametrize("name", ["arm2_rs485.yaml", "arm6.yaml", "arm6_v3.yaml"])
+def test_the_close_names_only_the_drives_that_never_answered_the_halt(
+    name: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # one drive silent from 0.5 s: the halt goes to every drive, each healthy one answers it at once; on RS485 the
+    # silent drive's reply windows ate its neighbour's later reads, and at the session's end a shortened exchange cut
+    # a healthy drive's last read: neither is a halt left unanswered, so the warning at close names the silent drive
+    # alone
+    config = load_config(CONFIGS / name)
+    silent = config.joints[0]
+
+    def body(arm: Arm) -> int:
+        with pytest.raises(MotionFault):
+            hold_for(arm, 1.0)
+        arm.sleep(0.5)  # halted, the silent drive's halt sent every cycle
+        return 1
+
+    faults = [Fault(InjectedFault.SILENT, silent.address, 0.5)]
+    code = with_arm(argparse.Namespace(), Session(config, {}), Interrupts(), body, emulate=True, faults=faults)
+    assert code == 1
+    warned = [line for line in capsys.readouterr().err.splitlines() if "never acknowledged the halt" in line]
+    assert len(warned) == 1 and warned[0].startswith(f"{silent.name} ({silent.drive_label}) never acknowledged")

@@ -227,7 +227,8 @@ def with_arm(
         lost = undelivered_halt(arm)
         if lost is not None:
             raise lost
-        silent = sorted(arm.supervisor.unacknowledged) if arm.supervisor is not None else []
+        # (only the drives that never answered: one that answered and then missed a read is halted all the same)
+        silent = sorted(arm.supervisor.unanswered) if arm.supervisor is not None else []
         if silent:  # "every axis halted" does not hold for these
             labels = {j.address: f"{j.name} ({j.drive_label})" for j in arm.config.joints}
             warn(

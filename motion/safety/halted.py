@@ -93,6 +93,11 @@ class HaltGuard:
         self.codes = dict.fromkeys(self.ids, Command.MOTOR_STOP)
         #: Drives not known to be halted: their halt goes out every cycle until they acknowledge it.
         self.unacknowledged: set[int] = set()
+        #: Drives that have not answered the halt since it went out, or since a reading of theirs showed them driving
+        #: again: the ones the halt may not have reached. A subset of :attr:`unacknowledged`, which also holds drives
+        #: that answered it and then missed a reply (a missed reply says nothing of what a drive runs; its halt is sent
+        #: again all the same).
+        self.unanswered: set[int] = set()
         #: Braked joints whose brake this session locked since the halt (released again by a clear).
         self.locked: set[int] = set()
         self._acknowledged = [False] * n
@@ -120,6 +125,7 @@ class HaltGuard:
         self.codes = {i: Command.MOTOR_STOP if i in braked else code for i in self.ids}
         self._halts = {i: self._ask(i, c) for i, c in self.codes.items()}
         self.unacknowledged = set(self.ids)
+        self.unanswered = set(self.ids)
         for i in range(len(self.ids)):
             self._forget(i)
             self._swings[i], self._swing_sign[i] = 0, 0.0
@@ -127,6 +133,7 @@ class HaltGuard:
     def reset(self) -> None:
         """The arm was cleared: nothing is halted, nothing is owed."""
         self.unacknowledged.clear()
+        self.unanswered.clear()
         self.locked.clear()
         self._silent.clear()
         for i in range(len(self.ids)):
@@ -227,6 +234,7 @@ class HaltGuard:
                 if self._driving(i, q, qd, float(iq_a[i])):
                     driving.append(i)
                     self._owe(i)
+                    self.unanswered.add(motor_id)  # its own reading casts doubt on the halt it answered
         if unanswered or self._silent:  # silent: not one of its replies came (one that answered some is alive)
             self._silent -= answered
             self._silent |= unanswered - answered
@@ -238,6 +246,7 @@ class HaltGuard:
             if not self._acknowledged[i]:
                 self._acknowledged[i] = True
             self.unacknowledged.discard(motor_id)
+            self.unanswered.discard(motor_id)
         elif command == CommandV3.LOCK_BRAKE:
             self.locked.add(motor_id)
             self._set_code(motor_id, self.code)  # (under 0x80: its output off now, as the policy says)

@@ -109,11 +109,12 @@ class HaltedCycle(SafetyPart):
         unacknowledged = self.guard.unacknowledged
         if unacknowledged and now_s < self.reaction.halt_until_s:
             return
-        if unacknowledged:
+        unanswered = self.guard.unanswered  # (not those that answered it and missed a read since)
+        if unanswered:
             logger.error(
                 "drives %s did not acknowledge the halt within %g s: it is sent to them every cycle while the "
                 "session is open",
-                sorted(unacknowledged),
+                sorted(unanswered),
                 self.settings.halt_retry_s,
             )
         self.machine.fire(ArmEvent.ACKNOWLEDGED)

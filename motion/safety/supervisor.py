@@ -155,6 +155,13 @@ class Supervisor:
         return self.guard.unacknowledged
 
     @property
+    def unanswered(self) -> set[int]:
+        """Drives that never answered the halt in force (since it went out, or since a reading of theirs showed them
+        driving again): the ones it may not have reached. Of :attr:`unacknowledged`, a drive that answered it and then
+        missed a reply is not one."""
+        return self.guard.unanswered
+
+    @property
     def fault(self) -> MotionFault | None:
         """The fault the arm is halted or holding for (None when it is not)."""
         return self.log.fault
