@@ -10,15 +10,19 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from motion.api import Arm
+from motion.api import Arm, EndReason, MotionHandle
 from motion.config import load_config
 from motion.config.schema import ControlMode
+from motion.emulator import Fault, InjectedFault
+from motion.errors import FaultKind, MotionFault
 from motion.protocol.table import ProtocolFamily
+from motion.safety import ArmState
 from tests.motion_rig import CONFIGS, Rig, arm_config, commanded_positions, emulated_arm
 
 SETTLE_S = 0.6
@@ -226,3 +230,51 @@ def test_a_position_mode_move_ends_when_its_joints_arrive_too() -> None:
         assert handle.arrival is not None and handle.arrival.arrived
         assert arm.controller is not None and arm.plant is not None
         np.testing.assert_allclose(arm.plant.joint_positions_deg(), [30.0, -45.0], atol=base.control.goal_tolerance_deg)
+
+
+def test_a_handle_tells_how_its_motion_ended_superseded_held_stopped_or_faulted() -> None:
+    # a handle waits on its own motion, not on whichever one the arm plays by then: a move given while another runs
+    # (from this thread or another) takes its place, and the earlier handle ends at once, not arrived and why
+    config = load_config(CONFIGS / "arm2.yaml")
+    with Arm(config, emulate=True) as arm:
+        first = arm.move_to({"shoulder": 40.0, "elbow": -30.0}, wait=False)
+        arm.sleep(0.2)
+        given: list[MotionHandle] = []
+        other = threading.Thread(target=lambda: given.append(arm.move_to({"shoulder": -20.0}, wait=False)))
+        other.start()
+        other.join()
+        assert first.wait() and first.done and first.arrival is not None
+        assert not first.arrival.arrived and first.arrival.reason is EndReason.SUPERSEDED
+        assert first.arrival.error_deg["shoulder"] > 10.0  # (from its own target, 40 deg, where it was cut)
+        assert arm.supervisor is not None and arm.supervisor.state is ArmState.MOVING  # the second one runs on
+        (second,) = given
+        assert second.wait() and second.arrival is not None
+        assert second.arrival.arrived and second.arrival.reason is EndReason.COMPLETED
+        # one that never ran: replaced while it waited for the next cycle
+        queued = arm.move_to({"elbow": 20.0}, wait=False)
+        last = arm.move_to({"elbow": -20.0}, wait=False)
+        assert queued.wait() and queued.arrival is not None and queued.arrival.reason is EndReason.SUPERSEDED
+        assert last.wait() and last.arrival is not None and last.arrival.arrived
+        # a path cut by hold(): its handle ends once the stop ramp has, short of its last waypoint
+        path = arm.follow([{"shoulder": 30.0}, {"shoulder": -30.0}, {"shoulder": 30.0}], wait=False)
+        arm.sleep(0.5)
+        arm.hold()
+        assert path.wait() and path.arrival is not None
+        assert not path.arrival.arrived and path.arrival.reason is EndReason.HELD
+        assert arm.controller is not None and not arm.controller.snapshot.moving and arm.controller.idle
+        # an E-stop: the fault is raised, and the handle says the motion was stopped
+        stopped = arm.move_to({"shoulder": 0.0, "elbow": 0.0}, wait=False)
+        arm.sleep(0.1)
+        arm.stop()
+        with pytest.raises(MotionFault, match="E-stop"):
+            stopped.wait()
+        assert stopped.arrival is not None and stopped.arrival.reason is EndReason.STOPPED
+        assert not stopped.arrival.arrived
+    silent = Fault(InjectedFault.SILENT, config.joints[1].address, 0.4)
+    with Arm(config, emulate=True, faults=[silent]) as arm:
+        faulted = arm.move_to({"shoulder": 40.0, "elbow": -30.0}, wait=False)
+        with pytest.raises(MotionFault) as raised:
+            faulted.wait()
+        assert raised.value.kind is FaultKind.NO_REPLY
+        assert faulted.arrival is not None and faulted.arrival.reason is EndReason.FAULTED
+        assert not faulted.arrival.arrived

@@ -20,6 +20,7 @@ import pytest
 from motion.api import Arm
 from motion.config import ArmConfig
 from motion.config.schema import ControlMode, HaltPolicy
+from motion.control.commands import MotionTicket
 from motion.control.controller import Controller
 from motion.control.ratecheck import FLAG_AGE_S
 from motion.emulator import Fault, InjectedFault
@@ -589,9 +590,9 @@ def test_a_move_that_races_a_fault_is_withdrawn_and_never_plays_after_clear(tmp_
         assert supervisor is not None
         queue = controller.move_to
 
-        def fault_comes_first(target_deg: Sequence[float] | FloatArray, speed_scale: float = 1.0) -> None:
+        def fault_comes_first(target_deg: Sequence[float] | FloatArray, speed_scale: float = 1.0) -> MotionTicket:
             supervisor.estop()  # the loop's fault lands between the caller's check and its queueing
-            queue(target_deg, speed_scale)
+            return queue(target_deg, speed_scale)
 
         controller.move_to = fault_comes_first  # type: ignore[method-assign]
         with pytest.raises(MotionFault, match="estop"):

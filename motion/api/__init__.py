@@ -23,12 +23,14 @@ from __future__ import annotations
 
 from motion.api.arm import Arm
 from motion.api.emulation import emulated_families, emulator_process, measure_modes, realtime_capacity
-from motion.api.status import ArmStatus, JointStatus, MotionHandle
+from motion.api.status import ArmStatus, Arrival, EndReason, JointStatus, MotionHandle
 from motion.view import ViewOptions  # the options of Arm(view=...): `from motion import ViewOptions` comes here
 
 __all__ = [
     "Arm",
     "ArmStatus",
+    "Arrival",
+    "EndReason",
     "JointStatus",
     "MotionHandle",
     "ViewOptions",

@@ -30,6 +30,7 @@ from motion.compose import (
 )
 from motion.config import ArmConfig, load_config_or_example
 from motion.control.clock import Clock
+from motion.control.commands import MotionTicket
 from motion.control.controller import Controller
 from motion.control.ratecheck import RateCheck
 from motion.control.tracking import PositionLoopFit
@@ -534,16 +535,22 @@ class Arm:
     def move_to(self, targets: Mapping[str, float], *, speed_scale: float = 1.0, wait: bool = True) -> MotionHandle:
         """Move the named joints to their targets (degrees); the others keep their reference.
 
+        A move (or :meth:`follow`) given while another motion runs, from this thread or any other, takes its place: it
+        is planned from the reference at that instant (no step in speed), and the earlier motion's handle ends at once
+        with ``arrival.arrived`` False, ``arrival.reason`` ``superseded``.
+
         Raises:
             PlanningError: an unknown joint, a target outside the joint limits, a bad speed scale (nothing moves).
             MotionFault: the arm is faulted, or a fault halted it during the move (with ``wait``).
         """
         supervisor = self._guard()
         q = joint_targets(targets, supervisor.controller.reference.position, self._index)
-        supervisor.move_to(q, speed_scale)
+        superseding = not supervisor.controller.idle
+        ticket = supervisor.move_to(q, speed_scale)
+        self._superseding(superseding)
         if self._remembers:
             self._warn_ambiguous_pose(q)
-        return self._handle(supervisor, wait)
+        return self._handle(supervisor, wait, ticket, q)
 
     def follow(
         self,
@@ -559,14 +566,22 @@ class Arm:
         """
         supervisor = self._guard()
         rows = waypoint_rows(waypoints, supervisor.controller.reference.position, self._index)
-        supervisor.follow(rows, speed_scale)
+        superseding = not supervisor.controller.idle
+        ticket = supervisor.follow(rows, speed_scale)
+        self._superseding(superseding)
         if self._remembers:
             self._warn_ambiguous_pose(rows[-1])
-        return self._handle(supervisor, wait)
+        return self._handle(supervisor, wait, ticket, rows[-1])
 
-    def _handle(self, supervisor: Supervisor, wait: bool) -> MotionHandle:
+    @staticmethod
+    def _superseding(superseding: bool) -> None:
+        """A motion given while another ran takes its place: said in the log, not only by the earlier handle."""
+        if superseding:
+            logger.info("a motion was given while another ran: it takes that one's place (that one ends superseded)")
+
+    def _handle(self, supervisor: Supervisor, wait: bool, ticket: MotionTicket, target_deg: FloatArray) -> MotionHandle:
         """The handle of the motion just queued (with the configured goal tolerance), waited for with ``wait``."""
-        handle = MotionHandle(supervisor, self.config.control)
+        handle = MotionHandle(supervisor, self.config.control, ticket=ticket, target_deg=target_deg)
         if wait:
             handle.wait()
         return handle

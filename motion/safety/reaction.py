@@ -85,7 +85,8 @@ class FaultReaction(SafetyPart):
         the kind and the state allow it, compliance for a collision under ``comply``, else the halt."""
         controller = self.controller
         detected = controller.clock.now()
-        controller.discard_pending()  # a move queued during this cycle must not replace the halt
+        # a move queued during this cycle must not replace the halt, and the motion playing ends here, by this fault
+        controller.abort_motion(fault)
         state = self.machine.state
         if self._repeated(fault, state):
             return

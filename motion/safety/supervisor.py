@@ -35,6 +35,7 @@ import threading
 import weakref
 from collections.abc import Callable, Sequence
 
+from motion.control.commands import MotionTicket
 from motion.control.controller import Controller, Feedforward
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.ratecheck import StatusRounds
@@ -222,22 +223,24 @@ class Supervisor:
         if self.machine.state is ArmState.CLOSED:
             raise MotionError("the arm is closed")
 
-    def move_to(self, target_deg: Sequence[float] | FloatArray, speed_scale: float = 1.0) -> None:
-        """Queue a coordinated move (see :meth:`Controller.move_to`).
+    def move_to(self, target_deg: Sequence[float] | FloatArray, speed_scale: float = 1.0) -> MotionTicket:
+        """Queue a coordinated move (see :meth:`Controller.move_to`); returns its ticket (how it ended, once it has).
 
         Raises:
             MotionFault: the arm is faulted.
             PlanningError: an invalid target (nothing moves).
         """
         self._refuse_if_faulted()
-        self.controller.move_to(target_deg, speed_scale)
+        ticket = self.controller.move_to(target_deg, speed_scale)
         self._accept_motion()
+        return ticket
 
-    def follow(self, waypoints_deg: Sequence[Sequence[float]] | FloatArray, speed_scale: float = 1.0) -> None:
-        """Queue a waypoint path (see :meth:`Controller.follow`)."""
+    def follow(self, waypoints_deg: Sequence[Sequence[float]] | FloatArray, speed_scale: float = 1.0) -> MotionTicket:
+        """Queue a waypoint path (see :meth:`Controller.follow`); returns its ticket."""
         self._refuse_if_faulted()
-        self.controller.follow(waypoints_deg, speed_scale)
+        ticket = self.controller.follow(waypoints_deg, speed_scale)
         self._accept_motion()
+        return ticket
 
     def _accept_motion(self) -> None:
         """MOVING, or — when a fault came in between the check and the queueing — withdraw the queued command (it
