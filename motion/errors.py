@@ -79,6 +79,11 @@ class PortUnavailable(TransportError):
         self.link = link
 
 
+class PortHeld(PortUnavailable):
+    """Another rmd-motion session (in this process or another) holds the bus or port: its advisory lock
+    (:mod:`motion.transport.portlock`) is taken. Nothing was sent."""
+
+
 class DrivesSilent(TransportError):
     """Drives did not answer a read every drive must answer (wrong motor id, no power, wiring, another protocol).
 

@@ -20,7 +20,8 @@ from motion.api import Arm, EndReason, MotionHandle
 from motion.config import load_config
 from motion.config.schema import ControlMode
 from motion.emulator import Fault, InjectedFault
-from motion.errors import FaultKind, MotionFault
+from motion.emulator.drive import RunState
+from motion.errors import FaultKind, MotionError, MotionFault
 from motion.protocol.table import ProtocolFamily
 from motion.safety import ArmState
 from tests.motion_rig import CONFIGS, Rig, arm_config, commanded_positions, emulated_arm
@@ -278,3 +279,25 @@ def test_a_handle_tells_how_its_motion_ended_superseded_held_stopped_or_faulted(
         assert raised.value.kind is FaultKind.NO_REPLY
         assert faulted.arrival is not None and faulted.arrival.reason is EndReason.FAULTED
         assert not faulted.arrival.arrived
+
+
+def test_connecting_a_connected_arm_is_refused_before_anything_is_sent_and_the_session_goes_on() -> None:
+    arm = Arm(load_config(CONFIGS / "arm2.yaml"), emulate=True)
+    arm.connect()
+    try:
+        bus, simulation, supervisor = arm.bus, arm.simulation, arm.supervisor
+        assert bus is not None and simulation is not None and supervisor is not None
+        cycles, now_s = bus.bus_counters.cycles, simulation.now()
+        with pytest.raises(MotionError, match="connected already"), arm:
+            pytest.fail("a second session was entered")
+        # nothing was opened or sent, and the running session is the one it was
+        assert (arm.bus, arm.simulation, arm.supervisor) == (bus, simulation, supervisor)
+        assert (bus.bus_counters.cycles, simulation.now(), bus.closed) == (cycles, now_s, False)
+        handle = arm.move_to({"shoulder": 20.0, "elbow": -20.0})
+        assert handle.arrival is not None and handle.arrival.arrived
+    finally:
+        arm.close()
+    assert supervisor.state is ArmState.CLOSED and bus.closed
+    assert all(d.state is RunState.STOPPED for d in simulation.emulator.drives.values())  # the close's 0x81 landed
+    with arm:  # a closed arm connects again
+        assert arm.supervisor is not None and arm.supervisor.state is ArmState.READY

@@ -8,6 +8,7 @@ axis before the port is released, and nothing moves the drives after that.
 from __future__ import annotations
 
 import dataclasses
+import os
 import re
 import time
 from pathlib import Path
@@ -18,10 +19,11 @@ from motion.api import Arm
 from motion.config import load_config
 from motion.config.schema import ControlMode
 from motion.control.ratecheck import RateError
+from motion.errors import PortHeld
 from motion.safety import ArmState
 from motion.transport import CanTransport
 from tests.motion_rig import CONFIGS
-from tests.test_cli import running_emulator
+from tests.test_cli import cli, running_emulator
 
 pytestmark = pytest.mark.realtime
 
@@ -102,3 +104,41 @@ def test_an_arm_runs_on_a_transport_the_caller_made(tmp_path: Path) -> None:
             arm.close()
         assert reached == pytest.approx({"shoulder": 10.0, "elbow": -10.0}, abs=0.5)
         assert bus.closed
+
+
+def test_a_second_session_on_a_port_a_session_holds_is_refused_and_the_first_moves_and_halts(tmp_path: Path) -> None:
+    # a second rmd-motion session on the emulated adapter the arm holds, from another process (the command line) and
+    # from this one (another Arm): each refused before it sends anything, and the first session moves and halts on
+    base = load_config(CONFIGS / "arm2.yaml")
+    with running_emulator(tmp_path, CONFIGS / "arm2.yaml", "--slcan-link") as emulated:
+        overrides = {"interface": "slcan", "channel": emulated.bus_args[-1], "sleep_after_open": 0}
+        # (the lock, not the rate, is the point: a rate a busy host holds, down to a tenth of a second's cycle)
+        rate_hz = MIN_RATE_HZ
+        while True:
+            control = dataclasses.replace(base.control, rate_hz=rate_hz, mode=ControlMode.POSITION)
+            config = dataclasses.replace(base, control=control)
+            arm = Arm(config, bus_overrides=overrides)
+            try:
+                arm.connect()
+                break
+            except RateError as refused:
+                rate_hz = 5.0 * round(0.6 * refused.check.highest_rate_hz / 5.0)
+                if rate_hz < 10.0:
+                    pytest.skip(f"no rate of at least 10 Hz holds on this host just now: {refused}")
+        try:
+            status = cli("status", "--config", CONFIGS / "arm2.yaml", *emulated.bus_args)
+            assert status.returncode == 3, status.stderr
+            assert "held by another rmd-motion session" in status.stderr and f"process {os.getpid()}" in status.stderr
+            assert "Traceback" not in status.stderr
+            with pytest.raises(PortHeld, match=re.escape(emulated.bus_args[-1])):
+                Arm(config, bus_overrides=overrides).connect()
+            assert arm.supervisor is not None and arm.supervisor.state is ArmState.READY
+            since = emulated.log_size()
+            arm.move_to({"shoulder": 10.0, "elbow": -10.0}, speed_scale=0.5)
+            reached = arm.positions()
+        finally:
+            arm.close()
+        assert reached == pytest.approx({"shoulder": 10.0, "elbow": -10.0}, abs=0.5)
+    received = [_RECEIVED.match(line) for line in emulated.log_since(since).splitlines()]
+    stops = {int(m[2], 16) - 0x140 for m in received if m is not None and int(m[3], 16) == 0x81}
+    assert stops == {1, 2}, "every axis received the close's 0x81"

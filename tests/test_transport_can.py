@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import os
+import select
 import subprocess
 import sys
 import time
@@ -16,7 +17,7 @@ from typing import Any
 import can.interfaces.virtual
 import pytest
 
-from motion.errors import EncodeError, TransportError
+from motion.errors import EncodeError, PortHeld, TransportError
 from motion.protocol import (
     Bare,
     CanFrame,
@@ -373,3 +374,58 @@ def test_backends_are_imported_only_when_used() -> None:
         "assert t.Rs485Transport.__name__ == 'Rs485Transport' and 'serial' in sys.modules\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_a_channel_a_session_holds_is_refused_to_a_second_session(channel: str) -> None:
+    with rig(channel) as (first, _):  # (the drives' own endpoint on the channel is no session: never refused)
+        with pytest.raises(PortHeld, match="held by another rmd-motion session") as refused:
+            CanTransport("virtual", channel)
+        assert f"CAN interface 'virtual' channel {channel!r}" in str(refused.value) and refused.value.link == "can"
+        assert first.transact([status2(1)], first.clock() + 0.2)[0].ok  # the first session goes on
+        successor = first.with_family(ProtocolFamily.V3)  # the channel's lock goes with the channel
+        first.close()
+        with pytest.raises(PortHeld):
+            CanTransport("virtual", channel)
+        successor.close()
+        with CanTransport("virtual", channel) as again:  # released with the channel
+            assert not again.closed
+
+
+def test_an_slcan_adapter_a_session_holds_is_refused_to_another_process(tmp_path: Path) -> None:
+    # keyed by the device: a symlink to it, with or without python-can's "@baud" suffix, is the same adapter, and a
+    # session in another process is refused before it writes anything to the adapter
+    master, slave = os.openpty()
+    link = tmp_path / "adapter"
+    link.symlink_to(os.ttyname(slave))
+    try:
+        with CanTransport("slcan", f"{link}@115200", 1_000_000, sleep_after_open=0):
+            written = _drain(master)
+            other = subprocess.run(
+                [
+                    sys.executable,
+                    "-c",
+                    "import sys; from motion.errors import PortHeld; from motion.transport import CanTransport\n"
+                    "try:\n"
+                    f"    CanTransport('slcan', {os.ttyname(slave)!r}, 1_000_000, sleep_after_open=0)\n"
+                    "except PortHeld as exc:\n"
+                    "    sys.exit(str(exc))\n",
+                ],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                check=False,
+            )
+            assert other.returncode == 1 and "held by another rmd-motion session" in other.stderr, other.stderr
+            assert f"process {os.getpid()}" in other.stderr
+            assert written and _drain(master) == b""  # the refused session wrote nothing to the adapter
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def _drain(fd: int) -> bytes:
+    """What the far end of a pty has received so far."""
+    received = b""
+    while select.select([fd], [], [], 0.05)[0]:
+        received += os.read(fd, 4096)
+    return received

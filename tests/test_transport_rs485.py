@@ -6,11 +6,12 @@ import contextlib
 import os
 import select
 from collections.abc import Iterable, Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
 
-from motion.errors import EncodeError, PortLost, TransportError
+from motion.errors import EncodeError, PortHeld, PortLost, TransportError
 from motion.protocol import (
     Bare,
     Command,
@@ -22,7 +23,7 @@ from motion.protocol import (
     Status1,
     rs485_frame,
 )
-from motion.protocol.table import RS485_MAX_DATA_BYTES
+from motion.protocol.table import RS485_MAX_DATA_BYTES, ProtocolFamily
 from motion.transport import Request, Rs485Transport, open_transport
 from tests.junk_flood import JunkFlood
 from tests.test_transport_peers import MARGIN_S, LateHost, Script, ScriptedDrives, assert_balanced, status2, tag_of
@@ -279,3 +280,24 @@ def test_a_line_flooded_with_junk_keeps_the_deadline_and_counts_the_junk() -> No
 def test_opening_a_missing_port_raises_transport_error(tmp_path: Any) -> None:
     with pytest.raises(TransportError, match="cannot open RS485 port"):
         Rs485Transport(str(tmp_path / "no-such-port"))
+
+
+def test_a_port_a_session_holds_is_refused_to_a_second_one_by_its_resolved_path(pty: Pty, tmp_path: Path) -> None:
+    # the session's lock is keyed by the device the path resolves to: a symlink to the port is the same port
+    link = tmp_path / "link"
+    link.symlink_to(pty.path)
+    with rig(pty) as (first, drives):
+        with pytest.raises(PortHeld, match="held by another rmd-motion session") as refused:
+            Rs485Transport(str(link))
+        assert f"RS485 port {str(link)!r}" in str(refused.value) and f"process {os.getpid()}" in str(refused.value)
+        assert refused.value.link == "rs485"
+        assert drives.requests == []  # nothing went out from the second opener
+        # the first session goes on, and the drives' side of the pty (the master, the emulator's) is never locked out
+        assert first.transact([status2(1)], first.clock() + 0.5)[0].ok
+        siblings = first.with_family(ProtocolFamily.V3)  # the port's lock goes with the port to its new owner
+        first.close()
+        with pytest.raises(PortHeld):
+            Rs485Transport(pty.path)
+        siblings.close()
+    with Rs485Transport(str(link)) as again:  # released with the port
+        assert not again.closed

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import os
+import threading
 import types
 from collections.abc import Mapping, Sequence
 from contextlib import ExitStack
@@ -186,6 +187,11 @@ class Arm:
         self._connecting = False
         self._stop_latch: str | None = None
         self._running: Supervisor | None = None
+        # One session at a time: set from the start of connect() until close() (or a connect that failed), under a
+        # lock, so that a second connect (of this thread, `arm.connect()` and then `with arm:`, or another) is refused
+        # before it opens or sends anything.
+        self._session_lock = threading.Lock()
+        self._in_session = False
 
     @classmethod
     def from_config(cls, path: str | os.PathLike[str], *, emulate: bool | str = False, **kwargs: Any) -> Arm:
@@ -207,12 +213,25 @@ class Arm:
         within one control cycle (every axis halted; a MotionFault of kind ``stop`` is raised), and an arm that has
         not started its loop yet starts it halted (FAULTED, kind ``stop``: :meth:`clear` before moving).
 
+        An arm holds one session: connecting an arm that is connected (or connecting) raises before anything is
+        opened or sent, and the running session goes on. A port or channel another session holds (another ``Arm``,
+        in this process or another) is refused likewise (:class:`~motion.errors.PortHeld`).
+
         Raises:
+            MotionError: the arm is connected already (``arm.connect()`` and then ``with arm:`` connects twice).
+            PortHeld: another rmd-motion session holds the bus or port (nothing was sent).
             TransportError: the bus cannot be opened or a drive does not answer.
             RateError: the configured rate cannot be held on this host and bus (a ConfigError; nothing moved).
             HomingError: a joint of ``home`` could not be homed (every axis halted).
             MotionFault: a fault or a stop halted every axis during homing.
         """
+        with self._session_lock:
+            if self._in_session:
+                raise MotionError(
+                    f"arm {self.config.name!r} is connected already: an Arm holds one session (connect() and then "
+                    "`with arm:` connects twice; use one of them, or close() first); the running session goes on"
+                )
+            self._in_session = True
         self._begin_connecting()
         try:
             if self._telemetry_options is not None:
@@ -254,7 +273,10 @@ class Arm:
             if self.view is not None and isinstance(self._clock, SimulatedClock):
                 self._clock.pace(1.0)  # a simulated arm on view moves at the wall clock's speed
         except BaseException:
-            self._stack.close()
+            try:
+                self._stack.close()
+            finally:
+                self._in_session = False
             raise
         finally:
             self._connecting = False
@@ -487,7 +509,10 @@ class Arm:
                 self._remember_turns()
         finally:
             self._running = None  # (a stop during a later connect goes to that connect's loops, not to this one)
-            self._stack.close()
+            try:
+                self._stack.close()
+            finally:
+                self._in_session = False
 
     def __enter__(self) -> Arm:
         return self.connect()

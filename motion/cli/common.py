@@ -19,7 +19,7 @@ from typing import Any, Final
 from motion.compose import negotiate_family, open_bus
 from motion.config import ArmConfig, CanBusConfig, JointConfig, Rs485BusConfig, load_config_or_example
 from motion.config.schema import BusConfig
-from motion.errors import DrivesSilent, MotionError, PortUnavailable, TransportError
+from motion.errors import DrivesSilent, MotionError, PortHeld, PortUnavailable, TransportError
 from motion.protocol import Message
 from motion.protocol.generation import GENERATIONS
 from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily
@@ -551,6 +551,11 @@ Command = Callable[[argparse.Namespace, Interrupts], int]
 def communication_hint(exc: BaseException, config_path: object) -> str | None:
     """What to try next after a communication error, for the errors that have a usual cause (None: no hint)."""
     config = config_path or "FILE"
+    if isinstance(exc, PortHeld):
+        return (
+            "another rmd-motion command or program is connected to this bus (the process named above): let it end, or "
+            "end it (Ctrl-C there halts its arm first), then run this command again"
+        )
     if isinstance(exc, PortUnavailable):
         rs485 = exc.link == "rs485"
         adapter, link, override = (

@@ -74,6 +74,7 @@ from motion.transport.plan import EXPIRED, FILLED, MULTI_KEY, NOT_SENT, OPEN, Pl
 
 if TYPE_CHECKING:
     from motion.transport.identity import Identity
+    from motion.transport.portlock import PortLock
 
 #: ``tap(time_s, received, arbitration_id, data)``: called with every frame a backend sends (``received`` False) or
 #: takes in (True), at the transport clock's time; ``arbitration_id`` is None on RS485, where ``data`` is the bytes as
@@ -277,6 +278,9 @@ class Transport(ABC, Closing):
         self._counters_view: Mapping[int, MotorCounters] = types.MappingProxyType(self._counters)
         self._closed = False
         self._lost: PortLost | None = None
+        # The session lock on the port this transport opened (motion.transport.portlock), released when it closes; None
+        # where it opened none (a simulated bus, a port given to it) or handed its port on (_hand_over_lock).
+        self._port_lock: PortLock | None = None
         # Outstanding marks survive between cycles. The slots' layout comes from a plan reused for every batch of the
         # same shape (see _plan); the rest is the cycle's own state.
         self._outstanding: set[int] = set()
@@ -419,6 +423,9 @@ class Transport(ABC, Closing):
                     self._close()
                 except TransportError as exc:  # expected of a port that is gone
                     logger.log(logging.WARNING if self._lost is None else logging.DEBUG, "%s", exc)
+                finally:
+                    if self._port_lock is not None:  # (after the port: no other session may open it before)
+                        self._port_lock.release()
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.describe()}{' closed' if self._closed else ''}>"
@@ -456,6 +463,11 @@ class Transport(ABC, Closing):
         """
 
     # --- helpers for the backends ---------------------------------------------------------------------------
+
+    def _hand_over_lock(self, successor: Transport) -> None:
+        """``successor`` takes this transport's port over (it closes the port from now on): the port's session lock
+        goes with it."""
+        successor._port_lock, self._port_lock = self._port_lock, None
 
     def motor_counters(self, motor_id: int) -> MotorCounters:
         """The counters of ``motor_id``, created on first use."""

@@ -20,6 +20,7 @@ from motion.protocol.generation import Generation
 from motion.protocol.table import MOTOR_ID_MAX, MOTOR_ID_MIN, ProtocolFamily
 from motion.transport.base import Request, Transport
 from motion.transport.can_endpoint import CanEndpoint
+from motion.transport.portlock import PortLock, can_key
 
 
 def take_in_can_frame(
@@ -93,9 +94,11 @@ class CanTransport(Transport):
         family: the drives' protocol generation (``v3``: replies on 0x240 + id, :mod:`motion.protocol.v3`).
         **bus_kwargs: passed to :class:`can.Bus` unchanged.
 
-    Use :meth:`over` for a port that is already open (injected instead of opened here).
+    Use :meth:`over` for a port that is already open (injected instead of opened here; the session lock of
+    :mod:`motion.transport.portlock` is then its opener's).
 
     Raises:
+        PortHeld: another rmd-motion session holds the channel (:mod:`motion.transport.portlock`).
         TransportError: the bus could not be opened.
     """
 
@@ -109,7 +112,14 @@ class CanTransport(Transport):
         family: ProtocolFamily = ProtocolFamily.V2,
         **bus_kwargs: Any,
     ) -> None:
-        self._adopt(CanEndpoint(interface, channel, bitrate, **bus_kwargs), clock, family)
+        lock = PortLock(can_key(interface, channel), f"CAN interface {interface!r} channel {channel!r}", "can")
+        try:
+            endpoint = CanEndpoint(interface, channel, bitrate, **bus_kwargs)
+        except BaseException:
+            lock.release()
+            raise
+        self._adopt(endpoint, clock, family)
+        self._port_lock = lock
 
     @classmethod
     def over(
@@ -153,6 +163,8 @@ class CanTransport(Transport):
         """See :meth:`Transport.with_family`."""
         transport = CanTransport.over(self._endpoint, clock=self.clock, family=family, owns_port=self._owns_port)
         transport.frame_tap = self.frame_tap
+        if self._owns_port:
+            self._hand_over_lock(transport)
         self._owns_port = False
         return transport
 

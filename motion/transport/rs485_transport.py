@@ -44,6 +44,7 @@ from motion.errors import EncodeError, PortUnavailable, TransportError
 from motion.protocol import MultiMotorTorque, rs485_frame
 from motion.protocol.table import RS485_BAUDRATES, ProtocolFamily
 from motion.transport.base import PORT_ERRORS, Request, Transport, port_failure, port_lost, probe_in_turn
+from motion.transport.portlock import PortLock, device_key
 
 #: Baud rates RMD RS485 drives of the older generation support (v1.62: 115200 is the factory default).
 BAUDRATES: Final = RS485_BAUDRATES[ProtocolFamily.V2]
@@ -65,6 +66,7 @@ class Rs485Transport(Transport):
 
     Raises:
         EncodeError: the baud rate is not one RMD drives support (checked before the port is touched).
+        PortHeld: another rmd-motion session holds the port (:mod:`motion.transport.portlock`).
         TransportError: the port could not be opened (missing, busy, locked by another process).
     """
 
@@ -89,6 +91,9 @@ class Rs485Transport(Transport):
             )
         self.port = port
         self.baudrate = baudrate
+        # the session's lock first (another rmd-motion session is named), then pyserial's lock on the device itself
+        # (against any other program that locks it)
+        lock = PortLock(device_key(port), f"RS485 port {port!r}", "rs485")
         try:
             # timeout=0: reads return what is there; waiting is done with select until a window's end instead,
             # because changing pyserial's timeout reconfigures the port on every call.
@@ -104,7 +109,9 @@ class Rs485Transport(Transport):
             )
             self._fds: list[int] = [self._serial.fileno()]
         except (serial.SerialException, OSError, ValueError) as exc:
+            lock.release()
             raise PortUnavailable(f"cannot open RS485 port {port!r} at {baudrate} baud: {exc}", "rs485") from exc
+        self._port_lock = lock
         self._speak()
 
     def _speak(self, *, owns_port: bool = True) -> None:
@@ -126,6 +133,8 @@ class Rs485Transport(Transport):
         sibling._speak(owns_port=takes_port and self._owns_port)
         sibling.frame_tap = self.frame_tap
         if takes_port:
+            if self._owns_port:
+                self._hand_over_lock(sibling)
             self._owns_port = False
         return sibling
 
