@@ -20,6 +20,7 @@ from motion.compose import (
     build_controller,
     build_supervisor,
     check_rate,
+    check_stability,
     emulated_frames,
     feedforward_for,
     identify_position_loops,
@@ -27,6 +28,7 @@ from motion.compose import (
     open_bus,
     opening_families,
     resolve_frames,
+    with_bandwidth_gains,
 )
 from motion.config import ArmConfig, load_config_or_example
 from motion.control.clock import Clock
@@ -124,7 +126,7 @@ class Arm:
             if emulate or bus_overrides:
                 raise ValueError("bus: a transport of the caller's own takes the place of emulate= and bus_overrides=")
         self._given_bus = bus
-        self.config = config
+        self.config = with_bandwidth_gains(config)  # (gains from a bandwidth: the arm's model decides them)
         self._view_options = ViewOptions() if view is True else (view or None)
         #: The live page while connected with ``view=`` (see :mod:`motion.view`; ``view.url`` says where).
         self.view: LiveView | None = None
@@ -209,9 +211,12 @@ class Arm:
         Raises:
             TransportError: the bus cannot be opened or a drive does not answer.
             RateError: the configured rate cannot be held on this host and bus (a ConfigError; nothing moved).
+            StabilityError: torque mode's PD of some joint has no stability margin at the configured rate (a
+                ConfigError, raised before the bus is opened).
             HomingError: a joint of ``home`` could not be homed (every axis halted).
             MotionFault: a fault or a stop halted every axis during homing.
         """
+        check_stability(self.config)  # before anything is opened: nothing to undo
         self._begin_connecting()
         try:
             if self._telemetry_options is not None:

@@ -336,7 +336,11 @@ class JointConfig:
         jerk_limit_dps3: joint jerk limit in deg/s³.
         encoder_bits: single-turn encoder resolution in bits (12..18).
         kp_nm_per_deg: torque-mode stiffness in N·m per degree (required when control.mode is torque).
-        kd_nm_per_dps: torque-mode damping in N·m per deg/s (required when control.mode is torque).
+        kd_nm_per_dps: torque-mode damping in N·m per deg/s (required when control.mode is torque, unless
+            ``bandwidth_hz`` is given).
+        bandwidth_hz: torque mode: the PD loop's bandwidth, Hz, instead of ``kp_nm_per_deg`` and
+            ``kd_nm_per_dps``: the gains of a critically damped loop at the heaviest the joint is in the limits
+            (:func:`motion.compose.with_bandwidth_gains` fills them in; None: the gains as given).
         temperature_limit_c: motor temperature that faults the arm, in °C.
         rotor_inertia_kgm2: motor rotor inertia, motor side, in kg·m² (the collision observer's model adds
             gear_ratio² times this to the joint's diagonal of M(q)).
@@ -376,6 +380,7 @@ class JointConfig:
     encoder_bits: int = 14
     kp_nm_per_deg: float = 0.0
     kd_nm_per_dps: float = 0.0
+    bandwidth_hz: float | None = None
     temperature_limit_c: float = 70.0
     rotor_inertia_kgm2: float = 3.0e-5
     viscous_friction_nm_per_dps: float = 2.0e-4
