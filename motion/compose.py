@@ -14,7 +14,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from motion.config.schema import ArmConfig, BusConfig, CanBusConfig, JointConfig, ProtocolSetting
+from motion.config.schema import (
+    ArmConfig,
+    BusConfig,
+    CanBusConfig,
+    JointConfig,
+    ProtocolSetting,
+    link_timeout_problem,
+)
 from motion.control import identify
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
@@ -22,7 +29,7 @@ from motion.control.controller import Controller, ControllerOptions, Feedforward
 from motion.control.drive_record import same_power_on
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.family import FAMILIES
-from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate, stable_floor_hz
+from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
 from motion.control.stability import (
     MASS_LOW,
     ROTOR_INERTIA_LOW,
@@ -367,6 +374,21 @@ def torque_stability(config: ArmConfig, rate_hz: float | None = None) -> Stabili
     return stability_report(torque_loops(config), config.control.rate_hz if rate_hz is None else rate_hz)
 
 
+def check_envelope(config: ArmConfig) -> StabilityReport | None:
+    """At connect, before the bus opens: what the configuration's rate must hold that a file's own checks cannot see
+    when the configuration was changed in code (the communication-loss time against the period), and the torque loop's
+    stability (:func:`check_stability`, whose report is returned).
+
+    Raises:
+        ConfigError: ``safety.link_timeout_ms`` shorter than the loop leaves between a drive's frames.
+        StabilityError: a joint's PD without margin at the rate.
+    """
+    problem = link_timeout_problem(config.safety.link_timeout_ms, config.control.rate_hz)
+    if problem is not None:
+        raise ConfigError(config.source, "safety.link_timeout_ms", problem)
+    return check_stability(config)
+
+
 def check_stability(config: ArmConfig) -> StabilityReport | None:
     """At connect, before the bus opens: in a mode where the host closes the loop, every joint's PD keeps its margin
     at the configured rate (None in other modes).
@@ -387,7 +409,8 @@ def stable_from_hz(config: ArmConfig) -> float:
     loop, the lowest rate at which every joint's PD keeps its margin; else 0."""
     if not config.control.mode.traits.host_torque:
         return 0.0
-    return stable_floor_hz(torque_stability(config).lowest_rate_hz)
+    lowest = torque_stability(config).lowest_rate_hz
+    return math.inf if math.isnan(lowest) else lowest
 
 
 def check_rate(controller: Controller, config: ArmConfig) -> RateCheck:

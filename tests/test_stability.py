@@ -6,12 +6,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import random
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from motion import Arm
+from motion import Arm, MotionFault
 from motion.cli import main
 from motion.compose import torque_loops, torque_stability, with_bandwidth_gains
 from motion.config import ArmConfig, load_config, load_config_or_example
@@ -27,7 +28,7 @@ from motion.control.stability import (
     lowest_rate_hz,
 )
 from motion.errors import ConfigError
-from tests.drive_models import DriveDraw, JointDraw, with_drives
+from tests.drive_models import DriveDraw, JointDraw, draw_drives, with_drives
 from tests.motion_rig import CONFIGS
 
 ARM2 = load_config_or_example("arm2.yaml")
@@ -140,7 +141,7 @@ def test_the_rate_check_never_recommends_a_rate_below_the_loops_floor() -> None:
     assert check.highest_rate_hz == 130.0 and check.recommended_rate_hz == 0.0 and not check.holds
     text = str(RateError("arm.yaml", check))
     assert "no rate both holds on this host and bus and keeps torque mode's PD loop stable" in text
-    assert "hold up to 130 Hz" in text and "at least 180 Hz" in text
+    assert "hold up to 130 Hz" in text and "at least 180.0 Hz" in text
     fast = dataclasses.replace(check, round_trip_p99_s=0.001, host_p99_s=0.0001, rate_hz=150.0)
     assert fast.recommended_rate_hz >= 180.0 and not fast.holds
     assert "150 Hz is below the rate torque mode's PD loop needs" in str(RateError("arm.yaml", fast))
@@ -151,9 +152,9 @@ def test_the_rate_check_never_recommends_a_rate_below_the_loops_floor() -> None:
 def test_the_simulated_connect_reports_the_floor() -> None:
     with Arm(at_rate(ARM2, 250.0), emulate=True) as arm:
         assert arm.rate_check is not None
-        lowest = torque_stability(ARM2).lowest_rate_hz  # (175.x Hz: the floor is the next step up)
-        assert 175.0 < lowest < arm.rate_check.stable_from_hz == 180.0
-        assert "the torque loop's gains need at least 180 Hz" in arm.rate_check.summary()
+        lowest = torque_stability(ARM2).lowest_rate_hz
+        assert arm.rate_check.stable_from_hz == lowest and 175.0 < lowest < 176.0
+        assert f"the torque loop's gains need at least {lowest:.1f} Hz" in arm.rate_check.summary()
 
 
 def test_check_offline_prints_each_joints_margin_and_refuses_a_torque_arm_without_one(
@@ -211,3 +212,35 @@ def test_gains_from_a_bandwidth_are_critically_damped_at_the_heaviest_pose_and_c
         load_config(_with_bandwidth(tmp_path, "    bandwidth_hz: 3.0\n    kp_nm_per_deg: 0.3\n"))
     with pytest.raises(ConfigError, match="bandwidth_hz"):
         load_config(_with_bandwidth(tmp_path, "    bandwidth_hz: -1\n"))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_no_accepted_rate_diverges_on_drawn_drives(seed: int) -> None:
+    # drawn drives (tuning, torque constant, rotor inertia, friction, latency) at a drawn rate from 10 Hz up: a rate
+    # the check accepts moves the arm without a joint ever reaching 1.5 times its velocity limit; one it refuses is
+    # refused before anything opens
+    rng = random.Random(5000 + seed)
+    name, highest_hz = rng.choice((("arm2.yaml", 500.0), ("arm6_v3.yaml", 160.0)))  # (what the simulated bus holds)
+    base = load_config_or_example(name)
+    rate = float(round(10 ** rng.uniform(1.0, math.log10(highest_hz))))
+    config = with_drives(at_rate(base, rate), draw_drives(rng, len(base.joints)))
+    if torque_stability(config).failing:
+        with pytest.raises(StabilityError):
+            Arm(config, emulate=True).connect()
+        return
+    limits = np.array([j.velocity_limit_dps for j in config.joints])
+    peak = np.zeros(len(limits))
+
+    def watch(controller, _now, _replies) -> None:
+        np.maximum(peak, np.abs(controller.axes.qd_dps) / limits, out=peak)
+
+    with Arm(config, emulate=True) as arm:
+        assert arm.controller is not None
+        arm.controller.cycle_hooks.append(watch)
+        target = {j.name: 0.3 * rng.uniform(j.position_min_deg, j.position_max_deg) for j in config.joints}
+        try:
+            arm.move_to(target, speed_scale=rng.uniform(0.3, 1.0))
+            arm.sleep(0.5)
+        except MotionFault:  # (a fault halts the arm: what matters here is that nothing diverged first)
+            pass
+    assert peak.max() < 1.5, f"{config.name} at {rate:g} Hz: peak speed {peak.max():.2f} x the velocity limit"

@@ -19,8 +19,8 @@ from motion.compose import (
     arm_figure,
     build_controller,
     build_supervisor,
+    check_envelope,
     check_rate,
-    check_stability,
     emulated_frames,
     feedforward_for,
     identify_position_loops,
@@ -212,11 +212,12 @@ class Arm:
             TransportError: the bus cannot be opened or a drive does not answer.
             RateError: the configured rate cannot be held on this host and bus (a ConfigError; nothing moved).
             StabilityError: torque mode's PD of some joint has no stability margin at the configured rate (a
-                ConfigError, raised before the bus is opened).
+                ConfigError, raised before the bus is opened; so is a ``safety.link_timeout_ms`` shorter than the
+                loop leaves between a drive's frames).
             HomingError: a joint of ``home`` could not be homed (every axis halted).
             MotionFault: a fault or a stop halted every axis during homing.
         """
-        check_stability(self.config)  # before anything is opened: nothing to undo
+        check_envelope(self.config)  # before anything is opened: nothing to undo
         self._begin_connecting()
         try:
             if self._telemetry_options is not None:

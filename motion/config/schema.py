@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
-from typing import ClassVar, NamedTuple, TypeAlias
+from typing import ClassVar, Final, NamedTuple, TypeAlias
 
 from motion.errors import ConfigError
 from motion.protocol import WireProtocol
@@ -462,6 +462,30 @@ class SafetyConfig:
     collision_observer_gain_per_s: float = 125.0
     collision_window_s: float = 0.032
     link_timeout_ms: float | None = None
+
+
+#: The shortest communication-loss time a loop of a given period may set, in periods: every cycle sends each drive
+#: a frame, and a cycle that overruns is skipped, so two periods may pass between a drive's frames.
+LINK_TIMEOUT_MIN_PERIODS: Final = 2
+#: ... plus this, ms: a drive's own timer counts whole milliseconds.
+LINK_TIMEOUT_TIMER_MS: Final = 1.0
+
+
+def link_timeout_problem(link_timeout_ms: float | None, rate_hz: float) -> str | None:
+    """What is wrong with a configured communication-loss time at ``rate_hz`` (None: nothing; 0 and None are the
+    protection off and the default). A time shorter than the gap between two of a drive's frames cuts every drive's
+    output between cycles."""
+    if not link_timeout_ms:
+        return None
+    shortest_ms = LINK_TIMEOUT_MIN_PERIODS * 1000.0 / rate_hz + LINK_TIMEOUT_TIMER_MS
+    if link_timeout_ms >= shortest_ms:
+        return None
+    return (
+        f"{link_timeout_ms:g} ms is shorter than a loop at {rate_hz:g} Hz leaves between a drive's frames: at least "
+        f"{LINK_TIMEOUT_MIN_PERIODS} periods plus the drive's {LINK_TIMEOUT_TIMER_MS:g} ms timer step, "
+        f"{shortest_ms:g} ms (the drives would cut their output and lock their brakes between cycles): raise it, "
+        "remove it (five periods by default) or raise control.rate_hz"
+    )
 
 
 @dataclass(frozen=True, slots=True)

@@ -172,8 +172,8 @@ class RateCheck:
         spread_hz: the lowest and highest of the rates that hold by each of :data:`SPREAD_PARTS` runs of the
             exchanges on its own (not rounded); None where too few were measured (a simulation).
         stable_from_hz: a mode where the host closes the loop: the lowest rate at which every joint's PD keeps its
-            stability margin (:mod:`motion.control.stability`), rounded up to a step; 0 where no such floor
-            applies; ``inf`` where no rate up to 1 kHz holds the gains. No rate below it holds or is recommended.
+            stability margin (:mod:`motion.control.stability`); 0 where no such floor applies; ``inf`` where no
+            rate up to 1 kHz holds the gains. No rate below it holds or is recommended.
     """
 
     rate_hz: float
@@ -221,7 +221,9 @@ class RateCheck:
         low = highest if self.spread_hz is None else min(highest, self.spread_hz[0])
         # never 0 where a rate holds: at the lowest step, the highest itself
         recommended = max(min(highest, rate_step(highest)), round_rate(low * RECOMMENDED_SHARE))
-        return max(recommended, self.stable_from_hz)
+        if recommended < self.stable_from_hz:  # (the floor's next step: at most the highest, a step at or above it)
+            return min(highest, stable_floor_hz(self.stable_from_hz))
+        return recommended
 
     def spread_text(self) -> str:
         """The spread for people ("" where none was measured)."""
@@ -257,12 +259,12 @@ class RateCheck:
             return ""
         if math.isinf(self.stable_from_hz):
             return "; the torque loop's gains hold at no rate up to 1000 Hz"
-        return f"; the torque loop's gains need at least {self.stable_from_hz:g} Hz"
+        return f"; the torque loop's gains need at least {self.stable_from_hz:.1f} Hz"
 
 
 def stable_floor_hz(lowest_hz: float) -> float:
-    """The lowest stable rate (:func:`motion.control.stability.lowest_rate_hz`, ``nan``: none) as
-    :attr:`RateCheck.stable_from_hz`: rounded up to a step, ``inf`` for none."""
+    """The lowest stable rate (:func:`motion.control.stability.lowest_rate_hz`, ``nan``: none) rounded up to a step
+    (the rate to propose), ``inf`` for none."""
     if math.isnan(lowest_hz):
         return math.inf
     step = rate_step(lowest_hz)
