@@ -108,7 +108,7 @@ def test_a_torque_arm_at_a_rate_its_gains_do_not_hold_is_refused_before_anything
         Arm(at_rate(ARM2, 40.0), emulate=True).connect()
     text = str(refused.value)
     assert "elbow: gain margin 0.00 at 40 Hz" in text and "shoulder: gain margin" in text
-    assert "the lowest rate at which every joint's gains hold is 175 Hz" in text
+    assert "the lowest rate at which every joint's gains hold is 143 Hz" in text
     assert isinstance(refused.value, ConfigError) and refused.value.key_path == "control.rate_hz"
     # position mode at the same rate: the drives close the loop, the host's gains are not used
     with Arm(at_rate(ARM2, 40.0, ControlMode.POSITION), emulate=True) as arm:
@@ -153,7 +153,7 @@ def test_the_simulated_connect_reports_the_floor() -> None:
     with Arm(at_rate(ARM2, 250.0), emulate=True) as arm:
         assert arm.rate_check is not None
         lowest = torque_stability(ARM2).lowest_rate_hz
-        assert arm.rate_check.stable_from_hz == lowest and 175.0 < lowest < 176.0
+        assert arm.rate_check.stable_from_hz == lowest and 142.0 < lowest < 144.0
         assert f"the torque loop's gains need at least {lowest:.1f} Hz" in arm.rate_check.summary()
 
 
@@ -163,15 +163,15 @@ def test_check_offline_prints_each_joints_margin_and_refuses_a_torque_arm_withou
     code = main(["check", "--config", "arm2.yaml", "--offline"])
     out, err = capsys.readouterr()
     assert code == 0, err
-    assert "torque mode's PD loop at 500 Hz" in out and "rates its gains allow: 175 Hz and up" in out
-    assert "elbow     3.02    175 Hz" in out
+    assert "torque mode's PD loop at 500 Hz" in out and "rates its gains allow: 143 Hz and up" in out
+    assert "elbow     3.02    143 Hz" in out
     slow = tmp_path / "arm2.yaml"
     slow.write_text((CONFIGS / "arm2.yaml").read_text().replace("rate_hz: 500", "rate_hz: 60"))
     code = main(["check", "--config", str(slow), "--offline", "--json"])
     out, err = capsys.readouterr()
     assert code == 2
     report = json.loads(out)
-    assert report["stability"]["in_use"] and report["stability"]["lowest_rate_hz"] == pytest.approx(175, abs=1)
+    assert report["stability"]["in_use"] and report["stability"]["lowest_rate_hz"] == pytest.approx(143, abs=1)
     assert report["stability"]["joints"]["elbow"]["margin"] < 1.0
     assert any("elbow: gain margin" in e for e in report["errors"])
     # position mode: the same figures, for information only

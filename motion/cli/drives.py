@@ -546,6 +546,7 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
                     "spread_hz": None if c.spread_hz is None else list(c.spread_hz),
                     "samples": c.samples,
                     "recommended_rate_hz": c.recommended_rate_hz,
+                    "stable_from_hz": c.stable_from_hz if math.isfinite(c.stable_from_hz) else None,
                     "holds": c.holds,
                 }
                 for mode, c in checks.items()

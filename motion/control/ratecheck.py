@@ -262,6 +262,13 @@ class RateCheck:
         return f"; the torque loop's gains need at least {self.stable_from_hz:.1f} Hz"
 
 
+    def floor_text(self) -> str:
+        """", but not below N Hz ..." where a stability floor applies ("" where none does)."""
+        if self.stable_from_hz <= 0.0 or math.isinf(self.stable_from_hz):
+            return ""
+        return f", but not below {self.stable_from_hz:.1f} Hz, where torque mode's PD loop loses its margin"
+
+
 def stable_floor_hz(lowest_hz: float) -> float:
     """The lowest stable rate (:func:`motion.control.stability.lowest_rate_hz`, ``nan``: none) rounded up to a step
     (the rate to propose), ``inf`` for none."""
@@ -316,10 +323,9 @@ class RateError(ConfigError):
             f" ms (p99) and this host's work {check.host_p99_s * 1e3:.2f} ms, against a period of "
             f"{1e3 / check.rate_hz:.2f} ms ({check.reply_budget:.0%} of it for the replies) with a margin of "
             f"{check.margin:g}; the highest rate that holds is {check.highest_rate_hz:g} Hz{check.spread_text()}"
-            f"{check.bus_text()} (set "
-            f"control.rate_hz to "
-            f"{check.recommended_rate_hz:g} Hz or lower, which leaves room for the spread between measurements, or "
-            "accept a smaller margin with control.rate_margin)",
+            f"{check.bus_text()} (set control.rate_hz to {check.recommended_rate_hz:g} Hz or lower"
+            f"{check.floor_text()}, which leaves room for the spread between measurements, or accept a smaller "
+            "margin with control.rate_margin)",
         )
 
 

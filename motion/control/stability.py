@@ -27,13 +27,12 @@ map's spectral radius reaches 1. It is computed at the stated bounds, where the 
 - ``κ``: :data:`TORQUE_CONSTANT_HIGH` (the torque constant may be 20 % above the configured one);
 - ``L``: :data:`LATENCY_S`, the drives' reply latency bound; ``τc``: :data:`CURRENT_LOOP_S`.
 
-A configuration is accepted where every torque-mode joint keeps a margin of at least :data:`REQUIRED_MARGIN` on top
-of those bounds. The bounds' corner already asks the loop to bear 1.5 times the nominal gain (the torque constant
-20 % up with the masses 20 % down) and a longer delay; the further 25 % (2 dB) is for what no bound states (a host
-that wakes late, a speed the drive filters, a link's elasticity), and keeps the worst drive's loop from ringing at
-the edge of stability (a loop accepted with a margin of exactly 1 at the corner would ring for ever there). Outside
-it the check names the joint, its margin,
-the lowest rate at which its gains hold and the highest gains that hold at this rate.
+A configuration is accepted where every torque-mode joint keeps a margin of at least :data:`REQUIRED_MARGIN` there:
+stable on every drive the stated bounds allow. The corner is itself the margin asked of the nominal drive: it bears
+the torque constant 20 % up with the masses 20 % down (1.5 times the nominal loop gain) and five times the emulated
+drives' latency, so that a configuration at the limit keeps about 1.65 (4.3 dB) on a drive as configured. Outside it
+the check names the joint, its margin, the lowest rate at which its gains hold and the highest gains that hold at this
+rate.
 
 Gains from a bandwidth (:func:`gains_for_bandwidth`): ``Kp = J ω²``, ``Kd = 2 ζ J ω`` with ``ω = 2π f`` and ``ζ = 1``
 (critically damped), at the *largest* inertia the joint sees (so that the bandwidth is at least ``f`` and the loop at
@@ -52,8 +51,8 @@ import numpy as np
 
 from motion.errors import ConfigError
 
-#: The margin every torque-mode joint must keep at the stated bounds' corner (2 dB: see the module docstring).
-REQUIRED_MARGIN: Final = 1.25
+#: The margin every torque-mode joint must keep at the stated bounds' corner: stable there (see the module docstring).
+REQUIRED_MARGIN: Final = 1.0
 #: The true torque constant may be this factor of the configured one (the stated bound: ±20 %).
 TORQUE_CONSTANT_HIGH: Final = 1.2
 #: The rotor's inertia may be this factor of the configured one (the stated bound: ±30 %).
