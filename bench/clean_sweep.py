@@ -36,6 +36,9 @@ def main() -> None:
     parser.add_argument(
         "--bound-only", action="store_true", help="every collision threshold 1 mN·m: the bound is the one in force"
     )
+    parser.add_argument(
+        "--low-rates", action="store_true", help="rates drawn from 10 Hz up to each arm's highest, in both modes"
+    )
     args = parser.parse_args()
     if args.count < 1 or args.jobs < 1 or args.first < 0:
         parser.error("--count and --jobs must be >= 1, --first >= 0")
@@ -55,6 +58,7 @@ def main() -> None:
         quick=args.quick,
         bound_only=args.bound_only,
         detecting=True,
+        low_rates=args.low_rates,
     )
     for done, one in enumerate(swept, 1):
         k, outcome, fault, detection = one.k, one.outcome, one.fault, one.detection

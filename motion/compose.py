@@ -14,7 +14,14 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from motion.config.schema import ArmConfig, BusConfig, CanBusConfig, JointConfig, ProtocolSetting
+from motion.config.schema import (
+    ArmConfig,
+    BusConfig,
+    CanBusConfig,
+    JointConfig,
+    ProtocolSetting,
+    link_timeout_problem,
+)
 from motion.control import identify
 from motion.control.axes import AxisSpec
 from motion.control.clock import Clock
@@ -23,6 +30,15 @@ from motion.control.drive_record import same_power_on
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.family import FAMILIES
 from motion.control.ratecheck import DEFAULT_MARGIN, RateCheck, RateError, measure_rate
+from motion.control.stability import (
+    MASS_LOW,
+    ROTOR_INERTIA_LOW,
+    JointLoop,
+    StabilityError,
+    StabilityReport,
+    gains_for_bandwidth,
+    stability_report,
+)
 from motion.control.startup import read_angles, read_runtimes
 from motion.control.tracking import PositionLoopFit
 from motion.control.turns import (
@@ -322,6 +338,81 @@ def build_controller(
     return controller
 
 
+def torque_loops(config: ArmConfig) -> tuple[JointLoop, ...]:
+    """Every joint's torque-mode loop as :mod:`motion.control.stability` checks it: its gains and the inertia it sees
+    across the joint limits (:func:`kinematics.envelope.inertia_envelope`, at the stated bounds' low end)."""
+    from kinematics import build_arm  # noqa: PLC0415 - Pinocchio only where a check needs it
+    from kinematics.envelope import inertia_envelope  # noqa: PLC0415
+
+    envelope = inertia_envelope(build_arm(config), config, mass_low=MASS_LOW, rotor_low=ROTOR_INERTIA_LOW)
+    return tuple(
+        JointLoop(j.name, j.kp_nm_per_deg, j.kd_nm_per_dps, float(low), float(high))
+        for j, low, high in zip(config.joints, envelope.low_kgm2, envelope.high_kgm2, strict=True)
+    )
+
+
+def with_bandwidth_gains(config: ArmConfig) -> ArmConfig:
+    """``config`` with the gains of every joint that gives ``bandwidth_hz`` filled in
+    (:func:`motion.control.stability.gains_for_bandwidth` at the largest inertia the joint sees in the limits, so that
+    the bandwidth is at least the one given and the loop at least critically damped at every pose); ``config``
+    itself where no joint gives one."""
+    if all(j.bandwidth_hz is None for j in config.joints):
+        return config
+    loops = torque_loops(config)
+    joints = []
+    for joint, loop in zip(config.joints, loops, strict=True):
+        if joint.bandwidth_hz is None:
+            joints.append(joint)
+            continue
+        kp, kd = gains_for_bandwidth(joint.bandwidth_hz, loop.inertia_high_kgm2)
+        joints.append(dataclasses.replace(joint, kp_nm_per_deg=kp, kd_nm_per_dps=kd))
+    return dataclasses.replace(config, joints=tuple(joints))
+
+
+def torque_stability(config: ArmConfig, rate_hz: float | None = None) -> StabilityReport:
+    """Every joint's torque-mode margin at ``rate_hz`` (default: the configured rate), whatever the mode."""
+    return stability_report(torque_loops(config), config.control.rate_hz if rate_hz is None else rate_hz)
+
+
+def check_envelope(config: ArmConfig) -> StabilityReport | None:
+    """At connect, before the bus opens: what the configuration's rate must hold that a file's own checks cannot see
+    when the configuration was changed in code (the communication-loss time against the period), and the torque loop's
+    stability (:func:`check_stability`, whose report is returned).
+
+    Raises:
+        ConfigError: ``safety.link_timeout_ms`` shorter than the loop leaves between a drive's frames.
+        StabilityError: a joint's PD without margin at the rate.
+    """
+    problem = link_timeout_problem(config.safety.link_timeout_ms, config.control.rate_hz)
+    if problem is not None:
+        raise ConfigError(config.source, "safety.link_timeout_ms", problem)
+    return check_stability(config)
+
+
+def check_stability(config: ArmConfig) -> StabilityReport | None:
+    """At connect, before the bus opens: in a mode where the host closes the loop, every joint's PD keeps its margin
+    at the configured rate (None in other modes).
+
+    Raises:
+        StabilityError: a joint without margin (names it, its margin, the lowest rate and the highest gains that hold).
+    """
+    if not config.control.mode.traits.host_torque:
+        return None
+    report = torque_stability(config)
+    if report.failing:
+        raise StabilityError(config.source, report)
+    return report
+
+
+def stable_from_hz(config: ArmConfig) -> float:
+    """The rate check's floor for ``config``'s mode (:attr:`RateCheck.stable_from_hz`): where the host closes the
+    loop, the lowest rate at which every joint's PD keeps its margin; else 0."""
+    if not config.control.mode.traits.host_torque:
+        return 0.0
+    lowest = torque_stability(config).lowest_rate_hz
+    return math.inf if math.isnan(lowest) else lowest
+
+
 def check_rate(controller: Controller, config: ArmConfig) -> RateCheck:
     """The rate check at connect (after ``read_positions``, before the loop starts): measure the round trip and a
     guarded cycle's host work (a watchdog of the configuration's, collision observer included, rehearsing on the
@@ -338,7 +429,12 @@ def check_rate(controller: Controller, config: ArmConfig) -> RateCheck:
             margin,
             DEFAULT_MARGIN,
         )
-    check = measure_rate(controller, margin=margin, rehearse=rehearsal_watchdog(config, controller).rehearse)
+    check = measure_rate(
+        controller,
+        margin=margin,
+        rehearse=rehearsal_watchdog(config, controller).rehearse,
+        stable_from_hz=stable_from_hz(config),
+    )
     logger.info("rate check: %s", check.summary())
     if not check.holds:
         raise RateError(config.source, check)

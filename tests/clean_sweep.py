@@ -14,6 +14,7 @@ import contextlib
 import dataclasses
 import functools
 import logging
+import math
 import multiprocessing
 import random
 from collections.abc import Iterator
@@ -27,8 +28,9 @@ from motion import Arm
 from motion.api import MotionHandle
 from motion.cli.collision import propose
 from motion.config import ArmConfig, load_config
-from motion.config.schema import ControlMode, SafetyConfig
+from motion.config.schema import ControlMode, SafetyConfig, link_timeout_problem
 from motion.control.ratecheck import RateError
+from motion.control.stability import StabilityError
 from motion.emulator.timing import TimingModel
 from motion.errors import MotionFault
 from tests.collision_trials import Trial, collision_trial, nominal_run, with_thresholds, without_thresholds
@@ -43,6 +45,8 @@ ARMS: dict[str, tuple[float, ...]] = {
     "arm6_v3.yaml": (62.5, 125.0),
     "arm2.yaml": (100.0, 250.0, 500.0),
 }
+#: The lowest rate drawn with ``low_rates`` (:func:`draw`), Hz.
+LOWEST_RATE_HZ = 10.0
 #: The reply latency's jitter drawn, s (on top of the drawn latency, per reply).
 JITTER_RANGE_S = (0.0, 0.0005)
 #: How long a case waits for each step of its path, simulated s.
@@ -98,9 +102,12 @@ def example(arm: str) -> ArmConfig:
     return load_config(CONFIGS / arm)
 
 
-def draw(rng: random.Random, *, quick: bool = False) -> Case:
+def draw(rng: random.Random, *, quick: bool = False, low_rates: bool = False) -> Case:
     """A random clean case (``quick``: a path of one step, a move or a follow of two poses, as the test command's
-    sweep runs; else one to three steps of up to three poses)."""
+    sweep runs; else one to three steps of up to three poses; ``low_rates``: the rate drawn log-uniformly from
+    :data:`LOWEST_RATE_HZ` up to the arm's highest in :data:`ARMS`, in both modes: a torque-mode rate its gains do not
+    hold is refused at connect, which is right; drawn last, so that the other draws are those of the same case
+    without it)."""
     arm = rng.choice(sorted(ARMS))
     config = example(arm)
     tuned = all(j.kp_nm_per_deg > 0 for j in config.joints)
@@ -118,12 +125,14 @@ def draw(rng: random.Random, *, quick: bool = False) -> Case:
     drives = draw_drives(rng, len(config.joints))
     jitter = round(rng.uniform(*JITTER_RANGE_S), 6)
     collision = (rng.randrange(len(config.joints)), round(rng.uniform(*ONSET_RANGE_S), 3), rng.choice((-1.0, 1.0)))
+    if low_rates:
+        rate = float(round(10 ** rng.uniform(math.log10(LOWEST_RATE_HZ), math.log10(max(ARMS[arm])))))
     return Case(arm, mode, rate, drives, jitter, tuple(steps), collision)
 
 
-def drawn(seed: int, k: int, *, quick: bool = False) -> Case:
+def drawn(seed: int, k: int, *, quick: bool = False, low_rates: bool = False) -> Case:
     """Case ``k`` of the sweep seeded ``seed`` (each case from its own generator)."""
-    return draw(random.Random(f"{seed}:{k}"), quick=quick)
+    return draw(random.Random(f"{seed}:{k}"), quick=quick, low_rates=low_rates)
 
 
 def config_of(case: Case, *, bound_only: bool = False) -> ArmConfig:
@@ -132,6 +141,9 @@ def config_of(case: Case, *, bound_only: bool = False) -> ArmConfig:
     config = with_drives(example(case.arm), case.drives)
     control = dataclasses.replace(config.control, mode=case.mode, rate_hz=case.rate_hz)
     config = dataclasses.replace(config, control=control)
+    if link_timeout_problem(config.safety.link_timeout_ms, case.rate_hz) is not None:
+        # (a rate below the one the example's communication-loss time is set for: the default, as a user would)
+        config = dataclasses.replace(config, safety=dataclasses.replace(config.safety, link_timeout_ms=None))
     if bound_only and config.collision_watched:
         config = with_thresholds(config, [BOUND_ONLY_NM] * len(config.joints))
     return config
@@ -203,7 +215,7 @@ def run(case: Case, *, safety: SafetyConfig | None = None, bound_only: bool = Fa
     ratio = np.zeros(n)
     try:
         arm.connect()
-    except RateError as refused:
+    except (RateError, StabilityError) as refused:
         outcome.refused = str(refused)
         arm.close()
         return outcome
@@ -246,11 +258,11 @@ class Swept:
     calibrated_detection: tuple[str, int | None, str] | None = None  # with thresholds calibrated on its drives
 
 
-def sweep_one(seed: int, k: int, quick: bool, bound_only: bool, detecting: bool) -> Swept:
+def sweep_one(seed: int, k: int, quick: bool, bound_only: bool, detecting: bool, low_rates: bool = False) -> Swept:
     """Play case ``k`` of the draw ``seed`` (and, with ``detecting``, its first step again with its collision, with
     the example's thresholds and with thresholds calibrated on the case's drives)."""
     logging.disable(logging.CRITICAL)
-    case = drawn(seed, k, quick=quick)
+    case = drawn(seed, k, quick=quick, low_rates=low_rates)
     outcome = run(case, bound_only=bound_only)
     fault, outcome.fault = outcome.fault, None
     swept = Swept(k, outcome, None if fault is None else str(fault))
@@ -265,7 +277,7 @@ def _detected(trial: Trial | None) -> tuple[str, int | None, str] | None:
     return None if trial is None else (trial.joint, trial.latency_cycles if trial.isolated else None, str(trial.fault))
 
 
-def _sweep_one(args: tuple[int, int, bool, bool, bool]) -> Swept:
+def _sweep_one(args: tuple[int, int, bool, bool, bool, bool]) -> Swept:
     return sweep_one(*args)
 
 
@@ -278,10 +290,11 @@ def sweep(
     quick: bool = False,
     bound_only: bool = False,
     detecting: bool = False,
+    low_rates: bool = False,
 ) -> Iterator[Swept]:
     """Cases ``first .. first + count - 1`` of the draw ``seed`` in ``jobs`` worker processes (1: in this one), each
     as it comes."""
-    work = [(seed, k, quick, bound_only, detecting) for k in range(first, first + count)]
+    work = [(seed, k, quick, bound_only, detecting, low_rates) for k in range(first, first + count)]
     if jobs == 1:
         yield from map(_sweep_one, work)
         return

@@ -310,6 +310,8 @@ def test_sigkill_of_the_controller_mid_move_stops_every_v3_drive_within_the_link
     config_path = tmp_path / "arm2.yaml"
     data = yaml.safe_load((ROOT / "configs" / "arm2.yaml").read_text())
     data["control"]["rate_hz"] = 100  # a rate every host holds in real time (the point here is the drives' stop)
+    # ... with arm2_rs485's elbow gains, which keep their stability margin at 100 Hz (arm2's own need 143 Hz)
+    data["joints"][1]["kp_nm_per_deg"], data["joints"][1]["kd_nm_per_dps"] = 0.16, 0.0054
     data["safety"]["link_timeout_ms"] = 50
     # a busy host stalls a process for tens of milliseconds (this test failed on one, the controller faulting with
     # no_reply before it moved): a quarter of a second, in time and in missed cycles, as the command-line tests allow

@@ -20,6 +20,7 @@ from motion.compose import (
     arm_figure,
     build_controller,
     build_supervisor,
+    check_envelope,
     check_rate,
     emulated_frames,
     feedforward_for,
@@ -28,6 +29,7 @@ from motion.compose import (
     open_bus,
     opening_families,
     resolve_frames,
+    with_bandwidth_gains,
 )
 from motion.config import ArmConfig, load_config_or_example
 from motion.control.clock import Clock
@@ -126,7 +128,7 @@ class Arm:
             if emulate or bus_overrides:
                 raise ValueError("bus: a transport of the caller's own takes the place of emulate= and bus_overrides=")
         self._given_bus = bus
-        self.config = config
+        self.config = with_bandwidth_gains(config)  # (gains from a bandwidth: the arm's model decides them)
         self._view_options = ViewOptions() if view is True else (view or None)
         #: The live page while connected with ``view=`` (see :mod:`motion.view`; ``view.url`` says where).
         self.view: LiveView | None = None
@@ -222,9 +224,13 @@ class Arm:
             PortHeld: another rmd-motion session holds the bus or port (nothing was sent).
             TransportError: the bus cannot be opened or a drive does not answer.
             RateError: the configured rate cannot be held on this host and bus (a ConfigError; nothing moved).
+            StabilityError: torque mode's PD of some joint has no stability margin at the configured rate (a
+                ConfigError, raised before the bus is opened; so is a ``safety.link_timeout_ms`` shorter than the
+                loop leaves between a drive's frames).
             HomingError: a joint of ``home`` could not be homed (every axis halted).
             MotionFault: a fault or a stop halted every axis during homing.
         """
+        check_envelope(self.config)  # before anything is opened: nothing to undo
         with self._session_lock:
             if self._in_session:
                 raise MotionError(

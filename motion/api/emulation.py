@@ -20,6 +20,7 @@ from motion.compose import (
     open_bus,
     opening_families,
     rehearsal_watchdog,
+    stable_from_hz,
 )
 from motion.config import ArmConfig
 from motion.config.schema import CanBusConfig, ControlMode, ProtocolSetting
@@ -187,7 +188,9 @@ def measure_modes(config: ArmConfig, bus: Transport) -> dict[str, RateCheck]:
         controller = build_controller(variant, bus, feedforward=feedforward_for(variant))
         controller.read_positions()
         rehearse = rehearsal_watchdog(variant, controller).rehearse
-        checks[mode.value] = measure_rate(controller, margin=config.control.rate_margin, rehearse=rehearse)
+        checks[mode.value] = measure_rate(
+            controller, margin=config.control.rate_margin, rehearse=rehearse, stable_from_hz=stable_from_hz(variant)
+        )
     return checks
 
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 from enum import IntFlag
 from typing import Any, Final
 
-from motion.compose import negotiate_family, open_bus
+from motion.compose import negotiate_family, open_bus, with_bandwidth_gains
 from motion.config import ArmConfig, CanBusConfig, JointConfig, Rs485BusConfig, load_config_or_example
 from motion.config.schema import BusConfig
 from motion.errors import DrivesSilent, MotionError, PortHeld, PortUnavailable, TransportError
@@ -151,7 +151,7 @@ class Session:
             ConfigError: the file is missing or invalid.
             UsageError: an override for the other kind of bus.
         """
-        config = load_config_or_example(args.config)
+        config = with_bandwidth_gains(load_config_or_example(args.config))
         given: dict[str, list[str]] = {}
         for name in BUS_OVERRIDES:
             values = getattr(args, name, None) or []

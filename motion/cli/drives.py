@@ -8,6 +8,7 @@ releases the torque: an arm under gravity falls unless it has brakes).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import replace
@@ -29,12 +30,13 @@ from motion.cli.common import (
     warn,
 )
 from motion.cli.program import load_program
-from motion.compose import build_controller, drive_setup, resolve_frames
-from motion.config import JointConfig
+from motion.compose import build_controller, drive_setup, resolve_frames, torque_stability
+from motion.config import ArmConfig, JointConfig
 from motion.control.drive_record import DriveRecord
 from motion.control.drivesetup import LINK_TIMEOUT
 from motion.control.family import FAMILIES, DriveFamily
 from motion.control.ratecheck import RateError
+from motion.control.stability import REQUIRED_MARGIN, StabilityReport
 from motion.control.tracking import PositionLoopFit
 from motion.control.turns import CONTINUITY_MOTOR_DEG, joint_angle
 from motion.errors import FaultKind, MotionFault
@@ -544,6 +546,7 @@ def check(args: argparse.Namespace, interrupts: Interrupts) -> int:
                     "spread_hz": None if c.spread_hz is None else list(c.spread_hz),
                     "samples": c.samples,
                     "recommended_rate_hz": c.recommended_rate_hz,
+                    "stable_from_hz": c.stable_from_hz if math.isfinite(c.stable_from_hz) else None,
                     "holds": c.holds,
                 }
                 for mode, c in checks.items()
@@ -602,6 +605,8 @@ def _check_offline(args: argparse.Namespace, session: Session) -> int:
     steps = len(load_program(args.program, config).steps) if args.program else None  # (a bad one: exit 2 here)
     found = offline.budgets(config)
     errors, warnings = offline.problems(found)
+    stability = torque_stability(config)
+    errors += offline.stability_problems(config, stability)
     if args.json:
         print_json(
             {
@@ -617,6 +622,7 @@ def _check_offline(args: argparse.Namespace, session: Session) -> int:
                     }
                     for b in found
                 },
+                "stability": _stability_dict(config, stability),
                 "errors": errors,
                 "warnings": warnings,
             }
@@ -629,6 +635,7 @@ def _check_offline(args: argparse.Namespace, session: Session) -> int:
             for b in found
         ]  # fmt: skip
         print_table(("joint", "hold N·m", "move N·m", "available N·m", "hold", "move"), rows)
+        _print_stability(config, stability)
         if args.program:
             print(f"program {args.program}: {steps} steps, valid for this arm")
     for text in warnings:
@@ -636,6 +643,41 @@ def _check_offline(args: argparse.Namespace, session: Session) -> int:
     for text in errors:
         print(f"error: {text}", file=sys.stderr)
     return EXIT_USAGE if errors else EXIT_OK
+
+
+def _print_stability(config: ArmConfig, report: StabilityReport) -> None:
+    """``check --offline``'s stability table (:func:`motion.cli.offline.stability_rows`)."""
+    used = "" if config.control.mode.traits.host_torque else f" (not in use: {config.control.mode.value} mode)"
+    lowest = report.lowest_rate_hz
+    allowed = "none up to 1000 Hz" if math.isnan(lowest) else f"{lowest:.0f} Hz and up"
+    print(
+        f"torque mode's PD loop{used} at {report.rate_hz:g} Hz: gain margin on drives within the stated bounds "
+        f"(needed {REQUIRED_MARGIN:g}); rates its gains allow: {allowed}"
+    )
+    print_table(("joint", "margin", "lowest rate", "kp at most", "kd at most"), offline.stability_rows(report))
+
+
+def _stability_dict(config: ArmConfig, report: StabilityReport) -> dict[str, object]:
+    """The stability figures for ``--json`` (``null`` for no finite figure)."""
+
+    def finite(x: float) -> float | None:
+        return round(x, 4) if math.isfinite(x) else None
+
+    return {
+        "in_use": config.control.mode.traits.host_torque,
+        "rate_hz": report.rate_hz,
+        "required_margin": REQUIRED_MARGIN,
+        "lowest_rate_hz": finite(report.lowest_rate_hz),
+        "joints": {
+            m.joint.name: {
+                "margin": finite(m.margin),
+                "lowest_rate_hz": finite(m.lowest_rate_hz),
+                "kp_max_nm_per_deg": finite(m.joint.kp_nm_per_deg * m.gain_scale),
+                "kd_max_nm_per_dps": finite(m.joint.kd_nm_per_dps * m.gain_scale),
+            }
+            for m in report.joints
+        },
+    }
 
 
 def _fit_dict(fit: PositionLoopFit) -> dict[str, float]:

@@ -5,8 +5,11 @@ drive can give:
 
 - **hold**: the largest gravity torque the joint carries anywhere in the limits of every joint (sampled: every
   combination of each joint's lower limit, middle and upper limit, and :data:`RANDOM_POSES` poses drawn in the
-  limits), against the torque the drive gives at its current limit (``current_limit_a × torque_constant_nm_per_a ×
+  limits; :func:`kinematics.envelope.sampled_poses`), against the torque the drive gives at its current limit
+  (``current_limit_a × torque_constant_nm_per_a ×
   gear_ratio``, at the joint);
+- **stability** (every mode: torque mode's PD gains, checked where the mode is torque): the gain margin of each
+  joint's PD at the configured rate and the lowest rate that keeps it (:mod:`motion.control.stability`);
 - **move**: that gravity torque plus the torque to accelerate every joint at its configured acceleration limit at
   once, each in the direction that adds to the joint's load (``Σ_k |M_jk(q)| a_k`` with the rotors' inertia on the
   diagonal), at the worst sampled pose.
@@ -18,22 +21,19 @@ validated against the configuration too.
 
 from __future__ import annotations
 
-import itertools
+import math
 from dataclasses import dataclass
 from typing import Final
 
 import numpy as np
 
 from motion.config import ArmConfig
+from motion.control.stability import StabilityError, StabilityReport
 
-#: Random poses sampled besides the grid.
-RANDOM_POSES: Final = 2000
-#: A grid of every joint's lower limit, middle and upper limit is sampled up to this many joints (3^n poses).
-GRID_JOINTS: Final = 7
 #: A hold that takes more than this share of the torque available leaves too little for moving and for model error.
 HOLD_WARNING_SHARE: Final = 0.8
-#: The seed of the sampled poses (the same figures on every run).
-SEED: Final = 33
+#: kg·m² per unit of :func:`kinematics.mass_matrix` (N·m per deg/s²).
+_KGM2_PER_DEG_UNIT: Final = 180.0 / math.pi
 
 
 @dataclass(frozen=True)
@@ -56,19 +56,6 @@ class JointBudget:
         return self.move_nm / self.available_nm
 
 
-def poses(config: ArmConfig) -> np.ndarray:
-    """The sampled poses, degrees: one row per pose, one column per joint."""
-    lo = np.array([j.position_min_deg for j in config.joints])
-    hi = np.array([j.position_max_deg for j in config.joints])
-    rows = [np.random.default_rng(SEED).uniform(lo, hi, size=(RANDOM_POSES, len(lo)))]
-    if len(lo) <= GRID_JOINTS:
-        levels = np.stack([lo, (lo + hi) / 2.0, hi])  # (3, n)
-        rows.append(
-            np.array([levels[list(pick), range(len(lo))] for pick in itertools.product(range(3), repeat=len(lo))])
-        )
-    return np.vstack(rows)
-
-
 def budgets(config: ArmConfig) -> list[JointBudget]:
     """Every joint's :class:`JointBudget` (the module docstring).
 
@@ -77,6 +64,7 @@ def budgets(config: ArmConfig) -> list[JointBudget]:
     """
     from kinematics import build_arm  # noqa: PLC0415 - Pinocchio only where a check needs it
     from kinematics.dynamics import gravity_torque, mass_matrix  # noqa: PLC0415
+    from kinematics.envelope import sampled_poses  # noqa: PLC0415
 
     arm = build_arm(config)
     joints = config.joints
@@ -89,9 +77,9 @@ def budgets(config: ArmConfig) -> list[JointBudget]:
     move = np.zeros(len(joints))
     hold_at = np.zeros((len(joints), len(joints)))
     move_at = np.zeros((len(joints), len(joints)))
-    for q in poses(config):
+    for q in sampled_poses(config):
         g = np.abs(gravity_torque(arm, q))
-        inertia = np.abs(mass_matrix(arm, q)) + np.diag(rotor)
+        inertia = np.abs(mass_matrix(arm, q)) * _KGM2_PER_DEG_UNIT + np.diag(rotor)  # kg·m², for rad/s²
         total = g + inertia @ acceleration
         for better, best, at, value in ((g > hold, hold, hold_at, g), (total > move, move, move_at, total)):
             best[better] = value[better]
@@ -125,3 +113,29 @@ def problems(found: list[JointBudget]) -> tuple[list[str], list[str]]:
                 "(of it or its neighbours) or move slower (speed_scale)"
             )
     return errors, warnings
+
+
+def stability_rows(report: StabilityReport) -> list[tuple[str, ...]]:
+    """The stability table's rows: joint, margin at the rate, the lowest rate that holds, the highest gains there."""
+    rows: list[tuple[str, ...]] = []
+    for m in report.joints:
+        lowest = "none ≤ 1000 Hz" if math.isnan(m.lowest_rate_hz) else f"{m.lowest_rate_hz:.0f} Hz"
+        margin = "∞" if math.isinf(m.margin) else f"{m.margin:.2f}"
+        scale = m.gain_scale
+        rows.append(
+            (
+                m.joint.name,
+                margin,
+                lowest,
+                f"{m.joint.kp_nm_per_deg * scale:.3g}",
+                f"{m.joint.kd_nm_per_dps * scale:.3g}",
+            )
+        )
+    return rows
+
+
+def stability_problems(config: ArmConfig, report: StabilityReport) -> list[str]:
+    """Errors where the configured mode closes the loop on the host and a joint has no margin at its rate."""
+    if not config.control.mode.traits.host_torque or not report.failing:
+        return []
+    return [str(StabilityError(config.source, report))]

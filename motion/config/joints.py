@@ -72,7 +72,14 @@ def _actuator(node: Node) -> str | None:
 
 
 def _joint(node: Node, mode: schema.ControlMode) -> schema.JointConfig:
-    torque_mode = mode.traits.host_torque  # (per-joint gains)
+    bandwidth = node.number("bandwidth_hz", POSITIVE) if node.has("bandwidth_hz") else None
+    if bandwidth is not None and (node.has("kp_nm_per_deg") or node.has("kd_nm_per_dps")):
+        raise node.error(
+            "bandwidth_hz",
+            "gives the torque-mode gains (kp_nm_per_deg and kd_nm_per_dps from the arm's inertia): give either "
+            "bandwidth_hz or both gains, not both",
+        )
+    torque_mode = mode.traits.host_torque and bandwidth is None  # (per-joint gains, unless from a bandwidth)
     actuator = _actuator(node)
     rotor_inertia = node.number("rotor_inertia_kgm2", NON_NEGATIVE)
     viscous = node.number("viscous_friction_nm_per_dps", NON_NEGATIVE)
@@ -94,6 +101,7 @@ def _joint(node: Node, mode: schema.ControlMode) -> schema.JointConfig:
         encoder_bits=node.integer("encoder_bits", Range(12, 18)),
         kp_nm_per_deg=node.number("kp_nm_per_deg", NON_NEGATIVE, required=torque_mode),
         kd_nm_per_dps=node.number("kd_nm_per_dps", NON_NEGATIVE, required=torque_mode),
+        bandwidth_hz=bandwidth,
         temperature_limit_c=node.number("temperature_limit_c", Range(0, 100, lo_open=True)),
         rotor_inertia_kgm2=rotor_inertia,
         viscous_friction_nm_per_dps=viscous,

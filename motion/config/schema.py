@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
-from typing import ClassVar, NamedTuple, TypeAlias
+from typing import ClassVar, Final, NamedTuple, TypeAlias
 
 from motion.errors import ConfigError
 from motion.protocol import WireProtocol
@@ -336,7 +336,11 @@ class JointConfig:
         jerk_limit_dps3: joint jerk limit in deg/s³.
         encoder_bits: single-turn encoder resolution in bits (12..18).
         kp_nm_per_deg: torque-mode stiffness in N·m per degree (required when control.mode is torque).
-        kd_nm_per_dps: torque-mode damping in N·m per deg/s (required when control.mode is torque).
+        kd_nm_per_dps: torque-mode damping in N·m per deg/s (required when control.mode is torque, unless
+            ``bandwidth_hz`` is given).
+        bandwidth_hz: torque mode: the PD loop's bandwidth, Hz, instead of ``kp_nm_per_deg`` and
+            ``kd_nm_per_dps``: the gains of a critically damped loop at the heaviest the joint is in the limits
+            (:func:`motion.compose.with_bandwidth_gains` fills them in; None: the gains as given).
         temperature_limit_c: motor temperature that faults the arm, in °C.
         rotor_inertia_kgm2: motor rotor inertia, motor side, in kg·m² (the collision observer's model adds
             gear_ratio² times this to the joint's diagonal of M(q)).
@@ -376,6 +380,7 @@ class JointConfig:
     encoder_bits: int = 14
     kp_nm_per_deg: float = 0.0
     kd_nm_per_dps: float = 0.0
+    bandwidth_hz: float | None = None
     temperature_limit_c: float = 70.0
     rotor_inertia_kgm2: float = 3.0e-5
     viscous_friction_nm_per_dps: float = 2.0e-4
@@ -457,6 +462,27 @@ class SafetyConfig:
     collision_observer_gain_per_s: float = 125.0
     collision_window_s: float = 0.032
     link_timeout_ms: float | None = None
+
+
+#: The shortest communication-loss time a loop of a given period may set, in periods: every cycle sends each drive
+#: a frame, and a cycle that overruns is skipped, so two periods may pass between a drive's frames.
+LINK_TIMEOUT_MIN_PERIODS: Final = 2
+
+
+def link_timeout_problem(link_timeout_ms: float | None, rate_hz: float) -> str | None:
+    """What is wrong with a configured communication-loss time at ``rate_hz`` (None: nothing; 0 and None are the
+    protection off and the default). A time shorter than the gap between two of a drive's frames cuts every drive's
+    output between cycles."""
+    if not link_timeout_ms:
+        return None
+    shortest_ms = LINK_TIMEOUT_MIN_PERIODS * 1000.0 / rate_hz
+    if link_timeout_ms >= shortest_ms - 1e-9:
+        return None
+    return (
+        f"{link_timeout_ms:g} ms is shorter than a loop at {rate_hz:g} Hz leaves between a drive's frames: at least "
+        f"{LINK_TIMEOUT_MIN_PERIODS} periods, {shortest_ms:g} ms (the drives would cut their output and lock their "
+        "brakes between cycles): raise it, remove it (five periods by default) or raise control.rate_hz"
+    )
 
 
 @dataclass(frozen=True, slots=True)

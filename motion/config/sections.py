@@ -103,6 +103,12 @@ def safety_section(node: Node, control: schema.ControlConfig) -> schema.SafetyCo
             "collision_reaction",
             f"comply needs control.mode torque (it streams gravity compensation); found mode {control.mode.value}",
         )
+    link_timeout = (
+        node.number("link_timeout_ms", Range(0, LINK_TIMEOUT_MAX_MS)) if node.has("link_timeout_ms") else None
+    )
+    problem = schema.link_timeout_problem(link_timeout, control.rate_hz)
+    if problem is not None:
+        raise node.error("link_timeout_ms", problem)
     return schema.SafetyConfig(
         following_error_deg=node.number("following_error_deg", POSITIVE),
         min_voltage_v=node.number("min_voltage_v", Range(0, 60, lo_open=True)),
@@ -111,9 +117,7 @@ def safety_section(node: Node, control: schema.ControlConfig) -> schema.SafetyCo
         collision_reaction=reaction,
         collision_observer_gain_per_s=node.number("collision_observer_gain_per_s", Range(0, 10000, lo_open=True)),
         collision_window_s=node.number("collision_window_s", Range(0, 1)),
-        link_timeout_ms=(
-            node.number("link_timeout_ms", Range(0, LINK_TIMEOUT_MAX_MS)) if node.has("link_timeout_ms") else None
-        ),
+        link_timeout_ms=link_timeout,
     )
 
 

@@ -171,6 +171,9 @@ class RateCheck:
         simulated: measured in simulated time (the bus model only; the host's speed does not matter).
         spread_hz: the lowest and highest of the rates that hold by each of :data:`SPREAD_PARTS` runs of the
             exchanges on its own (not rounded); None where too few were measured (a simulation).
+        stable_from_hz: a mode where the host closes the loop: the lowest rate at which every joint's PD keeps its
+            stability margin (:mod:`motion.control.stability`); 0 where no such floor applies; ``inf`` where no
+            rate up to 1 kHz holds the gains. No rate below it holds or is recommended.
     """
 
     rate_hz: float
@@ -182,6 +185,7 @@ class RateCheck:
     simulated: bool
     spread_hz: tuple[float, float] | None = None
     by_bus_p99_s: tuple[tuple[str, float], ...] = ()
+    stable_from_hz: float = 0.0
 
     def bus_text(self) -> str:
         """An arm on several buses: each bus's own exchange (p99) and the one that limits ("" on one bus)."""
@@ -207,13 +211,19 @@ class RateCheck:
     @property
     def recommended_rate_hz(self) -> float:
         """:data:`RECOMMENDED_SHARE` of the lower end of the spread (of :attr:`highest_rate_hz` where no spread was
-        measured), rounded down to a step: a rate the next measurement will very likely accept too."""
+        measured), rounded down to a step: a rate the next measurement will very likely accept too; never below
+        :attr:`stable_from_hz` (0 where the host's highest rate is below it: no rate holds both)."""
         highest = self.highest_rate_hz
+        if highest < self.stable_from_hz:
+            return 0.0
         if not math.isfinite(highest):
             return highest
         low = highest if self.spread_hz is None else min(highest, self.spread_hz[0])
         # never 0 where a rate holds: at the lowest step, the highest itself
-        return max(min(highest, rate_step(highest)), round_rate(low * RECOMMENDED_SHARE))
+        recommended = max(min(highest, rate_step(highest)), round_rate(low * RECOMMENDED_SHARE))
+        if recommended < self.stable_from_hz:  # (the floor's next step: at most the highest, a step at or above it)
+            return min(highest, stable_floor_hz(self.stable_from_hz))
+        return recommended
 
     def spread_text(self) -> str:
         """The spread for people ("" where none was measured)."""
@@ -227,7 +237,8 @@ class RateCheck:
         """True when the configured rate holds with the margin."""
         period = 1.0 / self.rate_hz
         return (
-            self.round_trip_p99_s * self.margin <= self.reply_budget * period
+            self.rate_hz >= self.stable_from_hz
+            and self.round_trip_p99_s * self.margin <= self.reply_budget * period
             and (self.round_trip_p99_s + self.host_p99_s) * self.margin <= period
         )
 
@@ -238,9 +249,33 @@ class RateCheck:
             f"{clock}: round trip p99 {self.round_trip_p99_s * 1e3:.2f} ms, host work p99 "
             f"{self.host_p99_s * 1e3:.2f} ms per cycle ({self.samples} exchanges); highest rate with margin "
             f"{self.margin:g}: {self.highest_rate_hz:g} Hz{self.spread_text()}{self.bus_text()} (recommended "
-            f"{self.recommended_rate_hz:g} Hz); configured "
+            f"{self.recommended_rate_hz:g} Hz){self.stability_text()}; configured "
             f"{self.rate_hz:g} Hz " + ("holds" if self.holds else "does NOT hold")
         )
+
+    def stability_text(self) -> str:
+        """The stability floor for people ("" where there is none)."""
+        if self.stable_from_hz <= 0.0:
+            return ""
+        if math.isinf(self.stable_from_hz):
+            return "; the torque loop's gains hold at no rate up to 1000 Hz"
+        return f"; the torque loop's gains need at least {self.stable_from_hz:.1f} Hz"
+
+
+    def floor_text(self) -> str:
+        """", but not below N Hz ..." where a stability floor applies ("" where none does)."""
+        if self.stable_from_hz <= 0.0 or math.isinf(self.stable_from_hz):
+            return ""
+        return f", but not below {self.stable_from_hz:.1f} Hz, where torque mode's PD loop loses its margin"
+
+
+def stable_floor_hz(lowest_hz: float) -> float:
+    """The lowest stable rate (:func:`motion.control.stability.lowest_rate_hz`, ``nan``: none) rounded up to a step
+    (the rate to propose), ``inf`` for none."""
+    if math.isnan(lowest_hz):
+        return math.inf
+    step = rate_step(lowest_hz)
+    return math.ceil(lowest_hz / step - 1e-9) * step
 
 
 def rate_step(rate_hz: float) -> float:
@@ -261,6 +296,27 @@ class RateError(ConfigError):
 
     def __init__(self, source: str, check: RateCheck) -> None:
         self.check = check
+        if check.highest_rate_hz < check.stable_from_hz:
+            super().__init__(
+                source,
+                "control.rate_hz",
+                f"{check.rate_hz:g} Hz cannot be held, and no rate this host and bus hold keeps torque mode's PD "
+                f"loop stable: the round trip "
+                f"({check.round_trip_p99_s * 1e3:.2f} ms p99) and this host's work ({check.host_p99_s * 1e3:.2f} ms) "
+                f"hold up to {check.highest_rate_hz:g} Hz with a margin of {check.margin:g}"
+                f"{check.stability_text()} (lower the joints' kp_nm_per_deg and kd_nm_per_dps or their bandwidth_hz "
+                "until `rmd-motion check --offline` shows a lower rate, use position mode, or a faster bus or host)",
+            )
+            return
+        if check.rate_hz < check.stable_from_hz:
+            super().__init__(
+                source,
+                "control.rate_hz",
+                f"{check.rate_hz:g} Hz is below the rate torque mode's PD loop needs{check.stability_text()} (the "
+                f"bus and host hold up to {check.highest_rate_hz:g} Hz; set control.rate_hz between "
+                f"{check.stable_from_hz:g} and {check.recommended_rate_hz:g} Hz)",
+            )
+            return
         super().__init__(
             source,
             "control.rate_hz",
@@ -268,10 +324,9 @@ class RateError(ConfigError):
             f" ms (p99) and this host's work {check.host_p99_s * 1e3:.2f} ms, against a period of "
             f"{1e3 / check.rate_hz:.2f} ms ({check.reply_budget:.0%} of it for the replies) with a margin of "
             f"{check.margin:g}; the highest rate that holds is {check.highest_rate_hz:g} Hz{check.spread_text()}"
-            f"{check.bus_text()} (set "
-            f"control.rate_hz to "
-            f"{check.recommended_rate_hz:g} Hz or lower, which leaves room for the spread between measurements, or "
-            "accept a smaller margin with control.rate_margin)",
+            f"{check.bus_text()} (set control.rate_hz to {check.recommended_rate_hz:g} Hz or lower"
+            f"{check.floor_text()}, which leaves room for the spread between measurements, or accept a smaller "
+            "margin with control.rate_margin)",
         )
 
 
@@ -285,6 +340,7 @@ def measure_rate(
     margin: float = DEFAULT_MARGIN,
     samples: int | None = None,
     rehearse: Rehearsal | None = None,
+    stable_from_hz: float = 0.0,
 ) -> RateCheck:
     """Measure the cycle's round trip and the host's work per cycle (after ``read_positions``, before the loop
     starts).
@@ -299,6 +355,7 @@ def measure_rate(
         samples: exchanges to measure (default: as above).
         rehearse: the host's work of a cycle at rest (default the controller's alone,
             :meth:`~motion.control.controller.Controller.rehearse`; the safety layer adds its watchdog's).
+        stable_from_hz: the lowest rate the control loop is stable at (:attr:`RateCheck.stable_from_hz`).
 
     Raises:
         TransportError: a drive did not answer the measuring reads.
@@ -366,6 +423,7 @@ def measure_rate(
         samples=n,
         simulated=simulated,
         by_bus_p99_s=tuple((name, float(np.percentile(times, 99))) for name, times in by_bus.items()),
+        stable_from_hz=stable_from_hz,
     )
     if simulated or n < 2 * SPREAD_PARTS:
         return check

@@ -18,8 +18,12 @@ Per joint, over the window, in N·m:
   ``M k v``, where the mean is the acceleration's torque ``M a``; and every joint's drive does the same at the same
   instants, which reaches its neighbours through M's off-diagonal terms: the sample is off by up to
   ``X = |M| (k |v| + |a|)`` (``|M|``: M(q) with its terms' magnitudes; ``k``: the tracking model's angle-loop
-  gain, twice its prior where the drives' settings are not read; ``v``, ``a``: the reference's speeds and
-  accelerations), times :data:`STEP_SHARE` for a speed loop that overshoots. The phase being the same every
+  gain, twice its prior where the drives' settings are not read; ``v``: the reference's speed, or the speed the
+  tracking model expects of the drive at this sample or the one before where larger, the speed of the step this
+  sample ends (a drive still closing the lag of the stream's last step brakes as hard; at a low rate it does so for a
+  whole period after the stream has stopped; the model's speed, which a collision does not change); ``a``: the
+  reference's acceleration), times :data:`STEP_SHARE` for a speed loop that
+  overshoots. The phase being the same every
   cycle, the signal moves by the change of that (filtered as the residual) over the window, not by ``X`` itself;
   a step longer or shorter than the one before by a share ``f``
   of the period moves the sample within the response, by up to ``f X`` (at most ``X``), at each end of the
@@ -190,6 +194,7 @@ class CollisionBound:
         self._gain_factor = np.array([1.0 if f.reads_loop_settings else UNREAD_GAIN_FACTOR for f in families])
         self._x = np.zeros(len(specs))
         self._gain = np.zeros(len(specs))
+        self._speed_before = np.zeros(len(specs))  # the model's expected speed at the previous step, deg/s
         self._mass = np.zeros((len(specs), len(specs)))
         self._dt_before = 0.0
         self._period_s = controller.period_s
@@ -204,6 +209,7 @@ class CollisionBound:
         """The observer (re)started: the filtered terms start again from zero, as the observer's do."""
         self.terms[:] = 0.0
         self._dt_before = 0.0
+        self._speed_before[:] = 0.0
 
     def step(self, dt_s: float) -> FloatArray:
         """The error terms of the observer's latest step (``dt_s`` long), with this bound's own rows: the array the
@@ -225,7 +231,14 @@ class CollisionBound:
         np.maximum(instant, x, out=instant)
         if self._steps:
             gain, reference = self._gain, controller.reference
+            # the speed of the step that ends at this sample: the reference's, or the drive's own as the tracking
+            # model expects it where the drive is still closing its lag (at a low rate, for a whole period after the
+            # stream has stopped); the model's, not the measured speed, which a collision changes
             np.abs(reference.velocity, out=gain)
+            np.abs(controller.tracking.expected_dps, out=x)
+            np.maximum(gain, x, out=gain)
+            np.maximum(gain, self._speed_before, out=gain)
+            np.copyto(self._speed_before, x)
             gain *= controller.tracking.angle_gain_per_s
             gain *= self._gain_factor
             gain += np.abs(reference.acceleration, out=x)
