@@ -337,7 +337,8 @@ def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Cal
     the homing variant; ``pause`` lets time pass with it running).
 
     Raises:
-        HomingError: no stop within the travel or the time, or a remainder no whole turn count explains.
+        HomingError: a rate or speed at which the stop cannot be told in time (before the seek:
+            :func:`seek_criterion`), no stop within the travel or the time, or a remainder no whole turn count explains.
         MotionFault: a fault halted the arm, or a stop (``Arm.stop()``, Ctrl-C: ``request_estop`` of ``supervisor``,
             taken in the loop's next cycle); raised within a control period of the halt.
     """
