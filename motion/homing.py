@@ -10,16 +10,23 @@ The drive's single-turn encoder is absolute within a motor turn; what a power-up
    point), and for the joints being homed no position limits and no power-on window. Every other fault rule stays
    active: drive flags, temperature, voltage, replies, following error, the other joints' limits, overruns.
 2. After :data:`SETTLE_S` of holding, the joint moves toward its stop at ``homing.speed_dps`` for at most
-   ``homing.max_travel_deg`` and ``homing.timeout_s``. The stop is reached when the measured torque current rises
-   ``homing.current_limit_a`` above what moving freely took (a slow average: gravity changes along the way), or the
-   joint falls :data:`STALL_DEG` behind its reference *and* has slowed below :data:`STALL_SPEED_SHARE` of the seek's
-   speed (a joint late by the host's or the bus's delays still moves at that speed: no stop); a cycle hook watches
-   every cycle.
-3. The reference stops at the full limits, and the joint backs off by ``homing.back_off_deg``, and at least to
-   :data:`LIMIT_CLEARANCE_DEG` inside its limits. The angle measured at the stop, in the controller's provisional
-   frame, differs from ``stop_deg`` by whole motor turns plus what the stop yields: the nearest whole number of turns
-   is the correction, and a remainder of more than a quarter of a turn is refused (the configured ``stop_deg`` or
-   ``zero_offset_deg`` is wrong, or something else stopped the joint).
+   ``homing.max_travel_deg`` and ``homing.timeout_s``. The stop is reached when the joint has stalled, judged in
+   time and distance, not by one cycle's reading (:class:`StallCriterion`): its torque current stays
+   ``homing.current_limit_a`` away from what moving freely took (a slow average: gravity changes along the way)
+   while it moves no more than the stop's give and two steps of its angle's measurement, for at least
+   :data:`STALL_SAMPLES` samples and as long as the seek takes to cover twice that distance. A joint that follows
+   the seek moves farther in that time at any rate, however late its measurement or sparse its set-points (a drive
+   that reaches each before the next comes reads a low speed while it moves, and its reference leads it by a
+   period's travel: a rule on either found a false stop at low rates). A rate at which the stall cannot be told
+   before the seek's set-point has run past the stop by more than ``safety.following_error_deg`` (the
+   following-error check would halt the joint first) is refused before the seek, with the figures
+   (:func:`seek_criterion`). A cycle hook watches every cycle and holds the joint where it stalled in the cycle it
+   finds the stop.
+3. The joint backs off by ``homing.back_off_deg``, and at least to :data:`LIMIT_CLEARANCE_DEG` inside its limits.
+   The angle measured at the stop, in the controller's provisional frame, differs from ``stop_deg`` by whole motor
+   turns plus what the stop yields: the nearest whole number of turns is the correction, and a remainder of more
+   than a quarter of a turn is refused (the configured ``stop_deg`` or ``zero_offset_deg`` is wrong, or something
+   else stopped the joint).
 
 Homing can be interrupted in every step: a stop (``Arm.stop()`` from another thread, Ctrl-C or SIGTERM in
 ``rmd-motion``) is an E-stop request to the homing loop, which halts every axis (0x81) in its next cycle; the homing
@@ -30,25 +37,36 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Final
 
 from motion.config.schema import ArmConfig, ControlMode, JointConfig
 from motion.control.controller import Controller
+from motion.control.tracking import PositionLoop
 from motion.control.turns import TURN_DEG, turn_joint_deg
 from motion.errors import MotionError, TransportError
+from motion.protocol.table import Direction, WireProtocol, field_spec
+from motion.protocol.v3.messages import CommandV3
 from motion.safety import ArmState, Supervisor
+from motion.safety.watchdog import FOLLOWING_LAG_ERROR
+from motion.trajectory import State
 from motion.transmission import Transmission
 from motion.transport import Reply
 
 logger = logging.getLogger("motion.homing")
 
-#: A joint that falls this far behind its reference while seeking has reached its stop, degrees.
-STALL_DEG: Final = 1.0
-#: ... once it has slowed below this share of the seek's speed (a joint against its stop has stopped; one behind its
-#: reference because the measurement is late, on a loaded host or a slow bus, still moves at the seek's speed).
-STALL_SPEED_SHARE: Final = 0.5
+#: A joint pressed against its stop may still read this much motion, joint degrees, beyond two steps of its angle's
+#: measurement: the give of the stop and of the gear as the press rises from the homing current to the drive's limit
+#: (the motor's encoder reads the joint through the gear, whose backlash alone is about 10 arcmin, 0.17 deg, on an
+#: RMD-X planetary).
+STOP_GIVE_DEG: Final = 0.25
+#: A stall is seen in at least this many samples, two intervals: one interval without motion is no stop (a drive that
+#: reached a sparse set-point before the next one came waits there; a joint in stick-slip sticks for a moment).
+STALL_SAMPLES: Final = 3
+#: Cycle starts lie on the loop's grid; their differences are compared with the time criterion within this, s.
+_TIME_SLACK_S: Final = 1e-9
 #: Time constant of the average current while moving freely toward the stop, s.
 FREE_CURRENT_TAU_S: Final = 0.25
 #: The arm holds this long under the homing loop before a seek starts (the drives take up their loads), s.
@@ -85,6 +103,126 @@ class HomingResult:
     remainder_deg: float
     seek_s: float
     current_a: float
+
+
+@dataclass(frozen=True, slots=True)
+class StallCriterion:
+    """When a seeking joint has stalled against its stop: its torque current at ``homing.current_limit_a`` from the
+    free-moving one in every sample of a run of :data:`STALL_SAMPLES` samples or more, over at least :attr:`time_s`,
+    in which it moved no more than :attr:`distance_deg`.
+
+    Attributes:
+        step_deg: the step of the joint's angle measurement, joint degrees (the older drives' encoder field, V3
+            drives' 0x92 angle, through the gear).
+        distance_deg: :data:`STOP_GIVE_DEG` plus two steps (two readings of a still joint differ by one).
+        time_s: the longer of the time the seek's speed takes over twice :attr:`distance_deg` and
+            ``STALL_SAMPLES - 1`` control periods: a joint that follows the seek moves at least ``speed × (time_s -
+            period)`` in it (it may wait up to a period for its next set-point), which is more than the distance.
+    """
+
+    step_deg: float
+    distance_deg: float
+    time_s: float
+
+
+def stall_criterion(speed_dps: float, period_s: float, step_deg: float) -> StallCriterion:
+    """The stall criterion of a seek at ``speed_dps`` under a loop of ``period_s`` with an angle measured in steps of
+    ``step_deg`` (joint side)."""
+    distance = STOP_GIVE_DEG + 2.0 * step_deg
+    time_s = max(2.0 * distance / abs(speed_dps), (STALL_SAMPLES - 1) * period_s)
+    return StallCriterion(step_deg, distance, time_s)
+
+
+def angle_step_deg(controller: Controller, index: int) -> float:
+    """The step of joint ``index``'s angle measurement, joint degrees: a V3 drive's 0x92 angle (its output shaft's)
+    or the older drive's encoder field (a motor turn over its counts), through the gear."""
+    spec = controller.specs[index]
+    if controller.families[index].angle_every_cycle:
+        field = field_spec(CommandV3.READ_MULTI_TURN_ANGLE, Direction.REPLY, WireProtocol.CAN, "angle_deg")
+        motor_deg = field.physical(1) * spec.drive_gear_ratio
+    else:
+        motor_deg = TURN_DEG / float(controller.axes.counts_per_rev[index])
+    return abs(controller.transmission.transmissions[index].joint_rate(motor_deg))
+
+
+def seek_overrun_deg(speed_dps: float, period_s: float, stall: StallCriterion, lag_deg: float) -> float:
+    """How far past its stop a seek's set-point may run before the press ends, joint degrees: the joint's lag behind
+    it at the seek's speed (``lag_deg``), plus the seek's travel over the stall's run in whole periods and two more
+    (the first sample of the press comes up to a period after the contact, and the batch of the cycle that finds the
+    stop still carries the seek's next set-point: the hold goes out in the next one)."""
+    periods = max(STALL_SAMPLES - 1, math.ceil(stall.time_s / period_s - _TIME_SLACK_S))
+    return abs(speed_dps) * (periods + 2) * period_s + lag_deg
+
+
+def _contact_lag_deg(loop: PositionLoop, speed_dps: float, lag_share: float) -> float:
+    """A joint's lag behind its target at ``speed_dps`` under its drive's position loop (the tracking model's: speed
+    over the angle gain, or the braking distance of its acceleration limit where longer), plus the share a drive
+    within the stated bounds may add (:data:`~motion.safety.watchdog.FOLLOWING_LAG_ERROR`)."""
+    v = abs(speed_dps)
+    return max(v / loop.angle_gain_per_s, v * v / (2.0 * loop.acceleration_dps2)) * (1.0 + lag_share)
+
+
+def seek_criterion(supervisor: Supervisor, index: int, joint: JointConfig) -> StallCriterion:
+    """The stall criterion of joint ``index``'s seek under ``supervisor``'s loop, once the seek is known to end its
+    press before the following-error check halts the joint (:func:`seek_overrun_deg` within
+    ``safety.following_error_deg``).
+
+    Raises:
+        HomingError: the rate or the seek's speed does not let the stop be told in time (the figures, the highest
+            speed at this rate and the lowest rate at this speed).
+    """
+    homing = joint.homing
+    if homing is None:  # homed_joints() refuses these
+        raise HomingError(f"joint {joint.name} has no hard stop configured")
+    controller = supervisor.controller
+    period, step = controller.period_s, angle_step_deg(controller, index)
+    loop = controller.tracking.position_loops()[index]
+    share = FOLLOWING_LAG_ERROR[(True, controller.families[index].reads_loop_settings)]
+    limit = supervisor.settings.following_error_deg
+
+    def overrun(speed_dps: float, period_s: float) -> float:
+        stall = stall_criterion(speed_dps, period_s, step)
+        return seek_overrun_deg(speed_dps, period_s, stall, _contact_lag_deg(loop, speed_dps, share))
+
+    speed = homing.speed_dps
+    stall = stall_criterion(speed, period, step)
+    reach = overrun(speed, period)
+    if reach <= limit:
+        return stall
+    # (the stall's run is whole periods: the figures are stepped to ones that hold)
+    fastest = math.floor(_bisect(lambda v: overrun(v, period) <= limit, 0.0, speed) * 10.0) / 10.0
+    while fastest > 0.0 and overrun(fastest, period) > limit:
+        fastest = round(fastest - 0.1, 1)
+    rate = "no rate at this speed"
+    if overrun(speed, 1.0 / _RATE_SEARCH_HZ) <= limit:
+        slowest_hz = math.ceil(_bisect(lambda hz: overrun(speed, 1.0 / hz) > limit, 1.0 / period, _RATE_SEARCH_HZ))
+        while overrun(speed, 1.0 / slowest_hz) > limit:
+            slowest_hz += 1
+        rate = f"control.rate_hz >= {slowest_hz:g} at this speed"
+    raise HomingError(
+        f"joint {joint.name}: homing at {speed:g} deg/s under {1.0 / period:g} Hz cannot tell its stop in time: the "
+        f"stall is told by at most {stall.distance_deg:.2f} deg of motion over {stall.time_s:.3f} s "
+        f"({STALL_SAMPLES} samples at least) with the current at homing.current_limit_a, by when the seek's set-point "
+        f"has run up to {reach:.2f} deg past the stop, more than safety.following_error_deg = {limit:g} (the "
+        f"following-error check would halt the joint first); use homing.speed_dps <= {fastest:g} at this rate, or "
+        f"{rate}"
+    )
+
+
+#: The highest rate the refusal of a seek looks for, Hz.
+_RATE_SEARCH_HZ: Final = 10_000.0
+
+
+def _bisect(ok: Callable[[float], bool], good: float, bad: float) -> float:
+    """The edge between ``good`` (where ``ok`` holds) and ``bad`` (where it does not), to 1e-12 of their distance
+    (``ok`` changing once between them)."""
+    for _ in range(40):
+        middle = 0.5 * (good + bad)
+        if ok(middle):
+            good = middle
+        else:
+            bad = middle
+    return good
 
 
 def homed_joints(config: ArmConfig, names: Sequence[str]) -> tuple[JointConfig, ...]:
@@ -153,16 +291,18 @@ def turns_to_stop(name: str, transmission: Transmission, found_deg: float, stop_
 
 
 class _StopWatch:
-    """A cycle hook: the first cycle in which joint ``index`` pressed against something — its torque current
-    :attr:`current_limit_a` above the current it took to move freely (a slow average: gravity changes along the way),
-    or :data:`STALL_DEG` behind its reference and slower than :data:`STALL_SPEED_SHARE` of ``seek_dps``."""
+    """A cycle hook: where joint ``index`` stalled against something — its torque current
+    :attr:`current_limit_a` away from the current it took to move freely (a slow average: gravity changes along the
+    way) in every sample of a run of at least :data:`STALL_SAMPLES` samples over at least ``stall.time_s``, in which
+    it moved no more than ``stall.distance_deg`` (see :class:`StallCriterion`)."""
 
-    def __init__(self, index: int, current_limit_a: float, period_s: float, seek_dps: float) -> None:
+    def __init__(self, index: int, current_limit_a: float, period_s: float, stall: StallCriterion) -> None:
         self.index = index
         self.current_limit_a = current_limit_a
-        self._stalled_dps = STALL_SPEED_SHARE * abs(seek_dps)
+        self.stall = stall
         self._alpha = min(1.0, period_s / FREE_CURRENT_TAU_S)
         self.free_a: float | None = None  # the average current while moving freely
+        self._run: tuple[float, float, int] | None = None  # the run of pressing samples: (since, angle there, count)
         self.found: tuple[float, float, float] | None = None  # (time, angle, current)
 
     def __call__(self, controller: Controller, start_s: float, _replies: list[Reply]) -> None:
@@ -171,12 +311,25 @@ class _StopWatch:
         i, axes = self.index, controller.axes
         q, iq = float(axes.q_deg[i]), float(axes.iq_a[i])
         free = iq if self.free_a is None else self.free_a
-        lag = abs(float(controller.reference.position[i]) - q)
-        stalled = lag >= STALL_DEG and abs(float(axes.qd_dps[i])) < self._stalled_dps
-        if abs(iq - free) >= self.current_limit_a or stalled:
-            self.found = (start_s, q, iq - free)
-        else:
+        if abs(iq - free) < self.current_limit_a:
+            self._run = None
             self.free_a = free + self._alpha * (iq - free)
+            return
+        run = self._run
+        if run is None or abs(q - run[1]) > self.stall.distance_deg:
+            self._run = (start_s, q, 1)  # pressing, and (again) not moving from here
+            return
+        since, anchor, count = run[0], run[1], run[2] + 1
+        self._run = (since, anchor, count)
+        if count >= STALL_SAMPLES and start_s - since >= self.stall.time_s - _TIME_SLACK_S:
+            self.found = (start_s, anchor, iq - free)
+            # The press ends in this cycle: the joint is held where it stands against its stop (a stop ramp would carry
+            # its set-point on past the stop by the seek's braking distance, into a following error).
+            held = controller.reference.position.copy()
+            held[i] = q
+            if controller.follower is not None:
+                controller.follower.hold_at(held)
+            controller.reference = State.at_rest(held)
 
 
 def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Callable[[float], None]) -> HomingResult:
@@ -184,7 +337,8 @@ def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Cal
     the homing variant; ``pause`` lets time pass with it running).
 
     Raises:
-        HomingError: no stop within the travel or the time, or a remainder no whole turn count explains.
+        HomingError: a rate or speed at which the stop cannot be told in time (before the seek:
+            :func:`seek_criterion`), no stop within the travel or the time, or a remainder no whole turn count explains.
         MotionFault: a fault halted the arm, or a stop (``Arm.stop()``, Ctrl-C: ``request_estop`` of ``supervisor``,
             taken in the loop's next cycle); raised within a control period of the halt.
     """
@@ -200,7 +354,8 @@ def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Cal
     target[index] += toward * travel
     settled = clock.now() + SETTLE_S
     _run_until(supervisor, pause, lambda: clock.now() >= settled)
-    watch = _StopWatch(index, homing.current_limit_a, period, homing.speed_dps)
+    stall = seek_criterion(supervisor, index, joint)
+    watch = _StopWatch(index, homing.current_limit_a, period, stall)
     controller.cycle_hooks.append(watch)
     began = clock.now()
     try:
@@ -219,8 +374,7 @@ def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Cal
     finally:
         controller.cycle_hooks.remove(watch)
     found_s, found_deg, current = watch.found
-    supervisor.stop_motion()  # at the full limits: the seek's scaled ones would take seconds to stop
-    _wait_idle(supervisor, pause)
+    _wait_idle(supervisor, pause)  # (the watch held the joint where it found the stop)
     turns, remainder = turns_to_stop(joint.name, joint.transmission(), found_deg, homing.stop_deg)
     # back off the stop by back_off_deg, and at least into the joint's limits, where the arm's loop takes over
     near_limit = joint.position_min_deg if toward < 0 else joint.position_max_deg
@@ -230,6 +384,22 @@ def seek_stop(supervisor: Supervisor, index: int, joint: JointConfig, pause: Cal
     supervisor.move_to(back, homing.speed_dps / joint.velocity_limit_dps)
     _wait_idle(supervisor, pause)
     return HomingResult(joint.name, found_deg, turns, remainder, found_s - began, current)
+
+
+def check_seeks(
+    supervisor: Supervisor, seeks: Sequence[tuple[int, JointConfig]], pause: Callable[[float], None]
+) -> None:
+    """Before the first seek: every joint of ``seeks`` (index, joint) can have its stop told in time
+    (:func:`seek_criterion`), judged once the loop knows the drives' position loops (read in its first cycles).
+
+    Raises:
+        HomingError: a joint's seek cannot (nothing has moved).
+        MotionFault: a fault halted the arm meanwhile.
+    """
+    tracking = supervisor.controller.tracking
+    _run_until(supervisor, pause, lambda: not tracking.unread)
+    for index, joint in seeks:
+        seek_criterion(supervisor, index, joint)
 
 
 def _wait_idle(supervisor: Supervisor, pause: Callable[[float], None]) -> None:
@@ -288,15 +458,19 @@ def corrected_turns(turns: Sequence[int], index_of: Callable[[str], int], result
 
 __all__ = [
     "REMAINDER_SHARE_MAX",
-    "STALL_DEG",
-    "STALL_SPEED_SHARE",
+    "STALL_SAMPLES",
+    "STOP_GIVE_DEG",
     "HomingError",
     "HomingResult",
+    "StallCriterion",
+    "check_seeks",
     "corrected_turns",
     "finish_halt",
     "homed_joints",
     "homing_variant",
     "quiet_ahead",
+    "seek_criterion",
     "seek_stop",
+    "stall_criterion",
     "turns_to_stop",
 ]

@@ -20,7 +20,13 @@ violations of:
   0x80 in force: the emulator's drive state) at the second (not a drive that loses requests at random: its answer to
   a read says nothing of the halt it lost, which goes out again every cycle until it is acknowledged);
 - **link**: no V3 drive without a link fault trips its communication-loss protection while the session is open;
-- **brake**: no brake locks (by the controller's 0x78) on a joint turning faster than :data:`BRAKE_MOVING_DPS`;
+- **brake**: no brake locks (by the controller's 0x78) on a joint turning faster than :data:`BRAKE_MOVING_DPS`, but
+  for one the controller brakes at once (its drive cannot hold it, or ``halt_policy: off``:
+  ``HaltGuard.braked_at_once``);
+- **unbraked**: a braked joint whose drive has cut its own output (over-temperature, under-voltage) gets its brake
+  within the age of its flags and two cycles (while its drive can be reached);
+- **unheld**: no braked joint the controller brakes at once keeps moving (faster than :data:`BRAKE_MOVING_DPS`) a
+  cycle after its brake command (``HaltGuard.lock_sent_s``) went out (while its drive can be reached);
 - **escape**: nothing but a :class:`~motion.errors.MotionError` comes out of the API, the loop records no error of
   its own, and the run ends within :data:`WALL_LIMIT_S` of wall time.
 
@@ -274,6 +280,13 @@ class _Checker:
         for i, motor_id in enumerate(self.ids):
             if self.braked[i]:
                 self._watch_brake(i, self.drives[motor_id])
+        controller, supervisor = arm.controller, arm.supervisor
+        assert controller is not None and supervisor is not None
+        self.period_s = controller.period_s
+        # the oldest a drive's flags get (each bus's round of status reads), and the cycle that sees them
+        rounds = max(math.ceil(len(reads) / count) for reads, count in supervisor.status_rounds.rounds)
+        self.unbraked_grace_s = (rounds + 2) * self.period_s
+        self.cut_since = [math.nan] * n  # since when each braked joint's drive has its output cut, its brake released
 
     def _watch_brake(self, i: int, drive: Any) -> None:
         """Every 0x78 the drive executes, with its joint's speed then (the plant's)."""
@@ -284,7 +297,9 @@ class _Checker:
         def observed(command: Any, message: Any, now_s: float) -> None:
             if command is CommandV3.LOCK_BRAKE:
                 speed = float(np.degrees(plant.state()[1][i]))
-                if abs(speed) > BRAKE_MOVING_DPS:
+                supervisor = self.arm.supervisor
+                at_once = supervisor is not None and self.ids[i] in supervisor.guard.braked_at_once()
+                if abs(speed) > BRAKE_MOVING_DPS and not at_once:
                     self._violate(f"brake{i}", f"brake: {self.names[i]}'s brake locked at {speed:.1f} deg/s")
             execute(command, message, now_s)
 
@@ -370,12 +385,38 @@ class _Checker:
                 and not self._acting(t, (InjectedFault.DROP,), motor_id)  # (a dropped halt: sent again next cycle)
             ):
                 self._violate(f"halted{i}", f"halted: {name}'s drive answers and still runs at {t:.3f} s")
+            if self.braked[i]:
+                self._check_braked(i, motor_id, t, float(qd[i]), supervisor.guard)
             if disturbed or free[i] or gone[i] or self._returning(motor_id, t):
                 self.anchor[i] = self.held_since[i] = np.nan
                 continue
             self._check_held(i, t, float(q[i]), float(qd[i]), state, still_states)
         self.previous_state = state
         self.previous_answered = answered
+
+    def _check_braked(self, i: int, motor_id: int, t: float, qd: float, guard: Any) -> None:
+        """Braked joint ``i``: braked once its drive has cut its own output, and still a cycle after a brake command
+        sent at once (both where its drive can be reached: a command it does not hear cannot stop it)."""
+        if self._acting(t, _UNREACHABLE, motor_id):
+            self.cut_since[i] = math.nan
+            return
+        drive = self.drives[motor_id]
+        name = self.names[i]
+        if drive.errors and drive.state is RunState.OFF and not getattr(drive, "held", False):
+            if math.isnan(self.cut_since[i]):
+                self.cut_since[i] = t
+            elif t - self.cut_since[i] > self.unbraked_grace_s:
+                since = self.cut_since[i]
+                self._violate(f"unbraked{i}", f"unbraked: {name}'s drive cut its output by {since:.3f} s, no brake")
+        else:
+            self.cut_since[i] = math.nan
+        sent = guard.lock_sent_s.get(motor_id)
+        if sent is None or t < sent + self.period_s or motor_id not in guard.braked_at_once():
+            return
+        if abs(qd) > BRAKE_MOVING_DPS:
+            self._violate(
+                f"unheld{i}", f"unheld: {name} moves at {qd:+.1f} deg/s at {t:.3f} s, its brake command at {sent:.3f} s"
+            )
 
     def _returning(self, motor_id: int, t: float) -> bool:
         """Whether the drive holds with 0x81 a point its joint was pushed away from (a collision or an obstruction

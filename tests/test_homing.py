@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import random
 import signal
 import subprocess
 import sys
@@ -20,13 +21,25 @@ import yaml
 
 from motion.api import Arm
 from motion.config import ArmConfig, load_config
+from motion.config.schema import HomingConfig
 from motion.control.turns import TurnError
 from motion.emulator.drive_v3 import EmulatedDriveV3
 from motion.errors import FaultKind, MotionError, MotionFault
-from motion.homing import STALL_DEG, HomingError, _StopWatch, homed_joints, homing_variant, turns_to_stop
+from motion.homing import (
+    STOP_GIVE_DEG,
+    HomingError,
+    _StopWatch,
+    angle_step_deg,
+    homed_joints,
+    homing_variant,
+    stall_criterion,
+    turns_to_stop,
+)
 from motion.transmission import Transmission
+from tests.drive_models import draw_drives, with_drives
 from tests.motion_rig import CONFIGS, skip_if_rate_refused
 from tests.test_cli import (
+    HOST_FAULTS,
     HOST_STALL_MS,
     MIN_RATE_HZ,
     Emulated,
@@ -279,7 +292,7 @@ def test_cli_home_checks_the_holding_torque_once_the_homed_angle_is_known(
     config.write_text(yaml.safe_dump(data))
     args = ["home", *emulated.bus_args, "shoulder_pitch", "--json"]
     right = cli(*args, "--config", config)
-    skip_if_rate_refused(right)
+    _skip_if_host_stalled(right)
     assert right.returncode == 0, right.stderr
     verdicts = {v["name"]: v for v in json.loads(right.stdout)["holding"]}
     assert verdicts["shoulder_pitch"]["judged"] and all(v["matches"] for v in verdicts.values()), verdicts
@@ -287,33 +300,121 @@ def test_cli_home_checks_the_holding_torque_once_the_homed_angle_is_known(
     doubled = tmp_path / "doubled.yaml"
     doubled.write_text(yaml.safe_dump(data))
     result = cli(*args, "--config", doubled)
-    skip_if_rate_refused(result)
+    _skip_if_host_stalled(result)
     assert result.returncode == 2, result.stderr
     assert "holding torque does not match the model: shoulder_pitch (motor 2) holds with" in result.stderr
     printed = json.loads(result.stdout)
     assert printed["command"] == "home" and printed["moved"] is True  # (the seek, nothing after it)
     assert [v["name"] for v in printed["holding"] if not v["matches"]] == ["shoulder_pitch"]
     skipped = cli(*args, "--config", doubled, "--no-holding-check")
-    skip_if_rate_refused(skipped)
+    _skip_if_host_stalled(skipped)
     assert skipped.returncode == 0, skipped.stderr
     assert json.loads(skipped.stdout)["holding"] == "skipped: --no-holding-check"
 
 
+def _skip_if_host_stalled(result: subprocess.CompletedProcess[str]) -> None:
+    """A homing command a host busier now than the rate check saw could not run: refused by the rate check, or halted
+    by its homing loop missing its replies or deadlines (exit 1; homing runs before the rate check). That is the right
+    answer there, and nothing else of the test applies."""
+    skip_if_rate_refused(result)
+    if result.returncode == 1 and any(f"fault, every axis halted: {k}" in result.stderr for k in HOST_FAULTS):
+        pytest.skip(f"the loop could not hold its rate on this host just now: {result.stderr.strip()}")
+
+
 def test_a_seeking_joint_late_behind_its_reference_but_moving_is_no_stop() -> None:
-    # under host load the measurement falls behind the reference by more than STALL_DEG while the joint still moves
-    # at the seek's speed (the test command under slow-host found a "stop" at -61 deg, 64 deg short of it): only a
-    # joint that has also slowed down has pressed against something
+    # under host load the measurement falls behind the reference while the joint still moves at the seek's speed (the
+    # test command under slow-host found a "stop" at -61 deg, 64 deg short of it), and at a low rate a drive that
+    # reached its sparse set-point reads a low speed while its current spikes with each new one: only a joint that
+    # stays within the stall's distance for its time, its current pressing all along, has stalled
     with Arm(load_config(ARM6), emulate=True) as arm:
         controller = arm.controller
         assert controller is not None
-        i, seek_dps = 1, 10.0
-        watch = _StopWatch(i, 100.0, controller.period_s, seek_dps)  # (a current rule that never fires here)
+        i, seek_dps, period = SHOULDER, 20.0, 1.0 / 15.0
+        stall = stall_criterion(seek_dps, period, angle_step_deg(controller, i))
+        assert stall.distance_deg == pytest.approx(STOP_GIVE_DEG, abs=0.01)
+        assert stall.time_s == pytest.approx(2 * period)  # two intervals: at 20 deg/s more than twice the distance
+        watch = _StopWatch(i, 3.0, period, stall)
         axes, reference = controller.axes, controller.reference.position
-        reference[i] = float(axes.q_deg[i]) - 5.0 * STALL_DEG  # the reference far ahead
-        axes.qd_dps[i] = -seek_dps  # ... and the joint moving after it at the seek's speed
-        watch(controller, 0.0, [])
+        reference[i] = float(axes.q_deg[i]) - 5.0  # the reference far ahead
+        axes.iq_a[i] = 0.0
+        watch(controller, 0.0, [])  # moving freely: the free current
+        axes.qd_dps[i] = 0.0  # (the speed read at the sample: the drive waits at its set-point)
+        for k in range(1, 10):  # the current past the limit in every sample, the joint a period's travel further
+            axes.iq_a[i] = 4.0
+            axes.q_deg[i] -= seek_dps * period
+            watch(controller, k * period, [])
         assert watch.found is None
-        axes.qd_dps[i] = -0.4 * seek_dps  # slowed down against the stop
-        watch(controller, 0.1, [])
-        found = vars(watch)["found"]  # (read again: the call changed it)
-        assert found is not None and found[0] == 0.1
+        for k in (10, 11):  # now still (within the stall's distance), pressing
+            axes.q_deg[i] -= 0.3 * stall.distance_deg
+            watch(controller, k * period, [])
+        found = vars(watch)["found"]  # (read again: the calls changed it)
+        # three samples over two periods, from the one it arrived at (the stop's angle is taken there)
+        assert found is not None and found[0] == pytest.approx(11 * period) and found[1] == pytest.approx(-12.0)
+        assert controller.reference.position[i] == pytest.approx(float(axes.q_deg[i]))  # held where it stalled
+
+
+def _homing_arm(
+    name: str, joint: str, rate_hz: float, speed_dps: float, *, seed: int | None = None, stop_deg: float | None = None
+) -> ArmConfig:
+    """``name``'s configuration at ``rate_hz`` with ``joint`` homed at ``speed_dps`` (against a stop at ``stop_deg``
+    where it has none), on drives drawn with ``seed`` (None: as configured)."""
+    config = load_config(CONFIGS / name)
+    joints = list(config.joints)
+    j = config.joint_names.index(joint)
+    stop = joints[j].homing
+    if stop is None:
+        assert stop_deg is not None, f"{joint} has no homing in {name}: give it a stop"
+        stop = HomingConfig(stop_deg=stop_deg, current_limit_a=3.0)
+    joints[j] = dataclasses.replace(joints[j], homing=dataclasses.replace(stop, speed_dps=speed_dps))
+    control = dataclasses.replace(config.control, rate_hz=rate_hz)
+    config = dataclasses.replace(config, joints=tuple(joints), control=control)
+    return config if seed is None else with_drives(config, draw_drives(random.Random(seed), len(joints)))
+
+
+def test_a_rate_too_low_for_the_seek_is_refused_before_it_with_the_figures() -> None:
+    # issue: a shoulder homing at 20 deg/s at 15 Hz found its "stop" at -1.5 deg after 0.33 s and corrected -10 motor
+    # turns (the stop was at -125); now the rate is refused before anything moves, naming what would hold
+    arm = Arm(_homing_arm("arm6.yaml", "shoulder_pitch", 15.0, 20.0), emulate=True, home=["shoulder_pitch"])
+    with pytest.raises(HomingError, match="cannot tell its stop in time") as caught:
+        arm.connect()
+    text = str(caught.value)
+    assert "safety.following_error_deg = 4" in text
+    assert "homing.speed_dps <= 13.9 at this rate, or control.rate_hz >= 23 at this speed" in text, text
+    assert arm.plant is not None
+    assert abs(arm.plant.joint_positions_deg()[SHOULDER]) < 0.1  # the seek never began
+
+
+@pytest.mark.parametrize("seed", [None, 3, 11])
+@pytest.mark.parametrize("rate_hz", [10.0, 15.0, 20.0, 30.0, 50.0])
+@pytest.mark.parametrize(
+    ("name", "joint", "stop_deg"),
+    [
+        ("arm6.yaml", "shoulder_pitch", None),
+        ("arm6.yaml", "base_yaw", -175.0),
+        ("arm6_v3.yaml", "shoulder_pitch", None),
+    ],
+    ids=["gravity", "yaw", "v3"],
+)
+def test_the_stop_found_is_the_true_one_or_the_rate_is_refused_before_the_seek(
+    name: str, joint: str, stop_deg: float | None, rate_hz: float, seed: int | None
+) -> None:
+    # at 20 deg/s on drives drawn within the model error: a shoulder loaded by gravity, a yaw joint that nothing loads
+    # (no holding check would catch a false stop there), a V3 drive's 0x92 angle
+    config = _homing_arm(name, joint, rate_hz, 20.0, seed=seed, stop_deg=stop_deg)
+    j = config.joint_names.index(joint)
+    arm = Arm(config, emulate=True, home=[joint], emulated_protocol="v3" if "v3" in name else None)
+    try:
+        arm.connect()
+    except HomingError as refused:
+        assert "cannot tell its stop in time" in str(refused), refused
+        # (at 30 Hz the stall is told within 4 periods' travel, 2.7 deg, plus the joint's lag: inside 4 deg)
+        assert rate_hz < 30.0, refused
+        assert arm.plant is not None and abs(arm.plant.joint_positions_deg()[j]) < 0.1  # before the seek
+        return
+    with arm:
+        [result] = arm.homing
+        assert result.turns_correction == 0 and abs(result.remainder_deg) < 0.05, result  # (powered up at zero)
+        assert arm.plant is not None
+        stop = config.joints[j].homing
+        assert stop is not None
+        assert abs(result.stop_found_deg - stop.stop_deg) < 0.05

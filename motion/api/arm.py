@@ -43,6 +43,7 @@ from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
 from motion.errors import EncodeError, FaultKind, MotionError, MotionFault, PlanningError
 from motion.homing import (
     HomingResult,
+    check_seeks,
     corrected_turns,
     finish_halt,
     homed_joints,
@@ -394,6 +395,7 @@ class Arm:
         self._register_loop(supervisor)
         try:
             supervisor.start()
+            check_seeks(supervisor, [(self._index[j.name], j) for j in joints], seeker.pause)
             results = [seek_stop(supervisor, self._index[j.name], j, seeker.pause) for j in joints]
         finally:
             self._running = None  # a stop from now on is latched for the arm's loop

@@ -86,6 +86,7 @@ class Clearing(SafetyPart):
         controller.reference = State.at_rest(q)
         self.log.fault = None
         self.guard.reset()
+        self.brakes.reset()
         self.log.exception_origin = None
         self.watchdog.start(controller.clock.now())
         self.machine.fire(ArmEvent.CLEARED)

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
     from motion.control.controller import Controller
+    from motion.safety.brakes import BrakeWatch
     from motion.safety.halted import HaltGuard
     from motion.safety.records import FaultLog
     from motion.safety.states import StateMachine
@@ -25,6 +26,7 @@ class SafetyContext:
         guard: the halted state's bookkeeping.
         watchdog: the watchdog.
         log: the session's faults.
+        brakes: the braked joints whose drives cannot hold them (:mod:`motion.safety.brakes`).
     """
 
     controller: Controller
@@ -33,6 +35,7 @@ class SafetyContext:
     guard: HaltGuard
     watchdog: Watchdog
     log: FaultLog
+    brakes: BrakeWatch
 
 
 class SafetyPart:
@@ -45,3 +48,4 @@ class SafetyPart:
         self.guard = context.guard
         self.watchdog = context.watchdog
         self.log = context.log
+        self.brakes = context.brakes

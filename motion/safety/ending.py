@@ -85,7 +85,9 @@ class SessionEnd:
         until = clock.now() + SETUP_WINDOW_S
         ask = controller.bare_request
         try:
-            replies = bus.transact([ask(i, guard.codes[i]) for i in order], clock.now() + self._window_s)
+            batch = guard.locks_due()  # (a braked joint its drive cannot hold: its brake first, as in the loop)
+            batch += [ask(i, guard.codes[i]) for i in order]
+            replies = bus.transact(batch, clock.now() + self._window_s)
             controller.absorb(replies)
             guard.take(replies, controller.axes, self.watchdog.within, clock.now())
             # Late acknowledgements (a loaded host, a slow drive): halted cycles, each a short exchange that reads

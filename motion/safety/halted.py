@@ -11,9 +11,15 @@ Once a halt went out, every cycle until ``clear()`` or close:
 * **a joint beyond its limits** while halted is a fault of its own (recorded once per excursion), its halt re-sent;
 * **a braked joint is stopped, not released**: under 0x80 it gets 0x81 until its brake locks (which turns its output
   off), so that it does not fall meanwhile;
-* **a brake locks only on a joint at rest**: after its drive acknowledged the halt, once every reading taken since
-  for :data:`BRAKE_REST_S` showed at most :data:`BRAKE_REST_DPS`, and while no joint of the arm reads faster than
-  :data:`SWING_DPS` (a joint swinging elsewhere jolts it through the arm).
+* **a brake locks on a joint at rest where its drive holds**: after its drive acknowledged the halt, once every
+  reading taken since for :data:`BRAKE_REST_S` showed at most :data:`BRAKE_REST_DPS`, and while no joint of the arm
+  reads faster than :data:`SWING_DPS` (a joint swinging elsewhere jolts it through the arm): a holding brake is no
+  stopping device;
+* **a brake locks at once where its drive cannot hold**: a braked joint whose drive has cut its output (its own
+  over-temperature or under-voltage protection, silent or out of reach: :class:`~motion.safety.brakes.BrakeWatch`)
+  and, under ``halt_policy: off``, every braked joint get 0x78 in the halt's batch or the cycle the drive is found,
+  first in it, and again every cycle until it is acknowledged, whatever the joint's speed (a joint gravity loads
+  never comes to rest under a drive that does not hold it: it falls).
 
 "Driving", from a state reply of a drive that acknowledged its halt: under 0x81 (the drive brakes to a standstill and
 holds), once it has stood at rest for :data:`BRAKE_REST_S` (an overshoot of its own stop passes through zero speed:
@@ -26,7 +32,7 @@ drive stops) and, where it swings back and forth, by :data:`SWINGS_TO_RELEASE`.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Container, Iterable, Sequence
 from typing import Final
 
 from motion.control.axes import AxisStates
@@ -78,13 +84,30 @@ class HaltGuard:
         braked_ids: the ids of joints with a holding brake.
         ask: the request without data for a command to a drive, in its family's protocol (motor id, command ->
             request: ``Controller.bare_request``).
+        unheld: the braked joints whose drives cannot hold them, as it grows (the brake watch's
+            :attr:`~motion.safety.brakes.BrakeWatch.unheld`): braked at once.
+        clock: the time of the brake commands (:attr:`lock_sent_s`; None: the latest :meth:`take`'s).
     """
 
-    def __init__(self, ids: Sequence[int], braked_ids: Sequence[int], ask: Callable[[int, int], Request]) -> None:
+    def __init__(
+        self,
+        ids: Sequence[int],
+        braked_ids: Sequence[int],
+        ask: Callable[[int, int], Request],
+        *,
+        unheld: Container[int] = frozenset(),
+        clock: Callable[[], float] | None = None,
+    ) -> None:
         self.ids = tuple(ids)
         self.index = {motor_id: i for i, motor_id in enumerate(self.ids)}
         self.braked_ids = tuple(braked_ids)
         self._ask = ask
+        #: The braked joints whose drives cannot hold them (their addresses; the brake watch's finding, kept live).
+        self.unheld = unheld
+        self._clock = clock
+        #: When the first 0x78 went out to each braked joint since the arm was last cleared, by address, s (the
+        #: clock's): for a joint braked at once (:meth:`braked_at_once`), the brake command it stops by.
+        self.lock_sent_s: dict[int, float] = {}
         n = len(self.ids)
         #: The halt command in force (0x81, or 0x80 under ``halt_policy: off``).
         self.code = Command.MOTOR_STOP
@@ -135,6 +158,7 @@ class HaltGuard:
         self.unacknowledged.clear()
         self.unanswered.clear()
         self.locked.clear()
+        self.lock_sent_s.clear()
         self._silent.clear()
         for i in range(len(self.ids)):
             self._forget(i)
@@ -146,25 +170,51 @@ class HaltGuard:
         """Whether every braked joint's brake has locked since the halt."""
         return len(self.locked) == len(self.braked_ids)
 
+    def braked_at_once(self) -> list[int]:
+        """The braked joints (addresses) whose brake locks at once, whatever their speed: their drives cannot hold
+        them (:attr:`unheld`), or the halt turns every output off (``halt_policy: off``)."""
+        every = self.code == Command.MOTOR_OFF
+        return [i for i in self.braked_ids if every or i in self.unheld]
+
+    def locks_due(self) -> list[Request]:
+        """0x78 to every joint braked at once whose lock has not been acknowledged (first in a batch), the time of
+        each one's first recorded in :attr:`lock_sent_s`."""
+        if not self._locks:
+            return []
+        due = [i for i in self.braked_at_once() if i not in self.locked]
+        for i in due:
+            self._sent_lock(i)
+        return [self._locks[i] for i in due]
+
+    def _sent_lock(self, motor_id: int) -> None:
+        if motor_id not in self.lock_sent_s:
+            self.lock_sent_s[motor_id] = self._clock() if self._clock is not None else self._now
+
     def halt_requests(self) -> list[Request]:
-        """The halt to every drive not known to be halted, in id order."""
+        """The locks due at once (:meth:`locks_due`), then the halt to every drive not known to be halted, in id
+        order."""
         halts, silent = self._halts, self._silent
-        return [halts[motor_id] for motor_id in sorted(self.unacknowledged, key=lambda i: (i in silent, i))]
+        batch = self.locks_due()
+        batch += [halts[motor_id] for motor_id in sorted(self.unacknowledged, key=lambda i: (i in silent, i))]
+        return batch
 
     def requests(self) -> list[Request]:
         """The halted cycle's batch: the halt to every drive not known to be halted and, in turn, to one drive
         whatever it shows; a state read to every drive (its readings never have gaps that its encoder's turns could
-        slip through while it moves); then 0x78 to the braked joints found at rest."""
+        slip through while it moves); then 0x78 to the braked joints found at rest. The locks due at once go first
+        (:meth:`locks_due`)."""
         ids, owed, halts, silent = self.ids, self.unacknowledged, self._halts, self._silent
         self._turn = (self._turn + 1) % len(ids)
         reassert = ids[self._turn]
         if silent:  # the drives that missed their last reply last: on RS485 their timeouts delay nobody's frames
             ids = tuple(sorted(ids, key=lambda i: i in silent))
-        batch = [halts[i] for i in ids if i in owed or i == reassert] if owed else [halts[reassert]]
+        batch = self.locks_due()
+        batch += [halts[i] for i in ids if i in owed or i == reassert] if owed else [halts[reassert]]
         batch += [self._reads[i] for i in ids] if silent else self._read_batch
         if self._locks and not self._fast and len(self.locked) < len(self._locks):
             due = self._brakes_due()
             if due is not None:
+                self._sent_lock(due)
                 batch.append(self._locks[due])
         return batch
 
@@ -173,9 +223,12 @@ class HaltGuard:
         next one waits for readings at rest after that), and only while the whole arm is calm (a joint swinging
         elsewhere jolts this one through the arm: the caller checks that)."""
         index, now, rest_since = self.index, self._now, self._rest_since
+        every = self.code == Command.MOTOR_OFF  # (then each is braked at once)
         for motor_id in self.braked_ids:
             if (
-                motor_id not in self.locked
+                not every
+                and motor_id not in self.unheld
+                and motor_id not in self.locked
                 and motor_id not in self.unacknowledged
                 and now - rest_since[index[motor_id]] >= BRAKE_REST_S
             ):

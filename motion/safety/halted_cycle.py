@@ -71,13 +71,13 @@ class HaltedCycle(SafetyPart):
                 budget = controller.options.reply_budget
                 replies = controller.bus.transact(requests, start_s + budget * (deadline_s - start_s))
                 controller.absorb(replies)
-            self._take(state, replies)
+            self._take(state, replies, deadline_s)
             raise
-        self._take(state, replies)
+        self._take(state, replies, deadline_s)
 
-    def _take(self, state: ArmState, replies: list[Reply]) -> None:
-        """The halted cycle's replies: acknowledgements, drives driving or swinging, limits, restarts, and the end of
-        HALTING."""
+    def _take(self, state: ArmState, replies: list[Reply], deadline_s: float) -> None:
+        """The halted cycle's replies: acknowledgements, drives driving or swinging, limits, restarts, braked joints
+        whose drives cannot hold (braked now, in this cycle), and the end of HALTING."""
         controller, guard, log = self.controller, self.guard, self.log
         self.reaction.send_failing = False
         now = controller.clock.now()
@@ -102,6 +102,11 @@ class HaltedCycle(SafetyPart):
                 log.record_halted(fault, guard.code)
         if state is ArmState.HALTING:
             self._end_halting(now)
+        unheld = self.brakes.take(replies, now)
+        if unheld is not None:
+            log.record_halted(unheld, guard.code)
+            # (its 0x78 at once, not with the next cycle's batch: a joint its drive does not hold is falling)
+            self.reaction.send_halt(self.reaction.window_end(controller.clock.now(), deadline_s))
 
     def _end_halting(self, now_s: float) -> None:
         """HALTED once every drive acknowledged its halt, or once ``halt_retry_s`` passed (the halt goes on being

@@ -26,6 +26,7 @@ from motion.config.schema import HaltPolicy
 from motion.control.controller import Feedforward
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
 from motion.protocol import Command
+from motion.safety.brakes import evaluate_cycle
 from motion.safety.context import SafetyContext, SafetyPart
 from motion.safety.hold import HoldCheck
 from motion.safety.records import REACTIONS, HaltRecord, Reaction, same_cause
@@ -190,7 +191,7 @@ class FaultReaction(SafetyPart):
             raise MotionError("no gravity model to comply with")
         self.machine.fire(ArmEvent.COMPLY)
         sent = controller.clock.now()
-        controller.comply_step(sent, self._window_end(sent, deadline_s), gravity)
+        controller.comply_step(sent, self.window_end(sent, deadline_s), gravity)
         return sent
 
     def _start_hold(self, fault: MotionFault, start_s: float, deadline_s: float) -> float:
@@ -216,7 +217,7 @@ class FaultReaction(SafetyPart):
         else:
             follower.stop(start_s)
         sent = controller.clock.now()
-        controller.step(sent, self._window_end(sent, deadline_s), apply_pending=False)
+        controller.step(sent, self.window_end(sent, deadline_s), apply_pending=False)
         return sent
 
     def start_halt(self, detected_s: float, deadline_s: float, code: Command) -> float:
@@ -225,12 +226,12 @@ class FaultReaction(SafetyPart):
         self._enter_halting(code, detected_s)
         sent = self.controller.clock.now()
         try:
-            self.send_halt(self._window_end(sent, deadline_s))
+            self.send_halt(self.window_end(sent, deadline_s))
         finally:
             self._stop_reference()
         return sent
 
-    def _window_end(self, sent_s: float, deadline_s: float) -> float:
+    def window_end(self, sent_s: float, deadline_s: float) -> float:
         """Until when a reaction's first exchange, sent at ``sent_s``, waits for its replies in a cycle that ends at
         ``deadline_s`` (the next one's start): :data:`HALT_WINDOW_S` at least, else not into the last part of the
         cycle (half of what the reply budget leaves). One that waited for a silent drive up to the next cycle's start
@@ -300,7 +301,7 @@ class FaultReaction(SafetyPart):
         check = self.watchdog.check_setpoint  # the stop ramp must not pass a limit either
         try:
             replies = controller.step(start_s, deadline_s, extra=extra, check=check, apply_pending=False)
-            self.watchdog.evaluate(replies, controller.clock.now())
+            evaluate_cycle(self.watchdog, self.brakes, replies, controller.clock.now())
         except MotionFault as fault:
             if not fault.kind.holdable:
                 self.react(fault, -1, start_s, deadline_s)  # the drives' own halt
@@ -323,7 +324,7 @@ class FaultReaction(SafetyPart):
         extra = self._reads()
         try:
             replies = controller.comply_step(start_s, deadline_s, gravity, extra=extra)
-            self.watchdog.evaluate(replies, controller.clock.now(), complying=True)
+            evaluate_cycle(self.watchdog, self.brakes, replies, controller.clock.now(), complying=True)
         except MotionFault as fault:  # communication, a drive, a limit: the drives' own halt
             self.react(fault, -1, start_s, deadline_s)
 

@@ -40,6 +40,7 @@ from motion.control.controller import Controller, Feedforward
 from motion.control.drivesetup import DriveSetup, link_timeout_ms
 from motion.control.ratecheck import StatusRounds
 from motion.errors import FaultKind, MotionError, MotionFault, TransportError
+from motion.safety.brakes import BrakeWatch, evaluate_cycle
 from motion.safety.clearing import Clearing
 from motion.safety.collision import CollisionObserver
 from motion.safety.context import SafetyContext
@@ -102,10 +103,21 @@ class Supervisor:
         self.log = log = FaultLog(machine, controller.publisher, controller.clock)
         machine.on_change = log.publish
         self.faults, self.halts, self.lost_frames = log.faults, log.halts, log.lost_frames
+        #: The braked joints whose drives cannot hold them, braked at once (:mod:`motion.safety.brakes`).
+        self.brakes = brakes = BrakeWatch(
+            [s.name for s in controller.specs],
+            ids,
+            drives.braked_ids,
+            controller.families,
+            max_missed_replies=settings.max_missed_replies,
+            reply_timeout_s=settings.reply_timeout_s,
+        )
         #: The halted state's bookkeeping (:mod:`motion.safety.halted`).
-        self.guard = guard = HaltGuard(ids, drives.braked_ids, controller.bare_request)
+        self.guard = guard = HaltGuard(
+            ids, drives.braked_ids, controller.bare_request, unheld=brakes.unheld, clock=controller.clock.now
+        )
         reads = self._next_status_reads
-        context = SafetyContext(controller, settings, machine, guard, watchdog, log)
+        context = SafetyContext(controller, settings, machine, guard, watchdog, log, brakes)
         #: The reaction to a fault, and the cycles of HOLDING, COMPLYING and HALT_PENDING.
         self.reaction = reaction = FaultReaction(context, gravity=gravity, reads=reads)
         halted = HaltedCycle(context, reaction=reaction, gravity=gravity, reads=reads)
@@ -384,7 +396,7 @@ class Supervisor:
         controller = self.controller
         extra = self._next_status_reads()
         replies = controller.step(start_s, deadline_s, extra=extra, check=self.watchdog.check_setpoint)
-        self.watchdog.evaluate(replies, controller.clock.now())
+        evaluate_cycle(self.watchdog, self.brakes, replies, controller.clock.now())
         if self.machine.state is ArmState.MOVING and controller.idle:
             self.machine.fire(ArmEvent.DONE)
 
