@@ -3,6 +3,7 @@ with ``rmd-motion home`` against drives emulated in real time in a process of th
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -367,7 +368,9 @@ def _homing_arm(
         stop = HomingConfig(stop_deg=stop_deg, current_limit_a=3.0)
     joints[j] = dataclasses.replace(joints[j], homing=dataclasses.replace(stop, speed_dps=speed_dps))
     control = dataclasses.replace(config.control, rate_hz=rate_hz)
-    config = dataclasses.replace(config, joints=tuple(joints), control=control)
+    # (the default communication-loss time, five periods: arm6_v3's 40 ms is set for its 125 Hz)
+    safety = dataclasses.replace(config.safety, link_timeout_ms=None)
+    config = dataclasses.replace(config, joints=tuple(joints), control=control, safety=safety)
     return config if seed is None else with_drives(config, draw_drives(random.Random(seed), len(joints)))
 
 
@@ -411,7 +414,7 @@ def test_the_stop_found_is_the_true_one_or_the_rate_is_refused_before_the_seek(
         assert rate_hz < 30.0, refused
         assert arm.plant is not None and abs(arm.plant.joint_positions_deg()[j]) < 0.1  # before the seek
         return
-    with arm:
+    with contextlib.closing(arm):  # (connected already)
         [result] = arm.homing
         assert result.turns_correction == 0 and abs(result.remainder_deg) < 0.05, result  # (powered up at zero)
         assert arm.plant is not None
