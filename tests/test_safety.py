@@ -747,3 +747,32 @@ def test_the_overspeed_limits_are_the_velocity_limits_times_their_derived_margin
         fault = check.check(over)
         assert fault is not None and fault.kind == "overspeed" and fault.joint == "elbow"
         assert fault.value == over[1] and fault.threshold == check.limit_dps[1] and fault.joints == ("elbow",)
+
+
+def test_clear_is_refused_while_a_joint_coasts_from_its_halt(tmp_path: Path) -> None:
+    # cleared 4 ms after an E-stop with the shoulder at full speed, the torque PD took over a moving joint and swung
+    # it degrees past where the drive's own stop brings it to rest: the clear now waits for every joint at rest
+    config = _config(mode=ControlMode.TORQUE)
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
+        supervisor, controller = rig.supervisor, rig.controller
+        assert supervisor is not None
+        supervisor.move_to([80.0, 0.0])
+        while abs(controller.axes.qd_dps[0]) < 100.0:
+            rig.sleep(controller.period_s)
+        supervisor.estop()
+        rig.sleep(0.004)
+        with pytest.raises(MotionFault) as refused:
+            supervisor.clear()
+        fault = refused.value
+        assert fault.kind == "clear_failed" and fault.joint == "shoulder", fault
+        assert fault.value is not None and abs(fault.value) > 20.0 and "shoulder" in str(fault)
+        states = [supervisor.state]
+        # at rest (the drive's own stop settled), every reading for the rest time: accepted, and the joint stays
+        _assert_comes_to_rest(rig)
+        rig.sleep(0.3)
+        stopped = rig.plant.joint_positions_deg()
+        supervisor.clear()
+        states.append(supervisor.state)
+        assert states == [ArmState.HALTED, ArmState.READY]
+        rig.sleep(0.3)
+        assert np.abs(rig.plant.joint_positions_deg() - stopped).max() < 0.5
