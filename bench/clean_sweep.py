@@ -1,7 +1,8 @@
 """Clean paths on drawn drives (issue 30): run many seeded cases of :mod:`tests.clean_sweep` and print the false
-faults, the worst collision signal as a share of the threshold in force, and the worst following error as a share
-of its limit, per arm, mode and rate; then each case's first step again with a collision (15 % of a drawn joint's peak
-torque at a drawn instant) and the control cycles it took to detect it.
+faults, the worst collision signal as a share of the threshold in force, the worst following error as a share of its
+limit and the fastest measured speed as a share of its overspeed limit, per arm, mode and rate; then each case's first
+step again with a collision (15 % of a drawn joint's peak torque at a drawn instant) and the control cycles it took to
+detect it.
 
     .venv/bin/python bench/clean_sweep.py --count 2000 --jobs 2
     .venv/bin/python bench/clean_sweep.py --first 17 --count 1      # case 17 alone, described
@@ -48,7 +49,7 @@ def main() -> None:
     detections: dict[str, list[int]] = collections.defaultdict(lambda: [0, 0])  # arm and joint: in time, trials
     calibrated_detections: dict[str, list[int]] = collections.defaultdict(lambda: [0, 0])  # ... on its own drives
     cycles = 0
-    worst: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0, 0])
+    worst: dict[str, list[float]] = collections.defaultdict(lambda: [0.0, 0.0, 0, 0.0])
     worst_case: list[tuple[float, int, str]] = []
     swept = clean_sweep.sweep(
         args.seed,
@@ -74,6 +75,7 @@ def main() -> None:
         collision = float(outcome.collision_ratio.max(initial=0.0))
         following = float(outcome.following_ratio.max(initial=0.0))
         row[0], row[1], row[2] = max(row[0], collision), max(row[1], following), row[2] + 1
+        row[3] = max(row[3], float(outcome.speed_ratio.max(initial=0.0)))
         worst_case.append((max(collision, following), k, case.describe()))
         if outcome.refused is not None:
             refused += 1
@@ -121,10 +123,13 @@ def main() -> None:
         for key, (in_time, trials) in sorted(detections.items()):
             mine, theirs = calibrated_detections.get(key, (0, 0))
             print(f"| {key} | {in_time} / {trials} | {mine} / {theirs} |")
-    print("\n| arm, mode, rate | cases | worst collision signal / threshold | worst following error / limit |")
-    print("|---|---|---|---|")
-    for key, (collision, following, count) in sorted(worst.items()):
-        print(f"| {key} | {count} | {collision:.2f} | {following:.2f} |")
+    print(
+        "\n| arm, mode, rate | cases | worst collision signal / threshold | worst following error / limit "
+        "| fastest speed / overspeed limit |"
+    )
+    print("|---|---|---|---|---|")
+    for key, (collision, following, count, speed) in sorted(worst.items()):
+        print(f"| {key} | {count} | {collision:.2f} | {following:.2f} | {speed:.2f} |")
     ratio, k, described = max(worst_case)
     print(f"\nclosest to a fault: case {k} ({ratio:.2f}): {described}")
     sys.exit(1 if faults or late else 0)

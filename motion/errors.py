@@ -124,6 +124,9 @@ class FaultKind(StrEnum):
     FOLLOWING_ERROR = "following_error"  #: |expected - measured| beyond ``safety.following_error_deg``
     COLLISION = "collision"  #: a joint's momentum-observer residual beyond its ``collision_threshold_nm``
     POSITION_LIMIT = "position_limit"  #: a measured angle beyond its joint limit
+    #: a measured joint speed beyond its velocity limit × the margin a healthy joint's loop may overshoot by (the
+    #: torque constant's model error, and the steps of the speed fields: ``motion.safety.overspeed``)
+    OVERSPEED = "overspeed"
     SETPOINT_LIMIT = "setpoint_limit"  #: a planned set-point beyond its joint limit (it was not sent)
     TEMPERATURE = "temperature"  #: motor temperature at or above the joint's ``temperature_limit_c``
     LOW_VOLTAGE = "low_voltage"  #: supply voltage below ``safety.min_voltage_v``
@@ -160,7 +163,10 @@ class FaultKind(StrEnum):
 #: limit faults (a ramp from at or beyond a limit would carry the arm further past it), nor communication, drive
 #: flags or failures of our own code, nor a collision: the ramp follows the path on, into whatever the arm hit, for
 #: its whole length (at arm6's speeds a quarter of a second and degrees of travel), where the drives' own 0x81 brakes
-#: at their acceleration limit (``safety.collision_reaction: comply`` is the reaction that yields instead).
+#: at their acceleration limit (``safety.collision_reaction: comply`` is the reaction that yields instead). Nor an
+#: overspeed: a joint faster than any healthy loop drives it is one whose loop diverged (a torque-mode PD at a rate
+#: its gains do not hold) or whose drive no longer keeps to its cap, and the stop ramp streams through that same loop,
+#: from a speed beyond anything it planned; the drives' own 0x81 brakes each joint by its drive alone.
 HOLDABLE: Final = frozenset(
     {FaultKind.FOLLOWING_ERROR, FaultKind.TEMPERATURE, FaultKind.LOW_VOLTAGE, FaultKind.OVERRUN, FaultKind.ESTOP}
 )

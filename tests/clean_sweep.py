@@ -4,8 +4,9 @@ A :class:`Case` is an example arm in a control mode at a rate, emulated drives d
 (loop tuning, torque constant, rotor inertia, friction, reply latency and its jitter, the generation the example
 speaks), and a clean path: moves and waypoint follows to poses well inside the limits at drawn speed scales, each
 from where the last one ended. :func:`run` plays it in simulated time with the configuration's own thresholds and
-returns any fault and the worst ratios of the collision signal to the threshold in force and of the following error
-to the limit in force. Seeded and reproducible (:func:`drawn`): case ``k`` of seed ``s`` is drawn alone.
+returns any fault and the worst ratios of the collision signal to the threshold in force, of the following error
+to the limit in force and of the measured speed to the overspeed limit. Seeded and reproducible (:func:`drawn`): case
+``k`` of seed ``s`` is drawn alone.
 """
 
 from __future__ import annotations
@@ -84,8 +85,8 @@ class Case:
 
 @dataclass
 class Outcome:
-    """What a case showed: the fault (None: none), the worst |signal| / threshold and |following error| / limit per
-    joint over the cycles the checks ran, and the control cycles run."""
+    """What a case showed: the fault (None: none), the worst |signal| / threshold, |following error| / limit and
+    |measured speed| / overspeed limit per joint over the cycles the checks ran, and the control cycles run."""
 
     case: Case
     fault: MotionFault | None = None
@@ -93,6 +94,7 @@ class Outcome:
     collision_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
     following_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
     following_peak_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))  # the largest |following error|
+    speed_ratio: np.ndarray = field(default_factory=lambda: np.zeros(0))
     cycles: int = 0
 
 
@@ -204,13 +206,22 @@ def detect(case: Case, *, bound_only: bool = False, calibrating: bool = False) -
     )
 
 
-def run(case: Case, *, safety: SafetyConfig | None = None, bound_only: bool = False) -> Outcome:
-    """Play ``case`` (with ``safety`` instead of the example's, if given); the first fault ends it."""
+def run(case: Case, *, safety: SafetyConfig | None = None, bound_only: bool = False, watched: bool = True) -> Outcome:
+    """Play ``case`` (with ``safety`` instead of the example's, if given; not ``watched``: no collision check); the
+    first fault ends it."""
     config = config_of(case, bound_only=bound_only)
     if safety is not None:
         config = dataclasses.replace(config, safety=safety)
+    if not watched:
+        config = without_thresholds(config)
     n = len(config.joints)
-    outcome = Outcome(case, collision_ratio=np.zeros(n), following_ratio=np.zeros(n), following_peak_deg=np.zeros(n))
+    outcome = Outcome(
+        case,
+        collision_ratio=np.zeros(n),
+        following_ratio=np.zeros(n),
+        following_peak_deg=np.zeros(n),
+        speed_ratio=np.zeros(n),
+    )
     arm = _arm(case, config)
     ratio = np.zeros(n)
     try:
@@ -234,6 +245,9 @@ def run(case: Case, *, safety: SafetyConfig | None = None, bound_only: bool = Fa
             np.divide(watchdog.following_error_deg, watchdog.following_limit_deg, out=ratio, where=checked)
             np.fmax(outcome.following_ratio, ratio, out=outcome.following_ratio, where=checked)
             np.fmax(outcome.following_peak_deg, watchdog.following_error_deg, out=outcome.following_peak_deg)
+            np.abs(controller.axes.qd_dps, out=ratio)
+            np.divide(ratio, watchdog.overspeed_limit_dps, out=ratio)
+            np.fmax(outcome.speed_ratio, ratio, out=outcome.speed_ratio)
 
         controller.cycle_hooks.append(watch)
         try:

@@ -27,6 +27,9 @@ violations of:
   within the age of its flags and two cycles (while its drive can be reached);
 - **unheld**: no braked joint the controller brakes at once keeps moving (faster than :data:`BRAKE_MOVING_DPS`) a
   cycle after its brake command (``HaltGuard.lock_sent_s``) went out (while its drive can be reached);
+- **overspeed**: no joint reads faster than its overspeed limit (the watchdog's ``overspeed_limit_dps``: its velocity
+  limit × its margin) in a cycle the watchdog checks it (ready, moving, holding) without the arm halting in that
+  cycle (seen by the next cycle's look: the hooks run before the cycle's evaluation);
 - **escape**: nothing but a :class:`~motion.errors.MotionError` comes out of the API, the loop records no error of
   its own, and the run ends within :data:`WALL_LIMIT_S` of wall time.
 
@@ -62,6 +65,7 @@ from motion.protocol.v3.messages import CommandV3
 from motion.safety import ArmState
 from motion.safety.halted import RESTLESS_S as RESTLESS_RELEASE_S
 from motion.safety.halted import SWING_DPS
+from motion.safety.states import HALT_STATES
 from tests.drive_models import DriveDraw, draw_drives, with_drives
 
 CONFIGS = Path(__file__).resolve().parent.parent / "configs"
@@ -112,6 +116,8 @@ _UNREACHABLE = (InjectedFault.SILENT, InjectedFault.DROP, InjectedFault.CORRUPT)
 #: 0x80 because its drive's hold swung it: below this, the release is a violation.
 SWINGS_SEEN = 4
 _LINK = (InjectedFault.SILENT, InjectedFault.DROP)
+#: The states whose cycles the watchdog checks the speeds in (not COMPLYING: the arm yields to a collision).
+_EVALUATED = (ArmState.READY, ArmState.MOVING, ArmState.HOLDING)
 #: Kinds that move or pin joints from outside (a push, an obstruction): the arm is not held to the still invariant
 #: while they act and for :data:`SETTLE_S` after (a drive's hold pulls a joint an obstruction pinned off its hold
 #: position back once the obstruction is gone: its hold working, not the arm moving by itself).
@@ -272,6 +278,9 @@ class _Checker:
         self.ran = [False] * n  # whether its drive has run (been turned on) since connect
         self.previous_state: ArmState | None = None
         self.previous_answered: set[int] = set()
+        assert arm.supervisor is not None
+        self.overspeed_limit = arm.supervisor.watchdog.overspeed_limit_dps
+        self.overspeed_seen: str | None = None  # a joint read beyond it in the previous cycle, evaluated: which
         self.reported: set[str] = set()
         #: The violations found before the plant left its model.
         self.kept = 0
@@ -354,6 +363,7 @@ class _Checker:
             self.outcome.left_model_s = t
             self.kept = len(self.outcome.violations)
             return
+        self._check_overspeed(controller, state, t)
         halted = state in (ArmState.HALTING, ArmState.HALTED)
         still_states = halted or state is ArmState.HOLDING
         answered = {r.motor_id for r in replies if r.message is not None}
@@ -417,6 +427,22 @@ class _Checker:
             self._violate(
                 f"unheld{i}", f"unheld: {name} moves at {qd:+.1f} deg/s at {t:.3f} s, its brake command at {sent:.3f} s"
             )
+
+    def _check_overspeed(self, controller: Any, state: ArmState, t: float) -> None:
+        """A joint read beyond its overspeed limit in the previous cycle, which the watchdog evaluated, has the arm
+        halting now; and this cycle's reading, for the next look."""
+        if self.overspeed_seen is not None and state not in HALT_STATES and state is not ArmState.BUS_LOST:
+            self._violate("overspeed", f"overspeed: {self.overspeed_seen}, and the arm is {state.value} at {t:.3f} s")
+        self.overspeed_seen = None
+        if state in _EVALUATED:
+            speed = np.abs(controller.axes.qd_dps)
+            beyond = np.flatnonzero(speed > self.overspeed_limit)
+            if len(beyond):
+                i = int(beyond[0])
+                self.overspeed_seen = (
+                    f"{self.names[i]} read at {controller.axes.qd_dps[i]:+.1f} deg/s (limit "
+                    f"{self.overspeed_limit[i]:.1f}) while {state.value} at {t:.3f} s"
+                )
 
     def _returning(self, motor_id: int, t: float) -> bool:
         """Whether the drive holds with 0x81 a point its joint was pushed away from (a collision or an obstruction

@@ -288,6 +288,7 @@ def test_a_collision_in_the_first_cycles_of_motion_is_detected(clear: bool) -> N
         assert watchdog.collision_guarding and watchdog.collision_armed
         if clear:
             supervisor.estop()
+            arm.sleep(0.3)  # (clear() takes the joints at rest: the arm took up its load as the loop started)
             arm.clear()
             assert watchdog.collision_armed
     trial = collision_trial(config, torque_move(1.0), 3, period, initial_deg=start)
@@ -326,8 +327,9 @@ def test_comply_yields_to_the_push_and_clears(tmp_path: Path) -> None:
         assert supervisor is not None and emulator is not None
         arm.sleep(0.3)  # holding
         before = arm.positions()["elbow_pitch"]
-        now, torque = emulator.time_s, 0.15 * elbow.peak_torque_nm  # a push of 0.1 s
-        emulator.add_fault(Fault(InjectedFault.COLLISION, elbow.motor_id, now, now + 0.1, torque * elbow.direction))
+        # a push of 30 ms (one of 0.1 s flings the yielding forearm across its range, at 1.5 times its velocity limit)
+        now, torque = emulator.time_s, 0.15 * elbow.peak_torque_nm
+        emulator.add_fault(Fault(InjectedFault.COLLISION, elbow.motor_id, now, now + 0.03, torque * elbow.direction))
         arm.sleep(0.1)
         assert supervisor.fault is not None and supervisor.fault.kind == "collision"
         assert supervisor.state is ArmState.COMPLYING and supervisor.halts[0].reaction is Reaction.COMPLY
@@ -336,6 +338,9 @@ def test_comply_yields_to_the_push_and_clears(tmp_path: Path) -> None:
         assert not supervisor.controller.kp.any() or supervisor.controller.torque_nm is not None
         with pytest.raises(MotionFault, match="collision"):
             arm.move_to({"elbow_pitch": -60.0})  # refused until clear()
+        with pytest.raises(MotionFault, match="not every joint is at rest"):
+            arm.clear()  # (the arm still yields: cleared, the PD would pull it back from wherever it has got to)
+        arm.sleep(1.0)  # it comes to rest where it yielded to
         arm.clear()
         assert supervisor.state.value == "ready"  # (a fresh read: mypy narrowed the property above)
         arm.move_to({"elbow_pitch": -60.0}, speed_scale=0.3)  # the PD holds and moves again

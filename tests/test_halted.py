@@ -30,6 +30,7 @@ from motion.protocol.v3.messages import BrakeCommand, CommandV3, CommunicationTi
 from motion.safety import ArmState
 from motion.safety.halted import STILL_BAND_DEG, HaltGuard
 from motion.safety.halted_cycle import HaltedCycle
+from motion.safety.overspeed import OverspeedCheck
 from motion.safety.records import Records
 from motion.transport import Reply, Request
 from tests import fault_explorer
@@ -176,12 +177,13 @@ def test_while_halted_a_joint_beyond_its_limits_and_a_drive_that_restarted_are_f
 
 
 @pytest.mark.parametrize(
-    ("push_nm", "why"), [(8.0, "torque current at its limit"), (15.0, "following_error persisted")]
+    ("push_nm", "why"), [(8.0, "torque current at its limit"), (-12.0, "following_error persisted")]
 )
 def test_a_hold_that_does_not_hold_escalates_to_the_drives_halt(push_nm: float, why: str) -> None:
     # case 5, the escalation: the elbow pushed on mid-move (an external torque its drive cannot overcome) faults with
     # a following error; the hold then keeps its drive at its current limit, or the error keeps growing: 0x81 within
-    # a few cycles, not a push for ever
+    # a few cycles, not a push for ever. (A push beyond the drive's 9 N·m the way the elbow moves, 15 N·m, drives it
+    # past its overspeed limit 24 ms later, before any following error: the drives' own halt at once, no hold.)
     config = _config("arm2.yaml", HaltPolicy.HOLD, mode=ControlMode.POSITION, rate_hz=200.0)
     arm = Arm(config, emulate=True, faults=[Fault(InjectedFault.COLLISION, 2, 0.3, value=push_nm)])
     with arm:
@@ -627,6 +629,24 @@ def test_the_explorer_sees_brakes_locked_in_motion(monkeypatch: pytest.MonkeyPat
     monkeypatch.setattr(HaltGuard, "requests", lock_at_once)
     outcome = fault_explorer.run(REGRESSIONS[1])
     assert "brake" in outcome.kinds, outcome.violations
+
+
+def test_the_explorer_sees_a_joint_beyond_its_overspeed_limit_without_a_halt(monkeypatch: pytest.MonkeyPatch) -> None:
+    # the overspeed check taken out, and its limit at a tenth of the velocity limit: the move's joints read beyond it
+    # with nothing halting the arm
+    made = OverspeedCheck.__init__
+
+    def a_tenth(self: OverspeedCheck, controller: Any) -> None:
+        made(self, controller)
+        self.limit_dps *= 0.1
+
+    monkeypatch.setattr(OverspeedCheck, "__init__", a_tenth)
+    monkeypatch.setattr(OverspeedCheck, "check", lambda self, qd_dps: None)
+    schedule = Schedule(
+        "arm2.yaml", HaltPolicy.STOP, ControlMode.POSITION, faults=(), actions=((0.0, "move", (60.0, -90.0)),)
+    )
+    outcome = fault_explorer.run(schedule)
+    assert "overspeed" in outcome.kinds, outcome.violations
 
 
 def test_drawn_drives_reach_the_emulated_drives() -> None:

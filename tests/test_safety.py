@@ -19,7 +19,7 @@ import pytest
 
 from motion.api import Arm
 from motion.config import ArmConfig
-from motion.config.schema import ControlMode, HaltPolicy
+from motion.config.schema import ControlMode, HaltPolicy, ProtocolSetting
 from motion.control.commands import MotionTicket
 from motion.control.controller import Controller
 from motion.control.ratecheck import FLAG_AGE_S
@@ -686,3 +686,94 @@ def test_at_a_low_rate_every_drives_flags_are_read_within_50_ms(family: Protocol
             assert "voltage" in caught.value.kind and caught.value.joint == "elbow_pitch", caught.value
             latencies.append(supervisor.halts[0].detected_s - onset_s)
     assert max(latencies) <= FLAG_AGE_S + 1.0 / 50.0, latencies  # the read's age, and the cycle that carries it
+
+
+def test_a_torque_loop_that_diverges_faults_overspeed_in_the_cycle_it_is_first_seen(family: ProtocolFamily) -> None:
+    # arm2 in torque mode at 40 Hz, a rate its PD gains do not hold, with the README's move: the elbow's loop
+    # diverges, to six times its velocity limit and (older drives) past half a motor turn between two readings, which
+    # three cycles later read as a drive that restarted. The overspeed check halts it in the cycle its speed is first
+    # read beyond the limit, with the drives' own stop although the policy is hold (the ramp would stream through
+    # that loop)
+    config = arm_config("arm2.yaml", mode=ControlMode.TORQUE, rate_hz=40)
+    bus = dataclasses.replace(config.buses[0], protocol=ProtocolSetting(family.value))
+    config = dataclasses.replace(config, buses=(bus,))
+    assert config.control.halt_policy is HaltPolicy.HOLD
+    with Arm(config, emulate=True) as arm:
+        supervisor, controller = arm.supervisor, arm.controller
+        assert supervisor is not None and controller is not None
+        assert controller.families[0].family is family
+        limit = supervisor.watchdog.overspeed_limit_dps
+        beyond: list[tuple[int, int, float]] = []  # (cycle, joint, speed) of every reading beyond the limit
+
+        def watch(*_: object) -> None:
+            speed = np.abs(controller.axes.qd_dps)
+            beyond.extend((controller.loop.cycles, int(i), float(speed[i])) for i in np.flatnonzero(speed > limit))
+
+        controller.cycle_hooks.append(watch)
+        with pytest.raises(MotionFault) as caught:
+            arm.move_to({"shoulder": 30.0, "elbow": -45.0}, speed_scale=0.5)
+        fault = caught.value
+        assert fault.kind == "overspeed" and fault.joint == "elbow", fault
+        first_cycle, joint, speed = beyond[0]
+        assert arm.names[joint] == "elbow" and supervisor.halts[0].cycle == first_cycle
+        assert fault.value is not None and abs(fault.value) == pytest.approx(speed) and fault.threshold == limit[joint]
+        velocity_limit = config.joints[joint].velocity_limit_dps
+        assert fault.threshold is not None and 1.2 < fault.threshold / velocity_limit < 1.3  # (the margin)
+        assert supervisor.halts[0].reaction is Reaction.MOTOR_STOP
+    assert not FaultKind.OVERSPEED.holdable
+
+
+@pytest.mark.parametrize("mode", [ControlMode.POSITION, ControlMode.TORQUE])
+def test_the_overspeed_limits_are_the_velocity_limits_times_their_derived_margin(
+    mode: ControlMode, family: ProtocolFamily, tmp_path: Path
+) -> None:
+    config = _config(mode=mode)
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
+        supervisor = rig.supervisor
+        assert supervisor is not None
+        check = supervisor.watchdog.overspeed
+        rig.sleep(0.02)  # (a cycle evaluated: torque mode takes the PD's resonance at the arm's inertia)
+        limits = np.array([j.velocity_limit_dps for j in config.joints])
+        # one step of the speed reading, joint side: 1 deg/s of the motor through 1:9, or of a V3 drive's output
+        step = 1.0 / 9.0 if family is ProtocolFamily.V2 else 1.0
+        if mode is ControlMode.POSITION:  # the drive's speed loop under the 0xA4 cap, and the cap's own step
+            assert check.limit_dps == pytest.approx(limits * 1.2 + 2 * step)
+        else:  # the PD on each joint's inertia: the torque constant's 20 % through its resonance
+            assert (check.resonance >= 1.0).all() and (check.resonance > 1.0).any()
+            assert check.limit_dps == pytest.approx(limits * (1.0 + 0.2 * check.resonance) + step)
+        assert supervisor.watchdog.overspeed_limit_dps is check.limit_dps  # (the array a test asks for)
+        # at the limit: no fault; beyond it: the fault names the joint, its speed and the limit
+        assert check.check(check.limit_dps.copy()) is None
+        over = check.limit_dps * np.array([0.5, -1.001])
+        fault = check.check(over)
+        assert fault is not None and fault.kind == "overspeed" and fault.joint == "elbow"
+        assert fault.value == over[1] and fault.threshold == check.limit_dps[1] and fault.joints == ("elbow",)
+
+
+def test_clear_is_refused_while_a_joint_coasts_from_its_halt(tmp_path: Path) -> None:
+    # cleared 4 ms after an E-stop with the shoulder at full speed, the torque PD took over a moving joint and swung
+    # it degrees past where the drive's own stop brings it to rest: the clear now waits for every joint at rest
+    config = _config(mode=ControlMode.TORQUE)
+    with emulated_arm(config, "sim", tmp_path, supervised=True) as rig:
+        supervisor, controller = rig.supervisor, rig.controller
+        assert supervisor is not None
+        supervisor.move_to([80.0, 0.0])
+        while abs(controller.axes.qd_dps[0]) < 100.0:
+            rig.sleep(controller.period_s)
+        supervisor.estop()
+        rig.sleep(0.004)
+        with pytest.raises(MotionFault) as refused:
+            supervisor.clear()
+        fault = refused.value
+        assert fault.kind == "clear_failed" and fault.joint == "shoulder", fault
+        assert fault.value is not None and abs(fault.value) > 20.0 and "shoulder" in str(fault)
+        states = [supervisor.state]
+        # at rest (the drive's own stop settled), every reading for the rest time: accepted, and the joint stays
+        _assert_comes_to_rest(rig)
+        rig.sleep(0.3)
+        stopped = rig.plant.joint_positions_deg()
+        supervisor.clear()
+        states.append(supervisor.state)
+        assert states == [ArmState.HALTED, ArmState.READY]
+        rig.sleep(0.3)
+        assert np.abs(rig.plant.joint_positions_deg() - stopped).max() < 0.5

@@ -82,6 +82,7 @@ def test_the_state_fault_and_loop_counters_are_published_with_each_transition() 
         arm.sleep(0.05)
         settled = controller.snapshot
         assert settled.state == "halted" and settled.fault is halted.fault
+        arm.sleep(0.25)  # (clear() takes the joints once each has read at rest for 50 ms, after the drives' stop)
         arm.clear()
         cleared = controller.snapshot
         assert cleared.state == "ready" and cleared.fault is None

@@ -89,6 +89,14 @@ class AxisStates:
         self._state_type = next((f.state_type for f in families if f.angle_every_cycle), families[0].state_type)
         self._encoder_index = {k: i for k, i in self.index.items() if not reads_angle[i]}
         self._angle_index = {k: i for k, i in self.index.items() if reads_angle[i]}
+        #: The step of each joint's speed reading, joint deg/s: one step of its drive's speed field (of the motor for
+        #: the older family, of the output shaft for V3: the family's ``speed_step_dps``) through the transmission.
+        self.speed_step_dps = np.array(
+            [
+                abs(t.joint_rate(f.speed_step_dps * s.drive_gear_ratio))
+                for s, t, f in zip(specs, transmission.transmissions, families, strict=True)
+            ]
+        )
         # The encoder fields are uint16: wider encoders report their top 16 bits (docs/protocol.md).
         self.counts_per_rev = np.array([float(1 << min(s.encoder_bits, ENCODER_FIELD_BITS)) for s in specs])
         # Per axis, for absorb: counts per revolution, and the joint's motor -> joint conversions.

@@ -118,6 +118,8 @@ class Controller(MotionCommands, LoopRunning):
         self.options = options
         self.rate_hz = options.rate_hz
         self.bus = bus
+        #: The joints' limits as configured (the planner's leave position mode's catch-up room free).
+        self.limits = limits
         self.planner = Planner(planning_limits(limits, options.mode, options.catch_up_share))
         self.feedforward = feedforward
         self.clock: Clock = clock if clock is not None else MonotonicClock()

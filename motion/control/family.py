@@ -28,7 +28,7 @@ from typing import Final
 from motion.protocol import Bare, Command, ErrorFlags, Message, MotorState, Status1
 from motion.protocol.generation import GENERATIONS
 from motion.protocol.scales import IQ_SCALE
-from motion.protocol.table import Direction, ProtocolFamily, WireProtocol, field_range
+from motion.protocol.table import Direction, ProtocolFamily, WireProtocol, field_range, field_spec
 from motion.protocol.v3.messages import (
     AccelerationIndex,
     BareV3,
@@ -65,6 +65,8 @@ class DriveFamily:
         current_step_a: the step of the motion replies' torque-current field, A.
         max_speed_dps: the largest 0xA4 speed cap on CAN, in the drive's units (deg/s).
         rs485_max_speed_dps: the same on RS485.
+        max_speed_step_dps: the step of the 0xA4 speed cap on CAN, in the drive's units (deg/s).
+        rs485_max_speed_step_dps: the same on RS485.
     """
 
     family: ProtocolFamily
@@ -86,6 +88,8 @@ class DriveFamily:
     current_step_a: float
     max_speed_dps: float
     rs485_max_speed_dps: float
+    max_speed_step_dps: float
+    rs485_max_speed_step_dps: float
 
     def bare(self, code: int) -> Message:
         """The family's request without data for ``code`` (0x80, 0x81, 0x92, 0x9A, 0x9C, ...)."""
@@ -95,9 +99,20 @@ class DriveFamily:
         """The largest 0xA4 speed cap ``wire`` carries, in the drive's units."""
         return self.rs485_max_speed_dps if wire is WireProtocol.RS485 else self.max_speed_dps
 
+    def speed_cap_step_dps(self, wire: WireProtocol) -> float:
+        """The step of the 0xA4 speed cap ``wire`` carries, in the drive's units."""
+        return self.rs485_max_speed_step_dps if wire is WireProtocol.RS485 else self.max_speed_step_dps
+
 
 _A4_V2: Final = Command.MULTI_TURN_POSITION_SPEED
 _A4_V3: Final = CommandV3.MULTI_TURN_POSITION_SPEED
+
+
+def _step(command: Command | CommandV3, direction: Direction, wire: WireProtocol, field: str) -> float:
+    """The step of a field, as its table declares it, in its physical unit."""
+    spec = field_spec(command, direction, wire, field)
+    return spec.num / spec.den
+
 
 #: Each family's capabilities.
 FAMILIES: Final[Mapping[ProtocolFamily, DriveFamily]] = {
@@ -117,10 +132,12 @@ FAMILIES: Final[Mapping[ProtocolFamily, DriveFamily]] = {
         over_temperature=ErrorFlags.OVER_TEMPERATURE,
         status_type=Status1,
         state_type=MotorState,
-        speed_step_dps=1.0,
+        speed_step_dps=_step(Command.READ_STATUS_2, Direction.REPLY, WireProtocol.CAN, "speed_dps"),
         current_step_a=IQ_SCALE[0] / IQ_SCALE[1],
         max_speed_dps=field_range(_A4_V2, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps")[1],
         rs485_max_speed_dps=field_range(_A4_V2, Direction.REQUEST, WireProtocol.RS485, "max_speed_dps")[1],
+        max_speed_step_dps=_step(_A4_V2, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps"),
+        rs485_max_speed_step_dps=_step(_A4_V2, Direction.REQUEST, WireProtocol.RS485, "max_speed_dps"),
     ),
     ProtocolFamily.V3: DriveFamily(
         family=ProtocolFamily.V3,
@@ -138,10 +155,12 @@ FAMILIES: Final[Mapping[ProtocolFamily, DriveFamily]] = {
         over_temperature=SystemErrorFlags.OVER_TEMPERATURE,
         status_type=Status1V3,
         state_type=MotorStateV3,
-        speed_step_dps=1.0,
+        speed_step_dps=_step(CommandV3.READ_STATUS_2, Direction.REPLY, WireProtocol.CAN, "speed_dps"),
         current_step_a=0.01,  # (the V3 table's iq: int16, 0.01 A)
         max_speed_dps=field_range(_A4_V3, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps")[1],
         rs485_max_speed_dps=field_range(_A4_V3, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps")[1],
+        max_speed_step_dps=_step(_A4_V3, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps"),
+        rs485_max_speed_step_dps=_step(_A4_V3, Direction.REQUEST, WireProtocol.CAN, "max_speed_dps"),
     ),
 }
 

@@ -2,10 +2,11 @@
 
 0x9B to every drive where the family has it (its reply is the status; else the drives clear level-2 errors
 themselves and the status is read) and a state read; the clear succeeds only if every drive answers with clean flags,
-its supply and temperature within their limits, no joint lost its frame (a drive that restarted) and every joint is
-inside its limits. Then the brakes locked since the halt are released (all of them, or none: a release that fails
-halfway locks them again), the reference holds where the arm is, the halt's bookkeeping starts afresh and the state
-fires CLEARED (READY).
+its supply and temperature within their limits, no joint lost its frame (a drive that restarted), every joint is
+inside its limits and every joint is at rest (:mod:`motion.safety.rest`: a joint still coasting from its halt would
+be pulled back by the loop from wherever it has got to). Then the brakes locked since the halt are released (all of
+them, or none: a release that fails halfway locks them again), the reference holds where the arm is, the halt's
+bookkeeping starts afresh and the state fires CLEARED (READY).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from motion.errors import FaultKind, MotionFault, TransportError
 from motion.protocol import Command
 from motion.protocol.v3.messages import CommandV3
 from motion.safety.context import SafetyContext, SafetyPart
+from motion.safety.rest import RestCheck
 from motion.safety.states import ArmEvent, ArmState
 from motion.trajectory import State
 from motion.transport import Reply
@@ -36,6 +38,7 @@ class Clearing(SafetyPart):
             locked since the halt; its watchdog, started afresh; its log: the fault cleared, the joints whose frame is
             lost).
         drives: the drives' settings of the session (the brakes' release).
+        rest: each joint's time at rest (fed every cycle by the supervisor; the clear's own readings are its latest).
         end_window_s: the longest wait for the replies of the brakes' lock after a failed release, s.
     """
 
@@ -44,10 +47,12 @@ class Clearing(SafetyPart):
         context: SafetyContext,
         *,
         drives: DriveSetup,
+        rest: RestCheck,
         end_window_s: float,
     ) -> None:
         super().__init__(context)
         self.drives = drives
+        self.rest = rest
         self._end_window_s = end_window_s
         controller = context.controller
         ids, ask = context.guard.ids, controller.bare_request
@@ -73,7 +78,11 @@ class Clearing(SafetyPart):
         window = max(deadline_s, controller.clock.now() + _CLEAR_WINDOW_S)
         replies: list[Reply] = controller.bus.transact(requests, window)
         controller.absorb(replies)
+        self.rest.take()
         problems = self._problems(replies)
+        moving = self.rest.moving(problems)  # (naming the joint and its speed, and whatever else is wrong)
+        if moving is not None:
+            return moving
         if problems:
             return MotionFault(FaultKind.CLEAR_FAILED, time_s=controller.clock.now(), detail="; ".join(problems))
         q = controller.axes.positions()

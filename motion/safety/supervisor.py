@@ -49,6 +49,7 @@ from motion.safety.halted import HaltGuard
 from motion.safety.halted_cycle import HaltedCycle
 from motion.safety.reaction import FaultReaction
 from motion.safety.records import FaultLog, HaltRecord, Reaction, Records, exception_origin
+from motion.safety.rest import RestCheck
 from motion.safety.states import HALT_STATES, TRANSITIONS, ArmEvent, ArmState, InvalidTransition, StateMachine
 from motion.safety.watchdog import SafetySettings, Watchdog
 from motion.transmission import FloatArray
@@ -122,8 +123,10 @@ class Supervisor:
         self.reaction = reaction = FaultReaction(context, gravity=gravity, reads=reads)
         halted = HaltedCycle(context, reaction=reaction, gravity=gravity, reads=reads)
         window_s = end_window_s(controller, drives)
+        #: Each joint's time at rest, from every cycle's readings: a clear needs every joint at rest.
+        self.rest = rest = RestCheck(controller)
         #: clear(), carried out in the loop.
-        self.clearing = Clearing(context, drives=drives, end_window_s=window_s)
+        self.clearing = Clearing(context, drives=drives, rest=rest, end_window_s=window_s)
         #: The end of the session, once the loop has ended.
         self.ending = SessionEnd(
             controller, machine=machine, guard=guard, watchdog=watchdog, drives=drives, window_s=window_s
@@ -350,6 +353,7 @@ class Supervisor:
         state_cycle = self.state_cycles[state]
         if state_cycle is None:
             return False
+        self.rest.take()  # (the previous cycle's readings, in every state: a clear may come in any faulted one)
         try:
             if not self._take_requests(state, deadline_s):
                 state_cycle(state, start_s, deadline_s)

@@ -5,8 +5,9 @@ that every drive's flags are at most ``motion.control.ratecheck.FLAG_AGE_S`` old
 cycles; and every 0x9B reply), a drive that restarted (its 0x92 multi-turn angle jumps
 by whole turns from the angle tracked from its encoder), motor temperature in every reply, supply voltage, missing
 replies (consecutive misses and time since the last good reply), corrupt frames, measured position beyond the joint
-limits, collisions (the momentum observer's residual per joint against its threshold), following error, and
-scheduler overrun streaks. The planned set-point is checked before it is sent.
+limits, measured speed beyond the joint's velocity limit × its margin (:mod:`motion.safety.overspeed`), collisions
+(the momentum observer's residual per joint against its threshold), following error, and scheduler overrun streaks.
+The planned set-point is checked before it is sent.
 
 The collision check (the injected momentum observer, its signal and the threshold in force) is
 :mod:`motion.safety.collision`; the watchdog runs it in every evaluated cycle and gives its figures out under its own
@@ -30,6 +31,7 @@ from motion.protocol.table import Direction, WireProtocol, field_range
 from motion.protocol.v3.messages import CommandV3, Runtime, Status1V3
 from motion.safety.collision import CollisionCheck, CollisionObserver
 from motion.safety.collision_bound import MODEL_ERROR
+from motion.safety.overspeed import OverspeedCheck
 from motion.trajectory import State
 from motion.transmission import FloatArray
 from motion.transport import Reply
@@ -184,6 +186,10 @@ class Watchdog:
         self._expected_before = np.zeros(n)  # the model's and the reference's speeds at the previous check
         self._reference_before = np.zeros(n)
         self._share = np.zeros(n)
+        #: The overspeed check (:mod:`motion.safety.overspeed`), run in every evaluated cycle.
+        self.overspeed = OverspeedCheck(controller)
+        #: Per joint, the fastest measured speed that is no ``overspeed`` fault, joint deg/s.
+        self.overspeed_limit_dps = self.overspeed.limit_dps
         #: The collision check (:mod:`motion.safety.collision`), run in every evaluated cycle.
         self.collision = CollisionCheck(
             controller, observer, settings.collision_threshold_nm, settings.collision_window_s
@@ -265,13 +271,13 @@ class Watchdog:
         Args:
             replies: the cycle's replies.
             now_s: the time they were taken in.
-            complying: the arm yields to a collision (``comply``): the observer runs but does not fault, and there
-                is no reference to follow.
+            complying: the arm yields to a collision (``comply``): the observer runs but does not fault, there
+                is no reference to follow, and no loop to keep it to a speed (no overspeed check).
 
         Raises:
-            MotionFault: the first violated limit that cannot be held (communication, a drive's flags, a limit, a
-                collision), else the first one that can (temperature, voltage, following error, overrun). Every
-                monitor runs in every cycle: a fault the hold is for must not hide one it is not for.
+            MotionFault: the first violated limit that cannot be held (communication, a drive's flags, a limit, an
+                overspeed, a collision), else the first one that can (temperature, voltage, following error, overrun).
+                Every monitor runs in every cycle: a fault the hold is for must not hide one it is not for.
         """
         settings = self.settings
         held: MotionFault | None = None
@@ -311,6 +317,10 @@ class Watchdog:
         self._check_corrupt(now_s)
         q = self.controller.axes.q_deg
         self._check_limits(q, FaultKind.POSITION_LIMIT, "measured position beyond the limit")
+        # (not while the arm yields to a collision: no loop holds it to a speed then, by design; its limits do)
+        overspeed = None if complying else self.overspeed.check(self.controller.axes.qd_dps)
+        if overspeed is not None:
+            raise overspeed
         self.collision.run(check=not complying)
         if complying:  # no reference to follow, so no expectation either until the arm follows one again
             self.restart_following()
