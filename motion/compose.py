@@ -50,6 +50,7 @@ from motion.control.turns import (
     resolve_turns,
     turn_joint_deg,
 )
+from motion.control.unwrap import check_unwrapping
 from motion.errors import ConfigError, TransportError
 from motion.keep import drive_record_for
 from motion.protocol import WireProtocol
@@ -320,7 +321,13 @@ def build_controller(
     config: ArmConfig, bus: Transport, *, feedforward: Feedforward | None = None, clock: Clock | None = None
 ) -> Controller:
     """A controller for ``config`` on ``bus`` (call ``read_positions()`` before moving). In torque mode with a
-    feed-forward, the tracking model learns the joints' inertia from the arm's model."""
+    feed-forward, the tracking model learns the joints' inertia from the arm's model.
+
+    Raises:
+        ConfigError: a joint's velocity limit turns its motor half a turn or more per cycle on a drive whose encoder is
+            unwrapped (:func:`motion.control.unwrap.check_unwrapping`: the figures and the rates that hold).
+    """
+    check_unwrapping(config, [FAMILIES[bus.family_of(j.address)].angle_every_cycle for j in config.joints])
     controller = Controller(
         axis_specs(config, [bus.family_of(k * ADDRESS_STRIDE) for k in range(len(config.buses))]),
         config.transmission(),

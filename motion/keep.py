@@ -20,6 +20,7 @@ from motion.control.drive_record import DriveRecord
 from motion.control.tracking import PositionLoop, PositionLoopFit
 from motion.control.turns import Source, TurnRecord, drive_reading
 from motion.emulator.simulated import SimulatedBus, Simulation
+from motion.safety import Supervisor
 from motion.transport import Transport
 
 logger = logging.getLogger("motion.config")
@@ -112,35 +113,48 @@ def save_turn_records(
     controller: Controller,
     sources: Iterable[Source],
     power_ons: Sequence[tuple[float, float] | None] | None = None,
+    *,
+    angles_deg: Mapping[str, float] | None = None,
 ) -> Path:
     """Record each joint's turn offset and its drive's reading now (from the controller's latest snapshot), for
     the next session on ``where``; ``power_ons``: per joint, the drive's runtime at this session's connect and the
-    host's time then (drives that tell it: :attr:`JointTurns.power_on`)."""
+    host's time then (drives that tell it: :attr:`JointTurns.power_on`). ``angles_deg``: only these joints, at these
+    angles (degrees; :func:`resting_angles` at a session's end); the others' records are dropped, so that the next
+    session resolves them afresh."""
     q = controller.snapshot.position_deg
+    angles = angles_deg if angles_deg is not None else {name: float(q[i]) for i, name in enumerate(config.joint_names)}
     joints = {
         j.name: {
             "motor_id": j.address,  # (see load_turn_records)
             "turns": k,
-            "reading_deg": drive_reading(t, float(q[i]), k),
+            "reading_deg": drive_reading(t, angles[j.name], k),
             "source": str(source),
             "power_on": None if power_on is None else list(power_on),
         }
-        for i, (j, t, k, source, power_on) in enumerate(
-            zip(
-                config.joints,
-                controller.base_transmission.transmissions,
-                controller.turns,
-                sources,
-                power_ons or [None] * len(config.joints),
-                strict=True,
-            )
+        for j, t, k, source, power_on in zip(
+            config.joints,
+            controller.base_transmission.transmissions,
+            controller.turns,
+            sources,
+            power_ons or [None] * len(config.joints),
+            strict=True,
         )
+        if j.name in angles
     }
     document = {"schema": TURNS_SCHEMA, "version": TURNS_VERSION, "arm": config.name, "bus": where, "joints": joints}
     path = turns_store(config)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(document, indent=2) + "\n")
     return path
+
+
+def resting_angles(supervisor: Supervisor) -> dict[str, float]:
+    """The joints whose turn records a closed session leaves, and their angles, degrees: those its end saw at rest
+    after the final halt (:attr:`~motion.safety.ending.SessionEnd.rest_deg`: never one still coasting, nor one whose
+    drive was not heard), less those whose drive restarted (their frame is unknown: the next session resolves each
+    of them afresh, and the others from their records)."""
+    lost = supervisor.lost_frames
+    return {name: q for name, q in supervisor.ending.rest_deg.items() if name not in lost}
 
 
 def store_tracking(config: ArmConfig, controller: Controller, fits: Mapping[str, PositionLoopFit]) -> Path:

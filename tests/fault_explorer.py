@@ -30,6 +30,11 @@ violations of:
 - **overspeed**: no joint reads faster than its overspeed limit (the watchdog's ``overspeed_limit_dps``: its velocity
   limit × its margin) in a cycle the watchdog checks it (ready, moving, holding) without the arm halting in that
   cycle (seen by the next cycle's look: the hooks run before the cycle's evaluation);
+- **angle**: in every cycle, the controller's angle of each joint whose drive's sample reached it equals the plant's
+  when the drive sampled it, within the encoder's resolution (a count of the encoder at each end, or 0.01 deg of a V3
+  drive's reading) of the offset its anchoring at connect left (the joint's motion between the two reads that anchor
+  it), unless the arm is faulted saying why (its drive restarted: its frame is lost); after a silence too (no turn the
+  encoder missed is kept);
 - **escape**: nothing but a :class:`~motion.errors.MotionError` comes out of the API, the loop records no error of
   its own, and the run ends within :data:`WALL_LIMIT_S` of wall time.
 
@@ -39,6 +44,7 @@ still fails the same way, and :meth:`Schedule.describe` prints it as the literal
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import math
@@ -61,6 +67,7 @@ from motion.emulator import Fault, InjectedFault, parse_fault
 from motion.emulator.drive import RunState
 from motion.emulator.timing import TimingModel
 from motion.errors import FaultKind, MotionError
+from motion.protocol import MotorState, MultiTurnAngle
 from motion.protocol.v3.messages import CommandV3
 from motion.safety import ArmState
 from motion.safety.halted import RESTLESS_S as RESTLESS_RELEASE_S
@@ -257,6 +264,15 @@ class _Checker:
         config = arm.config
         self.ids = [j.address for j in config.joints]
         self.names = config.joint_names
+        # one count of the encoder at the joint (the uint16 fields carry the top 16 bits), and a V3 reading's 0.01 deg
+        self.resolution_deg = np.array(
+            [360.0 / 2 ** min(j.encoder_bits, 16) / abs(j.gear_ratio) + 0.01 for j in config.joints]
+        )
+        self.angle_pending: dict[int, str] = {}  # an angle found off, a violation unless a restart explains it
+        # the controller's axes and each joint's error at its first comparison: the two reads that anchor an axis at
+        # connect (0x92, then a state read) are a moment apart, and the joint's motion between them stays in its angle
+        self.anchored_axes: Any = None
+        self.anchor_error_deg: list[float] = []
         self.lower = np.array([j.position_min_deg for j in config.joints])
         self.upper = np.array([j.position_max_deg for j in config.joints])
         self.braked = [j.brake for j in config.joints]
@@ -296,6 +312,10 @@ class _Checker:
         rounds = max(math.ceil(len(reads) / count) for reads, count in supervisor.status_rounds.rounds)
         self.unbraked_grace_s = (rounds + 2) * self.period_s
         self.cut_since = [math.nan] * n  # since when each braked joint's drive has its output cut, its brake released
+        self.reads_angle = [f.angle_every_cycle for f in controller.families]
+        self.samples: list[collections.deque[tuple[float, float]]] = [collections.deque(maxlen=64) for _ in range(n)]
+        for i, motor_id in enumerate(self.ids):
+            self._watch_samples(i, self.drives[motor_id])
 
     def _watch_brake(self, i: int, drive: Any) -> None:
         """Every 0x78 the drive executes, with its joint's speed then (the plant's)."""
@@ -382,6 +402,7 @@ class _Checker:
             self.faulted_since = math.nan
         elif math.isnan(self.faulted_since):
             self.faulted_since = t
+        self._check_angles(replies, t)
         for i, motor_id in enumerate(self.ids):
             self._count_swing(i, float(qd[i]), t)
             name = self.names[i]
@@ -442,6 +463,58 @@ class _Checker:
                 self.overspeed_seen = (
                     f"{self.names[i]} read at {controller.axes.qd_dps[i]:+.1f} deg/s (limit "
                     f"{self.overspeed_limit[i]:.1f}) while {state.value} at {t:.3f} s"
+                )
+    def _watch_samples(self, i: int, drive: Any) -> None:
+        """The plant's angle of joint ``i`` whenever its drive samples what the controller's angle comes from (the
+        encoder of a state reply; a V3 drive: its 0x92 reading)."""
+        respond = drive.respond
+        kind = MultiTurnAngle if self.reads_angle[i] else MotorState
+        plant = self.arm.plant
+        assert plant is not None
+
+        def sampled(message: Any, now_s: float, transport: Any) -> Any:
+            reply = respond(message, now_s, transport)
+            if reply.__class__ is kind:  # (configuration angles and order)
+                self.samples[i].append((_sample_key(reply), float(plant.joint_positions_deg()[i])))
+            return reply
+
+        drive.respond = sampled
+
+    def _check_angles(self, replies: list[Any], t: float) -> None:
+        """The controller's angle of every joint whose drive's sample reached it in the cycle against the plant's
+        when the drive sampled it, unless the arm is faulted because the joint's drive restarted."""
+        controller, supervisor = self.arm.controller, self.arm.supervisor
+        assert controller is not None and supervisor is not None
+        axes = controller.axes
+        q_deg = axes.q_deg
+        if axes is not self.anchored_axes:  # (connect's, or a homing's new frame: anchored anew)
+            self.anchored_axes = axes
+            self.anchor_error_deg = [math.nan] * len(self.names)
+        for i, name in enumerate(self.names):
+            # (the cycle's hooks run before its watchdog: a restart this cycle shows has its fault by the next one)
+            pending = self.angle_pending.pop(i, None)
+            if name in supervisor.lost_frames:
+                continue
+            if pending is not None:
+                self._violate(f"angle{i}", pending)
+            kind = MultiTurnAngle if self.reads_angle[i] else MotorState
+            taken = [r.message for r in replies if r.motor_id == self.ids[i] and r.message.__class__ is kind]
+            if not taken:
+                continue
+            # the sample the reply the controller took came from (a late one too: a delayed reply answers a later
+            # request), the newest that matches
+            key = _sample_key(taken[-1])
+            at = next((deg for k, deg in reversed(self.samples[i]) if abs(k - key) < 0.005), None)
+            if at is None:
+                continue
+            error = float(q_deg[i]) - at
+            if math.isnan(self.anchor_error_deg[i]):
+                self.anchor_error_deg[i] = error
+            if not abs(error - self.anchor_error_deg[i]) <= 2.0 * self.resolution_deg[i]:
+                self.angle_pending[i] = (
+                    f"angle: the controller reads {name} at {q_deg[i]:.3f} deg where it was at "
+                    f"{at:.3f} deg when its drive sampled it ({error:+.3f}) at {t:.3f} s, its drive "
+                    "not restarted"
                 )
 
     def _returning(self, motor_id: int, t: float) -> bool:
@@ -552,6 +625,11 @@ def _wall_limit(seconds: float) -> Iterator[None]:
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
+
+
+def _sample_key(message: Any) -> float:
+    """What tells a drive's samples apart: the encoder of a state reply, the angle of a 0x92 reply."""
+    return float(message.angle_deg if isinstance(message, MultiTurnAngle) else message.encoder)
 
 
 def run(schedule: Schedule) -> Outcome:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -179,6 +180,37 @@ def test_a_configuration_is_checked_offline_against_what_its_drives_give(
         capsys, "check", "--config", "arm2.yaml", "--offline", "--program", "configs/programs/arm6.yaml"
     )
     assert code == 2 and "unknown joint" in err
+
+
+def test_check_offline_prints_each_joints_unwrapping_headroom_and_refuses_one_beyond_it(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    # per joint the motor degrees per sample at its velocity limit against half a turn, and the rates that unwrap it;
+    # an X10-100 (1:35) at 60 deg/s at 10 Hz turns 210 motor deg per sample: an error naming its figures (exit 2)
+    code, out, err = _run(capsys, "check", "--config", "arm2.yaml", "--offline")
+    assert code == 0, err
+    assert "encoder unwrapping at control.rate_hz 500 Hz" in out and "half a turn (180 motor deg)" in out
+    assert re.search(r"shoulder\s+3\.2\s+2%\s+above 9 Hz", out) and re.search(r"elbow\s+4\.3\s+2%\s+above 12 Hz", out)
+    text = (CONFIGS / "bench1.yaml").read_text().replace("rate_hz: 200", "rate_hz: 10")
+    text = text.replace(
+        "    gear_ratio: 9               # motor-shaft degrees per joint degree\n", "    actuator: X10-100\n"
+    )
+    text = text.replace("    torque_constant_nm_per_a: 0.1\n", "").replace(
+        "velocity_limit_dps: 180.0", "velocity_limit_dps: 60.0"
+    )
+    x10 = tmp_path / "x10.yaml"
+    x10.write_text(text)
+    code, out, err = _run(capsys, "check", "--config", x10, "--offline", "--json")
+    assert code == 2
+    figures = json.loads(out)["unwrapping"]["lever"]
+    assert figures["motor_deg_per_sample"] == pytest.approx(210.0) and figures["bound_motor_deg"] == 180.0
+    assert figures["lowest_rate_hz"] == pytest.approx(11.667, abs=1e-3) and not figures["holds"]
+    assert "error: joint lever: at its velocity_limit_dps 60 × gear_ratio 35 / control.rate_hz 10" in err
+    assert "Raise control.rate_hz above 11.7 Hz, or lower its velocity_limit_dps below 51.4 deg/s" in err
+    # V3 drives read their angle in every cycle: nothing is unwrapped
+    code, out, err = _run(capsys, "check", "--config", "arm6_v3.yaml", "--offline")
+    assert code == 0, err
+    assert re.search(r"base_yaw\s+-\s+-\s+any \(0x92 every cycle\)", out)
 
 
 def test_jog_moves_one_joint_and_back_and_says_which_drive_turned(capsys: pytest.CaptureFixture[str]) -> None:

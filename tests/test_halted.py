@@ -20,6 +20,7 @@ import pytest
 from motion.api import Arm
 from motion.config import ArmConfig, load_config
 from motion.config.schema import ControlMode, HaltPolicy
+from motion.control.controller import Controller
 from motion.control.family import FAMILIES
 from motion.emulator import DEFAULT_PID, Fault, InjectedFault
 from motion.emulator.drive import RunState
@@ -647,6 +648,24 @@ def test_the_explorer_sees_a_joint_beyond_its_overspeed_limit_without_a_halt(mon
     )
     outcome = fault_explorer.run(schedule)
     assert "overspeed" in outcome.kinds, outcome.violations
+
+
+def test_the_explorer_sees_an_angle_off_by_the_turns_a_silence_hid(monkeypatch: pytest.MonkeyPatch) -> None:
+    # no 0x92 to a drive heard again after a silence (the controller unwrapping its encoder alone, as before): the
+    # shoulder's drive keeps its last torque, turns more than half a turn unheard, and reads a turn off, no restart
+    # saying why, until a round-robin 0x92 sets it right
+    monkeypatch.setattr(Controller, "turn_reads", lambda self, now_s, window_s: [])
+    schedule = Schedule(
+        "arm2.yaml",
+        HaltPolicy.STOP,
+        ControlMode.TORQUE,
+        faults=("silent:1@0.5-0.75",),
+        actions=((0.0, "move", (80.0, -60.0)),),
+    )
+    outcome = fault_explorer.run(schedule)
+    assert "angle" in outcome.kinds, outcome.violations
+    monkeypatch.undo()
+    assert not fault_explorer.run(schedule).violations
 
 
 def test_drawn_drives_reach_the_emulated_drives() -> None:

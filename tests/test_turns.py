@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import dataclasses
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from kinematics.plant import ArmPlant
+from motion import Arm
+from motion.api import measure_modes
 from motion.compose import build_controller, build_supervisor, feedforward_for, resolve_frames
-from motion.config import ArmConfig
+from motion.config import ArmConfig, load_config
 from motion.control.controller import Controller
 from motion.control.turns import (
     CONTINUITY_MOTOR_DEG,
@@ -28,12 +31,14 @@ from motion.control.turns import (
 from motion.emulator import Emulator
 from motion.emulator.arm import arm_emulator
 from motion.emulator.drive import RunState
+from motion.emulator.faults import parse_fault
 from motion.emulator.simulated import SimulatedBus, SimulatedClock, Simulation
-from motion.keep import load_turn_records, save_turn_records, turns_store
+from motion.errors import ConfigError, FaultKind, MotionFault
+from motion.keep import STATE_DIR_ENV, load_turn_records, save_turn_records, turns_store
 from motion.protocol import WireProtocol
 from motion.protocol.table import ProtocolFamily
 from motion.transmission import ArmTransmission, Transmission
-from tests.motion_rig import arm_config
+from tests.motion_rig import CONFIGS, arm_config
 
 GEAR9 = Transmission(gear_ratio=9, direction=1, zero_offset_deg=0.0, torque_constant_nm_per_a=0.1)
 MIRRORED36 = Transmission(gear_ratio=36, direction=-1, zero_offset_deg=2.5, torque_constant_nm_per_a=0.1)
@@ -369,3 +374,128 @@ def test_a_joint_left_a_whole_turn_from_its_window_is_continued_with_keep_turns_
     # the shoulder takes the record where its reading cannot tell; the elbow's reading tells (as it always did)
     assert [(t.source, t.turns) for t in turns] == [(Source.KEPT, 0), (Source.WINDOW, 0)]
     np.testing.assert_allclose(controller.read_positions(), [40.0, 0.0], atol=0.05)
+
+
+# ------------------------------------------------------------------------------ the unwrapping envelope, restarts
+
+
+def x10_bench(folder: Path, rate_hz: float = 10.0) -> ArmConfig:
+    """bench1's lever on an X10-100 (1:35) at 60 deg/s: 210 motor degrees per sample at 10 Hz (written in
+    ``folder``)."""
+    text = (CONFIGS / "bench1.yaml").read_text()
+    for old, new in (
+        ("rate_hz: 200", f"rate_hz: {rate_hz:g}"),
+        ("    gear_ratio: 9               # motor-shaft degrees per joint degree\n", "    actuator: X10-100\n"),
+        ("    torque_constant_nm_per_a: 0.1\n", ""),
+        ("velocity_limit_dps: 180.0", "velocity_limit_dps: 60.0"),
+    ):
+        assert old in text
+        text = text.replace(old, new)
+    path = folder / f"x10-{rate_hz:g}.yaml"
+    path.write_text(text)
+    return load_config(path)
+
+
+def test_a_joint_whose_velocity_limit_the_encoder_cannot_unwrap_at_the_rate_is_refused_at_connect(
+    tmp_path: Path,
+) -> None:
+    # issue: an X10-100 (1:35) at 60 deg/s at 10 Hz turns 210 motor deg per cycle; the encoder's unwrapping took it
+    # the short way round, a 0x92 read then "jumped by 361 motor deg: it restarted", and every joint's record went
+    config = x10_bench(tmp_path)
+    assert config.joints[0].gear_ratio == 35.0
+    arm = Arm(config, emulate=True)
+    with pytest.raises(ConfigError) as refused:
+        arm.connect()
+    text = str(refused.value)
+    assert "joints[0].velocity_limit_dps" in text and "joint lever" in text
+    assert "velocity_limit_dps 60 × gear_ratio 35 / control.rate_hz 10" in text and "210.0 motor deg per sample" in text
+    assert "180 motor deg (half a turn)" in text and "above 11.7 Hz" in text and "below 51.4 deg/s" in text
+    assert arm.supervisor is None and arm.controller is None  # nothing started
+    # the rate check's controllers (`rmd-motion check`) are refused the same way
+    emulator, _ = arm_emulator(config)
+    with pytest.raises(ConfigError, match="210.0 motor deg per sample"):
+        measure_modes(config, SimulatedBus(Simulation(emulator, WireProtocol.CAN)))
+    # at a rate that unwraps it, it connects and moves at its velocity limit
+    with Arm(x10_bench(tmp_path, rate_hz=20.0), emulate=True) as arm:
+        arm.move_to({"lever": 60.0})
+        assert arm.positions()["lever"] == pytest.approx(60.0, abs=0.5)
+        assert arm.supervisor is not None and not arm.supervisor.faults
+
+
+@pytest.mark.parametrize("family", ["v2", "v3"])
+def test_after_a_drive_silent_mid_move_the_controller_reads_the_drive_and_sees_no_restart(family: str) -> None:
+    # issue: arm2, drive 1 silent 0.5-0.75 s mid-move: an older drive keeps its last torque and turned 398 motor deg
+    # unheard; its continuous 0x92 reading (864.7 motor deg) was taken for a restart and the controller then read the
+    # shoulder at 56.07 deg where it stood at 96.08, beyond its 90 deg limit
+    config = load_config(CONFIGS / "arm2.yaml")
+    if family == "v3":  # (four frames per joint and cycle: the rate a simulated CAN bus holds for them)
+        config = dataclasses.replace(config, control=dataclasses.replace(config.control, rate_hz=250.0))
+    arm = Arm(config, emulate=True, emulated_protocol=family, faults=[parse_fault("silent:1@0.5-0.75")])
+    with arm:
+        with pytest.raises(MotionFault):
+            arm.move_to({"shoulder": 80.0, "elbow": -60.0})
+        arm.sleep(1.0)
+        supervisor, plant = arm.supervisor, arm.plant
+        assert supervisor is not None and plant is not None
+        kinds = [(f.kind, f.joint) for f in supervisor.faults]
+        assert (FaultKind.DRIVE_RESTARTED, "shoulder") not in kinds and not supervisor.lost_frames, kinds
+        positions = arm.positions()
+        np.testing.assert_allclose([positions["shoulder"], positions["elbow"]], plant.joint_positions_deg(), atol=0.02)
+        if positions["shoulder"] > 90.0:  # the truth: it ran past its limit while unheard, a fault of its own
+            assert (FaultKind.POSITION_LIMIT, "shoulder") in kinds
+
+
+def _hardware_like(config: ArmConfig, simulation: Simulation) -> Arm:
+    """An arm on emulated drives that it takes for hardware (a simulated bus of the caller's): its turns are resolved
+    from the power-on windows and the records, and recorded at close, as on hardware."""
+    return Arm(config, bus=SimulatedBus(simulation))
+
+
+def test_a_drive_that_restarts_drops_its_joints_turn_record_alone(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    # issue: a restart deleted every joint's record, and the next session refused every joint
+    monkeypatch.setenv(STATE_DIR_ENV, str(tmp_path))
+    config = load_config(CONFIGS / "arm2.yaml")
+    emulator, _ = arm_emulator(config, faults=[parse_fault("power_cycle:2@0.6")])
+    simulation = Simulation(emulator, WireProtocol.CAN)
+    with _hardware_like(config, simulation) as arm:
+        with pytest.raises(MotionFault) as caught:
+            arm.move_to({"shoulder": 80.0, "elbow": -100.0})
+        assert caught.value.kind is FaultKind.DRIVE_RESTARTED and caught.value.joint == "elbow"
+        arm.sleep(0.3)
+    records = load_turn_records(config, "simulated can")
+    assert set(records) == {"shoulder"}
+    shoulder = emulator.drives[1]
+    assert records["shoulder"].reading_deg == pytest.approx(shoulder.angle_deg, abs=0.1)
+    # the next session keeps the shoulder's turns; the elbow is resolved afresh (from its window: refused here, its
+    # drive's new frame puts it outside), and named alone
+    with pytest.raises(TurnError) as refused:
+        _hardware_like(config, simulation).connect()
+    assert "joint elbow" in str(refused.value) and "shoulder" not in str(refused.value)
+
+
+def test_a_turn_record_is_written_where_the_joint_came_to_rest_never_while_it_coasts(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    # issue: a drive silent mid-move, the session closed soon after: the elbow's record was written at -443.6 motor deg
+    # while it came to rest at -306.6, and the next session refused it, --keep-turns too
+    monkeypatch.setenv(STATE_DIR_ENV, str(tmp_path))
+    config = load_config(CONFIGS / "arm2.yaml")
+    emulator, plant = arm_emulator(config, faults=[parse_fault("silent:1@0.5-0.75")])
+    simulation = Simulation(emulator, WireProtocol.CAN)
+    with _hardware_like(config, simulation) as arm:
+        with pytest.raises(MotionFault) as caught:
+            arm.move_to({"shoulder": 80.0, "elbow": -100.0})
+        assert caught.value.kind is FaultKind.NO_REPLY
+        # closed at once, the joints still braking (the shoulder's drive unheard)
+    records = load_turn_records(config, "simulated can")
+    at_rest = [drive.angle_deg for drive in emulator.drives.values()]
+    assert set(records) == {"shoulder", "elbow"}
+    assert [records[n].reading_deg for n in ("shoulder", "elbow")] == pytest.approx(at_rest, abs=0.1)
+    simulation.sleep_until(simulation.now_s + 1.0)  # at rest: the drives' holds settle them by a fraction of a degree
+    assert [drive.angle_deg for drive in emulator.drives.values()] == pytest.approx(at_rest, abs=1.0)
+    with _hardware_like(config, simulation) as arm:
+        assert [t.source for t in arm.turns] == [Source.KEPT, Source.KEPT]
+        positions = arm.positions()
+        np.testing.assert_allclose([positions["shoulder"], positions["elbow"]], plant.joint_positions_deg(), atol=0.02)

@@ -51,7 +51,7 @@ from motion.homing import (
     quiet_ahead,
     seek_stop,
 )
-from motion.keep import load_turn_records, offer_stored_tracking, save_turn_records, store_tracking, turns_store
+from motion.keep import load_turn_records, offer_stored_tracking, resting_angles, save_turn_records, store_tracking
 from motion.protocol.table import ADDRESS_STRIDE, ProtocolFamily
 from motion.protocol.v3.messages import MotionRanges
 from motion.safety import ArmState, Supervisor
@@ -98,7 +98,9 @@ class Arm:
             pose, which has since moved there).
         bus: a transport the caller made (a :class:`~motion.transport.Transport`: a kind of link rmd-motion has no
             backend for, a python-can bus set up elsewhere) to use instead of opening the configured bus; the arm takes
-            it over and closes it when it closes (not with ``emulate`` or ``bus_overrides``).
+            it over and closes it when it closes (not with ``emulate`` or ``bus_overrides``). A
+            :class:`~motion.emulator.simulated.SimulatedBus` runs on its simulation's clock: emulated drives the arm
+            treats as hardware (their turns resolved and recorded between sessions on the same simulation).
         view: show the arm live in the browser while connected (``True``: on 127.0.0.1:8080; or a
             :class:`ViewOptions`); see :mod:`motion.view` (the ``view`` extra). In simulated emulation the
             simulation is then paced to the wall clock, so that the page shows the motion at its speed.
@@ -257,6 +259,8 @@ class Arm:
                 self._stack.callback(self.bus.close)
             elif self._given_bus is not None:  # the caller's transport: the arm takes it over (closed with the arm)
                 self.bus = self._stack.enter_context(self._given_bus)
+                if isinstance(self.bus, SimulatedBus):  # its drives' time is the simulation's
+                    clock = SimulatedClock(self.bus.simulation)
             else:
                 if self.emulation == "realtime":
                     self._start_emulator_process()
@@ -411,8 +415,9 @@ class Arm:
         )
         return results
 
-    def _keep_turns(self) -> None:
-        """Record the turn offsets for the next session (on hardware; a file that cannot be written is a warning)."""
+    def _keep_turns(self, angles_deg: Mapping[str, float] | None = None) -> None:
+        """Record the turn offsets for the next session (on hardware; a file that cannot be written is a warning):
+        every joint's where the controller reads it, or only those of ``angles_deg``, at those angles."""
         if not self._remembers or self.controller is None or self.bus is None or not self.turns:
             return
         try:
@@ -422,6 +427,7 @@ class Arm:
                 self.controller,
                 (j.source for j in self.turns),
                 [j.power_on for j in self.turns],
+                angles_deg=angles_deg,
             )
         except OSError as exc:
             logger.warning("turn offsets not kept for the next session: %s", exc)
@@ -465,13 +471,13 @@ class Arm:
         )
 
     def _remember_turns(self) -> None:
-        """At close: keep the turn offsets for the next session (where the drives ended), unless a drive restarted:
-        then its frame is unknown and the next session resolves every joint afresh."""
-        if self._remembers and self.supervisor is not None and self.supervisor.lost_frames:
-            turns_store(self.config).unlink(missing_ok=True)
+        """At close: keep the turn offsets for the next session of the joints its end saw at rest, where they came to
+        rest (:func:`motion.keep.resting_angles`): a joint whose drive restarted, or that still coasted, has none (the
+        next session resolves it afresh)."""
+        if not self._remembers or self.supervisor is None:
             return
-        self._keep_turns()
-        if self._remembers and self.controller is not None and self.turns:
+        self._keep_turns(resting_angles(self.supervisor))
+        if self.controller is not None and self.turns:
             self._warn_ambiguous_pose()
 
     def _start_simulation(self) -> tuple[Transport, SimulatedClock]:

@@ -32,6 +32,7 @@ from motion.cli.common import (
 from motion.cli.program import load_program
 from motion.compose import build_controller, drive_setup, resolve_frames, torque_stability
 from motion.config import ArmConfig, JointConfig
+from motion.control.axes import UNWRAP_BOUND_MOTOR_DEG
 from motion.control.drive_record import DriveRecord
 from motion.control.drivesetup import LINK_TIMEOUT
 from motion.control.family import FAMILIES, DriveFamily
@@ -39,6 +40,7 @@ from motion.control.ratecheck import RateError
 from motion.control.stability import REQUIRED_MARGIN, StabilityReport
 from motion.control.tracking import PositionLoopFit
 from motion.control.turns import CONTINUITY_MOTOR_DEG, joint_angle
+from motion.control.unwrap import UnwrapHeadroom
 from motion.errors import FaultKind, MotionFault
 from motion.keep import drive_record_for, load_turn_records, save_turn_records
 from motion.protocol import (
@@ -607,10 +609,13 @@ def _check_offline(args: argparse.Namespace, session: Session) -> int:
     errors, warnings = offline.problems(found)
     stability = torque_stability(config)
     errors += offline.stability_problems(config, stability)
+    unwrap, unwrap_errors = offline.unwrapping(config)
+    errors += unwrap_errors
     if args.json:
         print_json(
             {
                 "config": config.source,
+                "unwrapping": _unwrapping_json(unwrap),
                 "program": {"file": args.program, "steps": steps} if args.program else None,
                 "joints": {
                     b.name: {
@@ -636,6 +641,7 @@ def _check_offline(args: argparse.Namespace, session: Session) -> int:
         ]  # fmt: skip
         print_table(("joint", "hold N·m", "move N·m", "available N·m", "hold", "move"), rows)
         _print_stability(config, stability)
+        _print_unwrapping(config, unwrap)
         if args.program:
             print(f"program {args.program}: {steps} steps, valid for this arm")
     for text in warnings:
@@ -677,6 +683,29 @@ def _stability_dict(config: ArmConfig, report: StabilityReport) -> dict[str, obj
             }
             for m in report.joints
         },
+    }
+
+
+def _print_unwrapping(config: ArmConfig, found: list[UnwrapHeadroom]) -> None:
+    """``check --offline``'s table of the encoder's unwrapping headroom (:func:`motion.cli.offline.unwrapping`)."""
+    print(
+        f"encoder unwrapping at control.rate_hz {config.control.rate_hz:g} Hz: the motor's turn per sample at the "
+        f"velocity limit, against half a turn ({UNWRAP_BOUND_MOTOR_DEG:g} motor deg)"
+    )
+    print_table(("joint", "motor deg/sample", "of the bound", "rates that unwrap"), offline.unwrapping_rows(found))
+
+
+def _unwrapping_json(found: list[UnwrapHeadroom]) -> dict[str, dict[str, object]]:
+    """``check --offline --json``'s unwrapping figures per joint."""
+    return {
+        h.name: {
+            "reads_angle_every_cycle": h.reads_angle,
+            "motor_deg_per_sample": None if h.reads_angle else round(h.motor_deg_per_sample, 3),
+            "bound_motor_deg": h.bound_motor_deg,
+            "lowest_rate_hz": None if h.reads_angle else round(h.lowest_rate_hz, 3),
+            "holds": h.holds,
+        }
+        for h in found
     }
 
 

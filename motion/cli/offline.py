@@ -17,6 +17,10 @@ drive can give:
 A joint that cannot hold itself up (hold above the torque available) is an error (exit 2); one whose hold takes more
 than :data:`HOLD_WARNING_SHARE` of it, or that cannot move as configured, is a warning. With a program, the program is
 validated against the configuration too.
+
+Per joint also the encoder's **unwrapping** headroom (:func:`unwrapping`): the motor degrees per sample at the
+velocity limit against half a turn, and the rates that unwrap it; a joint beyond the bound is an error (connect refuses
+it too: :mod:`motion.control.unwrap`).
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import numpy as np
 
 from motion.config import ArmConfig
 from motion.control.stability import StabilityError, StabilityReport
+from motion.control.unwrap import UnwrapHeadroom, unwrap_headroom, unwrap_problems
 
 #: A hold that takes more than this share of the torque available leaves too little for moving and for model error.
 HOLD_WARNING_SHARE: Final = 0.8
@@ -139,3 +144,21 @@ def stability_problems(config: ArmConfig, report: StabilityReport) -> list[str]:
     if not config.control.mode.traits.host_torque or not report.failing:
         return []
     return [str(StabilityError(config.source, report))]
+
+
+def unwrapping(config: ArmConfig) -> tuple[list[UnwrapHeadroom], list[str]]:
+    """Every joint's encoder unwrapping headroom at ``control.rate_hz`` (a bus whose ``protocol`` is ``auto`` counts
+    as the older family's, whose encoders are unwrapped), and an error per joint beyond the bound."""
+    found = unwrap_headroom(config)
+    return found, unwrap_problems(found, config.control.rate_hz)
+
+
+def unwrapping_rows(found: list[UnwrapHeadroom]) -> list[tuple[str, str, str, str]]:
+    """The unwrapping table's rows: joint, motor degrees per sample at the velocity limit, its share of the bound, and
+    the rates that unwrap it."""
+    return [
+        (h.name, "-", "-", "any (0x92 every cycle)")
+        if h.reads_angle
+        else (h.name, f"{h.motor_deg_per_sample:.1f}", f"{h.share:.0%}", f"above {h.lowest_rate_hz:.3g} Hz")
+        for h in found
+    ]

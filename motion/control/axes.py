@@ -1,28 +1,55 @@
 """Measured state of all axes, updated from drive replies (joint side, arrays in joint order).
 
 The multi-turn position is read once with 0x92 at start; after that it is tracked by unwrapping the encoder of
-every reply: a change of the encoder by more than half a revolution between two replies is taken as a wrap. This
-holds while the rotor turns less than half a revolution between two replies of the same motor (at 200 Hz and one
-missed reply: 18 000 deg/s rotor speed, above any RMD drive's rated speed). Drives whose motion replies carry whole
-degrees and no encoder (the V3 family) are read with 0x92 in every cycle instead (:mod:`motion.control.family`).
+every reply: its change between two replies is taken the way round nearest to the motion the speeds reported in the
+two predict. This holds whatever that prediction while the rotor turns less than half a revolution
+(:data:`UNWRAP_BOUND_MOTOR_DEG`) between two replies of the same motor: at the joint's velocity limit, for as long as
+:attr:`AxisStates.unwrap_gap_s` (a configuration whose velocity limits do not unwrap at its rate is refused:
+:mod:`motion.control.unwrap`); the prediction follows a joint beyond its velocity limit too (one falling with its
+drive off, one pushed) while its speed changes by less than that between two replies.
+
+The drive's own multi-turn angle (0x92) keeps the turns while it is powered; the encoder gives the fine angle between
+its reads. An axis is *anchored* while its tracked turns are sure: since its 0x92 and state replies were last taken
+in one exchange, none of its replies went missing and none came longer than ``unwrap_gap_s`` after the one before. An
+axis that is not (a drive silent, a cycle skipped) is read with 0x92 in every exchange until it is
+(:meth:`AxisStates.unanchored`), and that reading puts back the whole turns the encoder missed: after any silence the
+controller's angle is the drive's. Each 0x92 reading is held against the tracked angle; a difference of half a turn or
+more is (:meth:`AxisStates._take_reading`):
+
+- after a gap, where motion explains it, the turns the encoder missed, unless the reading lies in the drive's first
+  turn (:func:`motion.control.turns.in_first_turn`): that is where a drive reads after a power-up (a restart), and a
+  restart cannot be told from motion there: the frame is taken as lost;
+- on an anchored axis (nothing missed, motion within the unwrapping bound), no motion at all: the drive restarted.
+
+A lost frame (:attr:`AxisStates.frame_jump_deg`) stays lost for the session: the tracked angle goes on from the
+encoder in the old frame, and no reading changes it (the watchdog faults the arm, ``drive_restarted``).
+
+Drives whose motion replies carry whole degrees and no encoder (the V3 family) are read with 0x92 in every cycle
+instead (:mod:`motion.control.family`): their angle is the drive's reading at once.
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable, Mapping, MutableSequence, Sequence
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import Any, Final, cast
 
 import numpy as np
 from numpy.typing import NDArray
 
 from motion.control.family import FAMILIES, DriveFamily
+from motion.control.turns import TURN_DEG, in_first_turn
 from motion.protocol import MotorState, MultiTurnAngle
 from motion.protocol.table import ProtocolFamily
 from motion.transmission import ArmTransmission, FloatArray
 
 #: Width of the encoder fields of the replies, bits.
 ENCODER_FIELD_BITS = 16
+#: The encoder's change between two replies is taken the shortest way round: the shaft must turn less than half a
+#: turn between them for the turns to be counted, motor degrees. A 0x92 reading within it of the tracked angle (both
+#: taken in one exchange) is on the same turn.
+UNWRAP_BOUND_MOTOR_DEG: Final = 180.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -69,6 +96,9 @@ class AxisStates:
         family: the drives' protocol family: whether the angle comes from the encoder of every motion reply (tracked
             across wraps) or from a 0x92 read in every cycle (motion replies in whole degrees); a sequence: each
             axis' (an arm whose buses have drives of both families).
+        velocity_limit_motor_dps: per axis, the joint's velocity limit at the motor, deg/s: the encoder's turns are
+            sure across a gap between two replies of at most :data:`UNWRAP_BOUND_MOTOR_DEG` over it
+            (:attr:`unwrap_gap_s`); None: across any gap (only a missing reply unanchors an axis).
     """
 
     def __init__(
@@ -76,6 +106,7 @@ class AxisStates:
         specs: Sequence[AxisSpec],
         transmission: ArmTransmission,
         family: DriveFamily | Sequence[DriveFamily] = FAMILIES[ProtocolFamily.V2],
+        velocity_limit_motor_dps: Sequence[float] | None = None,
     ) -> None:
         n = len(specs)
         families = [family] * n if isinstance(family, DriveFamily) else list(family)
@@ -113,11 +144,33 @@ class AxisStates:
         self.temperature_c = np.zeros(n)
         self.last_reply_s = np.full(n, -np.inf)
         self.fresh = np.zeros(n, dtype=bool)  # got a state reply in the latest cycle
+        limits = velocity_limit_motor_dps or [0.0] * n
+        #: Per axis, the longest gap between two of its replies across which the encoder's turns are sure at the
+        #: joint's velocity limit, s (inf: any; the axes whose angle is read in every cycle need none).
+        self.unwrap_gap_s = np.array(
+            [
+                math.inf if reads or not abs(v) > 0.0 else UNWRAP_BOUND_MOTOR_DEG / abs(v)
+                for reads, v in zip(reads_angle, limits, strict=True)
+            ]
+        )
+        #: Per axis, whether its tracked turns are sure (the module docstring); those read in every cycle always are.
+        self.anchored = np.array(reads_angle, dtype=bool)
+        #: Per axis, the whole-turn difference between the drive's 0x92 reading and the tracked angle that showed its
+        #: frame lost (a restart), motor degrees; NaN: none. Kept for the session: no later reading changes the axis.
+        self.frame_jump_deg = np.full(n, np.nan)
+        #: Per axis, the whole motor turns its 0x92 readings put back after gaps (the encoder missed them).
+        self.turns_restored = np.zeros(n, dtype=np.int64)
         # The arrays' elements as memoryview cells, which absorb reads and writes at half the cost of numpy's indexing
         # (the arrays are only ever changed in place, so the views stay theirs).
         arrays: tuple[NDArray[Any], ...] = (self.encoder, self.motor_deg, self.motor_speed_dps, self.iq_a)
         arrays += (self.temperature_c, self.last_reply_s, self.q_deg, self.qd_dps, self.fresh)
         self._cells = tuple(_cells(array) for array in arrays)
+        self._gap_cells = (_cells(self.unwrap_gap_s), _cells(self.anchored))
+        self._stale = np.zeros(n, dtype=bool)  # work array of unanchored()
+        self._since = np.zeros(n)
+        self._reach = np.zeros(n)
+        self._fast = np.zeros(n, dtype=bool)
+        self._unwrapped = ~np.array(reads_angle, dtype=bool)
         self._none_fresh = np.zeros(n, dtype=bool).data
         # Output-shaft drives: motor degrees per degree the drive reports, and the per-axis conversions.
         self._drive_terms = tuple(
@@ -129,7 +182,22 @@ class AxisStates:
         """Anchor axis ``i``: the 0x92 angle and an encoder reading taken at (nearly) the same moment."""
         self.motor_deg[i] = multi_turn_deg
         self.encoder[i] = encoder
+        self.anchored[i] = True
+        self.last_reply_s[i] = np.nan  # (the next reply unwraps from this reading, whenever it comes)
         self._refresh_joint(i)
+
+    def unanchored(self, now_s: float) -> NDArray[np.intp]:
+        """The axes whose exchange at ``now_s`` must read their drive's multi-turn angle (0x92): those not anchored,
+        those whose replies would come longer than :attr:`unwrap_gap_s` after their last one, and those whose last
+        reported speed turns the shaft half a turn by then (indexes)."""
+        since = np.subtract(now_s, self.last_reply_s, out=self._since)
+        stale = np.greater(since, self.unwrap_gap_s, out=self._stale)
+        np.logical_or(stale, ~self.anchored, out=stale)
+        since *= np.abs(self.motor_speed_dps, out=self._reach)
+        fast = np.greater_equal(since, UNWRAP_BOUND_MOTOR_DEG, out=self._fast)
+        fast &= self._unwrapped  # (an angle read in every cycle is never unwrapped)
+        stale |= fast
+        return np.flatnonzero(stale)
 
     def update(self, i: int, state: object, received_s: float) -> None:
         """Take one 0x9C / 0xA1..0xA8 reply of axis ``i`` (the family's motion reply)."""
@@ -160,23 +228,43 @@ class AxisStates:
         # with the same operations in the same order as the arrays would do them, so the results are the same float64s.
         terms = self._terms
         encoders, motor_degs, speeds, iqs, temperatures, last_reply_s, q_deg, qd_dps, fresh = self._cells
+        gaps, anchored = self._gap_cells
         if not keep_fresh:
             fresh[:] = self._none_fresh
+        others: list[tuple[int, object]] | None = None  # missing replies and 0x92's, once the state replies are in
         for motor_id, _request, state, received_s in replies:
             i = index.get(motor_id)
-            if i is None or received_s is None or not isinstance(state, MotorState):
+            if i is None:
+                continue
+            if not isinstance(state, MotorState):
+                if state is None or state.__class__ is MultiTurnAngle:
+                    if others is None:
+                        others = []
+                    others.append((i, state))
+                continue
+            if received_s is None:
                 continue
             counts, joint_deg, joint_rate = terms[i]
+            speed_dps = float(state.speed_dps)
+            since_s = received_s - last_reply_s[i]
+            # The encoder's change is taken the way round nearest to what the speeds reported at both ends predict
+            # (nothing is predicted across a gap longer than the velocity limit unwraps, nor at the first reply after
+            # an anchor: NaN). Beyond the envelope the configuration was checked for (a gap, a speed that turns the
+            # shaft half a turn per sample) the turns are confirmed by 0x92.
+            expected = 0.0
+            if since_s > gaps[i]:
+                anchored[i] = False
+            elif since_s <= gaps[i] and since_s < math.inf:
+                before_dps = speeds[i]
+                expected = (before_dps + speed_dps) * since_s * counts / 720.0
+                if max(abs(before_dps), abs(speed_dps)) * since_s >= UNWRAP_BOUND_MOTOR_DEG:
+                    anchored[i] = False
             encoder = state.encoder
             delta = encoder - encoders[i]
-            if delta > counts / 2:
-                delta -= int(counts)
-            elif delta < -counts / 2:
-                delta += int(counts)
+            delta -= round((delta - expected) / counts) * int(counts)
             encoders[i] = encoder
             motor_deg = motor_degs[i] + delta * 360.0 / counts
             motor_degs[i] = motor_deg
-            speed_dps = float(state.speed_dps)
             speeds[i] = speed_dps
             iqs[i] = state.iq_a
             temperatures[i] = state.temperature_c
@@ -184,6 +272,38 @@ class AxisStates:
             fresh[i] = True
             q_deg[i] = joint_deg(motor_deg)
             qd_dps[i] = joint_rate(speed_dps)
+        if others is not None:
+            self._take_others(others)
+
+    def _take_others(self, others: list[tuple[int, object]]) -> None:
+        """An exchange's missing replies and 0x92 readings of encoder axes (:meth:`_absorb_states`), after its state
+        replies."""
+        fresh = self._cells[-1]
+        for i, message in others:
+            if message is None:
+                if not fresh[i]:  # a drive unheard: its turns are sure again once a 0x92 reading confirms them
+                    self.anchored[i] = False
+            elif fresh[i]:  # (a 0x92 reading with its state reply of the same exchange: the two are of one moment)
+                self._take_reading(i, message.angle_deg)  # type: ignore[attr-defined]
+
+    def _take_reading(self, i: int, reading_deg: float) -> None:
+        """A 0x92 reading of encoder axis ``i`` (motor degrees, the drive's frame) taken in the exchange that also
+        brought its state reply: held against the tracked angle (the module docstring)."""
+        jump = reading_deg - self.motor_deg.item(i)
+        if abs(jump) < UNWRAP_BOUND_MOTOR_DEG:
+            self.anchored[i] = True
+            return
+        if not math.isnan(self.frame_jump_deg.item(i)):
+            return  # (lost for the session: the tracked angle goes on in the old frame)
+        if self.anchored[i] or in_first_turn(reading_deg):
+            self.frame_jump_deg[i] = jump
+            self.anchored[i] = True  # (nothing more to confirm)
+            return
+        turns = round(jump / TURN_DEG)
+        self.motor_deg[i] += turns * TURN_DEG
+        self.turns_restored[i] += turns
+        self.anchored[i] = True
+        self._refresh_joint(i)
 
     def _absorb_read_angles(
         self, replies: Iterable[tuple[int, object, object, float | None]], keep_fresh: bool, index: Mapping[int, int]

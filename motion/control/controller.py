@@ -164,6 +164,9 @@ class Controller(MotionCommands, LoopRunning):
         #: observer steps between these instants, the tracking model runs from them: a late cycle is a longer step).
         self.exchanged_s = 0.0
         velocity_limit = np.abs(transmission.motor_rate(np.array(limits.velocity_dps)))
+        self._velocity_limit_motor_dps = velocity_limit.tolist()
+        # 0x92 to an axis whose tracked turns are not sure (AxisStates.unanchored), by joint
+        self._turn_reads = [self.bare_request(i, Command.READ_MULTI_TURN_ANGLE) for i in self.ids]
         #: The set-points of the mode (:mod:`motion.control.setpoints`).
         self.builder = setpoint_builder(
             options.mode,
@@ -189,7 +192,7 @@ class Controller(MotionCommands, LoopRunning):
     def _set_frame(self, transmission: ArmTransmission) -> None:
         """Use ``transmission`` for every angle read and every target sent (before :meth:`read_positions`)."""
         self.transmission = transmission
-        self.axes = AxisStates(self.specs, transmission, self.families)
+        self.axes = AxisStates(self.specs, transmission, self.families, self._velocity_limit_motor_dps)
         self.builder.set_frame(transmission, self.axes)
 
     def family_of(self, address: int) -> DriveFamily:
@@ -200,6 +203,12 @@ class Controller(MotionCommands, LoopRunning):
         """The request without data for ``code`` (0x80, 0x81, 0x92, 0x9A, 0x9C, ...) to the drive at ``address``,
         in its family's protocol."""
         return Request(address, self._family_of[address].bare(code))
+
+    def turn_reads(self, now_s: float, window_s: float) -> list[Request]:
+        """The 0x92 reads an exchange sent at ``now_s`` whose replies come within ``window_s`` must carry: one to each
+        axis whose tracked turns are not sure then (:meth:`AxisStates.unanchored`: a drive that went unheard, a
+        gap in its replies longer than its velocity limit unwraps); usually none."""
+        return [self._turn_reads[i] for i in self.axes.unanchored(now_s + window_s)]
 
     @property
     def angle_reads(self) -> list[Request]:
@@ -324,7 +333,9 @@ class Controller(MotionCommands, LoopRunning):
         if self._angle_reads:
             requests.extend(self._angle_reads)
         self.exchanged_s = sent_s = self.clock.now()
-        replies = self.bus.transact(requests, start_s + self._reply_budget * (deadline_s - start_s))
+        reply_by_s = start_s + self._reply_budget * (deadline_s - start_s)
+        requests.extend(self.turn_reads(sent_s, reply_by_s - sent_s))
+        replies = self.bus.transact(requests, reply_by_s)
         if self.tracking.unread:
             replies = self.tracking.take_replies(replies)
         self.last_replies = replies  # (for a caller whose cycle a hook below ends with an exception)

@@ -1,4 +1,5 @@
-"""The end of a session: after the loop, every axis halted, the braked joints locked at rest, the settings restored.
+"""The end of a session: after the loop, every axis halted, the braked joints locked at rest, every joint awaited at
+rest (where its turn record is written: :func:`motion.keep.resting_angles`), the settings restored.
 
 No path leaves a motor moving under our last command: :meth:`SessionEnd.run` runs from ``Supervisor.close`` and from
 the bus's close hook; :func:`emergency_stop` from garbage collection and process exit, where nobody is left to raise
@@ -15,6 +16,7 @@ from motion.protocol import Command
 from motion.safety.halted import HaltGuard
 from motion.safety.states import ArmEvent, ArmState, StateMachine
 from motion.safety.watchdog import Watchdog
+from motion.transport import Request
 
 logger = logging.getLogger("motion.safety")
 
@@ -22,7 +24,8 @@ logger = logging.getLogger("motion.safety")
 SETUP_WINDOW_S = 0.2
 #: The longest an exchange after the loop waits for its replies, s (see :func:`end_window_s`).
 END_EXCHANGE_S = 0.02
-#: How long a close waits for the braked joints to come to rest before it locks their brakes, s.
+#: How long a close waits for the braked joints to come to rest before it locks their brakes, and for every joint
+#: to come to rest (a drive's own stop from full speed takes a few tenths of a second), s.
 BRAKE_SETTLE_S = 1.0
 #: The states whose halt has gone out: the end sends it again where it is owed (any other, HALT_PENDING too, whose halt
 #: has not gone out yet: the drives' own stop now).
@@ -40,8 +43,8 @@ def end_window_s(controller: Controller, drives: DriveSetup) -> float:
 
 
 class SessionEnd:
-    """Once the loop has ended: the halt to every axis, the brakes of the joints at rest locked, and only then the
-    drives' settings restored.
+    """Once the loop has ended: the halt to every axis, the brakes of the joints at rest locked, every joint awaited at
+    rest, and only then the drives' settings restored.
 
     Args:
         controller: the controller (its loop has ended).
@@ -68,11 +71,17 @@ class SessionEnd:
         self.watchdog = watchdog
         self.drives = drives
         self._window_s = window_s
+        #: The joints the end saw at rest after its halt, by name, and their angles then, degrees (a joint still
+        #: coasting, or whose drive was not heard, is not among them): where their turn records are written.
+        self.rest_deg: dict[str, float] = {}
 
     def run(self) -> bool:
         """The halt to every axis in one batch (the drives not known to be halted last, so that a silent one's
         timeouts delay nobody's halt), re-sent to the late until :data:`SETUP_WINDOW_S`; the brakes locked at rest;
-        the settings restored. Returns False when nothing could be sent (the bus closed or lost, the arm closed)."""
+        every joint awaited at rest until :data:`BRAKE_SETTLE_S` (:attr:`rest_deg`); the settings restored. Every
+        exchange carries the 0x92 reads of the axes whose turns are not sure (a drive heard again after a silence:
+        :meth:`~motion.control.controller.Controller.turn_reads`). Returns False when nothing could be sent (the bus
+        closed or lost, the arm closed)."""
         controller, guard, machine = self.controller, self.guard, self.machine
         bus, clock = controller.bus, controller.clock
         state = machine.state
@@ -87,23 +96,47 @@ class SessionEnd:
         try:
             batch = guard.locks_due()  # (a braked joint its drive cannot hold: its brake first, as in the loop)
             batch += [ask(i, guard.codes[i]) for i in order]
-            replies = bus.transact(batch, clock.now() + self._window_s)
-            controller.absorb(replies)
-            guard.take(replies, controller.axes, self.watchdog.within, clock.now())
+            self._exchange(batch, clock.now() + self._window_s)
             # Late acknowledgements (a loaded host, a slow drive): halted cycles, each a short exchange that reads
             # every drive (none starves into its link-loss stop), until every drive acknowledged or ``until``.
             while guard.unacknowledged and clock.now() < until:
-                replies = bus.transact(guard.requests(), min(until, clock.now() + self._window_s))
-                controller.absorb(replies)
-                guard.take(replies, controller.axes, self.watchdog.within, clock.now())
+                self._exchange(guard.requests(), min(until, clock.now() + self._window_s))
         except Exception as exc:  # the session ends anyway: leave a trace
             logger.error("the halt at the end of the session failed: %s: %s", type(exc).__name__, exc)
         if machine.state is ArmState.HALTING and not guard.unacknowledged:
             machine.fire(ArmEvent.ACKNOWLEDGED)
+        settle_until = clock.now() + BRAKE_SETTLE_S
         if self.drives.braked_ids and not self.drives.brakes_locked:
-            self._lock_brakes_at_rest(clock.now() + BRAKE_SETTLE_S)
+            self._lock_brakes_at_rest(settle_until)
+        self._await_rest(settle_until)
         self.drives.restore(clock.now() + SETUP_WINDOW_S, lock=())  # (the brakes: above, only where at rest)
         return True
+
+    def _exchange(self, requests: list[Request], deadline_s: float) -> None:
+        """One exchange after the loop, with the 0x92 reads of the axes whose turns are not sure, taken in by the
+        axes and the halted state's bookkeeping."""
+        controller, clock = self.controller, self.controller.clock
+        requests += controller.turn_reads(clock.now(), deadline_s - clock.now())
+        replies = controller.bus.transact(requests, deadline_s)
+        controller.absorb(replies)
+        self.guard.take(replies, controller.axes, self.watchdog.within, clock.now())
+
+    def _await_rest(self, deadline_s: float) -> None:
+        """Halted cycles, one a control period, until every joint has read at rest since its halt
+        (:meth:`HaltGuard.at_rest`; a drive unheard meanwhile may answer again), or until ``deadline_s``;
+        :attr:`rest_deg` then holds those at rest. A turn record written while a joint coasts would leave the next
+        session a reading the joint does not stop at."""
+        controller, guard = self.controller, self.guard
+        clock, n = controller.clock, len(guard.ids)
+        try:
+            while clock.now() < deadline_s and not all(guard.at_rest(i) for i in range(n)):
+                start_s = clock.now()
+                self._exchange(guard.requests(), min(deadline_s, start_s + self._window_s))
+                clock.sleep_until(min(deadline_s, start_s + controller.period_s))
+        except Exception as exc:
+            logger.error("the joints could not be read at rest at the end: %s: %s", type(exc).__name__, exc)
+        q = controller.axes.q_deg
+        self.rest_deg = {name: float(q[i]) for i, name in enumerate(self.watchdog.names) if guard.at_rest(i)}
 
     def _lock_brakes_at_rest(self, deadline_s: float) -> None:
         """After the final halt: halted cycles (:meth:`HaltGuard.requests`: every drive read, none starves into its
@@ -114,9 +147,7 @@ class SessionEnd:
         clock = controller.clock
         try:
             while not guard.all_locked() and clock.now() < deadline_s:
-                replies = controller.bus.transact(guard.requests(), min(deadline_s, clock.now() + self._window_s))
-                controller.absorb(replies)
-                guard.take(replies, controller.axes, self.watchdog.within, clock.now())
+                self._exchange(guard.requests(), min(deadline_s, clock.now() + self._window_s))
         except Exception as exc:
             logger.error("the braked joints could not be read at the end: %s: %s", type(exc).__name__, exc)
         pending = [i for i in guard.braked_ids if i not in guard.locked]

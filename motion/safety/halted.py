@@ -166,6 +166,11 @@ class HaltGuard:
             self._outside[i] = False
             self._swings[i], self._swing_sign[i] = 0, 0.0
 
+    def at_rest(self, i: int) -> bool:
+        """Whether joint ``i`` has read at rest (at most :data:`BRAKE_REST_DPS`) in every reading for
+        :data:`BRAKE_REST_S` since its drive acknowledged the halt (as a brake waits for)."""
+        return self._acknowledged[i] and self._now - self._rest_since[i] >= BRAKE_REST_S
+
     def all_locked(self) -> bool:
         """Whether every braked joint's brake has locked since the halt."""
         return len(self.locked) == len(self.braked_ids)

@@ -2,8 +2,8 @@
 
 Sources, in the order they are checked: drive error flags (0x9A, read round-robin with 0x92, on CAN enough per cycle
 that every drive's flags are at most ``motion.control.ratecheck.FLAG_AGE_S`` old, on RS485 one per cycle: ``2 n_axes``
-cycles; and every 0x9B reply), a drive that restarted (its 0x92 multi-turn angle jumps
-by whole turns from the angle tracked from its encoder), motor temperature in every reply, supply voltage, missing
+cycles; and every 0x9B reply), a drive that restarted (:class:`~motion.safety.restart.RestartCheck`: its documented
+sign in the 0x92 and 0xB1 replies), motor temperature in every reply, supply voltage, missing
 replies (consecutive misses and time since the last good reply), corrupt frames, measured position beyond the joint
 limits, measured speed beyond the joint's velocity limit × its margin (:mod:`motion.safety.overspeed`), collisions
 (the momentum observer's residual per joint against its threshold), following error, and scheduler overrun streaks.
@@ -27,11 +27,11 @@ from motion.control.controller import Controller
 from motion.control.family import STATE_TYPES, STATUS_TYPES
 from motion.errors import FaultKind, MotionFault
 from motion.protocol import MultiTurnAngle, Status1
-from motion.protocol.table import Direction, WireProtocol, field_range
-from motion.protocol.v3.messages import CommandV3, Runtime, Status1V3
+from motion.protocol.v3.messages import Runtime, Status1V3
 from motion.safety.collision import CollisionCheck, CollisionObserver
 from motion.safety.collision_bound import MODEL_ERROR
 from motion.safety.overspeed import OverspeedCheck
+from motion.safety.restart import RestartCheck
 from motion.trajectory import State
 from motion.transmission import FloatArray
 from motion.transport import Reply
@@ -40,13 +40,6 @@ __all__ = ["CollisionObserver", "SafetySettings", "Watchdog"]  # (the observer's
 
 # Measured positions may pass a joint limit by this much (encoder resolution, drive overshoot), deg.
 POSITION_LIMIT_TOLERANCE_DEG = 0.1
-#: A drive's multi-turn reading this far from the angle tracked from its encoder (motor degrees, half a turn) means
-#: it restarted; the two are read in the same exchange, so motion between them is a few degrees at most.
-RESTART_JUMP_MOTOR_DEG = 180.0
-#: Where a V3 drive's runtime (0xB1, ms) wraps (one past its field's largest value, as the table declares it), and
-#: the slack given to the host's clock against the drive's, ms.
-RUNTIME_WRAP_MS = field_range(CommandV3.READ_RUNTIME, Direction.REPLY, WireProtocol.CAN, "runtime_ms")[1] + 1
-RUNTIME_SLACK_MS = 1000.0
 _DEG_PER_RAD = 180.0 / math.pi
 # Window of the corrupt-frame count, s.
 CORRUPT_WINDOW_S = 1.0
@@ -140,15 +133,8 @@ class Watchdog:
         self._corrupt: list[collections.deque[float]] = [collections.deque() for _ in range(n)]
         self._overruns_seen = 0
         self._overrun_streak = 0
-        # The family's restart sign: the 0x92 angle against the tracked encoder, or the runtime going back (0xB1).
-        self._angle_shows_restart = [not f.angle_every_cycle for f in controller.families]
-        self._runtime_ms = [-1] * n
-        self._runtime_s = [math.nan] * n  # when it was read
-        # ... and the fine angle read in every cycle (motor deg, and when: NaN before the first), for a jump no speed
-        # explains (two lists: no tuple per joint and cycle)
-        self._drive_gear = [s.drive_gear_ratio for s in specs]
-        self._last_angle_deg = [math.nan] * n
-        self._last_angle_s = [math.nan] * n
+        #: The restart check (:mod:`motion.safety.restart`), on every 0x92 and 0xB1 reply.
+        self.restart = RestartCheck(controller)
         self._counters = [controller.bus.motor_counters(motor_id) for motor_id in self.ids]
         # Following error: work arrays, and whether a cycle has run since start() (the first has no expectation).
         self._following = False
@@ -210,7 +196,7 @@ class Watchdog:
         """Reset the reply clocks (at loop start or after a clear)."""
         self.last_good_s[:] = now_s
         self.misses[:] = 0
-        self._last_angle_s[:] = [math.nan] * len(self.ids)
+        self.restart.restart()
         # The counter objects live as long as the transport: look them up once, not every cycle.
         self._counters = [self.controller.bus.motor_counters(motor_id) for motor_id in self.ids]
         for i, counter in enumerate(self._counters):
@@ -292,28 +278,7 @@ class Watchdog:
                 else:
                     self._answered[i] = True
         self._check_replies(now_s)
-        for reply in replies:
-            i = index.get(reply.motor_id)
-            message = reply.message
-            if i is None or message is None:
-                continue
-            if isinstance(message, STATUS_TYPES):
-                try:
-                    self._check_status(i, message)
-                except MotionFault as fault:
-                    if not fault.kind.holdable:
-                        raise
-                    held = held or fault
-            elif isinstance(message, (MultiTurnAngle, Runtime)):
-                self._check_restart(i, message, now_s)
-            elif isinstance(message, STATE_TYPES) and message.temperature_c >= self.temperature_limit[i]:
-                held = held or self._fault(
-                    FaultKind.TEMPERATURE,
-                    i,
-                    message.temperature_c,
-                    float(self.temperature_limit[i]),
-                    "motor temperature",
-                )
+        held = held or self._check_messages(replies, now_s)
         self._check_corrupt(now_s)
         q = self.controller.axes.q_deg
         self._check_limits(q, FaultKind.POSITION_LIMIT, "measured position beyond the limit")
@@ -378,6 +343,37 @@ class Watchdog:
         """The following-error limit in force per joint at the latest check, deg (the configured one plus what a drive
         within the stated model error adds): the watchdog's array."""
         return self._following_limit
+
+    def _check_messages(self, replies: list[Reply], now_s: float) -> MotionFault | None:
+        """Each reply's own checks (flags, the restart sign, temperature): raises an unholdable fault, returns the
+        first holdable one (None: none)."""
+        held: MotionFault | None = None
+        index = self.index
+        for reply in replies:
+            i = index.get(reply.motor_id)
+            message = reply.message
+            if i is None or message is None:
+                continue
+            if isinstance(message, STATUS_TYPES):
+                try:
+                    self._check_status(i, message)
+                except MotionFault as fault:
+                    if not fault.kind.holdable:
+                        raise
+                    held = held or fault
+            elif isinstance(message, (MultiTurnAngle, Runtime)):
+                restarted = self.restart.check(i, message, now_s)
+                if restarted is not None:
+                    raise restarted
+            elif isinstance(message, STATE_TYPES) and message.temperature_c >= self.temperature_limit[i]:
+                held = held or self._fault(
+                    FaultKind.TEMPERATURE,
+                    i,
+                    message.temperature_c,
+                    float(self.temperature_limit[i]),
+                    "motor temperature",
+                )
+        return held
 
     def restart_following(self) -> None:
         """No following-error check in the next cycle; the expectation starts again from the measured state."""
@@ -519,93 +515,19 @@ class Watchdog:
         np.maximum(out, 0.0, out=out)
         out *= moving
 
-    def _check_restart(self, i: int, message: MultiTurnAngle | Runtime, now_s: float) -> None:
-        """The family's restart sign in a 0x92 or 0xB1 reply of joint ``i``.
-
-        Raises:
-            MotionFault: kind ``drive_restarted``.
-        """
-        if isinstance(message, Runtime):
-            self._check_runtime(i, message, now_s)
-        elif self._angle_shows_restart[i]:
-            self._check_frame(i, message)
-        else:
-            self._check_angle_jump(i, message, now_s)
-
     def restarts(self, replies: list[Reply], now_s: float) -> list[MotionFault]:
         """The drives that a cycle's replies show restarted, one ``drive_restarted`` fault each (while the arm is
         halted, when nothing else is evaluated: a drive that restarts then has lost its turn count all the same)."""
         found = []
-        index = self.index
+        index, check = self.index, self.restart.check
         for reply in replies:
             i = index.get(reply.motor_id)
             message = reply.message
             if i is not None and isinstance(message, (MultiTurnAngle, Runtime)):
-                try:
-                    self._check_restart(i, message, now_s)
-                except MotionFault as fault:
+                fault = check(i, message, now_s)
+                if fault is not None:
                     found.append(fault)
         return found
-
-    def _check_frame(self, i: int, reading: MultiTurnAngle) -> None:
-        """A drive's multi-turn angle against the one the controller tracks from its encoder: a drive that restarted
-        (a brown-out, a loose supply) counts its turns from its new power-up, and its reading jumps by whole turns
-        while the shaft did not move. Its frame is then unknown: every target sent to it would be off by those turns.
-
-        Raises:
-            MotionFault: kind ``drive_restarted`` (never held: a stop ramp would be in the old frame).
-        """
-        jump = reading.angle_deg - float(self.controller.axes.motor_deg[i])
-        if abs(jump) > RESTART_JUMP_MOTOR_DEG:
-            raise self._restarted(i, jump, f"({jump / 360.0:+.2f} turns) while its encoder did not")
-
-    def _check_angle_jump(self, i: int, reading: MultiTurnAngle, now_s: float) -> None:
-        """A fine angle read in every cycle (V3) that jumped from the last one by more than half a motor turn beyond
-        what the reported speed covers in between: the drive restarted and counts its turns anew (the runtime
-        read, :meth:`_check_runtime`, sees it too, a round-robin later).
-
-        Raises:
-            MotionFault: kind ``drive_restarted`` (never held).
-        """
-        motor_deg = reading.angle_deg * self._drive_gear[i]
-        jump = motor_deg - self._last_angle_deg[i]
-        elapsed_s = now_s - self._last_angle_s[i]  # NaN before the first reading: no comparison holds
-        self._last_angle_deg[i], self._last_angle_s[i] = motor_deg, now_s
-        reach = abs(float(self.controller.axes.motor_speed_dps[i])) * elapsed_s
-        if abs(jump) > RESTART_JUMP_MOTOR_DEG + reach:
-            raise self._restarted(i, jump, "between two cycles, beyond what its speed covers")
-
-    def _restarted(self, i: int, jump_deg: float, how: str) -> MotionFault:
-        """The ``drive_restarted`` fault of joint ``i`` whose 0x92 angle jumped by ``jump_deg`` motor degrees."""
-        return self._fault(
-            FaultKind.DRIVE_RESTARTED,
-            i,
-            round(jump_deg / 360.0, 2),
-            None,
-            f"the drive's multi-turn angle (0x92) jumped by {jump_deg:.1f} motor deg {how}: it restarted (power), and "
-            "its turn offset is lost",
-        )
-
-    def _check_runtime(self, i: int, reading: Runtime, now_s: float) -> None:
-        """A V3 drive's runtime (0xB1) counts from its power-up: less than the last reading means it restarted, its
-        multi-turn count then lost unless it keeps it (and the brake locked, the output off).
-
-        Raises:
-            MotionFault: kind ``drive_restarted`` (never held).
-        """
-        last, last_s = self._runtime_ms[i], self._runtime_s[i]
-        self._runtime_ms[i], self._runtime_s[i] = reading.runtime_ms, now_s
-        # the uint32 of milliseconds wraps after 49.7 days: a smaller reading the elapsed time carries past the wrap
-        # is the count going on
-        wrapped = last + (now_s - last_s) * 1000.0 + RUNTIME_SLACK_MS >= RUNTIME_WRAP_MS
-        if reading.runtime_ms < last and not wrapped:
-            raise self._fault(
-                FaultKind.DRIVE_RESTARTED,
-                i,
-                reading.runtime_ms / 1000.0,
-                last / 1000.0,
-                f"the drive's runtime (0xB1) went back from {last} ms to {reading.runtime_ms} ms: it restarted (power)",
-            )
 
     def _check_status(self, i: int, status: Status1 | Status1V3) -> None:
         family = self.controller.families[i]
