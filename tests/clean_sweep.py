@@ -143,12 +143,18 @@ def config_of(case: Case, *, bound_only: bool = False) -> ArmConfig:
     config = with_drives(example(case.arm), case.drives)
     control = dataclasses.replace(config.control, mode=case.mode, rate_hz=case.rate_hz)
     config = dataclasses.replace(config, control=control)
-    if link_timeout_problem(config.safety.link_timeout_ms, case.rate_hz) is not None:
-        # (a rate below the one the example's communication-loss time is set for: the default, as a user would)
-        config = dataclasses.replace(config, safety=dataclasses.replace(config.safety, link_timeout_ms=None))
+    config = _link_timeout_for_rate(config)
     if bound_only and config.collision_watched:
         config = with_thresholds(config, [BOUND_ONLY_NM] * len(config.joints))
     return config
+
+
+def _link_timeout_for_rate(config: ArmConfig) -> ArmConfig:
+    """``config`` with the default communication-loss time where its own is too short for its rate (a rate below the
+    one the example's is set for: the default, as a user would)."""
+    if link_timeout_problem(config.safety.link_timeout_ms, config.control.rate_hz) is None:
+        return config
+    return dataclasses.replace(config, safety=dataclasses.replace(config.safety, link_timeout_ms=None))
 
 
 def _arm(case: Case, config: ArmConfig, *, observe: bool = False) -> Arm:
@@ -211,7 +217,7 @@ def run(case: Case, *, safety: SafetyConfig | None = None, bound_only: bool = Fa
     first fault ends it."""
     config = config_of(case, bound_only=bound_only)
     if safety is not None:
-        config = dataclasses.replace(config, safety=safety)
+        config = _link_timeout_for_rate(dataclasses.replace(config, safety=safety))
     if not watched:
         config = without_thresholds(config)
     n = len(config.joints)

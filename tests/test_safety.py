@@ -691,7 +691,13 @@ def test_at_a_low_rate_every_drives_flags_are_read_within_50_ms(family: Protocol
     assert max(latencies) <= FLAG_AGE_S + 1.0 / 50.0, latencies  # the read's age, and the cycle that carries it
 
 
-def test_a_torque_loop_that_diverges_faults_overspeed_in_the_cycle_it_is_first_seen(family: ProtocolFamily) -> None:
+def test_a_torque_loop_that_diverges_faults_overspeed_in_the_cycle_it_is_first_seen(
+    family: ProtocolFamily, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # (connect refuses this rate: tests/test_stability.py; the stability check taken out, the overspeed monitor is
+    # the line behind it, for a loop that diverges all the same: a drive outside the stated bounds)
+    monkeypatch.setattr("motion.api.arm.check_envelope", lambda config: None)
+    monkeypatch.setattr("motion.compose.stable_from_hz", lambda config: 0.0)  # (and the rate check's floor)
     # arm2 in torque mode at 40 Hz, a rate its PD gains do not hold, with the README's move: the elbow's loop
     # diverges, to six times its velocity limit and (older drives) past half a motor turn between two readings, which
     # three cycles later read as a drive that restarted. The overspeed check halts it in the cycle its speed is first

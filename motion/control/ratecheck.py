@@ -314,7 +314,7 @@ class RateError(ConfigError):
                 "control.rate_hz",
                 f"{check.rate_hz:g} Hz is below the rate torque mode's PD loop needs{check.stability_text()} (the "
                 f"bus and host hold up to {check.highest_rate_hz:g} Hz; set control.rate_hz between "
-                f"{check.stable_from_hz:g} and {check.recommended_rate_hz:g} Hz)",
+                f"{stable_floor_hz(check.stable_from_hz):g} and {check.recommended_rate_hz:g} Hz)",
             )
             return
         super().__init__(
