@@ -34,7 +34,10 @@ violations of:
   when the drive sampled it, within the encoder's resolution (a count of the encoder at each end, or 0.01 deg of a V3
   drive's reading) of the offset its anchoring at connect left (the joint's motion between the two reads that anchor
   it), unless the arm is faulted saying why (its drive restarted: its frame is lost); after a silence too (no turn the
-  encoder missed is kept);
+  encoder missed is kept). Not held: a joint whose turns the controller knows are unconfirmed while its link is
+  faulted and :data:`UNSURE_CYCLES` cycles after (its 0x92 read lost), one whose motor turned faster than its speed
+  field tells until its turns are confirmed, and one whose restart a silence or such a spin hid (docs/protocol.md:
+  an older drive's only sign is its first-turn reading);
 - **escape**: nothing but a :class:`~motion.errors.MotionError` comes out of the API, the loop records no error of
   its own, and the run ends within :data:`WALL_LIMIT_S` of wall time.
 
@@ -67,8 +70,9 @@ from motion.emulator import Fault, InjectedFault, parse_fault
 from motion.emulator.drive import RunState
 from motion.emulator.timing import TimingModel
 from motion.errors import FaultKind, MotionError
-from motion.protocol import MotorState, MultiTurnAngle
-from motion.protocol.v3.messages import CommandV3
+from motion.protocol import Command, MotorState, MultiTurnAngle, WireProtocol
+from motion.protocol.table import Direction, field_range
+from motion.protocol.v3.messages import CommandV3, Runtime
 from motion.safety import ArmState
 from motion.safety.halted import RESTLESS_S as RESTLESS_RELEASE_S
 from motion.safety.halted import SWING_DPS
@@ -133,6 +137,13 @@ _EXTERNAL = (InjectedFault.COLLISION, InjectedFault.BLOCKED)
 #: fast; the plant models no end stops, and a joint pushed with nothing resisting it spins up without bound, to
 #: infinite and NaN states): what follows is not checked (:attr:`Outcome.left_model_s`).
 PLANT_MODEL_DPS = 36000.0
+#: The older drives' speed field's largest value, motor deg/s: a motor beyond it is beyond what its drive reports (and
+#: than any RMD motor turns); its encoder is followed by the speed it reports, so not held to the angle invariant until
+#: its turns are confirmed again.
+SPEED_FIELD_MAX_DPS = field_range(Command.READ_STATUS_2, Direction.REPLY, WireProtocol.CAN, "speed_dps")[1]
+#: Cycles in a row a joint's turns may stay unconfirmed (its 0x92 read missed) outside a link fault before its angle is
+#: held to the plant's again.
+UNSURE_CYCLES = 3
 #: The shortest link timeout a V3 arm takes, ms (the default at 250 Hz and above): a quarter of the arm6_v3
 #: schedules have it.
 LINK_TIMEOUT_MIN_MS = 20.0
@@ -269,6 +280,11 @@ class _Checker:
             [360.0 / 2 ** min(j.encoder_bits, 16) / abs(j.gear_ratio) + 0.01 for j in config.joints]
         )
         self.angle_pending: dict[int, str] = {}  # an angle found off, a violation unless a restart explains it
+        n = len(self.ids)
+        self.hidden = [False] * n  # a restart a link fault hid (see _hidden_restart)
+        self.restarted_s = [math.nan] * n
+        self.read_since_restart = [False] * n
+        self.unsure = [0] * n  # cycles in a row each joint's axis has not been anchored
         # the controller's axes and each joint's error at its first comparison: the two reads that anchor an axis at
         # connect (0x92, then a state read) are a moment apart, and the joint's motion between them stays in its angle
         self.anchored_axes: Any = None
@@ -313,7 +329,10 @@ class _Checker:
         self.unbraked_grace_s = (rounds + 2) * self.period_s
         self.cut_since = [math.nan] * n  # since when each braked joint's drive has its output cut, its brake released
         self.reads_angle = [f.angle_every_cycle for f in controller.families]
-        self.samples: list[collections.deque[tuple[float, float]]] = [collections.deque(maxlen=64) for _ in range(n)]
+        self.samples: list[collections.deque[tuple[float, float, bool]]] = [
+            collections.deque(maxlen=64) for _ in range(n)
+        ]
+        self.unreported = [False] * n  # a joint beyond its speed field since its turns were last confirmed
         for i, motor_id in enumerate(self.ids):
             self._watch_samples(i, self.drives[motor_id])
 
@@ -474,15 +493,17 @@ class _Checker:
 
         def sampled(message: Any, now_s: float, transport: Any) -> Any:
             reply = respond(message, now_s, transport)
-            if reply.__class__ is kind:  # (configuration angles and order)
-                self.samples[i].append((_sample_key(reply), float(plant.joint_positions_deg()[i])))
+            if reply.__class__ is kind:  # (configuration angles and order; and whether the drive could tell its speed)
+                reported = abs(drive.speed_dps) < SPEED_FIELD_MAX_DPS or self.reads_angle[i]
+                self.samples[i].append((_sample_key(reply), float(plant.joint_positions_deg()[i]), reported))
             return reply
 
         drive.respond = sampled
 
     def _check_angles(self, replies: list[Any], t: float) -> None:
         """The controller's angle of every joint whose drive's sample reached it in the cycle against the plant's
-        when the drive sampled it, unless the arm is faulted because the joint's drive restarted."""
+        when the drive sampled it, unless the arm is faulted because the joint's drive restarted, or its restart was
+        hidden (:meth:`_hidden_restart`)."""
         controller, supervisor = self.arm.controller, self.arm.supervisor
         assert controller is not None and supervisor is not None
         axes = controller.axes
@@ -493,10 +514,17 @@ class _Checker:
         for i, name in enumerate(self.names):
             # (the cycle's hooks run before its watchdog: a restart this cycle shows has its fault by the next one)
             pending = self.angle_pending.pop(i, None)
-            if name in supervisor.lost_frames:
+            if name in supervisor.lost_frames or self._hidden_restart(i, replies, t):
                 continue
             if pending is not None:
                 self._violate(f"angle{i}", pending)
+            # a joint whose turns the controller knows are not sure (the 0x92 that confirms them did not come in this
+            # exchange: lost with the link, or past its window on a busy RS485 line; it asks again in every exchange)
+            # is given as long as its link is faulted and UNSURE_CYCLES cycles in a row after that to confirm them
+            linked = self._linked(self.ids[i], t)
+            self.unsure[i] = 0 if axes.anchored[i] or linked else self.unsure[i] + 1
+            if not axes.anchored[i] and (linked or self.unsure[i] <= UNSURE_CYCLES):
+                continue
             kind = MultiTurnAngle if self.reads_angle[i] else MotorState
             taken = [r.message for r in replies if r.motor_id == self.ids[i] and r.message.__class__ is kind]
             if not taken:
@@ -504,9 +532,14 @@ class _Checker:
             # the sample the reply the controller took came from (a late one too: a delayed reply answers a later
             # request), the newest that matches
             key = _sample_key(taken[-1])
-            at = next((deg for k, deg in reversed(self.samples[i]) if abs(k - key) < 0.005), None)
-            if at is None:
+            at, reported = next(
+                ((deg, told) for k, deg, told in reversed(self.samples[i]) if abs(k - key) < 0.005), (None, True)
+            )
+            if not reported:  # (a motor faster than its drive's speed field carries: no RMD motor turns so fast)
+                self.unreported[i] = True
+            if at is None or (self.unreported[i] and not axes.anchored[i]):
                 continue
+            self.unreported[i] = False
             error = float(q_deg[i]) - at
             if math.isnan(self.anchor_error_deg[i]):
                 self.anchor_error_deg[i] = error
@@ -516,6 +549,33 @@ class _Checker:
                     f"{at:.3f} deg when its drive sampled it ({error:+.3f}) at {t:.3f} s, its drive "
                     "not restarted"
                 )
+
+    def _hidden_restart(self, i: int, replies: list[Any], t: float) -> bool:
+        """Whether joint ``i``'s drive restarted and went unheard (a link fault), or its motor turned faster than its
+        speed field tells, before one of its restart reads (0x92, V3: 0xB1) reached the controller: a restart whose
+        sign a silence (or a spin) hid, while its joint moves on (an older drive's first-turn reading is its only
+        sign, docs/protocol.md), is not asked of the controller."""
+        motor_id = self.ids[i]
+        latest = max(
+            (f.start_s for f in self.faults if f.motor_id == motor_id and f.kind is InjectedFault.POWER_CYCLE),
+            default=math.inf,
+        )
+        if self.hidden[i] or latest > t:
+            return self.hidden[i]
+        if latest != self.restarted_s[i]:  # (a restart since the last look: no read of it yet)
+            self.restarted_s[i], self.read_since_restart[i] = latest, False
+        # (a drive heard, its motor within what its speed field tells: a reading then shows the restart)
+        telling = not self._linked(motor_id, t) and (not self.samples[i] or self.samples[i][-1][2])
+        read = any(r.motor_id == motor_id and r.message.__class__ in (MultiTurnAngle, Runtime) for r in replies)
+        if telling and read:
+            self.read_since_restart[i] = True
+        elif not telling and not self.read_since_restart[i]:
+            self.hidden[i] = True
+        return self.hidden[i]
+
+    def _linked(self, motor_id: int, t: float) -> bool:
+        """Whether a link fault (silent, drop, corrupt) acts on the drive at ``t``."""
+        return any(f.motor_id == motor_id and f.kind in _UNREACHABLE and f.active(t) for f in self.faults)
 
     def _returning(self, motor_id: int, t: float) -> bool:
         """Whether the drive holds with 0x81 a point its joint was pushed away from (a collision or an obstruction

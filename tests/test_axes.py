@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from motion.control.axes import AxisSpec, AxisStates
-from motion.protocol import Bare, Command, MotorState, MultiTurnAngle
+from motion.protocol import Bare, Command, Message, MotorState, MultiTurnAngle
 from motion.transmission import ArmTransmission, Transmission
 from motion.transport import Reply
 
@@ -45,7 +45,7 @@ def _state(motor_deg: float, speed_dps: float = 0.0) -> MotorState:
     return MotorState(Command.READ_STATUS_2, 30, 0.0, round(speed_dps), round(motor_deg / 360.0 * COUNTS) % COUNTS)
 
 
-def _exchange(axes: AxisStates, t: float, *messages: object) -> None:
+def _exchange(axes: AxisStates, t: float, *messages: Message | None) -> None:
     axes.absorb([Reply(1, Bare(Command.READ_STATUS_2), m, None if m is None else t) for m in messages])
 
 
@@ -102,3 +102,15 @@ def test_a_reading_a_turn_away_that_no_gap_explains_or_in_the_first_turn_after_o
     _exchange(axes, 0.004, None)
     _exchange(axes, 0.5, _state(370.0 + 360.0), MultiTurnAngle(10.0))
     assert axes.frame_jump_deg[0] == pytest.approx(-720.0, abs=0.1)
+
+
+def test_a_motor_beyond_what_its_speed_field_carries_is_confirmed_only_once_its_speed_is_told_again() -> None:
+    # a reading taken a moment after the state reply: at a full field (32767 deg/s: maybe a faster motor's) how far
+    # the shaft turned between the two is unknown, so the reading neither puts turns back nor loses the frame
+    axes = _axis()
+    _exchange(axes, 0.0, _state(720.0, speed_dps=32767.0))
+    assert list(axes.unanchored(0.001)) == [0]
+    _exchange(axes, 0.004, _state(900.0, speed_dps=32767.0), MultiTurnAngle(900.0 + 720.0))
+    assert not axes.anchored[0] and axes.turns_restored[0] == 0 and np.isnan(axes.frame_jump_deg[0])
+    _exchange(axes, 0.008, _state(1620.0, speed_dps=0.0), MultiTurnAngle(1620.0))  # slowed down: told again
+    assert axes.anchored[0] and axes.motor_deg[0] == pytest.approx(1620.0, abs=360.0 / COUNTS)

@@ -164,6 +164,8 @@ def test_absorb_is_the_array_arithmetic(transmissions: list[Transmission], bits:
     counts = float(1 << min(bits, 16))
     encoder = np.zeros(n, dtype=np.int64)
     motor_deg = np.array(data.draw(st.lists(st.floats(-1e4, 1e4), min_size=n, max_size=n)))
+    speed = np.zeros(n)  # the last reported speeds, and when (NaN: the anchor's, nothing to predict from)
+    last_s = np.full(n, np.nan)
     for i in range(n):
         axes.initialise(i, float(motor_deg[i]), 0)
     for cycle in range(data.draw(st.integers(1, 20))):
@@ -187,10 +189,11 @@ def test_absorb_is_the_array_arithmetic(transmissions: list[Transmission], bits:
         fresh = np.zeros(n, dtype=bool)
         for i, state in answered:  # the array arithmetic the per-axis loop replaced
             delta = state.encoder - int(encoder[i])
-            if delta > counts / 2:
-                delta -= int(counts)
-            elif delta < -counts / 2:
-                delta += int(counts)
+            since_s = 0.5 * cycle - last_s[i]
+            # the way round the speeds at both ends predict
+            expected = 0.0 if np.isnan(since_s) else (speed[i] + state.speed_dps) * since_s * counts / 720.0
+            delta -= round((delta - expected) / counts) * int(counts)
+            speed[i], last_s[i] = float(state.speed_dps), 0.5 * cycle
             encoder[i] = state.encoder
             motor_deg[i] += delta * 360.0 / np.float64(counts)
             fresh[i] = True

@@ -11,7 +11,8 @@ drive off, one pushed) while its speed changes by less than that between two rep
 The drive's own multi-turn angle (0x92) keeps the turns while it is powered; the encoder gives the fine angle between
 its reads. An axis is *anchored* while its tracked turns are sure: since its 0x92 and state replies were last taken
 in one exchange, none of its replies went missing and none came longer than ``unwrap_gap_s`` after the one before. An
-axis that is not (a drive silent, a cycle skipped) is read with 0x92 in every exchange until it is
+axis that is not (a drive silent, a cycle skipped, a speed that turns its shaft half a turn a sample or fills the
+speed field) is read with 0x92 in every exchange until it is
 (:meth:`AxisStates.unanchored`), and that reading puts back the whole turns the encoder missed: after any silence the
 controller's angle is the drive's. Each 0x92 reading is held against the tracked angle; a difference of half a turn or
 more is (:meth:`AxisStates._take_reading`):
@@ -40,8 +41,8 @@ from numpy.typing import NDArray
 
 from motion.control.family import FAMILIES, DriveFamily
 from motion.control.turns import TURN_DEG, in_first_turn
-from motion.protocol import MotorState, MultiTurnAngle
-from motion.protocol.table import ProtocolFamily
+from motion.protocol import Command, MotorState, MultiTurnAngle, WireProtocol
+from motion.protocol.table import Direction, ProtocolFamily, field_range
 from motion.transmission import ArmTransmission, FloatArray
 
 #: Width of the encoder fields of the replies, bits.
@@ -50,6 +51,8 @@ ENCODER_FIELD_BITS = 16
 #: turn between them for the turns to be counted, motor degrees. A 0x92 reading within it of the tracked angle (both
 #: taken in one exchange) is on the same turn.
 UNWRAP_BOUND_MOTOR_DEG: Final = 180.0
+#: The largest speed the older family's state replies carry, motor deg/s: a reading there may be a faster motor's.
+SPEED_FIELD_MAX_DPS: Final = field_range(Command.READ_STATUS_2, Direction.REPLY, WireProtocol.CAN, "speed_dps")[1]
 
 
 @dataclass(frozen=True, slots=True)
@@ -170,6 +173,7 @@ class AxisStates:
         self._since = np.zeros(n)
         self._reach = np.zeros(n)
         self._fast = np.zeros(n, dtype=bool)
+        self._loose = np.zeros(n, dtype=bool)
         self._unwrapped = ~np.array(reads_angle, dtype=bool)
         self._none_fresh = np.zeros(n, dtype=bool).data
         # Output-shaft drives: motor degrees per degree the drive reports, and the per-axis conversions.
@@ -189,11 +193,15 @@ class AxisStates:
     def unanchored(self, now_s: float) -> NDArray[np.intp]:
         """The axes whose exchange at ``now_s`` must read their drive's multi-turn angle (0x92): those not anchored,
         those whose replies would come longer than :attr:`unwrap_gap_s` after their last one, and those whose last
-        reported speed turns the shaft half a turn by then (indexes)."""
+        reported speed turns the shaft half a turn by then or fills its field (a faster motor's, maybe) (indexes)."""
         since = np.subtract(now_s, self.last_reply_s, out=self._since)
         stale = np.greater(since, self.unwrap_gap_s, out=self._stale)
-        np.logical_or(stale, ~self.anchored, out=stale)
-        since *= np.abs(self.motor_speed_dps, out=self._reach)
+        stale |= np.logical_not(self.anchored, out=self._loose)
+        speed = np.abs(self.motor_speed_dps, out=self._reach)
+        saturated = np.greater_equal(speed, SPEED_FIELD_MAX_DPS, out=self._fast)  # (a faster motor's, maybe)
+        saturated &= self._unwrapped
+        stale |= saturated
+        since *= speed
         fast = np.greater_equal(since, UNWRAP_BOUND_MOTOR_DEG, out=self._fast)
         fast &= self._unwrapped  # (an angle read in every cycle is never unwrapped)
         stale |= fast
@@ -231,7 +239,7 @@ class AxisStates:
         gaps, anchored = self._gap_cells
         if not keep_fresh:
             fresh[:] = self._none_fresh
-        others: list[tuple[int, object]] | None = None  # missing replies and 0x92's, once the state replies are in
+        others: list[tuple[int, object, float | None]] | None = None  # missing replies and 0x92's, taken after
         for motor_id, _request, state, received_s in replies:
             i = index.get(motor_id)
             if i is None:
@@ -240,7 +248,7 @@ class AxisStates:
                 if state is None or state.__class__ is MultiTurnAngle:
                     if others is None:
                         others = []
-                    others.append((i, state))
+                    others.append((i, state, received_s))
                 continue
             if received_s is None:
                 continue
@@ -250,14 +258,15 @@ class AxisStates:
             # The encoder's change is taken the way round nearest to what the speeds reported at both ends predict
             # (nothing is predicted across a gap longer than the velocity limit unwraps, nor at the first reply after
             # an anchor: NaN). Beyond the envelope the configuration was checked for (a gap, a speed that turns the
-            # shaft half a turn per sample) the turns are confirmed by 0x92.
+            # shaft half a turn per sample, or one the field cannot tell) the turns are confirmed by 0x92.
             expected = 0.0
             if since_s > gaps[i]:
                 anchored[i] = False
             elif since_s <= gaps[i] and since_s < math.inf:
                 before_dps = speeds[i]
                 expected = (before_dps + speed_dps) * since_s * counts / 720.0
-                if max(abs(before_dps), abs(speed_dps)) * since_s >= UNWRAP_BOUND_MOTOR_DEG:
+                fastest = max(abs(before_dps), abs(speed_dps))
+                if fastest * since_s >= UNWRAP_BOUND_MOTOR_DEG or fastest >= SPEED_FIELD_MAX_DPS:
                     anchored[i] = False
             encoder = state.encoder
             delta = encoder - encoders[i]
@@ -275,21 +284,26 @@ class AxisStates:
         if others is not None:
             self._take_others(others)
 
-    def _take_others(self, others: list[tuple[int, object]]) -> None:
+    def _take_others(self, others: list[tuple[int, object, float | None]]) -> None:
         """An exchange's missing replies and 0x92 readings of encoder axes (:meth:`_absorb_states`), after its state
         replies."""
         fresh = self._cells[-1]
-        for i, message in others:
+        for i, message, received_s in others:
             if message is None:
                 if not fresh[i]:  # a drive unheard: its turns are sure again once a 0x92 reading confirms them
                     self.anchored[i] = False
-            elif fresh[i]:  # (a 0x92 reading with its state reply of the same exchange: the two are of one moment)
-                self._take_reading(i, message.angle_deg)  # type: ignore[attr-defined]
+            elif fresh[i] and received_s is not None:  # (with its state reply of the same exchange)
+                self._take_reading(i, message.angle_deg, received_s - self.last_reply_s.item(i))  # type: ignore[attr-defined]
 
-    def _take_reading(self, i: int, reading_deg: float) -> None:
-        """A 0x92 reading of encoder axis ``i`` (motor degrees, the drive's frame) taken in the exchange that also
-        brought its state reply: held against the tracked angle (the module docstring)."""
-        jump = reading_deg - self.motor_deg.item(i)
+    def _take_reading(self, i: int, reading_deg: float, after_s: float) -> None:
+        """A 0x92 reading of encoder axis ``i`` (motor degrees, the drive's frame) taken ``after_s`` after its state
+        reply of the same exchange (the shaft turned on meanwhile at the speed that reply reported): held against
+        the tracked angle (the module docstring). With the speed field full, how far it turned is unknown: the
+        reading confirms nothing until the speed is told again."""
+        speed_dps = self.motor_speed_dps.item(i)
+        if abs(speed_dps) >= SPEED_FIELD_MAX_DPS:
+            return
+        jump = reading_deg - self.motor_deg.item(i) - speed_dps * after_s
         if abs(jump) < UNWRAP_BOUND_MOTOR_DEG:
             self.anchored[i] = True
             return

@@ -15,6 +15,7 @@ frame would be off by whole turns.
 
 from __future__ import annotations
 
+import logging
 import math
 from typing import Final
 
@@ -25,6 +26,8 @@ from motion.errors import FaultKind, MotionFault
 from motion.protocol import MultiTurnAngle
 from motion.protocol.table import Direction, WireProtocol, field_range
 from motion.protocol.v3.messages import CommandV3, Runtime
+
+logger = logging.getLogger("motion.safety")
 
 #: Where a V3 drive's runtime (0xB1, ms) wraps (one past its field's largest value, as the table declares it), and
 #: the slack given to the host's clock against the drive's, ms.
@@ -56,6 +59,8 @@ class RestartCheck:
         # and cycle
         self._last_angle_deg = [math.nan] * n
         self._last_angle_s = [math.nan] * n
+        self._restored = [0] * n  # the turns the axes put back after gaps, as last told
+        self._restored_told = [False] * n
 
     def restart(self) -> None:
         """The loop (re)starts: no fine angle to compare with yet."""
@@ -72,8 +77,20 @@ class RestartCheck:
         return self._angle_jump(i, message, now_s)
 
     def _frame(self, i: int, reading: MultiTurnAngle) -> MotionFault | None:
-        """The axes' verdict on an older drive's 0x92 reading: its frame lost."""
-        jump = float(self.controller.axes.frame_jump_deg[i])
+        """The axes' verdict on an older drive's 0x92 reading: its frame lost. Turns put back after a gap are told
+        (a restart while the drive was unheard, its joint moving on past its first turn, reads as that motion)."""
+        axes = self.controller.axes
+        restored = int(axes.turns_restored[i])
+        if restored != self._restored[i]:
+            (logger.debug if self._restored_told[i] else logger.warning)(  # (once a joint: a spinning one every cycle)
+                "%s: its drive's multi-turn angle (0x92) puts back %+d motor turn(s) its encoder missed while it was "
+                "unheard or beyond its unwrapping bound; had its drive lost power meanwhile, its turns would be lost "
+                "(home it then)",
+                self.names[i],
+                restored - self._restored[i],
+            )
+            self._restored[i], self._restored_told[i] = restored, True
+        jump = float(axes.frame_jump_deg[i])
         if math.isnan(jump):
             return None
         where = (
