@@ -451,22 +451,30 @@ def _hardware_like(config: ArmConfig, simulation: Simulation) -> Arm:
     return Arm(config, bus=SimulatedBus(simulation))
 
 
+def _faulted_session(
+    fault: str, state_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> tuple[Simulation, ArmPlant, MotionFault]:
+    """arm2 as hardware (its records in ``state_dir``) moving to (80, -100) deg with ``fault`` injected: the
+    simulation, its plant and the fault that halted the move; the session is closed at once."""
+    monkeypatch.setenv(STATE_DIR_ENV, str(state_dir))
+    config = load_config(CONFIGS / "arm2.yaml")
+    emulator, plant = arm_emulator(config, faults=[parse_fault(fault)])
+    simulation = Simulation(emulator, WireProtocol.CAN)
+    with _hardware_like(config, simulation) as arm, pytest.raises(MotionFault) as caught:
+        arm.move_to({"shoulder": 80.0, "elbow": -100.0})
+    return simulation, plant, caught.value
+
+
 def test_a_drive_that_restarts_drops_its_joints_turn_record_alone(
     monkeypatch: pytest.MonkeyPatch, tmp_path: Path
 ) -> None:
     # issue: a restart deleted every joint's record, and the next session refused every joint
-    monkeypatch.setenv(STATE_DIR_ENV, str(tmp_path))
+    simulation, _, fault = _faulted_session("power_cycle:2@0.6", tmp_path, monkeypatch)
+    assert fault.kind is FaultKind.DRIVE_RESTARTED and fault.joint == "elbow"
     config = load_config(CONFIGS / "arm2.yaml")
-    emulator, _ = arm_emulator(config, faults=[parse_fault("power_cycle:2@0.6")])
-    simulation = Simulation(emulator, WireProtocol.CAN)
-    with _hardware_like(config, simulation) as arm:
-        with pytest.raises(MotionFault) as caught:
-            arm.move_to({"shoulder": 80.0, "elbow": -100.0})
-        assert caught.value.kind is FaultKind.DRIVE_RESTARTED and caught.value.joint == "elbow"
-        arm.sleep(0.3)
     records = load_turn_records(config, "simulated can")
     assert set(records) == {"shoulder"}
-    shoulder = emulator.drives[1]
+    shoulder = simulation.emulator.drives[1]
     assert records["shoulder"].reading_deg == pytest.approx(shoulder.angle_deg, abs=0.1)
     # the next session keeps the shoulder's turns; the elbow is resolved afresh (from its window: refused here, its
     # drive's new frame puts it outside), and named alone
@@ -480,15 +488,10 @@ def test_a_turn_record_is_written_where_the_joint_came_to_rest_never_while_it_co
 ) -> None:
     # issue: a drive silent mid-move, the session closed soon after: the elbow's record was written at -443.6 motor deg
     # while it came to rest at -306.6, and the next session refused it, --keep-turns too
-    monkeypatch.setenv(STATE_DIR_ENV, str(tmp_path))
+    simulation, plant, fault = _faulted_session("silent:1@0.5-0.75", tmp_path, monkeypatch)
+    assert fault.kind is FaultKind.NO_REPLY  # (closed at once, the joints still braking, the shoulder's drive unheard)
     config = load_config(CONFIGS / "arm2.yaml")
-    emulator, plant = arm_emulator(config, faults=[parse_fault("silent:1@0.5-0.75")])
-    simulation = Simulation(emulator, WireProtocol.CAN)
-    with _hardware_like(config, simulation) as arm:
-        with pytest.raises(MotionFault) as caught:
-            arm.move_to({"shoulder": 80.0, "elbow": -100.0})
-        assert caught.value.kind is FaultKind.NO_REPLY
-        # closed at once, the joints still braking (the shoulder's drive unheard)
+    emulator = simulation.emulator
     records = load_turn_records(config, "simulated can")
     at_rest = [drive.angle_deg for drive in emulator.drives.values()]
     assert set(records) == {"shoulder", "elbow"}
