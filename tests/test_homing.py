@@ -25,7 +25,7 @@ from motion.config import ArmConfig, load_config
 from motion.config.schema import HomingConfig
 from motion.control.turns import TurnError
 from motion.emulator.drive_v3 import EmulatedDriveV3
-from motion.errors import FaultKind, MotionError, MotionFault
+from motion.errors import ConfigError, FaultKind, MotionError, MotionFault
 from motion.homing import (
     STOP_GIVE_DEG,
     HomingError,
@@ -377,7 +377,13 @@ def _homing_arm(
 def test_a_rate_too_low_for_the_seek_is_refused_before_it_with_the_figures() -> None:
     # issue: a shoulder homing at 20 deg/s at 15 Hz found its "stop" at -1.5 deg after 0.33 s and corrected -10 motor
     # turns (the stop was at -125); now the rate is refused before anything moves, naming what would hold
-    arm = Arm(_homing_arm("arm6.yaml", "shoulder_pitch", 15.0, 20.0), emulate=True, home=["shoulder_pitch"])
+    config = _homing_arm("arm6.yaml", "shoulder_pitch", 15.0, 20.0)
+    # (the velocity limits the encoder unwraps at 15 Hz: arm6's flange, at 360 deg/s, needs 16 Hz)
+    joints = tuple(
+        dataclasses.replace(j, velocity_limit_dps=min(j.velocity_limit_dps, 0.9 * 180.0 * 15.0 / j.gear_ratio))
+        for j in config.joints
+    )
+    arm = Arm(dataclasses.replace(config, joints=joints), emulate=True, home=["shoulder_pitch"])
     with pytest.raises(HomingError, match="cannot tell its stop in time") as caught:
         arm.connect()
     text = str(caught.value)
@@ -408,8 +414,9 @@ def test_the_stop_found_is_the_true_one_or_the_rate_is_refused_before_the_seek(
     arm = Arm(config, emulate=True, home=[joint], emulated_protocol="v3" if "v3" in name else None)
     try:
         arm.connect()
-    except HomingError as refused:
-        assert "cannot tell its stop in time" in str(refused), refused
+    except (HomingError, ConfigError) as refused:
+        # (or, older drives below 17 Hz, a joint of the arm whose velocity limit the encoder cannot unwrap)
+        assert "cannot tell its stop in time" in str(refused) or "half a turn" in str(refused), refused
         # (at 30 Hz the stall is told within 4 periods' travel, 2.7 deg, plus the joint's lag: inside 4 deg)
         assert rate_hz < 30.0, refused
         assert arm.plant is not None and abs(arm.plant.joint_positions_deg()[j]) < 0.1  # before the seek
