@@ -287,14 +287,6 @@ def stability_report(loops: Sequence[JointLoop], rate_hz: float, bounds: LoopBou
     return StabilityReport(rate_hz, tuple(joint_margin(loop, rate_hz, bounds) for loop in loops))
 
 
-def holds_at(loops: Sequence[JointLoop], rate_hz: float, bounds: LoopBounds = LoopBounds()) -> bool:
-    """Every loop keeps the required margin at ``rate_hz`` (cheaper than a report: no lowest-rate search)."""
-    return all(
-        gain_margin(j.kp_nm_per_deg, j.kd_nm_per_dps, j.inertia_low_kgm2, rate_hz, bounds) >= bounds.required_margin
-        for j in loops
-    )
-
-
 def gains_for_bandwidth(bandwidth_hz: float, inertia_kgm2: float) -> tuple[float, float]:
     """``(kp N·m/deg, kd N·m/(deg/s))`` that give a critically damped loop of ``bandwidth_hz`` on ``inertia_kgm2``
     (continuous time: the rate's margin is checked apart).
